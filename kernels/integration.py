@@ -1,0 +1,80 @@
+"""Integrator stages: explicit Runge-Kutta stages driven by a per-world tableau, and symplectic Euler.
+
+Every explicit method here is written as stages of the first-order system y = (x, v), y' = (v, a):
+stage s evaluates k_s = (v_s, a_s) at y_s, adds b_s k_s to an accumulator and forms the next stage
+state y_{s+1} = y_n + h c_{s+1} k_s; the last stage writes y_{n+1} = y_n + h sum_s b_s k_s. The
+tableau lives in arrays indexed by world, so one launch advances copies that use different methods
+(the side-by-side comparison) and a single run is the one-world case.
+"""
+
+import warp as wp
+
+wp.set_module_options({"enable_backward": False})
+
+
+def build(scalar):
+    vec3 = wp.types.vector(3, scalar)
+
+    @wp.func
+    def acceleration(f: vec3, inv_mass: scalar, gravity: vec3):
+        """a = f/m + g; a particle of infinite mass (inv_mass 0) does not move."""
+        if inv_mass == scalar(0.0):
+            return vec3(scalar(0.0))
+        return f * inv_mass + gravity
+
+    @wp.kernel(module="unique")
+    def integrate_stage(
+        stage: int,
+        h: scalar,
+        # Model:
+        particle_inv_mass: wp.array(dtype=scalar),
+        particle_world: wp.array(dtype=wp.int32),
+        gravity: vec3,
+        world_stage_count: wp.array(dtype=wp.int32),
+        world_symplectic: wp.array(dtype=wp.int32),
+        world_stage_c: wp.array2d(dtype=scalar),
+        world_stage_b: wp.array2d(dtype=scalar),
+        # State in (y_n), stage state (y_s) and its forces:
+        q_n: wp.array(dtype=vec3),
+        qd_n: wp.array(dtype=vec3),
+        q_s: wp.array(dtype=vec3),
+        qd_s: wp.array(dtype=vec3),
+        f_s: wp.array(dtype=vec3),
+        # Out: accumulators, next stage state, and the step's result
+        acc_q_out: wp.array(dtype=vec3),
+        acc_qd_out: wp.array(dtype=vec3),
+        q_next_out: wp.array(dtype=vec3),
+        qd_next_out: wp.array(dtype=vec3),
+        q_out: wp.array(dtype=vec3),
+        qd_out: wp.array(dtype=vec3),
+    ):
+        i = wp.tid()
+        w = particle_world[i]
+        count = world_stage_count[w]
+        if stage >= count:
+            return
+        a = acceleration(f_s[i], particle_inv_mass[i], gravity)
+        v = qd_s[i]
+        if world_symplectic[w] != 0:
+            # Semi-implicit Euler: velocity first, then position with the new velocity.
+            v_new = qd_n[i] + h * a
+            qd_out[i] = v_new
+            q_out[i] = q_n[i] + h * v_new
+            return
+        b = world_stage_b[w, stage]
+        acc_q = b * v
+        acc_qd = b * a
+        if stage > 0:
+            acc_q = acc_q + acc_q_out[i]
+            acc_qd = acc_qd + acc_qd_out[i]
+        if stage == count - 1:
+            q_out[i] = q_n[i] + h * acc_q
+            qd_out[i] = qd_n[i] + h * acc_qd
+        else:
+            acc_q_out[i] = acc_q
+            acc_qd_out[i] = acc_qd
+            c = world_stage_c[w, stage + 1]
+            q_next_out[i] = q_n[i] + (h * c) * v
+            qd_next_out[i] = qd_n[i] + (h * c) * a
+
+    return {"acceleration": acceleration, "integrate_stage": integrate_stage}

@@ -1,0 +1,52 @@
+"""Spring and damper forces: one thread per spring, accumulated with atomic adds."""
+
+import warp as wp
+
+wp.set_module_options({"enable_backward": False})
+
+
+def build(scalar):
+    vec3 = wp.types.vector(3, scalar)
+
+    @wp.func
+    def spring_force(xa: vec3, xb: vec3, va: vec3, vb: vec3, rest: scalar, ks: scalar, kd: scalar):
+        """Force on particle a: -ks(|d| - r) d^ - kd((va - vb).d^) d^ with d = xa - xb; b gets the negative."""
+        d = xa - xb
+        length = wp.length(d)
+        # Coincident particles have no direction to push along; returning zero avoids 0/0 = NaN.
+        if length == scalar(0.0):
+            return vec3(scalar(0.0))
+        dhat = d / length
+        magnitude = ks * (length - rest) + kd * wp.dot(va - vb, dhat)
+        return -magnitude * dhat
+
+    @wp.kernel(module="unique")
+    def eval_springs(
+        # Model:
+        spring_indices: wp.array(dtype=wp.vec2i),
+        spring_rest_length: wp.array(dtype=scalar),
+        spring_stiffness: wp.array(dtype=scalar),
+        spring_damping: wp.array(dtype=scalar),
+        # State in:
+        particle_q: wp.array(dtype=vec3),
+        particle_qd: wp.array(dtype=vec3),
+        # Out:
+        particle_f_out: wp.array(dtype=vec3),
+    ):
+        tid = wp.tid()
+        pair = spring_indices[tid]
+        a = pair[0]
+        b = pair[1]
+        f = spring_force(
+            particle_q[a],
+            particle_q[b],
+            particle_qd[a],
+            particle_qd[b],
+            spring_rest_length[tid],
+            spring_stiffness[tid],
+            spring_damping[tid],
+        )
+        wp.atomic_add(particle_f_out, a, f)
+        wp.atomic_sub(particle_f_out, b, f)
+
+    return {"spring_force": spring_force, "eval_springs": eval_springs}

@@ -1,0 +1,180 @@
+"""Integrators: explicit Euler, symplectic Euler, midpoint and RK4 (and the seam for implicit).
+
+Force evaluation (:func:`eval_forces`) is apart from integration: every method only combines
+evaluations of it. Contact (:func:`apply_contacts`) runs once per step on the result; see
+``kernels/contact.py`` for why it is not part of the stages. ``step`` only launches kernels: no
+NumPy, no host synchronisation, so a run of steps can be captured as a graph and replayed.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import warp as wp
+
+from .model import NUMPY_SCALARS, Model, State
+
+# Butcher tableaux of the explicit methods, as (c, b): stage s is evaluated at
+# y_n + h c_s k_{s-1}, and y_{n+1} = y_n + h sum_s b_s k_s. All of them have a_{s,j} = 0 except the
+# subdiagonal, which is why c alone describes the stages.
+TABLEAUX = {
+    "euler": ((0.0,), (1.0,)),
+    "midpoint": ((0.0, 0.5), (0.0, 1.0)),
+    "rk4": ((0.0, 0.5, 0.5, 1.0), (1.0 / 6.0, 1.0 / 3.0, 1.0 / 3.0, 1.0 / 6.0)),
+    # Symplectic Euler is a partitioned method with one force evaluation; the stage kernel
+    # special-cases it (v first, then x with the new v), so its tableau is only a placeholder.
+    "symplectic": ((0.0,), (1.0,)),
+}
+EXPLICIT = tuple(TABLEAUX)
+ORDER = {"euler": 1, "symplectic": 1, "midpoint": 2, "rk4": 4, "implicit": 1}
+MAX_STAGES = 4
+
+
+def eval_forces(model: Model, q: wp.array, qd: wp.array, f_out: wp.array):
+    """Internal forces (springs and dampers) of the state (q, qd) into ``f_out``; gravity is added as an acceleration."""
+    f_out.zero_()
+    if model.spring_count:
+        wp.launch(
+            model.kernels.eval_springs,
+            dim=model.spring_count,
+            inputs=[
+                model.spring_indices,
+                model.spring_rest_length,
+                model.spring_stiffness,
+                model.spring_damping,
+                q,
+                qd,
+            ],
+            outputs=[f_out],
+            device=model.device,
+        )
+
+
+def apply_contacts(model: Model, state_in: State, state_out: State):
+    """Terrain contact on ``state_out`` after a step from ``state_in``; one launch per primitive type present."""
+    if model.plane_count:
+        wp.launch(
+            model.kernels.collide_planes,
+            dim=model.particle_count,
+            inputs=[
+                model.particle_inv_mass,
+                model.particle_world,
+                model.plane_count,
+                model.plane_world,
+                model.plane_point,
+                model.plane_normal,
+                model.plane_hole_center,
+                model.plane_hole_radius,
+                model.plane_restitution,
+                model.plane_friction,
+                model.contact_epsilon,
+                model.contact_velocity_epsilon,
+                state_in.particle_q,
+                state_in.particle_qd,
+            ],
+            outputs=[state_out.particle_q, state_out.particle_qd],
+            device=model.device,
+        )
+    for hook in getattr(model, "contact_hooks", ()):
+        hook(model, state_in, state_out)
+
+
+class Integrator:
+    """Base class: ``step(state_in, state_out, dt)`` advances one step, contact included."""
+
+    name = "base"
+
+    def __init__(self, model: Model):
+        self.model = model
+
+    def step(self, state_in: State, state_out: State, dt: float):
+        raise NotImplementedError
+
+    def stats(self) -> dict:
+        """Per-run statistics for the metrics file (e.g. linear-solver iterations)."""
+        return {}
+
+
+class ExplicitIntegrator(Integrator):
+    """Explicit Euler, symplectic Euler, midpoint or RK4, one method per world.
+
+    Args:
+        model: the model to advance.
+        method: a method name for every world, or a list with one name per world (the copies of
+            a side-by-side comparison advance in the same launches).
+    """
+
+    def __init__(self, model: Model, method="symplectic"):
+        super().__init__(model)
+        methods = [method] * model.world_count if isinstance(method, str) else list(method)
+        if len(methods) != model.world_count:
+            raise ValueError(f"need one method per world ({model.world_count}), got {len(methods)}")
+        for name in methods:
+            if name not in TABLEAUX:
+                raise ValueError(f"unknown explicit integrator {name!r}; choose from {', '.join(TABLEAUX)}")
+        self.methods = methods
+        self.name = methods[0] if len(set(methods)) == 1 else "mixed"
+        np_scalar = NUMPY_SCALARS[model.precision]
+        c = np.zeros((model.world_count, MAX_STAGES), dtype=np_scalar)
+        b = np.zeros((model.world_count, MAX_STAGES), dtype=np_scalar)
+        counts = np.zeros(model.world_count, dtype=np.int32)
+        symplectic = np.zeros(model.world_count, dtype=np.int32)
+        for w, name in enumerate(methods):
+            cw, bw = TABLEAUX[name]
+            counts[w] = len(cw)
+            c[w, : len(cw)] = cw
+            b[w, : len(bw)] = bw
+            symplectic[w] = name == "symplectic"
+        self.stage_count = int(counts.max())
+        device = model.device
+        self.world_stage_count = wp.array(counts, dtype=wp.int32, device=device)
+        self.world_symplectic = wp.array(symplectic, dtype=wp.int32, device=device)
+        self.world_stage_c = wp.array2d(c, dtype=model.scalar, device=device)
+        self.world_stage_b = wp.array2d(b, dtype=model.scalar, device=device)
+        # Stage buffers, allocated once: forces, the stage state and the RK accumulators.
+        n = model.particle_count
+        self.f = wp.zeros(n, dtype=model.vec3, device=device)
+        multi = self.stage_count > 1
+        self.q_s = wp.zeros(n if multi else 0, dtype=model.vec3, device=device)
+        self.qd_s = wp.zeros(n if multi else 0, dtype=model.vec3, device=device)
+        self.acc_q = wp.zeros(n if multi else 0, dtype=model.vec3, device=device)
+        self.acc_qd = wp.zeros(n if multi else 0, dtype=model.vec3, device=device)
+
+    def step(self, state_in: State, state_out: State, dt: float):
+        model = self.model
+        h = model.scalar(dt)
+        q, qd = state_in.particle_q, state_in.particle_qd
+        for stage in range(self.stage_count):
+            eval_forces(model, q, qd, self.f)
+            wp.launch(
+                model.kernels.integrate_stage,
+                dim=model.particle_count,
+                inputs=[
+                    stage,
+                    h,
+                    model.particle_inv_mass,
+                    model.particle_world,
+                    model.gravity,
+                    self.world_stage_count,
+                    self.world_symplectic,
+                    self.world_stage_c,
+                    self.world_stage_b,
+                    state_in.particle_q,
+                    state_in.particle_qd,
+                    q,
+                    qd,
+                    self.f,
+                ],
+                outputs=[self.acc_q, self.acc_qd, self.q_s, self.qd_s, state_out.particle_q, state_out.particle_qd],
+                device=model.device,
+            )
+            q, qd = self.q_s, self.qd_s
+        apply_contacts(model, state_in, state_out)
+
+
+def make_integrator(name, model: Model, options: dict | None = None) -> Integrator:
+    """The integrator called ``name`` (or one name per world) for ``model``."""
+    if isinstance(name, str) and name == "implicit":
+        from .implicit import ImplicitIntegrator  # noqa: PLC0415 - optional until it exists
+
+        return ImplicitIntegrator(model, **(options or {}))
+    return ExplicitIntegrator(model, name)

@@ -1,0 +1,326 @@
+"""Model (immutable, on a device), State (positions and velocities) and the builder that makes them.
+
+The builder collects jellies and terrain in NumPy; :meth:`ModelBuilder.finalize` copies them to a
+device once. Integrators and writers read the model and never change it.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+import warp as wp
+
+from . import lattice
+from .kernels import get_kernels
+
+SCALARS = {"float32": wp.float32, "float64": wp.float64}
+NUMPY_SCALARS = {"float32": np.float32, "float64": np.float64}
+
+
+def rotation_matrix(axis, degrees) -> np.ndarray:
+    """Rotation by ``degrees`` about ``axis`` (Rodrigues' formula), float64 3x3."""
+    axis = np.asarray(axis, dtype=np.float64)
+    axis = axis / np.linalg.norm(axis)
+    t = math.radians(degrees)
+    k = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
+    return np.eye(3) + math.sin(t) * k + (1 - math.cos(t)) * (k @ k)
+
+
+@dataclass
+class JellyInfo:
+    """Host-side description of one jelly inside a model."""
+
+    shape: tuple
+    """Particles per axis (nx, ny, nz)."""
+    particle_start: int
+    """Index of the jelly's first particle."""
+    particle_count: int
+    spring_start: int
+    spring_count: int
+    spacing: tuple
+    """Rest spacing per axis [m]."""
+    surface_quads: np.ndarray
+    """Boundary quads, jelly-local particle indices, shape [Q, 4], int32."""
+    world: int = 0
+    name: str = ""
+
+
+class ModelBuilder:
+    """Collects particles, springs and terrain in NumPy (float64) before :meth:`finalize`."""
+
+    def __init__(self, gravity=(0.0, -9.8, 0.0)):
+        self.gravity = np.asarray(gravity, dtype=np.float64)
+        self.contact_epsilon = 0.01
+        self.contact_velocity_epsilon = 0.01
+        self._q, self._qd, self._mass, self._jelly_of, self._world_of = [], [], [], [], []
+        self._pairs, self._rest, self._ks, self._kd, self._type = [], [], [], [], []
+        self.jellies: list[JellyInfo] = []
+        self.planes: list[dict] = []
+        self.world_count = 1
+        self._particle_count = 0
+        self._spring_count = 0
+
+    # -- particles and springs ------------------------------------------------------------------
+
+    def add_particles(self, q, qd, mass, world=0) -> int:
+        """Add loose particles (no jelly springs); returns the index of the first one."""
+        q = np.atleast_2d(np.asarray(q, dtype=np.float64))
+        n = q.shape[0]
+        start = self._particle_count
+        self._q.append(q)
+        self._qd.append(np.broadcast_to(np.asarray(qd, dtype=np.float64), (n, 3)).copy())
+        self._mass.append(np.broadcast_to(np.asarray(mass, dtype=np.float64), (n,)).copy())
+        self._jelly_of.append(np.full(n, max(len(self.jellies) - 1, 0), dtype=np.int32))
+        self._world_of.append(np.full(n, world, dtype=np.int32))
+        self._particle_count += n
+        self.world_count = max(self.world_count, world + 1)
+        return start
+
+    def add_spring(self, a, b, ks, kd, spring_type=lattice.STRUCTURAL, rest=None):
+        """Add springs between particle arrays ``a`` and ``b``; rest length defaults to the current distance."""
+        a = np.atleast_1d(np.asarray(a, dtype=np.int32))
+        b = np.atleast_1d(np.asarray(b, dtype=np.int32))
+        q = np.concatenate(self._q)
+        if rest is None:
+            rest = np.linalg.norm(q[a] - q[b], axis=1)
+        n = a.shape[0]
+        self._pairs.append(np.stack([a, b], axis=1))
+        self._rest.append(np.broadcast_to(np.asarray(rest, dtype=np.float64), (n,)).copy())
+        self._ks.append(np.full(n, ks, dtype=np.float64))
+        self._kd.append(np.full(n, kd, dtype=np.float64))
+        self._type.append(np.full(n, spring_type, dtype=np.int32))
+        self._spring_count += n
+
+    def add_jelly(
+        self,
+        resolution,
+        size,
+        particle_mass,
+        springs: dict,
+        center=(0.0, 0.0, 0.0),
+        axis=(0.0, 1.0, 0.0),
+        degrees=0.0,
+        velocity=(0.0, 0.0, 0.0),
+        angular_velocity=(0.0, 0.0, 0.0),
+        world=0,
+        name="",
+    ) -> JellyInfo:
+        """Add a lattice jelly.
+
+        Args:
+            resolution: particles per axis (nx, ny, nz).
+            size: edge lengths [m]; a scalar means a cube.
+            particle_mass: mass of each particle [kg].
+            springs: ``{"structural"|"shear"|"bending": {"ks": N/m, "kd": N s/m}}``; a type that is
+                absent gets no springs at all.
+            center, axis, degrees: placement: the lattice is centred on ``center`` and rotated about
+                ``axis`` by ``degrees``.
+            velocity, angular_velocity: initial rigid motion, v = velocity + omega x (x - center).
+        """
+        shape = tuple(int(n) for n in resolution)
+        size = np.broadcast_to(np.asarray(size, dtype=np.float64), (3,))
+        local = lattice.lattice_points(shape, size)
+        rot = rotation_matrix(axis, degrees)
+        center = np.asarray(center, dtype=np.float64)
+        q = local @ rot.T + center
+        qd = np.asarray(velocity, dtype=np.float64) + np.cross(np.asarray(angular_velocity, dtype=np.float64), q - center)
+        start = self._particle_count
+        spring_start = self._spring_count
+        self.add_particles(q, qd, particle_mass, world=world)
+        self._jelly_of[-1][:] = len(self.jellies)
+        pairs, types = lattice.lattice_springs(shape)
+        for t, type_name in enumerate(lattice.SPRING_TYPE_NAMES):
+            params = springs.get(type_name)
+            sel = types == t
+            if params is None or not sel.any():
+                continue
+            self.add_spring(pairs[sel, 0] + start, pairs[sel, 1] + start, params["ks"], params.get("kd", 0.0), t)
+        spacing = tuple(float(s / (n - 1)) if n > 1 else 0.0 for s, n in zip(size, shape))
+        info = JellyInfo(
+            shape=shape,
+            particle_start=start,
+            particle_count=q.shape[0],
+            spring_start=spring_start,
+            spring_count=self._spring_count - spring_start,
+            spacing=spacing,
+            surface_quads=lattice.surface_quads(shape),
+            world=world,
+            name=name or f"Jelly_{len(self.jellies)}",
+        )
+        self.jellies.append(info)
+        return info
+
+    # -- terrain --------------------------------------------------------------------------------
+
+    def add_plane(self, point, normal, restitution=0.5, friction=0.3, hole_center=None, hole_radius=0.0, size=20.0, world=0):
+        """Add a collision plane; particles within ``hole_radius`` of ``hole_center`` pass through it."""
+        normal = np.asarray(normal, dtype=np.float64)
+        normal = normal / np.linalg.norm(normal)
+        self.planes.append(
+            {
+                "point": np.asarray(point, dtype=np.float64),
+                "normal": normal,
+                "restitution": float(restitution),
+                "friction": float(friction),
+                "hole_center": np.zeros(3) if hole_center is None else np.asarray(hole_center, dtype=np.float64),
+                "hole_radius": float(hole_radius),
+                "size": float(size),
+                "world": int(world),
+            }
+        )
+
+    # -- finalize -------------------------------------------------------------------------------
+
+    def finalize(self, device=None, precision="float32") -> Model:
+        """Copy everything to ``device`` as a :class:`Model` in ``precision`` ("float32" or "float64")."""
+        if precision not in SCALARS:
+            raise ValueError(f"precision must be one of {', '.join(SCALARS)} (got {precision!r})")
+        device = wp.get_device(device)
+        scalar = SCALARS[precision]
+        np_scalar = NUMPY_SCALARS[precision]
+        kernels = get_kernels(scalar)
+        vec3 = kernels.vec3
+
+        def arr(values, dtype, np_dtype=None):
+            values = np.asarray(values, dtype=np_dtype) if np_dtype is not None else values
+            return wp.array(values, dtype=dtype, device=device)
+
+        m = Model()
+        m.device = device
+        m.precision = precision
+        m.scalar = scalar
+        m.vec3 = vec3
+        m.kernels = kernels
+        m.world_count = self.world_count
+        m.jellies = list(self.jellies)
+
+        q = np.concatenate(self._q) if self._q else np.zeros((0, 3))
+        m.particle_count = q.shape[0]
+        mass = np.concatenate(self._mass) if self._mass else np.zeros(0)
+        inv_mass = np.where(mass > 0, 1.0 / np.where(mass > 0, mass, 1.0), 0.0)
+        m.particle_q_host = q.copy()
+        m.particle_mass_host = mass.copy()
+        m.particle_q = arr(q, vec3, np_scalar)
+        m.particle_qd = arr(np.concatenate(self._qd) if self._qd else np.zeros((0, 3)), vec3, np_scalar)
+        m.particle_mass = arr(mass, scalar, np_scalar)
+        m.particle_inv_mass = arr(inv_mass, scalar, np_scalar)
+        m.particle_jelly = arr(np.concatenate(self._jelly_of) if self._jelly_of else np.zeros(0), wp.int32, np.int32)
+        m.particle_world = arr(np.concatenate(self._world_of) if self._world_of else np.zeros(0), wp.int32, np.int32)
+
+        m.spring_count = self._spring_count
+        pairs = np.concatenate(self._pairs) if self._pairs else np.zeros((0, 2), dtype=np.int32)
+        m.spring_indices_host = pairs
+        m.spring_type_host = np.concatenate(self._type) if self._type else np.zeros(0, dtype=np.int32)
+        m.spring_rest_host = np.concatenate(self._rest) if self._rest else np.zeros(0)
+        m.spring_stiffness_host = np.concatenate(self._ks) if self._ks else np.zeros(0)
+        m.spring_damping_host = np.concatenate(self._kd) if self._kd else np.zeros(0)
+        m.spring_indices = arr(pairs, wp.vec2i, np.int32)
+        m.spring_rest_length = arr(m.spring_rest_host, scalar, np_scalar)
+        m.spring_stiffness = arr(m.spring_stiffness_host, scalar, np_scalar)
+        m.spring_damping = arr(m.spring_damping_host, scalar, np_scalar)
+
+        m.gravity = vec3(*[scalar(g) for g in self.gravity])
+        m.gravity_host = self.gravity.copy()
+        m.contact_epsilon = scalar(self.contact_epsilon)
+        m.contact_velocity_epsilon = scalar(self.contact_velocity_epsilon)
+
+        m.planes = [dict(p) for p in self.planes]
+        m.plane_count = len(self.planes)
+
+        def col(name, shape):
+            return np.array([p[name] for p in self.planes]).reshape(shape)
+
+        n = m.plane_count
+        m.plane_point = arr(col("point", (n, 3)), vec3, np_scalar)
+        m.plane_normal = arr(col("normal", (n, 3)), vec3, np_scalar)
+        m.plane_hole_center = arr(col("hole_center", (n, 3)), vec3, np_scalar)
+        m.plane_hole_radius = arr(col("hole_radius", (n,)), scalar, np_scalar)
+        m.plane_restitution = arr(col("restitution", (n,)), scalar, np_scalar)
+        m.plane_friction = arr(col("friction", (n,)), scalar, np_scalar)
+        m.plane_world = arr(col("world", (n,)), wp.int32, np.int32)
+        return m
+
+
+class Model:
+    """Everything about a scene that does not change while it runs, on one device.
+
+    Attributes (device arrays unless marked host):
+        particle_q: initial positions [m], shape [particle_count], vec3.
+        particle_qd: initial velocities [m/s], shape [particle_count], vec3.
+        particle_mass: mass [kg], shape [particle_count], scalar.
+        particle_inv_mass: 1/mass [1/kg] (0 for a fixed particle), shape [particle_count], scalar.
+        particle_jelly: jelly index, shape [particle_count], int32.
+        particle_world: world (copy in a comparison) index, shape [particle_count], int32.
+        spring_indices: particle pair (a, b), shape [spring_count], vec2i.
+        spring_rest_length: rest length [m], shape [spring_count], scalar.
+        spring_stiffness: ks [N/m], shape [spring_count], scalar.
+        spring_damping: kd [N s/m], shape [spring_count], scalar.
+        gravity: acceleration [m/s^2], vec3 value.
+        plane_*: per plane point [m], unit normal, hole centre [m] and radius [m] (0 = none),
+            restitution, friction coefficient and world, shape [plane_count].
+        contact_epsilon: distance within which a particle touches a surface [m].
+        contact_velocity_epsilon: normal speed below which a touching particle rests [m/s].
+        jellies: host list of :class:`JellyInfo`.
+    """
+
+    def state(self) -> State:
+        """A new state holding the model's initial positions and velocities."""
+        s = State()
+        s.particle_q = wp.clone(self.particle_q)
+        s.particle_qd = wp.clone(self.particle_qd)
+        return s
+
+
+class State:
+    """Positions and velocities of all particles.
+
+    Attributes:
+        particle_q: positions [m], shape [particle_count], vec3.
+        particle_qd: velocities [m/s], shape [particle_count], vec3.
+    """
+
+    def assign(self, other: State):
+        wp.copy(self.particle_q, other.particle_q)
+        wp.copy(self.particle_qd, other.particle_qd)
+
+
+def build_model(scene, device=None, precision=None, worlds=None) -> Model:
+    """Build a :class:`Model` from a validated :class:`~softsim_warp.scene.Scene`."""
+    builder = ModelBuilder(scene.sim["gravity"])
+    populate(builder, scene.data)
+    return builder.finalize(device, precision or scene.sim["precision"])
+
+
+def populate(builder: ModelBuilder, data: dict, world=0):
+    """Add a validated scene's jellies and terrain to ``builder`` as world ``world``."""
+    sim = data["simulation"]
+    builder.contact_epsilon = sim["contact_epsilon"]
+    builder.contact_velocity_epsilon = sim["contact_velocity_epsilon"]
+    for i, j in enumerate(data["jelly"]):
+        builder.add_jelly(
+            j["resolution"],
+            j["size"],
+            j["particle_mass"],
+            j["springs"],
+            center=j["center"],
+            axis=j["rotation"]["axis"],
+            degrees=j["rotation"]["degrees"],
+            velocity=j["velocity"],
+            angular_velocity=j["angular_velocity"],
+            world=world,
+            name=f"Jelly_{i}",
+        )
+    for p in data.get("plane", []):
+        hole = p.get("hole")
+        builder.add_plane(
+            p["point"],
+            p["normal"],
+            p["restitution"],
+            p["friction"],
+            hole_center=hole["center"] if hole else None,
+            hole_radius=hole["radius"] if hole else 0.0,
+            size=p["size"],
+            world=world,
+        )

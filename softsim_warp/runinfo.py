@@ -1,0 +1,97 @@
+"""Run summaries: the metrics file's summary, the one-line report, the explosion message."""
+
+from __future__ import annotations
+
+import numpy as np
+import warp as wp
+
+
+def energy_drift(metrics) -> tuple[float, float]:
+    """(E_end - E_0 [J], that change relative to the energy available above the lowest state reached).
+
+    The gravity energy's zero is arbitrary, so the relative drift divides by E_0 minus the lowest
+    gravity energy seen: the energy the jelly could give up by falling plus what it started with.
+    """
+    if len(metrics) < 2:
+        return 0.0, 0.0
+    e0, e1 = metrics[0].total_energy, metrics[-1].total_energy
+    lowest = min(m.gravity_energy for m in metrics)
+    scale = max(e0 - lowest, 1e-300)
+    return e1 - e0, (e1 - e0) / scale
+
+
+def summary_dict(scene, model, integrator, simulator, result, device) -> dict:
+    drift, rel = energy_drift(result.metrics)
+    step_seconds = getattr(result, "step_seconds", result.wall_seconds)
+    return {
+        "scene": scene.name,
+        "source": scene.source,
+        "integrator": integrator.name,
+        "precision": model.precision,
+        "dt": simulator.dt,
+        "fps": simulator.fps,
+        "device": str(device),
+        "warp_version": wp.config.version,
+        "particles": model.particle_count,
+        "springs": model.spring_count,
+        "steps": result.steps,
+        "frames": result.frames_written,
+        "sim_time": result.sim_time,
+        "wall_seconds": result.wall_seconds,
+        "step_seconds": step_seconds,
+        "compile_seconds": result.compile_seconds,
+        "particle_steps_per_second": model.particle_count * result.steps / step_seconds if step_seconds > 0 else 0.0,
+        "energy_drift": drift,
+        "energy_drift_relative": rel,
+        "max_speed_bound": simulator.max_speed,
+        "exploded": result.exploded,
+        "explosion": result.explosion,
+        "interrupted": result.interrupted,
+        **integrator.stats(),
+    }
+
+
+def summary_line(s: dict, out) -> str:
+    return (
+        f"{s['scene']}: {s['frames']} frames, {s['steps']} steps of {s['integrator']} at dt={s['dt']:g} s in "
+        f"{s['wall_seconds']:.2f} s ({s['particle_steps_per_second']:.3g} particle-steps/s), "
+        f"energy drift {s['energy_drift']:+.4g} J ({100 * s['energy_drift_relative']:+.2f}%) -> {out}"
+    )
+
+
+def predicted_stable_dt(scene, method) -> float | None:
+    """Largest dt predicted stable for the scene's first jelly, from a linear analysis at rest.
+
+    The analysis runs on a lattice of at most 4 particles per axis with the jelly's spacing, masses
+    and spring constants: the stiffest modes are local, so a small lattice predicts the limit.
+    """
+    try:
+        from .stability_analysis import predict_lattice_dt  # noqa: PLC0415
+    except ImportError:
+        return None
+    j = scene.jellies[0]
+    res = j["resolution"]
+    small = [min(n, 4) for n in res]
+    spacing = [s / (n - 1) if n > 1 else 0.0 for s, n in zip(j["size"], res)]
+    size = [sp * (n - 1) if n > 1 else 0.0 for sp, n in zip(spacing, small)]
+    springs = j["springs"]
+    ks = {k: v["ks"] for k, v in springs.items()}
+    kd = {k: v.get("kd", 0.0) for k, v in springs.items()}
+    try:
+        return predict_lattice_dt(small, size, j["particle_mass"], ks, kd, methods=(method,))[method]
+    except Exception:  # noqa: BLE001 - a prediction is advice; never let it hide the explosion itself
+        return None
+
+
+def explosion_message(scene, model, result) -> str:
+    e = result.explosion
+    sim = scene.sim
+    text = (
+        f"{scene.source}: simulation exploded at frame {e['frame']} (t = {e['time']:.4g} s) with integrator "
+        f"{sim['integrator']} at dt = {sim['dt']:g} s: {e['reason']}"
+    )
+    pred = predicted_stable_dt(scene, sim["integrator"])
+    if pred is not None and np.isfinite(pred):
+        text += f"; largest dt predicted stable for this jelly: {pred:.3g} s"
+    text += f"; frames 0-{result.frames_written - 1} were kept"
+    return text

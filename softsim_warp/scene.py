@@ -1,0 +1,415 @@
+"""Scene files: TOML loading, ``--set`` overrides, validation against a schema, built-in scenes.
+
+A scene is validated as a whole after overrides are applied, so a value given on the command line
+is checked exactly like one in the file. Every problem is reported as a :class:`SceneError` that
+names the file, the dotted key, what is allowed and the value given.
+"""
+
+from __future__ import annotations
+
+import copy
+import difflib
+import math
+import tomllib
+from dataclasses import dataclass, field
+from importlib import resources
+from pathlib import Path
+
+from .errors import SceneError
+
+INTEGRATORS = ("euler", "symplectic", "midpoint", "rk4", "implicit")
+PRECISIONS = ("float32", "float64")
+
+
+# ---------------------------------------------------------------------------------------------
+# Schema: each field knows how to check and normalise one value.
+
+
+class Field:
+    def __init__(self, default=None, required=False, doc=""):
+        self.default = default
+        self.required = required
+        self.doc = doc
+
+    def check(self, value, key, ctx):  # pragma: no cover - overridden
+        raise NotImplementedError
+
+
+def _is_number(value):
+    return isinstance(value, (int, float)) and not isinstance(value, bool)
+
+
+class Float(Field):
+    def __init__(self, default=None, lo=None, hi=None, lo_open=False, hi_open=False, **kw):
+        super().__init__(default, **kw)
+        self.lo, self.hi, self.lo_open, self.hi_open = lo, hi, lo_open, hi_open
+
+    def allowed(self):
+        parts = []
+        if self.lo is not None:
+            parts.append(f"{'>' if self.lo_open else '>='} {self.lo:g}")
+        if self.hi is not None:
+            parts.append(f"{'<' if self.hi_open else '<='} {self.hi:g}")
+        return "a finite number" + (" " + " and ".join(parts) if parts else "")
+
+    def check(self, value, key, ctx):
+        if not _is_number(value) or not math.isfinite(value):
+            ctx.fail(key, f"must be {self.allowed()}", value)
+        v = float(value)
+        if self.lo is not None and (v < self.lo or (self.lo_open and v == self.lo)):
+            ctx.fail(key, f"must be {self.allowed()}", value)
+        if self.hi is not None and (v > self.hi or (self.hi_open and v == self.hi)):
+            ctx.fail(key, f"must be {self.allowed()}", value)
+        return v
+
+
+class Int(Field):
+    def __init__(self, default=None, lo=None, **kw):
+        super().__init__(default, **kw)
+        self.lo = lo
+
+    def check(self, value, key, ctx):
+        if isinstance(value, float) and value.is_integer():
+            value = int(value)
+        if not isinstance(value, int) or isinstance(value, bool) or (self.lo is not None and value < self.lo):
+            ctx.fail(key, "must be an integer" + (f" >= {self.lo}" if self.lo is not None else ""), value)
+        return int(value)
+
+
+class Choice(Field):
+    def __init__(self, choices, default=None, **kw):
+        super().__init__(default, **kw)
+        self.choices = tuple(choices)
+
+    def check(self, value, key, ctx):
+        if value not in self.choices:
+            ctx.fail(key, "must be one of " + ", ".join(self.choices), value)
+        return value
+
+
+class Text(Field):
+    def check(self, value, key, ctx):
+        if not isinstance(value, str):
+            ctx.fail(key, "must be a string", value)
+        return value
+
+
+class Vec3(Field):
+    def __init__(self, default=None, nonzero=False, lo=None, lo_open=False, scalar_ok=False, **kw):
+        super().__init__(default, **kw)
+        self.nonzero, self.lo, self.lo_open, self.scalar_ok = nonzero, lo, lo_open, scalar_ok
+
+    def check(self, value, key, ctx):
+        if self.scalar_ok and _is_number(value):
+            value = [value] * 3
+        what = "a list of 3 finite numbers" + (" or one number" if self.scalar_ok else "")
+        if not isinstance(value, list) or len(value) != 3 or not all(_is_number(c) for c in value):
+            ctx.fail(key, f"must be {what}", value)
+        if not all(math.isfinite(c) for c in value):
+            ctx.fail(key, f"must be {what}", value)
+        if self.lo is not None and any(c < self.lo or (self.lo_open and c == self.lo) for c in value):
+            ctx.fail(key, f"components must be {'>' if self.lo_open else '>='} {self.lo:g}", value)
+        if self.nonzero and all(c == 0 for c in value):
+            ctx.fail(key, "must not be the zero vector", value)
+        return [float(c) for c in value]
+
+
+class Int3(Field):
+    def check(self, value, key, ctx):
+        if isinstance(value, int) and not isinstance(value, bool):
+            value = [value] * 3
+        if (
+            not isinstance(value, list)
+            or len(value) != 3
+            or not all(isinstance(c, int) and not isinstance(c, bool) for c in value)
+            or min(value) < 1
+        ):
+            ctx.fail(key, "must be an integer >= 1 or a list of 3 such integers", value)
+        return list(value)
+
+
+class Table(Field):
+    def __init__(self, fields, optional=False, **kw):
+        super().__init__(None, **kw)
+        self.fields = fields
+        self.optional = optional
+
+    def check(self, value, key, ctx):
+        if not isinstance(value, dict):
+            ctx.fail(key, "must be a table", value)
+        out = {}
+        for name in value:
+            if name not in self.fields:
+                near = difflib.get_close_matches(name, list(self.fields), n=1)
+                hint = f"; did you mean '{near[0]}'?" if near else f"; allowed: {', '.join(self.fields)}"
+                ctx.fail(_join(key, name), "unknown key" + hint)
+        for name, spec in self.fields.items():
+            sub = _join(key, name)
+            if name in value:
+                out[name] = spec.check(value[name], sub, ctx)
+            elif isinstance(spec, Table) and not spec.optional:
+                out[name] = spec.check({}, sub, ctx)
+            elif spec.required:
+                ctx.fail(sub, "is required")
+            elif spec.default is not None:
+                out[name] = copy.deepcopy(spec.default)
+        return out
+
+
+class TableList(Field):
+    def __init__(self, item: Table, min_len=0, **kw):
+        super().__init__(None, **kw)
+        self.item = item
+        self.min_len = min_len
+
+    def check(self, value, key, ctx):
+        if isinstance(value, dict):  # a single [table] where [[table]] was meant
+            value = [value]
+        if not isinstance(value, list) or not all(isinstance(v, dict) for v in value):
+            ctx.fail(key, "must be an array of tables ([[" + key + "]])", value)
+        if len(value) < self.min_len:
+            ctx.fail(key, f"needs at least {self.min_len} entr{'y' if self.min_len == 1 else 'ies'}", len(value))
+        return [self.item.check(v, f"{key}.{i}", ctx) for i, v in enumerate(value)]
+
+
+def _join(key, name):
+    return f"{key}.{name}" if key else str(name)
+
+
+SPRING = Table(
+    {
+        "ks": Float(lo=0, required=True, doc="spring stiffness [N/m]"),
+        "kd": Float(0.0, lo=0, doc="damper coefficient along the spring [N s/m]"),
+    },
+    optional=True,
+)
+
+SCHEMA = Table(
+    {
+        "name": Text(doc="scene name"),
+        "description": Text("", doc="one line shown by `softsim scenes`"),
+        "simulation": Table(
+            {
+                "integrator": Choice(INTEGRATORS, "symplectic"),
+                "dt": Float(1.0e-3, lo=0, lo_open=True, doc="step size [s]"),
+                "duration": Float(lo=0, lo_open=True, doc="simulated time [s]"),
+                "frames": Int(lo=1, doc="output frames after the first"),
+                "fps": Float(60.0, lo=0, lo_open=True, doc="output frames per second"),
+                "gravity": Vec3([0.0, -9.8, 0.0], doc="[m/s^2]"),
+                "precision": Choice(PRECISIONS, "float32"),
+                "contact_epsilon": Float(0.01, lo=0, doc="contact distance tolerance [m]"),
+                "contact_velocity_epsilon": Float(0.01, lo=0, doc="resting-contact speed tolerance [m/s]"),
+                "max_speed": Float(lo=0, lo_open=True, doc="speed treated as an explosion [m/s]"),
+            }
+        ),
+        "jelly": TableList(
+            Table(
+                {
+                    "resolution": Int3(required=True, doc="particles per axis"),
+                    "size": Vec3(required=True, lo=0, lo_open=True, scalar_ok=True, doc="edge lengths [m]"),
+                    "center": Vec3([0.0, 0.0, 0.0], doc="[m]"),
+                    "rotation": Table(
+                        {
+                            "axis": Vec3([0.0, 1.0, 0.0], nonzero=True),
+                            "degrees": Float(0.0),
+                        }
+                    ),
+                    "velocity": Vec3([0.0, 0.0, 0.0], doc="[m/s]"),
+                    "angular_velocity": Vec3([0.0, 0.0, 0.0], doc="about the centre [rad/s]"),
+                    "particle_mass": Float(lo=0, lo_open=True, doc="[kg]"),
+                    "total_mass": Float(lo=0, lo_open=True, doc="[kg]"),
+                    "springs": Table(
+                        {"structural": SPRING, "shear": SPRING, "bending": SPRING},
+                    ),
+                }
+            ),
+            min_len=1,
+        ),
+        "plane": TableList(
+            Table(
+                {
+                    "point": Vec3([0.0, 0.0, 0.0], doc="a point on the plane [m]"),
+                    "normal": Vec3([0.0, 1.0, 0.0], nonzero=True, doc="normalised on load"),
+                    "restitution": Float(0.5, lo=0, hi=1),
+                    "friction": Float(0.3, lo=0),
+                    "hole": Table(
+                        {
+                            "center": Vec3([0.0, 0.0, 0.0]),
+                            "radius": Float(lo=0, lo_open=True, required=True),
+                        },
+                        optional=True,
+                    ),
+                    "size": Float(20.0, lo=0, lo_open=True, doc="edge of the drawn square [m]"),
+                }
+            )
+        ),
+    }
+)
+
+
+class _Context:
+    def __init__(self, source):
+        self.source = source
+
+    def fail(self, key, message, *value):
+        raise SceneError(self.source, key, message, *value)
+
+
+# ---------------------------------------------------------------------------------------------
+
+
+@dataclass
+class Scene:
+    """A validated scene: plain dictionaries with every default filled in."""
+
+    data: dict
+    source: str = "<scene>"
+    name: str = "scene"
+    overrides: list = field(default_factory=list)
+
+    @property
+    def sim(self) -> dict:
+        return self.data["simulation"]
+
+    @property
+    def jellies(self) -> list:
+        return self.data["jelly"]
+
+    @property
+    def planes(self) -> list:
+        return self.data.get("plane", [])
+
+    def frame_count(self) -> int:
+        """Output frames after frame 0: ``frames`` if given, else ``round(duration * fps)``."""
+        sim = self.sim
+        if "frames" in sim:
+            return sim["frames"]
+        return max(1, round(sim["duration"] * sim["fps"]))
+
+
+def builtin_dir():
+    return resources.files("softsim_warp.scenes")
+
+
+def builtin_scenes() -> dict:
+    """``{name: description}`` of the scenes shipped with the package."""
+    out = {}
+    for entry in sorted(builtin_dir().iterdir(), key=lambda e: e.name):
+        if entry.name.endswith(".toml"):
+            data = tomllib.loads(entry.read_text())
+            out[entry.name[:-5]] = data.get("description", "")
+    return out
+
+
+def resolve_scene_path(name_or_path: str):
+    """A scene argument is a path if it names an existing file or ends in .toml, else a built-in name."""
+    p = Path(name_or_path)
+    if p.suffix == ".toml" or p.exists() or "/" in name_or_path:
+        if not p.is_file():
+            raise SceneError(name_or_path, None, "no such scene file")
+        return p, p.read_text
+    entry = builtin_dir() / f"{name_or_path}.toml"
+    if not entry.is_file():
+        names = list(builtin_scenes())
+        near = difflib.get_close_matches(name_or_path, names, n=1)
+        hint = f"; did you mean '{near[0]}'?" if near else ""
+        raise SceneError(name_or_path, None, f"no such built-in scene; built-ins: {', '.join(names)}{hint}")
+    return Path(f"{name_or_path}.toml"), entry.read_text
+
+
+def parse_toml(text: str, source: str) -> dict:
+    try:
+        return tomllib.loads(text)
+    except tomllib.TOMLDecodeError as e:
+        raise SceneError(source, None, f"TOML syntax error: {e}") from None
+
+
+def parse_override(item: str, source="--set"):
+    """Split ``a.b.0.c=VALUE``; VALUE is read as a TOML value, or as a bare string if it is not one."""
+    if "=" not in item:
+        raise SceneError(source, item, "expected KEY=VALUE")
+    key, raw = item.split("=", 1)
+    key = key.strip()
+    if not key or any(not part for part in key.split(".")):
+        raise SceneError(source, key, "expected a dotted key such as simulation.dt", item)
+    try:
+        value = tomllib.loads(f"v = {raw}")["v"]
+    except tomllib.TOMLDecodeError:
+        value = raw.strip()
+    return key, value
+
+
+def apply_override(data: dict, key: str, value, source="--set"):
+    """Set ``data[a][b][0][c] = value`` for the dotted key ``a.b.0.c``; creates missing tables."""
+    parts = key.split(".")
+    node = data
+    for depth, part in enumerate(parts):
+        last = depth == len(parts) - 1
+        here = ".".join(parts[: depth + 1])
+        if isinstance(node, list):
+            if not part.isdigit() or int(part) >= len(node):
+                raise SceneError(source, here, f"index out of range; this scene has {len(node)} entries", part)
+            if last:
+                node[int(part)] = value
+            else:
+                node = node[int(part)]
+            continue
+        if not isinstance(node, dict):
+            raise SceneError(source, here, "cannot set a key inside a value that is not a table")
+        if last:
+            node[part] = value
+        else:
+            if part not in node:
+                # "jelly.0..." on a scene without jellies cannot be created; a new table can.
+                if parts[depth + 1].isdigit():
+                    raise SceneError(source, here, "index out of range; this scene has 0 entries", parts[depth + 1])
+                node[part] = {}
+            node = node[part]
+
+
+def validate(data: dict, source: str) -> dict:
+    ctx = _Context(source)
+    out = SCHEMA.check(data, "", ctx)
+    sim = out["simulation"]
+    if "duration" in sim and "frames" in sim:
+        ctx.fail("simulation.frames", "give simulation.duration or simulation.frames, not both", sim["frames"])
+    if "duration" not in sim and "frames" not in sim:
+        ctx.fail("simulation.duration", "is required (or give simulation.frames)")
+    for i, jelly in enumerate(out["jelly"]):
+        key = f"jelly.{i}"
+        count = jelly["resolution"][0] * jelly["resolution"][1] * jelly["resolution"][2]
+        if count < 2:
+            ctx.fail(f"{key}.resolution", "a jelly needs at least 2 particles", jelly["resolution"])
+        if ("particle_mass" in jelly) == ("total_mass" in jelly):
+            ctx.fail(f"{key}.particle_mass", "give exactly one of particle_mass and total_mass")
+        if "total_mass" in jelly:
+            jelly["particle_mass"] = jelly.pop("total_mass") / count
+    for plane in out.get("plane", []):
+        n = plane["normal"]
+        length = math.sqrt(sum(c * c for c in n))
+        plane["normal"] = [c / length for c in n]
+    return out
+
+
+def load_scene(name_or_path: str, overrides=()) -> Scene:
+    """Load a scene file or a built-in scene by name, apply ``--set`` overrides and validate it."""
+    path, read = resolve_scene_path(name_or_path)
+    source = str(path)
+    try:
+        text = read()
+    except OSError as e:
+        raise SceneError(source, None, f"cannot read: {e.strerror}") from None
+    data = parse_toml(text, source)
+    applied = []
+    for item in overrides:
+        key, value = parse_override(item)
+        apply_override(data, key, value)
+        applied.append((key, value))
+    validated = validate(data, source)
+    return Scene(validated, source=source, name=validated.get("name", path.stem), overrides=applied)
+
+
+def scene_from_dict(data: dict, source="<dict>") -> Scene:
+    """Validate an in-memory scene (the Python API's way to make one without a file)."""
+    validated = validate(copy.deepcopy(data), source)
+    return Scene(validated, source=source, name=validated.get("name", "scene"))

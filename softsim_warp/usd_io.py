@@ -1,0 +1,217 @@
+"""USD output: one stage per run, written as the run goes and renamed into place when closed.
+
+``pxr`` is imported lazily so that benchmarks run where usd-core is not installed.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import time
+from pathlib import Path
+
+import numpy as np
+
+from . import lattice
+
+SPRING_COLORS = {  # the seed's colours: structural blue, shear yellow, bending green
+    "structural": (0.2, 0.4, 1.0),
+    "shear": (1.0, 0.85, 0.1),
+    "bending": (0.2, 0.8, 0.3),
+}
+JELLY_COLOR = (0.95, 0.35, 0.25)
+TERRAIN_COLOR = (0.6, 0.6, 0.6)
+
+
+def temp_path_for(path: Path) -> Path:
+    """A sibling of ``path`` that keeps its extension (USD picks the format from it) and is unique per process."""
+    return path.with_name(f".{path.stem}.partial-{os.getpid()}{path.suffix}")
+
+
+def plane_mesh(point, normal, size, hole_center=None, hole_radius=0.0, segments=64):
+    """Vertices and faces of a square of edge ``size`` on a plane, with a circular hole cut out.
+
+    Returns:
+        ``(points (V, 3), counts (F,), indices (sum counts,))``.
+    """
+    n = np.asarray(normal, dtype=np.float64)
+    n = n / np.linalg.norm(n)
+    helper = np.array([1.0, 0.0, 0.0]) if abs(n[0]) < 0.9 else np.array([0.0, 0.0, 1.0])
+    u = np.cross(n, helper)
+    u /= np.linalg.norm(u)
+    v = np.cross(n, u)
+    point = np.asarray(point, dtype=np.float64)
+    if hole_radius <= 0:
+        c = point
+        half = 0.5 * size
+        corners = [c + half * (su * u + sv * v) for su, sv in ((-1, -1), (1, -1), (1, 1), (-1, 1))]
+        return np.array(corners), np.array([4]), np.array([0, 3, 2, 1])
+    # Centre the square on the hole (projected onto the plane) and join the hole's circle to the
+    # square's boundary with quads along rays from the centre.
+    hc = np.asarray(hole_center, dtype=np.float64)
+    c = hc - np.dot(hc - point, n) * n
+    half = max(0.5 * size, 1.05 * hole_radius)
+    ang = np.linspace(0.0, 2 * math.pi, segments, endpoint=False)
+    dirs = np.stack([np.cos(ang), np.sin(ang)], axis=1)
+    ray = half / np.max(np.abs(dirs), axis=1)  # distance from the centre to the square along each ray
+    inner = c + hole_radius * (dirs[:, :1] * u + dirs[:, 1:] * v)
+    outer = c + ray[:, None] * (dirs[:, :1] * u + dirs[:, 1:] * v)
+    pts = np.concatenate([inner, outer])
+    idx = []
+    for i in range(segments):
+        j = (i + 1) % segments
+        idx += [i, segments + i, segments + j, j]
+    return pts, np.full(segments, 4), np.array(idx)
+
+
+class UsdWriter:
+    """Writes a model's frames to a USD stage (``.usdc`` by default, ``.usda`` by extension).
+
+    The stage is written to a temporary sibling and renamed over ``path`` by :meth:`close`, so an
+    existing file is never replaced by an incomplete one; the temporary file is saved every
+    ``save_every_seconds`` so memory stays bounded on long runs.
+
+    Args:
+        path: output file.
+        model: the model whose particles are written.
+        fps: frames per second (time code = frame index).
+        springs: also write spring segments as BasisCurves, one prim per spring type.
+        groups: optional ``{world: (prim_name, offset)}`` to put each world under its own Xform
+            with a translation (side-by-side comparisons).
+    """
+
+    def __init__(self, path, model, fps, springs=False, groups=None, save_every_seconds=5.0, metadata=None):
+        from pxr import Gf, Sdf, Usd, UsdGeom, Vt  # noqa: PLC0415 - usd-core is optional on GPU hosts
+
+        self._pxr = (Gf, Sdf, Usd, UsdGeom, Vt)
+        self.path = Path(path)
+        self.tmp = temp_path_for(self.path)
+        self.model = model
+        self.fps = float(fps)
+        self.save_every = save_every_seconds
+        self._last_save = time.perf_counter()
+        self.last_frame = -1
+        if self.tmp.exists():
+            self.tmp.unlink()
+        layer = Sdf.Layer.CreateNew(str(self.tmp))
+        stage = Usd.Stage.Open(layer)
+        self.stage = stage
+        UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.y)
+        UsdGeom.SetStageMetersPerUnit(stage, 1.0)
+        stage.SetTimeCodesPerSecond(self.fps)
+        stage.SetFramesPerSecond(self.fps)
+        stage.SetStartTimeCode(0)
+        stage.SetEndTimeCode(0)
+        world = UsdGeom.Xform.Define(stage, "/World")
+        stage.SetDefaultPrim(world.GetPrim())
+        self._metadata = dict(metadata or {})
+        self._metadata.setdefault("softsim:status", "running")
+        layer.customLayerData = self._metadata
+
+        groups = groups or {}
+        self.roots = {}
+        for w in range(model.world_count):
+            if w in groups:
+                name, offset = groups[w]
+                xf = UsdGeom.Xform.Define(stage, f"/World/{name}")
+                xf.AddTranslateOp().Set(Gf.Vec3d(*[float(c) for c in offset]))
+                self.roots[w] = f"/World/{name}"
+            else:
+                self.roots[w] = "/World"
+
+        self.jelly_prims = []
+        for info in model.jellies:
+            root = f"{self.roots[info.world]}/{info.name}"
+            UsdGeom.Xform.Define(stage, root)
+            pts = UsdGeom.Points.Define(stage, f"{root}/Particles")
+            width = 0.5 * min([s for s in info.spacing if s > 0] or [0.05])
+            pts.CreateWidthsAttr(Vt.FloatArray([width] * info.particle_count))
+            pts.SetWidthsInterpolation(UsdGeom.Tokens.vertex)
+            pts.CreateDisplayColorPrimvar().Set(Vt.Vec3fArray([Gf.Vec3f(*JELLY_COLOR)]))
+            quads = info.surface_quads
+            used = np.unique(quads) if quads.size else np.zeros(0, dtype=np.int64)
+            remap = np.full(info.particle_count, -1, dtype=np.int64)
+            remap[used] = np.arange(used.size)
+            mesh = None
+            if quads.size:
+                mesh = UsdGeom.Mesh.Define(stage, f"{root}/Surface")
+                mesh.CreateFaceVertexCountsAttr(Vt.IntArray([4] * quads.shape[0]))
+                mesh.CreateFaceVertexIndicesAttr(Vt.IntArray(remap[quads].ravel().tolist()))
+                # The surface shows the simulated particles themselves, not a subdivision limit.
+                mesh.CreateSubdivisionSchemeAttr(UsdGeom.Tokens.none)
+                mesh.CreateDisplayColorPrimvar().Set(Vt.Vec3fArray([Gf.Vec3f(*JELLY_COLOR)]))
+            curves = {}
+            if springs:
+                for t, tname in enumerate(lattice.SPRING_TYPE_NAMES):
+                    lo, hi = info.spring_start, info.spring_start + info.spring_count
+                    sel = np.nonzero(model.spring_type_host[lo:hi] == t)[0] + lo
+                    if sel.size == 0:
+                        continue
+                    c = UsdGeom.BasisCurves.Define(stage, f"{root}/Springs_{tname}")
+                    c.CreateTypeAttr(UsdGeom.Tokens.linear)
+                    c.CreateCurveVertexCountsAttr(Vt.IntArray([2] * sel.size))
+                    c.CreateWidthsAttr(Vt.FloatArray([0.1 * width]))
+                    c.SetWidthsInterpolation(UsdGeom.Tokens.constant)
+                    c.CreateDisplayColorPrimvar().Set(Vt.Vec3fArray([Gf.Vec3f(*SPRING_COLORS[tname])]))
+                    curves[tname] = (c, model.spring_indices_host[sel].ravel())
+            self.jelly_prims.append((info, pts, mesh, used, curves))
+
+        for i, p in enumerate(model.planes):
+            points, counts, indices = plane_mesh(p["point"], p["normal"], p["size"], p["hole_center"], p["hole_radius"])
+            self.add_static_mesh(f"{self.roots[p['world']]}/Plane_{i}", points, counts, indices)
+        for prim_path, points, counts, indices in getattr(model, "terrain_meshes", lambda: [])():
+            self.add_static_mesh(prim_path, points, counts, indices)
+        self.save()
+
+    def add_static_mesh(self, prim_path, points, counts, indices, color=TERRAIN_COLOR):
+        Gf, Sdf, Usd, UsdGeom, Vt = self._pxr
+        mesh = UsdGeom.Mesh.Define(self.stage, prim_path)
+        pts = Vt.Vec3fArray.FromNumpy(np.ascontiguousarray(points, dtype=np.float32))
+        mesh.CreatePointsAttr(pts)
+        mesh.CreateExtentAttr(UsdGeom.PointBased.ComputeExtent(pts))
+        mesh.CreateFaceVertexCountsAttr(Vt.IntArray([int(c) for c in counts]))
+        mesh.CreateFaceVertexIndicesAttr(Vt.IntArray([int(i) for i in indices]))
+        mesh.CreateSubdivisionSchemeAttr(UsdGeom.Tokens.none)
+        mesh.CreateDoubleSidedAttr(True)
+        mesh.CreateDisplayColorPrimvar().Set(Vt.Vec3fArray([Gf.Vec3f(*color)]))
+
+    def write_frame(self, frame, t, positions, metrics=None):
+        """Write all jellies' positions (float32, as simulated in float32) at time code ``frame``."""
+        Gf, Sdf, Usd, UsdGeom, Vt = self._pxr
+        pos32 = np.ascontiguousarray(positions, dtype=np.float32)
+        for info, pts, mesh, used, curves in self.jelly_prims:
+            x = pos32[info.particle_start : info.particle_start + info.particle_count]
+            arr = Vt.Vec3fArray.FromNumpy(x)
+            extent = UsdGeom.PointBased.ComputeExtent(arr)
+            pts.GetPointsAttr().Set(arr, frame)
+            pts.GetExtentAttr().Set(extent, frame)
+            if mesh is not None:
+                surf = Vt.Vec3fArray.FromNumpy(np.ascontiguousarray(x[used]))
+                mesh.GetPointsAttr().Set(surf, frame)
+                mesh.GetExtentAttr().Set(UsdGeom.PointBased.ComputeExtent(surf), frame)
+            for c, ends in curves.values():
+                seg = Vt.Vec3fArray.FromNumpy(np.ascontiguousarray(pos32[ends]))
+                c.GetPointsAttr().Set(seg, frame)
+        self.last_frame = frame
+        self.stage.SetEndTimeCode(max(frame, 0))
+        if time.perf_counter() - self._last_save > self.save_every:
+            self.save()
+
+    def save(self):
+        self.stage.GetRootLayer().Save()
+        self._last_save = time.perf_counter()
+
+    def close(self, status="complete", extra=None):
+        """Record ``status`` in the layer's custom data, save, and move the file into place."""
+        self._metadata["softsim:status"] = status
+        self._metadata.update(extra or {})
+        self.stage.GetRootLayer().customLayerData = self._metadata
+        self.save()
+        del self.stage
+        os.replace(self.tmp, self.path)
+
+    def discard(self):
+        """Drop the temporary file (used when nothing worth keeping was written)."""
+        self.stage = None
+        if self.tmp.exists():
+            self.tmp.unlink()
