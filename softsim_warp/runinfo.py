@@ -60,27 +60,32 @@ def summary_line(s: dict, out) -> str:
 
 
 def predicted_stable_dt(scene, method) -> float | None:
-    """Largest dt predicted stable for the scene's first jelly, from a linear analysis at rest.
+    """Largest dt predicted stable for the scene's jellies, from a linear analysis at rest.
 
-    The analysis runs on a lattice of at most 4 particles per axis with the jelly's spacing, masses
-    and spring constants: the stiffest modes are local, so a small lattice predicts the limit.
+    The analysis runs, per jelly, on a lattice of at most 4 particles per axis with the jelly's
+    spacing, masses and spring constants: the stiffest modes are local, so a small lattice predicts
+    the limit. The scene's limit is the smallest over its jellies (a light jelly in a scene limits
+    the step of all of them).
     """
     try:
         from .stability_analysis import predict_lattice_dt  # noqa: PLC0415
     except ImportError:
         return None
-    j = scene.jellies[0]
-    res = j["resolution"]
-    small = [min(n, 4) for n in res]
-    spacing = [s / (n - 1) if n > 1 else 0.0 for s, n in zip(j["size"], res)]
-    size = [sp * (n - 1) if n > 1 else 0.0 for sp, n in zip(spacing, small)]
-    springs = j["springs"]
-    ks = {k: v["ks"] for k, v in springs.items()}
-    kd = {k: v.get("kd", 0.0) for k, v in springs.items()}
-    try:
-        return predict_lattice_dt(small, size, j["particle_mass"], ks, kd, methods=(method,))[method]
-    except Exception:  # noqa: BLE001 - a prediction is advice; never let it hide the explosion itself
-        return None
+    best = None
+    for j in scene.jellies:
+        res = j["resolution"]
+        small = [min(n, 4) for n in res]
+        spacing = [s / (n - 1) if n > 1 else 0.0 for s, n in zip(j["size"], res)]
+        size = [sp * (n - 1) if n > 1 else 0.0 for sp, n in zip(spacing, small)]
+        springs = j["springs"]
+        ks = {k: v["ks"] for k, v in springs.items()}
+        kd = {k: v.get("kd", 0.0) for k, v in springs.items()}
+        try:
+            dt = predict_lattice_dt(small, size, j["particle_mass"], ks, kd, methods=(method,))[method]
+        except Exception:  # noqa: BLE001 - a prediction is advice; never let it hide the explosion itself
+            return None
+        best = dt if best is None else min(best, dt)
+    return best
 
 
 def explosion_message(scene, model, result) -> str:
@@ -92,6 +97,6 @@ def explosion_message(scene, model, result) -> str:
     )
     pred = predicted_stable_dt(scene, sim["integrator"])
     if pred is not None and np.isfinite(pred):
-        text += f"; largest dt predicted stable for this jelly: {pred:.3g} s"
+        text += f"; largest dt predicted stable for {'this jelly' if len(scene.jellies) == 1 else 'these jellies'}: {pred:.3g} s"
     text += f"; frames 0-{result.frames_written - 1} were kept"
     return text
