@@ -23,8 +23,9 @@ result depend on the precision).
 The largest stable step is bracketed (halving or doubling from the linear prediction, or from the
 scene's dt) and bisected in log(dt) to a relative width of ``rtol``. It is measured on two systems:
 
-* the **lattice**: a jelly of at most 4 particles per axis with the scene's first jelly's spacing,
-  particle mass and springs, free (no gravity, no terrain), at rest, for ``steps`` steps. This is
+* the **lattice**: a jelly of at most 4 particles per axis (``--lattice``) with the spacing, particle
+  mass and springs of the scene's first jelly (``--jelly``),
+  free (no gravity, no terrain), at rest, for ``steps`` steps. This is
   the system the linear analysis of :mod:`~softsim_warp.stability_analysis` describes, so the two
   columns should agree; a finite run cannot see a growth slower than about ``ln(GROWTH)/steps``
   per step, so an instability that weak (euler on a nearly undamped mode) is reported as stable
@@ -276,7 +277,8 @@ def _guess(pred, fallback):
 
 
 def analyse(scene, integrators=ALL_INTEGRATORS, *, ks_values=DEFAULT_KS, device=None, precision=None, steps=DEFAULT_STEPS,
-            duration=None, rtol=DEFAULT_RTOL, scene_runs=True, max_dt=None, use_graph=True, log=None) -> dict:
+            duration=None, rtol=DEFAULT_RTOL, scene_runs=True, max_dt=None, use_graph=True, lattice_max=LATTICE_MAX,
+            jelly_index=0, log=None) -> dict:
     """Measured and predicted stability limits of every integrator; returns the JSON-ready report.
 
     Args:
@@ -291,6 +293,9 @@ def analyse(scene, integrators=ALL_INTEGRATORS, *, ks_values=DEFAULT_KS, device=
         scene_runs: also measure in the full scene (costlier).
         max_dt: largest step tried (default the frame interval 1/fps).
         use_graph: allow captured-graph replay.
+        lattice_max: particles per axis of the small lattice, at most (a larger one predicts a big
+            jelly's limit more closely; its dense eigenproblem costs (6 n^3)^3).
+        jelly_index: which jelly of the scene the lattice copies.
         log: callable taking a progress line.
     """
     import warp as wp  # noqa: PLC0415
@@ -301,7 +306,7 @@ def analyse(scene, integrators=ALL_INTEGRATORS, *, ks_values=DEFAULT_KS, device=
     fps = scene.sim["fps"]
     max_dt = max_dt or 1.0 / fps
     duration = duration or min(scene.frame_count() / fps, 1.0)
-    jelly = scene.jellies[0]
+    jelly = scene.jellies[jelly_index]
     options = scene.data.get("implicit")
     fallback = scene.sim["dt"]
     rows, skipped = [], {}
@@ -310,14 +315,14 @@ def analyse(scene, integrators=ALL_INTEGRATORS, *, ks_values=DEFAULT_KS, device=
         try:
             from .integrators import make_integrator  # noqa: PLC0415
 
-            make_integrator(method, lattice_model(small_lattice(jelly), dev, precision), options)
+            make_integrator(method, lattice_model(small_lattice(jelly, max_n=lattice_max), dev, precision), options)
             available.append(method)
         except ImportError as e:
             skipped[method] = f"not available ({e})"
             say(f"{method}: skipped, not available ({e})")
 
     for undamped in (False, True):
-        js = small_lattice(jelly, undamped=undamped)
+        js = small_lattice(jelly, undamped=undamped, max_n=lattice_max)
         pred = predict(js, available)
         lat = lattice_model(js, dev, precision)
         sc = scene_model(scene, dev, precision, undamped=undamped) if scene_runs else None
@@ -327,17 +332,21 @@ def analyse(scene, integrators=ALL_INTEGRATORS, *, ks_values=DEFAULT_KS, device=
             t0 = time.perf_counter()
             row["lattice"] = _clean(measure_limit(lat, method, guess=_guess(p, fallback), steps=steps, max_dt=max_dt,
                                                   rtol=rtol, options=options, use_graph=use_graph))
-            if sc is not None:
+            if sc is not None and p == 0.0:
+                # Unstable at every dt (euler or midpoint without damping): a finite run only finds
+                # how small a step hides the growth for `duration`, at up to max_steps per probe.
+                row["scene_note"] = "not measured: the linear analysis finds no stable dt"
+            elif sc is not None:
                 row["scene"] = _clean(measure_limit(sc, method, guess=_guess(p, fallback), duration=duration,
                                                     max_dt=max_dt, rtol=rtol, options=options, use_graph=use_graph))
             rows.append(row)
             say(f"{method:>10} {'undamped' if undamped else 'damped':>8}: predicted {_fmt_dt(p)}, lattice "
-                f"{_fmt_limit(row['lattice'])}" + (f", scene {_fmt_limit(row['scene'])}" if sc is not None else "")
+                f"{_fmt_limit(row['lattice'])}" + (f", scene {_fmt_limit(row['scene'])}" if "scene" in row else "")
                 + f"  ({time.perf_counter() - t0:.1f} s)")
 
     ks_map = []
     for ks in ks_values:
-        js = small_lattice(jelly, ks=ks)
+        js = small_lattice(jelly, ks=ks, max_n=lattice_max)
         pred = predict(js, available)
         lat = lattice_model(js, dev, precision)
         for method in available:
@@ -347,13 +356,13 @@ def analyse(scene, integrators=ALL_INTEGRATORS, *, ks_values=DEFAULT_KS, device=
             ks_map.append({"ks": ks, "integrator": method, "predicted": p, "measured": m})
             say(f"ks={ks:g} {method:>10}: predicted {_fmt_dt(p)}, measured {_fmt_limit(m)}")
 
-    js = small_lattice(jelly)
+    js = small_lattice(jelly, max_n=lattice_max)
     return {
         "scene": scene.name,
         "source": scene.source,
         "device": str(dev),
         "precision": precision,
-        "lattice": {"resolution": js["resolution"], "size": js["size"], "particle_mass": js["particle_mass"],
+        "lattice": {"jelly": jelly_index, "resolution": js["resolution"], "size": js["size"], "particle_mass": js["particle_mass"],
                     "springs": js["springs"], "steps": steps},
         "scene_duration": duration if scene_runs else None,
         "max_dt": max_dt,
@@ -397,8 +406,8 @@ def format_table(report: dict) -> str:
     lat = report["lattice"]
     lines = [
         f"{report['scene']}: largest stable dt [s], {report['precision']} on {report['device']}",
-        f"lattice {'x'.join(str(n) for n in lat['resolution'])}, particle mass {lat['particle_mass']:.4g} kg, "
-        f"{lat['steps']} steps; scene runs {report['scene_duration']} s",
+        f"lattice {'x'.join(str(n) for n in lat['resolution'])} (copy of jelly {lat.get('jelly', 0)}), particle mass {lat['particle_mass']:.4g} kg, "
+        f"{lat['steps']} steps; " + (f"scene runs {report['scene_duration']:g} s" if report["scene_duration"] else "no scene runs"),
         "stable = " + report["definition"].split("stable: ", 1)[1],
         "",
         f"{'integrator':<11}{'damping':<9}{'predicted':>12}{'lattice':>12}{'ratio':>7}{'scene':>12}",
@@ -435,32 +444,49 @@ def plot_report(report: dict, path):
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt  # noqa: PLC0415
 
-    fig, (ax_l, ax_m) = plt.subplots(1, 2, figsize=(12, 5))
+    fig, (ax_l, ax_m) = plt.subplots(1, 2, figsize=(13, 5.5))
     methods = list(dict.fromkeys(r["integrator"] for r in report["limits"]))
     max_dt = report["max_dt"]
-    width = 0.2
-    kinds = [("predicted", "predicted (linear)", None), ("lattice", "measured, lattice", None), ("scene", "measured, scene", None)]
+    finite = [v for r in report["limits"] for v in (r["predicted"], r["lattice"]["dt"], r.get("scene", {}).get("dt", 0))
+              if 0 < v < math.inf]
+    floor = min(finite) / 10 if finite else max_dt * 1e-4
+    # One column per integrator: x offsets for (damping) x (predicted, lattice, scene); a value of 0
+    # (no stable dt) sits on the floor as a downward triangle, "stable up to max_dt" as an upward one.
+    styles = {"predicted": ("_", 16, "predicted (linear)"), "lattice": ("o", 7, "measured, lattice"),
+              "scene": ("s", 7, "measured, scene")}
     for d_i, damping in enumerate(("scene", "none")):
-        for k_i, (key, label, _) in enumerate(kinds):
-            xs, ys, hatch = [], [], "//" if damping == "none" else None
+        for k_i, key in enumerate(styles):
+            marker, size, label = styles[key]
             for i, m in enumerate(methods):
                 r = next((r for r in report["limits"] if r["integrator"] == m and r["damping"] == damping), None)
                 if r is None or key not in r:
                     continue
                 v = r[key] if key == "predicted" else r[key]["dt"]
-                v = min(v, max_dt) if v > 0 else max_dt * 1e-4
-                xs.append(i + (d_i * 3 + k_i - 2.5) * width / 2)
-                ys.append(v)
-            if xs:
-                ax_l.bar(xs, ys, width=width / 2, color=f"C{k_i}", hatch=hatch, edgecolor="k", lw=0.3,
-                         label=f"{label}, {'kd as scene' if damping == 'scene' else 'kd = 0'}")
+                bound = "" if key == "predicted" else r[key]["bound"]
+                mk = marker
+                if v <= 0 or bound == "<":
+                    v, mk = floor, "v"
+                elif v >= max_dt or v == math.inf or bound == ">=":
+                    v, mk = max_dt, "^"
+                x = i + (d_i - 0.5) * 0.4 + (k_i - 1) * 0.1
+                c = "k" if key == "predicted" else f"C{k_i}"
+                ax_l.plot([x], [v], mk, color=c, ms=size if mk == marker else 9, mfc=c if damping == "scene" else "none",
+                          mew=2)
+    for k_i, key in enumerate(styles):
+        marker, size, label = styles[key]
+        c = "k" if key == "predicted" else f"C{k_i}"
+        ax_l.plot([], [], marker, color=c, ms=size, mew=2, label=label)
+    ax_l.plot([], [], "o", color="gray", label="filled: kd as in the scene (left)")
+    ax_l.plot([], [], "o", color="gray", mfc="none", mew=2, label="open: kd = 0 (right)")
     ax_l.set_yscale("log")
     ax_l.set_xticks(range(len(methods)))
     ax_l.set_xticklabels(methods)
+    ax_l.set_xlim(-0.6, len(methods) - 0.4)
+    ax_l.set_ylim(floor / 2, max_dt * 3)
     ax_l.set_ylabel("largest stable dt [s]")
     ax_l.axhline(max_dt, color="gray", ls=":", lw=1)
-    ax_l.set_title("largest stable dt (bars at the top: >= 1/fps; at the bottom: 0)")
-    ax_l.legend(fontsize=7)
+    ax_l.set_title("largest stable dt (^: stable up to 1/fps; v: no stable dt)", fontsize=10)
+    ax_l.legend(fontsize=7, loc="lower right")
     ax_l.grid(True, axis="y", which="both", alpha=0.3)
 
     for m in methods:
@@ -502,6 +528,9 @@ def add_parser(subparsers, add_common):
                                 "'none' for no map)")
     p.add_argument("--steps", type=int, default=DEFAULT_STEPS, help=f"lattice run length [steps] (default {DEFAULT_STEPS})")
     p.add_argument("--duration", type=float, help="scene run length [s] (default min(scene duration, 1 s))")
+    p.add_argument("--lattice", type=int, default=LATTICE_MAX,
+                   help=f"particles per axis of the small lattice, at most (default {LATTICE_MAX})")
+    p.add_argument("--jelly", type=int, default=0, help="which jelly of the scene the lattice copies (default 0)")
     p.add_argument("--no-scene", action="store_true", help="measure on the small lattice only (skip the full-scene runs)")
     p.add_argument("--rtol", type=float, default=DEFAULT_RTOL, help=f"relative width of the final bracket (default {DEFAULT_RTOL})")
     p.add_argument("--precision", choices=["float32", "float64"], help="precision of the runs")
@@ -523,6 +552,8 @@ def run(args) -> int:
     if args.steps < 10:
         raise UserError("--steps", None, "must be an integer >= 10", args.steps, has_value=True)
     _check_positive(args.duration, "--duration")
+    if not 2 <= args.lattice <= 8:
+        raise UserError("--lattice", None, "must be an integer from 2 to 8", args.lattice, has_value=True)
     if not (0 < args.rtol < 1):
         raise UserError("--rtol", None, "must be > 0 and < 1", args.rtol, has_value=True)
     if args.out:
@@ -530,11 +561,13 @@ def run(args) -> int:
     if args.plot:
         check_writable(args.plot, "--plot", suffixes=(".png", ".pdf", ".svg"))
     scene = load_for_cli(args)
+    if not 0 <= args.jelly < len(scene.jellies):
+        raise UserError("--jelly", None, f"this scene has jellies 0 to {len(scene.jellies) - 1}", args.jelly, has_value=True)
     device = resolve_device(args.device)
     log = None if args.quiet else (lambda line: print(line, file=sys.stderr, flush=True))
     report = analyse(scene, methods, ks_values=ks, device=device, precision=args.precision, steps=args.steps,
                      duration=args.duration, rtol=args.rtol, scene_runs=not args.no_scene,
-                     use_graph=not args.no_graph, log=log)
+                     use_graph=not args.no_graph, lattice_max=args.lattice, jelly_index=args.jelly, log=log)
     print(format_table(report))
     if args.out:
         write_json_atomic(args.out, report)
