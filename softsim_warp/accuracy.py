@@ -230,6 +230,13 @@ def _restart(sim, model):
 # Errors and orders
 
 
+def frame_errors(run: Trajectory, ref: Trajectory, size: float) -> np.ndarray:
+    """RMS over particles of |x - x_ref| / size at each frame the run reached, frame 0 included."""
+    n = min(run.frames_done, ref.frames_done)
+    diff = run.positions[:n] - ref.positions[:n]
+    return np.sqrt((diff * diff).sum(axis=2).mean(axis=1)) / size
+
+
 def trajectory_errors(run: Trajectory, ref: Trajectory, size: float) -> tuple[float, float]:
     """(RMS over frames 1..F and particles of |x - x_ref| / size, the same at the last frame).
 
@@ -338,6 +345,7 @@ def measure(scene, integrators=ALL_INTEGRATORS, dts=None, *, device=None, precis
                 say(f"{name}: skipped, not available ({e})")
                 break
             rms, end = trajectory_errors(tr, ref, size)
+            per_frame = frame_errors(tr, ref, size)
             sim_time = tr.sim_time if tr.sim_time > 0 else tr.dt
             row = {
                 "integrator": name,
@@ -353,6 +361,7 @@ def measure(scene, integrators=ALL_INTEGRATORS, dts=None, *, device=None, precis
                 "graph": tr.graph,
                 "rms_error": rms,
                 "end_error": end,
+                "error_per_frame": [float(e) for e in per_frame],
             }
             if tr.stats:
                 row["stats"] = tr.stats
@@ -480,7 +489,7 @@ def plot_report(report: dict, path, title=None):
     finite = [r["rms_error"] for r in runs if math.isfinite(r["rms_error"]) and r["rms_error"] > 0]
     top = max(finite) * 10 if finite else 1.0
     bottom = min(finite + [report["reference"]["self_error"] or top]) / 3 if finite else 1e-3
-    fig, (ax_wp, ax_cv) = plt.subplots(1, 2, figsize=(12, 5))
+    fig, (ax_wp, ax_cv, ax_t) = plt.subplots(1, 3, figsize=(17, 5))
     for name in report["orders"]:
         rows = sorted((r for r in runs if r["integrator"] == name), key=lambda r: r["dt"])
         c = COLORS.get(name, None)
@@ -502,8 +511,25 @@ def plot_report(report: dict, path, title=None):
                                textcoords="offset points", color=c)
             ax_cv.loglog([r["dt"]], [top], "x", color=c, markersize=9, mew=2)
             ax_cv.annotate("unstable", (r["dt"], top), fontsize=7, xytext=(3, -10), textcoords="offset points", color=c)
+    # Error over time at each integrator's smallest stable step: where the error comes from (an
+    # impact shows as a jump).
+    for name in report["orders"]:
+        ok = [r for r in runs if r["integrator"] == name and r["stable"] and r.get("error_per_frame")]
+        if ok:
+            r = min(ok, key=lambda r: r["dt"])
+            e = np.asarray(r["error_per_frame"][1:])
+            t = np.arange(1, e.size + 1) / report["fps"]
+            ax_t.semilogy(t, np.maximum(e, 1e-300), color=COLORS.get(name), label=f"{name}, dt={r['dt']:.2g}")
+    ax_t.set_xlabel("time [s]")
+    ax_t.set_ylabel("RMS position error / jelly size")
+    ax_t.set_title("error over time (smallest stable dt)")
+    ax_t.grid(True, which="both", alpha=0.3)
+    ax_t.legend(fontsize=8)
     ref = report["reference"]
+    from matplotlib.ticker import NullFormatter  # noqa: PLC0415
+
     for ax in (ax_wp, ax_cv):
+        ax.xaxis.set_minor_formatter(NullFormatter())  # decade labels only; minor ones overlap
         ax.axhline(ref["self_error"], color="gray", ls=":", lw=1)
         ax.set_ylim(bottom, top * 3)
         ax.grid(True, which="both", alpha=0.3)
