@@ -101,11 +101,11 @@ def block(name, report, note):
 def update_doc(blocks):
     text = DOC.read_text()
     for name, body in blocks.items():
-        pattern = re.compile(rf"(<!-- generated:{name} -->\n).*?(\n<!-- /generated:{name} -->)", re.S)
+        pattern = re.compile(rf"(<!-- generated:{name} -->\n)(?:.*?\n)?(<!-- /generated:{name} -->)", re.S)
         if not pattern.search(text):
             print(f"note: docs/ACCURACY.md has no block for {name}", file=sys.stderr)
             continue
-        text = pattern.sub(lambda m: m.group(1) + body + m.group(2), text)
+        text = pattern.sub(lambda m: m.group(1) + body + "\n" + m.group(2), text)
     DOC.write_text(text)
 
 
@@ -114,10 +114,17 @@ def main():
     p.add_argument("--device", default="cpu")
     p.add_argument("--only", nargs="*", help="case names (default: every case for this device)")
     p.add_argument("--quick", action="store_true", help="short runs; does not touch docs/ACCURACY.md")
+    p.add_argument("--render", action="store_true",
+                   help="run nothing: rewrite docs/ACCURACY.md from the JSON reports already in docs/accuracy/")
     a = p.parse_args()
     blocks = {}
     for name, (kind, args) in CASES.items():
         if a.only and name not in a.only:
+            continue
+        if a.render:
+            path = OUT / f"{name}.json"
+            if path.exists():
+                blocks[name] = block(name, json.loads(path.read_text()), "")
             continue
         report, note = run_case(name, kind, args, a.device, a.quick)
         if report is None:

@@ -403,20 +403,30 @@ def _fmt_limit(m):
 
 
 def format_table(report: dict) -> str:
+    import textwrap  # noqa: PLC0415
+
     lat = report["lattice"]
     lines = [
         f"{report['scene']}: largest stable dt [s], {report['precision']} on {report['device']}",
-        f"lattice {'x'.join(str(n) for n in lat['resolution'])} (copy of jelly {lat.get('jelly', 0)}), particle mass {lat['particle_mass']:.4g} kg, "
-        f"{lat['steps']} steps; " + (f"scene runs {report['scene_duration']:g} s" if report["scene_duration"] else "no scene runs"),
-        "stable = " + report["definition"].split("stable: ", 1)[1],
+        f"lattice {'x'.join(str(n) for n in lat['resolution'])} (copy of jelly {lat.get('jelly', 0)}), particle mass "
+        f"{lat['particle_mass']:.4g} kg, {lat['steps']} steps; "
+        + (f"scene runs {report['scene_duration']:g} s" if report["scene_duration"] else "no scene runs"),
+        *textwrap.wrap("stable = " + report["definition"].split("stable: ", 1)[1], 110),
+        "lattice: largest stable dt found - smallest unstable dt found (bisection from the prediction); "
+        "ratio: their geometric mean / predicted",
         "",
-        f"{'integrator':<11}{'damping':<9}{'predicted':>12}{'lattice':>12}{'ratio':>7}{'scene':>12}",
+        f"{'integrator':<11}{'damping':<9}{'predicted':>12}{'lattice':>22}{'ratio':>7}{'scene':>12}",
     ]
     for r in report["limits"]:
-        ratio = r["lattice"]["dt"] / r["predicted"] if r["predicted"] > 0 and math.isfinite(r["predicted"]) and not r["lattice"]["bound"] else math.nan
+        m = r["lattice"]
+        ratio = math.nan
+        if 0 < r["predicted"] < math.inf and not m["bound"]:
+            ratio = math.sqrt(m["dt"] * m["unstable_dt"]) / r["predicted"]
+        lat_text = _fmt_limit(m) if m["bound"] else f"{m['dt']:.3g} - {m['unstable_dt']:.3g}"
+        scene_text = _fmt_limit(r["scene"]) if "scene" in r else "-"
         lines.append(
-            f"{r['integrator']:<11}{r['damping']:<9}{_fmt_dt(r['predicted']):>12}{_fmt_limit(r['lattice']):>12}"
-            f"{'' if math.isnan(ratio) else f'{ratio:.2f}':>7}{_fmt_limit(r['scene']) if 'scene' in r else '-':>12}"
+            f"{r['integrator']:<11}{r['damping']:<9}{_fmt_dt(r['predicted']):>12}{lat_text:>22}"
+            f"{'' if math.isnan(ratio) else f'{ratio:.2f}':>7}{scene_text:>12}"
         )
     if report["ks_map"]:
         methods = list(dict.fromkeys(m["integrator"] for m in report["ks_map"]))
