@@ -85,6 +85,37 @@ def all_frames_finite(frames):
 
 
 # ---------------------------------------------------------------------------------------------
+# The scene option the crushed and inverted cases need
+
+
+@pytest.mark.parametrize("value", ["[1.0, 0.0, 1.0]", "0.0", "[1.0, 2.0]", "'big'"])
+def test_initial_scale_is_validated(value, capsys):
+    rc = main(["run", "free_flight", "--set", f"jelly.0.initial_scale={value}", "--frames", "1", "--quiet"])
+    assert rc == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "jelly.0.initial_scale:" in err[0] and "(got " in err[0], err
+
+
+def test_initial_scale_keeps_rest_lengths_and_scales_positions():
+    from softsim_warp.model import ModelBuilder  # noqa: PLC0415
+
+    springs = {"structural": {"ks": 1.0}, "shear": {"ks": 1.0}, "bending": {"ks": 1.0}}
+    plain, scaled = ModelBuilder(), ModelBuilder()
+    plain.add_jelly((3, 3, 3), 1.0, 1.0, springs, center=(1.0, 2.0, 3.0), axis=(0, 0, 1), degrees=30.0)
+    scaled.add_jelly((3, 3, 3), 1.0, 1.0, springs, center=(1.0, 2.0, 3.0), axis=(0, 0, 1), degrees=30.0,
+                     initial_scale=(2.0, -0.5, 0.1))
+    a, b = plain.finalize("cpu", "float64"), scaled.finalize("cpu", "float64")
+    np.testing.assert_array_equal(a.spring_rest_host, b.spring_rest_host)
+    # x = R (S local) + c: undo the rotation and the translation, then the scale.
+    from softsim_warp.model import rotation_matrix  # noqa: PLC0415
+
+    rot = rotation_matrix((0, 0, 1), 30.0)
+    local_a = (a.particle_q_host - (1.0, 2.0, 3.0)) @ rot
+    local_b = (b.particle_q_host - (1.0, 2.0, 3.0)) @ rot
+    np.testing.assert_allclose(local_b, local_a * (2.0, -0.5, 0.1), atol=1e-12)
+
+
+# ---------------------------------------------------------------------------------------------
 # Stiff springs
 
 
@@ -239,6 +270,16 @@ def test_mass_ratio_stable_below_the_light_jellys_limit(method):
     p = stability.probe(model, make_integrator(method, model), 0.5 * pred, 300,
                         displacement=stability.perturbation(model))
     assert p.stable, p
+
+
+@pytest.mark.skipif("implicit" not in METHODS, reason="implicit integrator not installed")
+def test_mass_ratio_implicit_runs_at_the_default_dt():
+    # Backward Euler has no step limit (|1/(1 - h lambda)| <= 1 on the left half plane).
+    sets = ["jelly.0.resolution=4", "jelly.1.resolution=4", "simulation.duration=0.25"]
+    _, _, _, result, frames = run_scene("hard_mass_ratio", "implicit", sets)
+    assert not result.exploded and all_frames_finite(frames)
+    E = frames.energy
+    assert E.max() <= E[0] * (1 + 1e-4)
 
 
 # ---------------------------------------------------------------------------------------------
