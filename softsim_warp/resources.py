@@ -164,6 +164,10 @@ def format_bytes(n: float) -> str:
     return f"{n:.3g} PiB"  # pragma: no cover
 
 
+def _count(n: int) -> str:
+    return f"{n:,}" if n < 10**15 else f"{float(n):.3g}"
+
+
 def _largest_jelly_key(c: Counts) -> tuple[str, list]:
     k = max(range(len(c.jellies)), key=lambda i: c.jellies[i][0] + c.jellies[i][1])
     return f"jelly.{k}.resolution", k
@@ -181,7 +185,7 @@ def check_host_build(data: dict, source: str, available=None):
         raise SceneError(
             source,
             key,
-            f"scene too large: building {est.counts.particles:,} particles and {est.counts.springs:,} springs needs "
+            f"scene too large: building {_count(est.counts.particles)} particles and {_count(est.counts.springs)} springs needs "
             f"about {format_bytes(need)} of host memory, {format_bytes(available)} available",
             data["jelly"][k]["resolution"],
         )
@@ -199,7 +203,7 @@ def check_fits(scene, device, integrator=None, frames=0, usd_springs=False, dete
     host_need, device_need = est.on(device.is_cuda)
     key, k = _largest_jelly_key(est.counts)
     value = scene.data["jelly"][k]["resolution"]
-    what = f"{est.counts.particles:,} particles, {est.counts.springs:,} springs and {frames + 1} USD frames"
+    what = f"{_count(est.counts.particles)} particles, {_count(est.counts.springs)} springs and {_count(frames + 1)} USD frames"
     host_available = available_host_bytes() if host_available is None else host_available
     if host_available is not None and host_need > host_available:
         where = "host memory" if device.is_cuda else f"memory on {device}"

@@ -70,7 +70,8 @@ class Int(Field):
         self.lo = lo
 
     def check(self, value, key, ctx):
-        if isinstance(value, float) and value.is_integer():
+        # 3.0 reads as 3; a float beyond 2^53 is not an exact integer and stays a float (rejected).
+        if isinstance(value, float) and value.is_integer() and abs(value) <= 2.0**53:
             value = int(value)
         if not isinstance(value, int) or isinstance(value, bool) or (self.lo is not None and value < self.lo):
             ctx.fail(key, "must be an integer" + (f" >= {self.lo}" if self.lo is not None else ""), value)
@@ -117,6 +118,7 @@ class Vec3(Field):
 
 class Int3(Field):
     def check(self, value, key, ctx):
+        given = value
         if isinstance(value, int) and not isinstance(value, bool):
             value = [value] * 3
         if (
@@ -125,7 +127,7 @@ class Int3(Field):
             or not all(isinstance(c, int) and not isinstance(c, bool) for c in value)
             or min(value) < 1
         ):
-            ctx.fail(key, "must be an integer >= 1 or a list of 3 such integers", value)
+            ctx.fail(key, "must be an integer >= 1 or a list of 3 such integers", given)
         return list(value)
 
 
@@ -225,6 +227,7 @@ SCHEMA = Table(
                 }
             ),
             min_len=1,
+            required=True,
         ),
         "plane": TableList(
             Table(
@@ -383,7 +386,9 @@ def apply_override(data: dict, key: str, value, source=COMMAND_LINE):
         here = ".".join(parts[: depth + 1])
         if isinstance(node, list):
             if not part.isdigit() or int(part) >= len(node):
-                raise SceneError(source, f"--set {here}", f"index out of range; the scene has {len(node)} such tables", part)
+                n = len(node)
+                what = f"{n} {parts[depth - 1]} table{'' if n == 1 else 's'}" if depth else f"{n} entries"
+                raise SceneError(source, f"--set {here}", f"index out of range; the scene has {what}", part)
             if last:
                 node[int(part)] = value
             else:
@@ -398,7 +403,7 @@ def apply_override(data: dict, key: str, value, source=COMMAND_LINE):
                 # "jelly.0..." on a scene without jellies cannot be created; a new table can.
                 if parts[depth + 1].isdigit():
                     raise SceneError(
-                        source, f"--set {here}", "index out of range; the scene has no such tables", parts[depth + 1]
+                        source, f"--set {here}", f"index out of range; the scene has no {part} tables", parts[depth + 1]
                     )
                 node[part] = {}
             node = node[part]
