@@ -60,17 +60,22 @@ def jelly_points(jelly: dict, chunk: int = _CHUNK):
 
     shape = [int(n) for n in jelly["resolution"]]
     size = jelly["size"]
-    axes = [np.linspace(-0.5 * s, 0.5 * s, n) if n > 1 else np.zeros(1) for n, s in zip(shape, size)]
-    rot = rotation_matrix(jelly["rotation"]["axis"], jelly["rotation"]["degrees"])
     center = np.asarray(jelly["center"], dtype=np.float64)
     rows = max(1, chunk // max(shape[1] * shape[2], 1))
-    # x = center + R (a_i, b_j, c_k) = center + a_i R[:, 0] + b_j R[:, 1] + c_k R[:, 2], by broadcasting
-    # (an (N, 3) @ (3, 3) product is many times slower in NumPy).
-    ey = axes[1][None, :, None, None] * rot[:, 1]
-    ez = axes[2][None, None, :, None] * rot[:, 2]
+    # Extreme but finite float64 scenes may overflow to inf here; that is no error (and NumPy's
+    # warning would break the one-line answer).
+    with np.errstate(all="ignore"):
+        axes = [np.linspace(-0.5 * s, 0.5 * s, n) if n > 1 else np.zeros(1) for n, s in zip(shape, size)]
+        rot = rotation_matrix(jelly["rotation"]["axis"], jelly["rotation"]["degrees"])
+        # x = center + R (a_i, b_j, c_k) = center + a_i R[:, 0] + b_j R[:, 1] + c_k R[:, 2], by
+        # broadcasting (an (N, 3) @ (3, 3) product is many times slower in NumPy).
+        ey = axes[1][None, :, None, None] * rot[:, 1]
+        ez = axes[2][None, None, :, None] * rot[:, 2]
     for i0 in range(0, shape[0], rows):
-        ex = axes[0][i0 : i0 + rows, None, None, None] * rot[:, 0]
-        yield ((ex + center) + ey + ez).reshape(-1, 3)
+        with np.errstate(all="ignore"):
+            ex = axes[0][i0 : i0 + rows, None, None, None] * rot[:, 0]
+            pts = ((ex + center) + ey + ez).reshape(-1, 3)
+        yield pts
 
 
 def _check_precision(value, key, ctx, lo, hi, precision):
@@ -115,7 +120,8 @@ def check_terrain_overlap(data: dict, ctx):
             sdf = TERRAIN_SDF[kind]
             inside, deepest = 0, 0.0
             for pts in jelly_points(jelly):
-                phi = sdf(entry, pts)
+                with np.errstate(all="ignore"):  # overflow is no error here (see jelly_points)
+                    phi = sdf(entry, pts)
                 bad = phi < 0.0
                 if bad.any():
                     inside += int(bad.sum())
