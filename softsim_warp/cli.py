@@ -190,6 +190,7 @@ class _Signals:
     def __init__(self):
         self.received = None
         self.closing = False
+        self.busy = lambda: False  # True while a frame is being written: a stop-now waits for it
 
     def __enter__(self):
         self._old = {}
@@ -198,7 +199,7 @@ class _Signals:
         return self
 
     def _handle(self, signum, frame):
-        if self.received is not None and not self.closing:  # a second signal: stop now
+        if self.received is not None and not self.closing and not self.busy():  # a second signal: stop now
             raise KeyboardInterrupt
         if self.received is None:
             self.received = signum
@@ -209,10 +210,15 @@ class _Signals:
         return False
 
 
+_SIGNALS = None  # the run's signal state, for main's exit code after a stop-now
+
+
 def cmd_run(args) -> int:
     # Signals are caught from the start: one that arrives before the first frame ends the run
     # with 128 + signum and leaves no output, one during the run stops it after that frame.
+    global _SIGNALS
     with _Signals() as signals:
+        _SIGNALS = signals
         return _run(args, signals)
 
 
@@ -253,11 +259,13 @@ def _run(args, signals) -> int:
 
         progress = tqdm(total=frames + 1, unit="frame", desc=f"{scene.name} {sim['integrator']}", file=sys.stderr, leave=False)
     simulator.stop_requested = lambda: signals.received
+    signals.busy = lambda: simulator.writing
     try:
         result = simulator.run([writer], progress=progress)
-    except BaseException:
+    except BaseException as exc:
         signals.closing = True
-        writer.close(status="failed")
+        writer.close(status="interrupted" if isinstance(exc, KeyboardInterrupt) else "failed",
+                     extra={"softsim:frames": writer.last_frame + 1})
         raise
     finally:
         if progress is not None:
@@ -278,7 +286,7 @@ def _run(args, signals) -> int:
         print("error: " + message, file=sys.stderr)
         return EXIT_EXPLODED
     if result.interrupted:
-        return 128 + int(signals.received)
+        return 128 + int(signals.received or signal.SIGINT)
     return 0
 
 
@@ -310,4 +318,4 @@ def main(argv=None) -> int:
         print(f"error: {e.line()}", file=sys.stderr)
         return e.exit_code
     except KeyboardInterrupt:
-        return 130
+        return 128 + int(getattr(_SIGNALS, "received", None) or signal.SIGINT)

@@ -109,6 +109,21 @@ def test_signal_keeps_completed_frames(sig, tmp_path):
     assert not list(tmp_path.glob(".*partial*")), "temporary files left behind"
 
 
+def test_second_sigint_stops_mid_frame(tmp_path):
+    """Frames of 10 000 steps: the first SIGINT asks to stop after the frame, the second stops at once,
+    dropping the frame in progress and keeping the frames written."""
+    out = tmp_path / "slow.usda"
+    run = Run(["run", "jelly_drop", "--frames", "100000", "--fps", "1", "--dt", "1e-4", "--out", str(out)], tmp_path)
+    run.wait_for_frames(1)
+    run.proc.send_signal(signal.SIGINT)
+    time.sleep(0.2)
+    run.proc.send_signal(signal.SIGINT)
+    assert run.finish() == 130, run.err.decode(errors="replace")
+    stage, frames = _validate_usd(out)
+    assert frames >= 1
+    assert stage.GetRootLayer().customLayerData["softsim:status"] == "interrupted"
+
+
 def test_sigkill_leaves_existing_output_untouched(tmp_path):
     out = tmp_path / "keep.usdc"
     old = b"the previous, complete output\n"
