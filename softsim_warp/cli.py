@@ -88,18 +88,8 @@ def load_for_cli(args):
     except OSError as e:
         raise SceneError(source, None, f"cannot read: {e.strerror}") from None
     data = scene_mod.parse_toml(text, source)
-    for item in args.overrides:
-        key, value = scene_mod.parse_override(item)
-        scene_mod.apply_override(data, key, value)
-    for key, value in _flag_overrides(args):
-        sim = data.setdefault("simulation", {})
-        if not isinstance(sim, dict):
-            raise SceneError(source, "simulation", "must be a table", sim)
-        if key == "simulation.duration":
-            sim.pop("frames", None)
-        if key == "simulation.frames":
-            sim.pop("duration", None)
-        scene_mod.apply_override(data, key, value)
+    items = [scene_mod.parse_override(item) for item in args.overrides] + _flag_overrides(args)
+    scene_mod.apply_overrides(data, items)
     validated = scene_mod.validate(data, source)
     sim = validated["simulation"]
     if sim["dt"] > 1.0 / sim["fps"]:

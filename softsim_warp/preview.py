@@ -44,7 +44,7 @@ ELEVATION_DEG, AZIMUTH_DEG, HALF_FOV_DEG = 27.0, 35.0, 16.0
 MAX_GIF_FPS = 30.0  # default cap on the GIF frame rate
 MIN_GIF_FRAME_MS = 20  # browsers play GIF frames shorter than 20 ms at 100 ms
 TERRAIN_TRIANGLE_BUDGET = 5000
-SHADOW = 0.45  # darkening of the terrain right under a jelly at rest
+SHADOW = 0.4  # darkening of the terrain right under a jelly at rest
 
 
 # --------------------------------------------------------------------------------------------------
@@ -503,6 +503,15 @@ def _crop(tris, colors, axes, lo, hi):
     return np.concatenate(keep_t), np.concatenate(keep_c)
 
 
+def _drop_degenerate(tris, colors):
+    """Drop zero-area triangles (clipping leaves them where an edge runs along the box); they
+    have no normal and would be drawn as dark hairlines."""
+    area2 = np.linalg.norm(np.cross(tris[:, 1] - tris[:, 0], tris[:, 2] - tris[:, 0]), axis=1)
+    longest = np.linalg.norm(tris - np.roll(tris, 1, axis=1), axis=2).max(axis=1)
+    keep = area2 > 1e-6 * longest**2
+    return tris[keep], colors[keep]
+
+
 def _subdivide(tris, colors, limit_fn, budget):
     """Split triangles (4-way, midpoints) while their longest edge exceeds ``limit_fn(tris)``."""
     for _ in range(12):
@@ -529,6 +538,28 @@ def _subdivide(tris, colors, limit_fn, budget):
         tris = np.concatenate([tris[~need], children])
         colors = np.concatenate([colors[~need], np.tile(colors[need], (4, 1))])
     return tris, colors
+
+
+def _topmost(tris, centers, up, tol, cells=64):
+    """Mask of triangles on top: centre no lower than ``tol`` below the highest terrain sample in its
+    cell of a horizontal grid (a plane under a bowl is not on top; the bowl is). Shadows fall on these."""
+    hz = [a for a in range(3) if a != up]
+    mids = 0.5 * (tris + np.roll(tris, 1, axis=1))
+    samples = np.concatenate([tris.reshape(-1, 3), mids.reshape(-1, 3), centers])
+    lo = samples[:, hz].min(axis=0)
+    cell = max(float(np.max(samples[:, hz].max(axis=0) - lo)) / cells, 1e-12)
+    shape = tuple(int(n) for n in np.floor((samples[:, hz].max(axis=0) - lo) / cell) + 1)
+
+    def cell_of(x):
+        ij = np.floor((x[:, hz] - lo) / cell).astype(np.int64)
+        return np.clip(ij[:, 0], 0, shape[0] - 1), np.clip(ij[:, 1], 0, shape[1] - 1)
+
+    top = np.full(shape, -np.inf)
+    np.maximum.at(top, cell_of(samples), samples[:, up])
+    # A sloped triangle's centre may lie below higher samples of its own surface in the same cell.
+    normals = np.cross(tris[:, 1] - tris[:, 0], tris[:, 2] - tris[:, 0])
+    slope = np.linalg.norm(normals[:, hz], axis=1) / np.maximum(np.abs(normals[:, up]), 1e-12)
+    return centers[:, up] >= top[cell_of(centers)] - tol - 2.0 * cell * np.minimum(slope, 10.0)
 
 
 def _shade(normals, base_rgb, light):
@@ -604,12 +635,16 @@ class _Renderer:
         self.t_rgb = np.zeros((0, 3))
         self.t_min = self.t_max = np.zeros((0, 2))
         self.t_center = np.zeros((0, 3))
+        self.t_points = np.zeros((0, 4, 3))
+        self.t_size = np.zeros(0)
+        self.t_receiver = np.zeros(0, dtype=bool)
         if len(tris) == 0:
             return
         axes = [a for a in range(3) if a != scene.up]
         if scene.has_jelly_box:
             margin = 0.75 * scene.extent
             tris, rgb = _crop(tris, rgb, axes, scene.lo[axes] - margin, scene.hi[axes] + margin)
+        tris, rgb = _drop_degenerate(tris, rgb)
         if len(tris) == 0:
             return
         # Drop what lies wholly behind the near plane or off screen, before subdividing.
@@ -647,6 +682,9 @@ class _Renderer:
         self.t_depth = cam_pts[..., 2].mean(axis=1) + 0.5 * scene.edge
         self.t_min, self.t_max = self.t_xy.min(axis=1), self.t_xy.max(axis=1)
         self.t_center = tris.mean(axis=1)
+        self.t_size = np.linalg.norm(tris - np.roll(tris, 1, axis=1), axis=2).max(axis=1)
+        self.t_points = np.concatenate([tris, self.t_center[:, None]], axis=1)  # corners + centre
+        self.t_receiver = _topmost(tris, self.t_center, scene.up, tol=max(0.5 * scene.edge, 0.01 * scene.extent))
 
     def _bodies(self, frame):
         """Per body: ``(xy (n, 3, 2), depth (n,), rgb (n, 3), shadow_idx, shadow_factor)``."""
@@ -662,8 +700,9 @@ class _Renderer:
                 xy = (cp[:, None, :2] + quad[None]) / cp[:, None, 2:3]
                 xy = np.concatenate([xy[:, [0, 1, 2]], xy[:, [0, 2, 3]]])
                 depth = np.concatenate([cp[:, 2], cp[:, 2]])
-                shade = 1.0 - 0.35 * (depth - depth.min(initial=0.0)) / max(np.ptp(depth) if len(depth) else 0.0, 1e-9)
-                rgb = POINTS_RGB * shade[:, None]
+                rgb = np.tile(POINTS_RGB, (len(depth), 1))
+                if len(depth):  # farther points a little darker
+                    rgb *= 1.0 - 0.35 * ((depth - depth.min()) / max(float(np.ptp(depth)), 1e-12))[:, None]
                 out.append((xy, depth, rgb) + self._shadow(p))
                 continue
             if len(body.tri) == 0 or len(p) <= body.used[-1]:
@@ -697,14 +736,17 @@ class _Renderer:
         lo, hi = p[:, hz].min(axis=0), p[:, hz].max(axis=0)
         bottom = p[:, up].min()
         size = max(float(np.max(hi - lo)), 1e-9)
-        centers = self.t_center
-        gap = bottom - centers[:, up]
-        below = gap > -0.5 * self.scene.edge
+        gap = bottom - self.t_center[:, up]
+        below = self.t_receiver & (gap > -0.5 * self.scene.edge)
         gap = np.maximum(gap, 0.0)
-        width = 0.15 * size + 0.3 * gap
-        dist = np.linalg.norm(np.maximum(np.maximum(lo - centers[:, hz], centers[:, hz] - hi), 0.0), axis=1)
-        strength = SHADOW * np.exp(-gap / (1.5 * size)) * np.clip(1.0 - dist / width, 0.0, 1.0)
-        idx = np.nonzero(below & (strength > 0.01))[0]
+        width = (0.3 * size + 0.4 * gap)[:, None]
+        pts = self.t_points[..., hz]  # (T, 4, 2): strength averaged over corners and centre
+        dist = np.linalg.norm(np.maximum(np.maximum(lo - pts, pts - hi), 0.0), axis=2)
+        x = np.clip(dist / width, 0.0, 1.0)
+        cover = (1.0 - x * x * (3.0 - 2.0 * x)).mean(axis=1)  # smoothstep fall-off
+        strength = SHADOW * np.exp(-gap / (1.5 * size)) * cover
+        fine = self.t_size < width[:, 0]  # a coarse triangle cannot show a soft edge: leave it
+        idx = np.nonzero(below & fine & (strength > 0.01))[0]
         return idx, 1.0 - strength[idx]
 
     def _terrain_rgb(self, bodies):

@@ -367,6 +367,23 @@ def apply_override(data: dict, key: str, value, source="--set"):
             node = node[part]
 
 
+# Keys that replace each other: overriding one drops the other from the file's values.
+EXCLUSIVE = {"simulation.duration": "simulation.frames", "simulation.frames": "simulation.duration"}
+
+
+def apply_overrides(data: dict, items, source="--set"):
+    """Apply ``[(dotted_key, value), ...]`` in order; returns the list applied."""
+    for key, value in items:
+        other = EXCLUSIVE.get(key)
+        if other:
+            table, _, name = other.rpartition(".")
+            node = data.get(table)
+            if isinstance(node, dict):
+                node.pop(name, None)
+        apply_override(data, key, value, source)
+    return list(items)
+
+
 def validate(data: dict, source: str) -> dict:
     ctx = _Context(source)
     out = SCHEMA.check(data, "", ctx)
@@ -400,11 +417,7 @@ def load_scene(name_or_path: str, overrides=()) -> Scene:
     except OSError as e:
         raise SceneError(source, None, f"cannot read: {e.strerror}") from None
     data = parse_toml(text, source)
-    applied = []
-    for item in overrides:
-        key, value = parse_override(item)
-        apply_override(data, key, value)
-        applied.append((key, value))
+    applied = apply_overrides(data, [parse_override(item) for item in overrides])
     validated = validate(data, source)
     return Scene(validated, source=source, name=validated.get("name", path.stem), overrides=applied)
 
