@@ -6,7 +6,7 @@ import pytest
 pytest.importorskip("pxr")
 pytest.importorskip("matplotlib")
 
-from softsim_warp.preview import render_gif, render_png  # noqa: E402
+from softsim_warp.preview import render_gif, render_png
 
 FPS = 30
 FRAMES = 10
@@ -71,7 +71,8 @@ def write_stage(path, centers_y, plane_half=3.0, jelly_root="/World", root_trans
         attr.Set(Vt.Vec3fArray.FromNumpy((pts + [0.0, y, 0.0]).astype(np.float32)), frame)
     plane = UsdGeom.Mesh.Define(stage, "/World/Plane_0")
     h = plane_half
-    plane.CreatePointsAttr(Vt.Vec3fArray([Gf.Vec3f(-h, 0, -h), Gf.Vec3f(h, 0, -h), Gf.Vec3f(h, 0, h), Gf.Vec3f(-h, 0, h)]))
+    corners = [Gf.Vec3f(-h, 0, -h), Gf.Vec3f(h, 0, -h), Gf.Vec3f(h, 0, h), Gf.Vec3f(-h, 0, h)]
+    plane.CreatePointsAttr(Vt.Vec3fArray(corners))
     plane.CreateFaceVertexCountsAttr(Vt.IntArray([4]))
     plane.CreateFaceVertexIndicesAttr(Vt.IntArray([0, 3, 2, 1]))
     plane.CreateDisplayColorPrimvar(UsdGeom.Tokens.constant).Set(Vt.Vec3fArray([Gf.Vec3f(0.5, 0.5, 0.5)]))
@@ -129,8 +130,11 @@ def test_world_transform_of_a_variant_is_applied(tmp_path):
     # In its own frame the jelly stays 1.5 m above the ground; its parent Xform moves it 3 m down,
     # so in the world it sinks from above the plane to under it.
     path = write_stage(
-        tmp_path / "variant.usda", np.linspace(4.5, 1.5, FRAMES), plane_half=8.0,
-        jelly_root="/World/Sunk", root_translate=(0.0, -3.0, 0.0),
+        tmp_path / "variant.usda",
+        np.linspace(4.5, 1.5, FRAMES),
+        plane_half=8.0,
+        jelly_root="/World/Sunk",
+        root_translate=(0.0, -3.0, 0.0),
     )
     render_png(path, tmp_path / "above.png", frame=0, size=SIZE)
     render_png(path, tmp_path / "below.png", size=SIZE)
