@@ -42,12 +42,18 @@ def build(scalar):
         vn = wp.dot(normal, v)
         dvn = wp.dot(normal, v - v_prev)
         resting = phi_prev < eps and wp.abs(wp.dot(normal, v_prev)) < eps_v and dvn < scalar(0.0)
-        if resting:
-            # Cancel the normal part of the force (the particle stays on the surface) and let
-            # Coulomb friction remove at most mu |N.f| h / m of tangential speed, never reversing it.
+        # A resting particle that still moves away after the step (vn >= 0; on a convex surface the
+        # tangent of the last step points outward by |v| h / R) is separating: the surface pushes
+        # nothing, so neither normal cancellation nor friction applies. Cancelling it instead would
+        # glue particles to a sphere well past the point where they fly off.
+        if resting and vn < scalar(0.0):
+            # Cancel the normal velocity (the particle stays on the surface) and let Coulomb
+            # friction remove at most mu times that normal impulse per unit mass, -vn, of
+            # tangential speed, never reversing it. On a flat surface -vn = |N.f| h / m; on a
+            # curved one it also holds the centripetal part m |v|^2 h / R of the normal force.
             vt = v - vn * normal
             speed = wp.length(vt)
-            budget = friction * (-dvn)
+            budget = friction * (-vn)
             if speed <= budget:
                 v = vec3(scalar(0.0))
             else:
