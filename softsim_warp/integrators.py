@@ -84,6 +84,53 @@ def apply_contacts(model: Model, state_in: State, state_out: State, dt: float, w
             outputs=[state_out.particle_q, state_out.particle_qd],
             device=model.device,
         )
+    if model.bowl_count:
+        wp.launch(
+            model.kernels.collide_bowls,
+            dim=model.particle_count,
+            inputs=[
+                model.particle_inv_mass,
+                model.particle_world,
+                model.bowl_count,
+                model.bowl_world,
+                model.bowl_center,
+                model.bowl_radius,
+                model.bowl_cut_height,
+                model.bowl_restitution,
+                model.bowl_friction,
+                model.contact_epsilon,
+                model.contact_velocity_epsilon,
+                h,
+                world_contact_beta,
+                state_in.particle_q,
+                state_in.particle_qd,
+            ],
+            outputs=[state_out.particle_q, state_out.particle_qd],
+            device=model.device,
+        )
+    if model.sphere_count:
+        wp.launch(
+            model.kernels.collide_spheres,
+            dim=model.particle_count,
+            inputs=[
+                model.particle_inv_mass,
+                model.particle_world,
+                model.sphere_count,
+                model.sphere_world,
+                model.sphere_center,
+                model.sphere_radius,
+                model.sphere_restitution,
+                model.sphere_friction,
+                model.contact_epsilon,
+                model.contact_velocity_epsilon,
+                h,
+                world_contact_beta,
+                state_in.particle_q,
+                state_in.particle_qd,
+            ],
+            outputs=[state_out.particle_q, state_out.particle_qd],
+            device=model.device,
+        )
     for hook in getattr(model, "contact_hooks", ()):
         hook(model, state_in, state_out, h, world_contact_beta)
 

@@ -243,6 +243,28 @@ SCHEMA = Table(
                 }
             )
         ),
+        # Curved terrain (see model.ModelBuilder.add_bowl / add_sphere).
+        "bowl": TableList(
+            Table(
+                {
+                    "center": Vec3(required=True, doc="sphere centre [m]"),
+                    "radius": Float(lo=0, lo_open=True, required=True, doc="sphere radius [m]"),
+                    "cut_height": Float(doc="the bowl exists where y < cut_height [m]; absent: the whole sphere"),
+                    "restitution": Float(0.5, lo=0, hi=1),
+                    "friction": Float(0.3, lo=0),
+                }
+            )
+        ),
+        "sphere": TableList(
+            Table(
+                {
+                    "center": Vec3(required=True, doc="[m]"),
+                    "radius": Float(lo=0, lo_open=True, required=True, doc="[m]"),
+                    "restitution": Float(0.5, lo=0, hi=1),
+                    "friction": Float(0.3, lo=0),
+                }
+            )
+        ),
     }
 )
 
@@ -405,6 +427,11 @@ def validate(data: dict, source: str) -> dict:
         n = plane["normal"]
         length = math.sqrt(sum(c * c for c in n))
         plane["normal"] = [c / length for c in n]
+    for i, bowl in enumerate(out.get("bowl", [])):
+        bottom = bowl["center"][1] - bowl["radius"]
+        if "cut_height" in bowl and bowl["cut_height"] <= bottom:
+            ctx.fail(f"bowl.{i}.cut_height", f"must be above the bowl's lowest point center.y - radius = {bottom:g}",
+                     bowl["cut_height"])
     return out
 
 

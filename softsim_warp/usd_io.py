@@ -159,7 +159,8 @@ class UsdWriter:
         for i, p in enumerate(model.planes):
             points, counts, indices = plane_mesh(p["point"], p["normal"], p["size"], p["hole_center"], p["hole_radius"])
             self.add_static_mesh(f"{self.roots[p['world']]}/Plane_{i}", points, counts, indices)
-        for prim_path, points, counts, indices in getattr(model, "terrain_meshes", lambda: [])():
+        # Bowls and spheres; ``self.roots`` puts each world's terrain under its group.
+        for prim_path, points, counts, indices in getattr(model, "terrain_meshes", lambda roots: [])(self.roots):
             self.add_static_mesh(prim_path, points, counts, indices)
         self.save()
 
