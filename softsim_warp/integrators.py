@@ -11,6 +11,7 @@ from __future__ import annotations
 import numpy as np
 import warp as wp
 
+from . import deterministic
 from .model import NUMPY_SCALARS, Model, State
 
 # Butcher tableaux of the explicit methods, as (c, b): stage s is evaluated at
@@ -34,6 +35,10 @@ MAX_STAGES = 4
 
 def eval_forces(model: Model, q: wp.array, qd: wp.array, f_out: wp.array):
     """Internal forces (springs and dampers) of the state (q, qd) into ``f_out``; gravity is added as an acceleration."""
+    if getattr(model, "deterministic", False):
+        # Atomic-free: per-spring forces, then a fixed-order gather per particle (deterministic.py).
+        deterministic.eval_spring_forces(model, q, qd, f_out)
+        return
     f_out.zero_()
     if model.spring_count:
         wp.launch(

@@ -71,7 +71,7 @@ def test_user_errors_are_one_line(tmp_path):
     r = softsim("run", "jelly_drop", "--set", "jelly.0.springs.shear.kss=3")
     assert r.returncode == 2 and "did you mean 'ks'?" in r.stderr and "Traceback" not in r.stderr
     r = softsim("run", "no_such_scene")
-    assert r.returncode == 2 and r.stderr.startswith("error: no_such_scene: no such built-in scene")
+    assert r.returncode == 2 and r.stderr.startswith("error: no_such_scene: scene: no such scene file or built-in scene")
 
 
 def test_scenes_lists_builtins():
