@@ -43,6 +43,7 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--metrics", help="write per-frame metrics as JSON")
     run.add_argument("--springs", action="store_true", help="also write springs as BasisCurves")
     run.add_argument("--no-graph", action="store_true", help="launch kernels one by one instead of replaying a captured graph")
+    run.add_argument("--preview", metavar="GIF", help="also render the written USD to this animated GIF (softsim preview)")
     _add_common(run)
 
     sub.add_parser("scenes", help="list the built-in scenes")
@@ -53,7 +54,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 # Further subcommands live in their own modules, each with ``add_parser(subparsers, add_common)``
 # and ``run(args) -> int``; the subcommand's name is the module's ``COMMAND``.
-PLUGINS = ()
+PLUGINS = ("compare", "preview_cmd")
 
 
 def _plugin_modules():
@@ -150,6 +151,8 @@ def cmd_run(args) -> int:
     out = check_writable(args.out or f"{Path(scene.source).stem}.usdc", "--out", suffixes=(".usdc", ".usda", ".usd"))
     if args.metrics:
         check_writable(args.metrics, "--metrics")
+    if args.preview:
+        check_writable(args.preview, "--preview", suffixes=(".gif",))
     device = resolve_device(args.device)
 
     import warp as wp  # noqa: PLC0415
@@ -190,6 +193,10 @@ def cmd_run(args) -> int:
         if args.metrics:
             write_json_atomic(args.metrics, {"summary": summary, "frames": [m.as_dict() for m in result.metrics]})
     print(summary_line(summary, out), file=sys.stderr)
+    if args.preview and result.frames_written:
+        from .preview_cmd import render_gif_or_error  # noqa: PLC0415
+
+        render_gif_or_error(out, args.preview)
     if result.exploded:
         print("error: " + explosion_message(scene, model, result), file=sys.stderr)
         return EXIT_EXPLODED
