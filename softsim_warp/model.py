@@ -333,15 +333,7 @@ class Model:
     @property
     def terrain_anchor_points(self) -> list:
         """Host points spanning the bowls and spheres [m] (for the explosion speed bound)."""
-        pts = []
-        for b in self.bowls:
-            c, r = b["center"], b["radius"]
-            bottom = c - np.array([0.0, r, 0.0])
-            top = c + np.array([0.0, min(r, max(b["cut_height"] - c[1], -r)), 0.0])
-            pts += [bottom, top]
-        for s in self.spheres:
-            pts += [s["center"] - s["radius"], s["center"] + s["radius"]]
-        return pts
+        return terrain_anchors(self.bowls, self.spheres)
 
     def terrain_meshes(self, roots=None) -> list:
         """Static meshes of the bowls (their cap below the cut) and spheres, for the USD stage.
@@ -357,12 +349,15 @@ class Model:
 
         roots = roots or {}
         out = []
-        for i, b in enumerate(self.bowls):
-            root = roots.get(b["world"], "/World")
-            out.append((f"{root}/Bowl_{i}", *bowl_mesh(b["center"], b["radius"], b["cut_height"])))
-        for i, s in enumerate(self.spheres):
-            root = roots.get(s["world"], "/World")
-            out.append((f"{root}/Sphere_{i}", *sphere_mesh(s["center"], s["radius"])))
+        for kind, items in (("Bowl", self.bowls), ("Sphere", self.spheres)):
+            index = {}  # numbered within each world: every copy of a comparison has Bowl_0
+            for it in items:
+                i = index[it["world"]] = index.get(it["world"], -1) + 1
+                if kind == "Bowl":
+                    mesh = bowl_mesh(it["center"], it["radius"], it["cut_height"])
+                else:
+                    mesh = sphere_mesh(it["center"], it["radius"])
+                out.append((f"{roots.get(it['world'], '/World')}/{kind}_{i}", *mesh))
         return out
 
     deterministic = False
@@ -373,6 +368,19 @@ class Model:
         s.particle_q = wp.clone(self.particle_q)
         s.particle_qd = wp.clone(self.particle_qd)
         return s
+
+
+def terrain_anchors(bowls, spheres) -> list:
+    """Points spanning bowls (lowest point and rim) and spheres (bounding-box corners) [m]."""
+    pts = []
+    for b in bowls:
+        c, r = b["center"], b["radius"]
+        bottom = c - np.array([0.0, r, 0.0])
+        top = c + np.array([0.0, min(r, max(b["cut_height"] - c[1], -r)), 0.0])
+        pts += [bottom, top]
+    for s in spheres:
+        pts += [s["center"] - s["radius"], s["center"] + s["radius"]]
+    return pts
 
 
 class State:
