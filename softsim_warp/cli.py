@@ -99,6 +99,8 @@ def _plugin_modules():
 
 def _number(text: str):
     """A flag's text as an int or float when it reads as one (nan and inf included), else the text."""
+    if not isinstance(text, str):  # already parsed by argparse (type=float)
+        return text
     for kind in (int, float):
         try:
             return kind(text)
