@@ -77,6 +77,7 @@ def build_parser() -> argparse.ArgumentParser:
     run.add_argument("--metrics", help="write per-frame metrics as JSON")
     run.add_argument("--springs", action="store_true", help="also write springs as BasisCurves")
     run.add_argument("--no-graph", action="store_true", help="launch kernels one by one instead of replaying a captured graph")
+    run.add_argument("--preview", metavar="GIF", help="also render the written USD to this animated GIF (softsim preview)")
     _add_common(run)
 
     sub.add_parser("scenes", help="list the built-in scenes")
@@ -87,7 +88,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 # Further subcommands live in their own modules, each with ``add_parser(subparsers, add_common)``
 # and ``run(args) -> int``; the subcommand's name is the module's ``COMMAND``.
-PLUGINS = ()
+PLUGINS = ("compare", "preview_cmd")
 
 
 def _plugin_modules():
@@ -98,6 +99,8 @@ def _plugin_modules():
 
 def _number(text: str):
     """A flag's text as an int or float when it reads as one (nan and inf included), else the text."""
+    if not isinstance(text, str):  # already parsed by argparse (type=float)
+        return text
     for kind in (int, float):
         try:
             return kind(text)
@@ -123,18 +126,8 @@ def load_for_cli(args):
     from . import scene as scene_mod  # noqa: PLC0415
 
     path, source, data = scene_mod.read_scene_data(args.scene)
-    for item in args.overrides:
-        key, value = scene_mod.parse_override(item)
-        scene_mod.apply_override(data, key, value)
-    for key, value in _flag_overrides(args):
-        sim = data.setdefault("simulation", {})
-        if not isinstance(sim, dict):
-            raise SceneError(source, "simulation", "must be a table", sim)
-        if key == "simulation.duration":
-            sim.pop("frames", None)
-        if key == "simulation.frames":
-            sim.pop("duration", None)
-        scene_mod.apply_override(data, key, value)
+    items = [scene_mod.parse_override(item) for item in args.overrides] + _flag_overrides(args)
+    scene_mod.apply_overrides(data, items)
     validated = scene_mod.validate(data, source)
     sim = validated["simulation"]
     if sim["dt"] > 1.0 / sim["fps"]:
@@ -225,12 +218,14 @@ def cmd_run(args) -> int:
 def _run(args, signals) -> int:
     from pathlib import Path  # noqa: PLC0415
 
-    from .outputs import check_outputs, write_json_atomic  # noqa: PLC0415
+    from .outputs import check_outputs, check_writable, write_json_atomic  # noqa: PLC0415
 
     scene = load_for_cli(args)
     out, metrics_path = check_outputs(
         args.out or f"{Path(scene.source).stem}.usdc", args.metrics, scene_path=scene.source
     )
+    if args.preview:
+        check_writable(args.preview, "--preview", suffixes=(".gif",))
     device = resolve_device(args.device, args.debug)
     sim = scene.sim
     frames = scene.frame_count()
@@ -282,6 +277,10 @@ def _run(args, signals) -> int:
     if metrics_path is not None:
         write_json_atomic(metrics_path, {"summary": summary, "frames": [m.as_dict() for m in result.metrics]})
     print(summary_line(summary, out), file=sys.stderr)
+    if args.preview and result.frames_written:
+        from .preview_cmd import render_gif_or_error  # noqa: PLC0415
+
+        render_gif_or_error(out, args.preview)
     if result.exploded:
         print("error: " + message, file=sys.stderr)
         return EXIT_EXPLODED

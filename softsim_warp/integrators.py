@@ -27,6 +27,9 @@ TABLEAUX = {
 }
 EXPLICIT = tuple(TABLEAUX)
 ORDER = {"euler": 1, "symplectic": 1, "midpoint": 2, "rk4": 4, "implicit": 1}
+# Position gain of a constant acceleration a over one step, x_{n+1} = ... + beta h^2 a: sum_s b_s c_s for
+# the RK methods (0 for Euler, 1/2 for every second-order method), 1 when x is updated with v_{n+1}.
+CONTACT_BETA = {"euler": 0.0, "midpoint": 0.5, "rk4": 0.5, "symplectic": 1.0, "implicit": 1.0}
 MAX_STAGES = 4
 
 
@@ -54,8 +57,13 @@ def eval_forces(model: Model, q: wp.array, qd: wp.array, f_out: wp.array):
         )
 
 
-def apply_contacts(model: Model, state_in: State, state_out: State):
-    """Terrain contact on ``state_out`` after a step from ``state_in``; one launch per primitive type present."""
+def apply_contacts(model: Model, state_in: State, state_out: State, dt: float, world_contact_beta: wp.array):
+    """Terrain contact on ``state_out`` after a step of ``dt`` from ``state_in``; one launch per primitive type present.
+
+    ``world_contact_beta`` is, per world, the integrator's position gain for a force held constant
+    over the step (x_{n+1} gains beta h^2 a): resting contact and friction shift positions by it.
+    """
+    h = model.scalar(dt)
     if model.plane_count:
         wp.launch(
             model.kernels.collide_planes,
@@ -73,6 +81,55 @@ def apply_contacts(model: Model, state_in: State, state_out: State):
                 model.plane_friction,
                 model.contact_epsilon,
                 model.contact_velocity_epsilon,
+                h,
+                world_contact_beta,
+                state_in.particle_q,
+                state_in.particle_qd,
+            ],
+            outputs=[state_out.particle_q, state_out.particle_qd],
+            device=model.device,
+        )
+    if model.bowl_count:
+        wp.launch(
+            model.kernels.collide_bowls,
+            dim=model.particle_count,
+            inputs=[
+                model.particle_inv_mass,
+                model.particle_world,
+                model.bowl_count,
+                model.bowl_world,
+                model.bowl_center,
+                model.bowl_radius,
+                model.bowl_cut_height,
+                model.bowl_restitution,
+                model.bowl_friction,
+                model.contact_epsilon,
+                model.contact_velocity_epsilon,
+                h,
+                world_contact_beta,
+                state_in.particle_q,
+                state_in.particle_qd,
+            ],
+            outputs=[state_out.particle_q, state_out.particle_qd],
+            device=model.device,
+        )
+    if model.sphere_count:
+        wp.launch(
+            model.kernels.collide_spheres,
+            dim=model.particle_count,
+            inputs=[
+                model.particle_inv_mass,
+                model.particle_world,
+                model.sphere_count,
+                model.sphere_world,
+                model.sphere_center,
+                model.sphere_radius,
+                model.sphere_restitution,
+                model.sphere_friction,
+                model.contact_epsilon,
+                model.contact_velocity_epsilon,
+                h,
+                world_contact_beta,
                 state_in.particle_q,
                 state_in.particle_qd,
             ],
@@ -80,7 +137,7 @@ def apply_contacts(model: Model, state_in: State, state_out: State):
             device=model.device,
         )
     for hook in getattr(model, "contact_hooks", ()):
-        hook(model, state_in, state_out)
+        hook(model, state_in, state_out, h, world_contact_beta)
 
 
 class Integrator:
@@ -135,6 +192,9 @@ class ExplicitIntegrator(Integrator):
         self.world_symplectic = wp.array(symplectic, dtype=wp.int32, device=device)
         self.world_stage_c = wp.array2d(c, dtype=model.scalar, device=device)
         self.world_stage_b = wp.array2d(b, dtype=model.scalar, device=device)
+        self.world_contact_beta = wp.array(
+            np.array([CONTACT_BETA[name] for name in methods], dtype=np_scalar), dtype=model.scalar, device=device
+        )
         # Stage buffers, allocated once: forces, the stage state and the RK accumulators.
         n = model.particle_count
         self.f = wp.zeros(n, dtype=model.vec3, device=device)
@@ -173,7 +233,7 @@ class ExplicitIntegrator(Integrator):
                 device=model.device,
             )
             q, qd = self.q_s, self.qd_s
-        apply_contacts(model, state_in, state_out)
+        apply_contacts(model, state_in, state_out, dt, self.world_contact_beta)
 
 
 def make_integrator(name, model: Model, options: dict | None = None) -> Integrator:

@@ -58,6 +58,8 @@ class ModelBuilder:
         self._pairs, self._rest, self._ks, self._kd, self._type = [], [], [], [], []
         self.jellies: list[JellyInfo] = []
         self.planes: list[dict] = []
+        self.bowls: list[dict] = []
+        self.spheres: list[dict] = []
         self.world_count = 1
         self._particle_count = 0
         self._spring_count = 0
@@ -171,6 +173,35 @@ class ModelBuilder:
             }
         )
 
+    def add_bowl(self, center, radius, cut_height=None, restitution=0.5, friction=0.3, world=0):
+        """Add a bowl: the inside of a sphere below ``cut_height`` (``None``: the whole sphere).
+
+        Particles inside the sphere stay inside where y < cut_height; at or above the cut, and
+        for particles that start a step outside the sphere, the bowl does not collide.
+        """
+        self.bowls.append(
+            {
+                "center": np.asarray(center, dtype=np.float64),
+                "radius": float(radius),
+                "cut_height": math.inf if cut_height is None else float(cut_height),
+                "restitution": float(restitution),
+                "friction": float(friction),
+                "world": int(world),
+            }
+        )
+
+    def add_sphere(self, center, radius, restitution=0.5, friction=0.3, world=0):
+        """Add a solid sphere: particles stay outside it."""
+        self.spheres.append(
+            {
+                "center": np.asarray(center, dtype=np.float64),
+                "radius": float(radius),
+                "restitution": float(restitution),
+                "friction": float(friction),
+                "world": int(world),
+            }
+        )
+
     # -- finalize -------------------------------------------------------------------------------
 
     def finalize(self, device=None, precision="float32") -> Model:
@@ -240,6 +271,28 @@ class ModelBuilder:
         m.plane_restitution = arr(col("restitution", (n,)), scalar, np_scalar)
         m.plane_friction = arr(col("friction", (n,)), scalar, np_scalar)
         m.plane_world = arr(col("world", (n,)), wp.int32, np.int32)
+
+        # Bowls and spheres; float32 cannot hold an infinite cut, so "no cut" is stored as 1e30.
+        m.bowls = [dict(b) for b in self.bowls]
+        m.bowl_count = len(self.bowls)
+        m.spheres = [dict(s) for s in self.spheres]
+        m.sphere_count = len(self.spheres)
+
+        def cols(items, name, shape):
+            return np.array([it[name] for it in items], dtype=np.float64).reshape(shape)
+
+        nb, ns = m.bowl_count, m.sphere_count
+        m.bowl_center = arr(cols(self.bowls, "center", (nb, 3)), vec3, np_scalar)
+        m.bowl_radius = arr(cols(self.bowls, "radius", (nb,)), scalar, np_scalar)
+        m.bowl_cut_height = arr(np.minimum(cols(self.bowls, "cut_height", (nb,)), 1.0e30), scalar, np_scalar)
+        m.bowl_restitution = arr(cols(self.bowls, "restitution", (nb,)), scalar, np_scalar)
+        m.bowl_friction = arr(cols(self.bowls, "friction", (nb,)), scalar, np_scalar)
+        m.bowl_world = arr(cols(self.bowls, "world", (nb,)), wp.int32, np.int32)
+        m.sphere_center = arr(cols(self.spheres, "center", (ns, 3)), vec3, np_scalar)
+        m.sphere_radius = arr(cols(self.spheres, "radius", (ns,)), scalar, np_scalar)
+        m.sphere_restitution = arr(cols(self.spheres, "restitution", (ns,)), scalar, np_scalar)
+        m.sphere_friction = arr(cols(self.spheres, "friction", (ns,)), scalar, np_scalar)
+        m.sphere_world = arr(cols(self.spheres, "world", (ns,)), wp.int32, np.int32)
         return m
 
 
@@ -260,12 +313,52 @@ class Model:
         gravity: acceleration [m/s^2], vec3 value.
         plane_*: per plane point [m], unit normal, hole centre [m] and radius [m] (0 = none),
             restitution, friction coefficient and world, shape [plane_count].
+        bowl_center: sphere centre of each bowl [m], shape [bowl_count], vec3.
+        bowl_radius: sphere radius [m], shape [bowl_count], scalar.
+        bowl_cut_height: the bowl exists where y < cut height [m] (1e30: whole sphere), shape [bowl_count], scalar.
+        bowl_restitution, bowl_friction: coefficients [1], shape [bowl_count], scalar.
+        bowl_world: world of each bowl, shape [bowl_count], int32.
+        sphere_center: centre of each solid sphere [m], shape [sphere_count], vec3.
+        sphere_radius: radius [m], shape [sphere_count], scalar.
+        sphere_restitution, sphere_friction: coefficients [1], shape [sphere_count], scalar.
+        sphere_world: world of each sphere, shape [sphere_count], int32.
+        bowls, spheres: host lists of dicts with the same values (float64).
         contact_epsilon: distance within which a particle touches a surface [m].
         contact_velocity_epsilon: normal speed below which a touching particle rests [m/s].
         jellies: host list of :class:`JellyInfo`.
         deterministic: forces without atomics when True; the CSR arrays it needs are documented
             in ``softsim_warp.deterministic.attach``.
     """
+
+    @property
+    def terrain_anchor_points(self) -> list:
+        """Host points spanning the bowls and spheres [m] (for the explosion speed bound)."""
+        return terrain_anchors(self.bowls, self.spheres)
+
+    def terrain_meshes(self, roots=None) -> list:
+        """Static meshes of the bowls (their cap below the cut) and spheres, for the USD stage.
+
+        Args:
+            roots: optional ``{world: prim path}`` under which each world's terrain goes
+                (default ``/World``).
+
+        Returns:
+            A list of ``(prim_path, points (V, 3), face counts (F,), face indices)``.
+        """
+        from .terrain_mesh import bowl_mesh, sphere_mesh  # noqa: PLC0415 - host geometry, only for output
+
+        roots = roots or {}
+        out = []
+        for kind, items in (("Bowl", self.bowls), ("Sphere", self.spheres)):
+            index = {}  # numbered within each world: every copy of a comparison has Bowl_0
+            for it in items:
+                i = index[it["world"]] = index.get(it["world"], -1) + 1
+                if kind == "Bowl":
+                    mesh = bowl_mesh(it["center"], it["radius"], it["cut_height"])
+                else:
+                    mesh = sphere_mesh(it["center"], it["radius"])
+                out.append((f"{roots.get(it['world'], '/World')}/{kind}_{i}", *mesh))
+        return out
 
     deterministic = False
 
@@ -275,6 +368,19 @@ class Model:
         s.particle_q = wp.clone(self.particle_q)
         s.particle_qd = wp.clone(self.particle_qd)
         return s
+
+
+def terrain_anchors(bowls, spheres) -> list:
+    """Points spanning bowls (lowest point and rim) and spheres (bounding-box corners) [m]."""
+    pts = []
+    for b in bowls:
+        c, r = b["center"], b["radius"]
+        bottom = c - np.array([0.0, r, 0.0])
+        top = c + np.array([0.0, min(r, max(b["cut_height"] - c[1], -r)), 0.0])
+        pts += [bottom, top]
+    for s in spheres:
+        pts += [s["center"] - s["radius"], s["center"] + s["radius"]]
+    return pts
 
 
 class State:
@@ -336,3 +442,7 @@ def populate(builder: ModelBuilder, data: dict, world=0):
             size=p["size"],
             world=world,
         )
+    for b in data.get("bowl", []):
+        builder.add_bowl(b["center"], b["radius"], b.get("cut_height"), b["restitution"], b["friction"], world=world)
+    for s in data.get("sphere", []):
+        builder.add_sphere(s["center"], s["radius"], s["restitution"], s["friction"], world=world)

@@ -263,6 +263,28 @@ SCHEMA = Table(
                 }
             )
         ),
+        # Curved terrain (see model.ModelBuilder.add_bowl / add_sphere).
+        "bowl": TableList(
+            Table(
+                {
+                    "center": Vec3(required=True, doc="sphere centre [m]"),
+                    "radius": Float(lo=0, lo_open=True, required=True, doc="sphere radius [m]"),
+                    "cut_height": Float(doc="the bowl exists where y < cut_height [m]; absent: the whole sphere"),
+                    "restitution": Float(0.5, lo=0, hi=1),
+                    "friction": Float(0.3, lo=0),
+                }
+            )
+        ),
+        "sphere": TableList(
+            Table(
+                {
+                    "center": Vec3(required=True, doc="[m]"),
+                    "radius": Float(lo=0, lo_open=True, required=True, doc="[m]"),
+                    "restitution": Float(0.5, lo=0, hi=1),
+                    "friction": Float(0.3, lo=0),
+                }
+            )
+        ),
     }
 )
 
@@ -425,6 +447,23 @@ def apply_override(data: dict, key: str, value, source=COMMAND_LINE):
             node = node[part]
 
 
+# Keys that replace each other: overriding one drops the other from the file's values.
+EXCLUSIVE = {"simulation.duration": "simulation.frames", "simulation.frames": "simulation.duration"}
+
+
+def apply_overrides(data: dict, items, source=COMMAND_LINE):
+    """Apply ``[(dotted_key, value), ...]`` in order; returns the list applied."""
+    for key, value in items:
+        other = EXCLUSIVE.get(key)
+        if other:
+            table, _, name = other.rpartition(".")
+            node = data.get(table)
+            if isinstance(node, dict):
+                node.pop(name, None)
+        apply_override(data, key, value, source)
+    return list(items)
+
+
 def _unit(v):
     """``v / |v|`` without overflow or underflow: scaled by its largest component first (v != 0)."""
     big = max(abs(c) for c in v)
@@ -457,6 +496,11 @@ def validate(data: dict, source: str) -> dict:
         plane["normal"] = _unit(plane["normal"])
     for jelly in out["jelly"]:
         jelly["rotation"]["axis"] = _unit(jelly["rotation"]["axis"])
+    for i, bowl in enumerate(out.get("bowl", [])):
+        bottom = bowl["center"][1] - bowl["radius"]
+        if "cut_height" in bowl and bowl["cut_height"] <= bottom:
+            ctx.fail(f"bowl.{i}.cut_height", f"must be above the bowl's lowest point center.y - radius = {bottom:g}",
+                     bowl["cut_height"])
     # Checks of the scene as a whole (sizes, precision range, a jelly starting inside terrain);
     # see checks.py.
     from .checks import check_scene  # noqa: PLC0415
@@ -468,11 +512,7 @@ def validate(data: dict, source: str) -> dict:
 def load_scene(name_or_path: str, overrides=()) -> Scene:
     """Load a scene file or a built-in scene by name, apply ``--set`` overrides and validate it."""
     path, source, data = read_scene_data(name_or_path)
-    applied = []
-    for item in overrides:
-        key, value = parse_override(item)
-        apply_override(data, key, value)
-        applied.append((key, value))
+    applied = apply_overrides(data, [parse_override(item) for item in overrides])
     validated = validate(data, source)
     return Scene(validated, source=source, name=validated.get("name", path.stem), overrides=applied)
 

@@ -158,10 +158,13 @@ class UsdWriter:
                     curves[tname] = (c, model.spring_indices_host[sel].ravel())
             self.jelly_prims.append((info, pts, mesh, used, curves))
 
-        for i, p in enumerate(model.planes):
+        plane_index = {}  # numbered within each world, so every copy of a comparison has Plane_0
+        for p in model.planes:
+            i = plane_index[p["world"]] = plane_index.get(p["world"], -1) + 1
             points, counts, indices = plane_mesh(p["point"], p["normal"], p["size"], p["hole_center"], p["hole_radius"])
             self.add_static_mesh(f"{self.roots[p['world']]}/Plane_{i}", points, counts, indices)
-        for prim_path, points, counts, indices in getattr(model, "terrain_meshes", lambda: [])():
+        # Bowls and spheres; ``self.roots`` puts each world's terrain under its group.
+        for prim_path, points, counts, indices in getattr(model, "terrain_meshes", lambda roots: [])(self.roots):
             self.add_static_mesh(prim_path, points, counts, indices)
         self.save()
 
