@@ -183,6 +183,10 @@ CASES = [
          _e("center = [0.0, 1.0, 0.0]", "center = [0.0, 0.0, 0.0]")),
     Case("inside_tilted_plane", "jelly cut by a tilted plane", "jelly starts inside terrain",
          (("normal = [0.0, 1.0, 0.0]", "normal = [1.0, 1.0, 0.0]"), ("point = [0.0, 0.0, 0.0]", "point = [0.0, 1.2, 0.0]"))),
+    Case("inside_sphere", "jelly overlapping a solid sphere", "jelly starts inside terrain: 1 of 27 particles are inside sphere.0",
+         _e("friction = 0.5\n", "friction = 0.5\n\n[[sphere]]\ncenter = [0.0, 1.0, 0.0]\nradius = 0.1\n")),
+    Case("across_bowl_shell", "jelly cut by a bowl's shell", "jelly starts across the shell of bowl.0",
+         _e("friction = 0.5\n", "friction = 0.5\n\n[[bowl]]\ncenter = [0.0, 1.5, 0.0]\nradius = 0.6\ncut_height = 1.5\n")),
     Case("too_large", "resolution far beyond memory", "jelly.0.resolution: scene too large",
          args=(SCENE, "--set", "jelly.0.resolution=[4000,4000,4000]")),
     # --- files and names ---------------------------------------------------------------------------

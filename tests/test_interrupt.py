@@ -110,10 +110,10 @@ def test_signal_keeps_completed_frames(sig, tmp_path):
 
 
 def test_second_sigint_stops_mid_frame(tmp_path):
-    """Frames of 10 000 steps: the first SIGINT asks to stop after the frame, the second stops at once,
+    """Frames of 5 000 steps: the first SIGINT asks to stop after the frame, the second stops at once,
     dropping the frame in progress and keeping the frames written."""
     out = tmp_path / "slow.usda"
-    run = Run(["run", "jelly_drop", "--frames", "100000", "--fps", "1", "--dt", "1e-4", "--out", str(out)], tmp_path)
+    run = Run(["run", "jelly_drop", "--frames", "100000", "--fps", "2", "--dt", "1e-4", "--out", str(out)], tmp_path)
     run.wait_for_frames(1)
     run.proc.send_signal(signal.SIGINT)
     time.sleep(0.2)
