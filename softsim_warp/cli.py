@@ -173,6 +173,21 @@ def resolve_device(name: str, debug=False):
         raise CommandLineError("--device", f"device not available here; available: {names}", name) from None
 
 
+def check_deterministic(integrator: str, device):
+    """--deterministic covers force and metric sums; the implicit solver's own sums use atomics.
+
+    On the CPU every run is deterministic anyway; on CUDA the combination is refused rather than
+    promised and not kept.
+    """
+    if device.is_cuda and integrator == "implicit":
+        raise CommandLineError(
+            "--deterministic",
+            "not available with the implicit integrator on CUDA (its solver sums with atomics); "
+            "use an explicit integrator, or --device cpu",
+            integrator,
+        )
+
+
 class _Signals:
     """Turns SIGINT/SIGTERM into a request to stop after the current frame.
 
@@ -228,6 +243,8 @@ def _run(args, signals) -> int:
         check_writable(args.preview, "--preview", suffixes=(".gif",))
     device = resolve_device(args.device, args.debug)
     sim = scene.sim
+    if args.deterministic:
+        check_deterministic(sim["integrator"], device)
     frames = scene.frame_count()
     from .resources import check_fits  # noqa: PLC0415
 

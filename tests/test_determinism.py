@@ -148,3 +148,19 @@ def test_deterministic_flag_in_outputs(tmp_path):
               "--metrics", "d.json"], tmp_path)
     assert json.loads((tmp_path / "d.json").read_text())["summary"]["deterministic"] is True
     assert 'bool "softsim:deterministic" = 1' in (tmp_path / "d.usda").read_text()
+
+
+class _FakeGpu:
+    is_cuda = True
+
+
+def test_deterministic_refuses_implicit_on_cuda():
+    """The implicit solver sums with atomics: --deterministic with it is refused on CUDA, allowed on the CPU."""
+    from softsim_warp.errors import CommandLineError  # noqa: PLC0415
+
+    with pytest.raises(CommandLineError) as e:
+        cli.check_deterministic("implicit", _FakeGpu())
+    assert e.value.line().startswith("command line: --deterministic: not available with the implicit integrator")
+    cli.check_deterministic("implicit", wp.get_device("cpu"))
+    for name in ("euler", "symplectic", "midpoint", "rk4"):
+        cli.check_deterministic(name, _FakeGpu())
