@@ -66,14 +66,20 @@ class Case:
 
 def compare(device, res, integrator, steps, repeats) -> dict:
     """Atomic against deterministic, timed alternately so that a busy machine slows both alike."""
-    cases = {"atomic": Case(device, res, integrator, False, steps),
-             "deterministic": Case(device, res, integrator, True, steps)}
+    cases = {
+        "atomic": Case(device, res, integrator, False, steps),
+        "deterministic": Case(device, res, integrator, True, steps),
+    }
     samples = {name: [] for name in cases}
     for _ in range(repeats):
         for name, case in cases.items():
             samples[name].append(case.time())
-    out = {"res": res, "integrator": integrator, "particles": cases["atomic"].model.particle_count,
-           "springs": cases["atomic"].model.spring_count}
+    out = {
+        "res": res,
+        "integrator": integrator,
+        "particles": cases["atomic"].model.particle_count,
+        "springs": cases["atomic"].model.spring_count,
+    }
     # On the CPU, Warp runs kernels on the calling thread: its CPU time is the cost, unaffected by
     # other processes taking turns on the cores. On CUDA the wall time of the graph is.
     use_cpu_time = not cases["atomic"].model.device.is_cuda
@@ -84,8 +90,10 @@ def compare(device, res, integrator, steps, repeats) -> dict:
             "cpu_seconds_per_step": statistics.median(c for _, c in samples[name]),
         }
     key = "cpu_seconds_per_step" if use_cpu_time else "wall_seconds_per_step"
-    ratios = [d[1 if use_cpu_time else 0] / a[1 if use_cpu_time else 0]
-              for a, d in zip(samples["atomic"], samples["deterministic"])]
+    ratios = [
+        d[1 if use_cpu_time else 0] / a[1 if use_cpu_time else 0]
+        for a, d in zip(samples["atomic"], samples["deterministic"])
+    ]
     out["timed"] = key
     out["ratio"] = statistics.median(ratios)
     return out
@@ -109,21 +117,26 @@ def main(argv=None) -> int:
     rows = []
     timed = "CPU-thread" if not device.is_cuda else "wall (graph)"
     print(f"device {device} ({device.name}), warp {wp.config.version}, {a.steps} steps x {a.repeats}, {timed} time")
-    print(f"{'res':>5} {'particles':>10} {'springs':>10} {'integrator':>10} {'atomic ms/step':>15} "
-          f"{'determ. ms/step':>16} {'ratio':>6}")
+    print(
+        f"{'res':>5} {'particles':>10} {'springs':>10} {'integrator':>10} {'atomic ms/step':>15} "
+        f"{'determ. ms/step':>16} {'ratio':>6}"
+    )
     for res in a.res:
         for integrator in a.integrators:
             row = compare(device, res, integrator, a.steps, a.repeats)
             row["device"], row["device_name"] = str(device), device.name
             rows.append(row)
             k = row["timed"]
-            print(f"{res:>5} {row['particles']:>10} {row['springs']:>10} {integrator:>10} "
-                  f"{1e3 * row['atomic'][k]:>15.4f} {1e3 * row['deterministic'][k]:>16.4f} {row['ratio']:>6.2f}")
+            print(
+                f"{res:>5} {row['particles']:>10} {row['springs']:>10} {integrator:>10} "
+                f"{1e3 * row['atomic'][k]:>15.4f} {1e3 * row['deterministic'][k]:>16.4f} {row['ratio']:>6.2f}"
+            )
             sys.stdout.flush()
     if a.json:
         with open(a.json, "w") as f:
-            json.dump({"warp_version": wp.config.version, "steps": a.steps, "repeats": a.repeats, "rows": rows}, f,
-                      indent=1)
+            json.dump(
+                {"warp_version": wp.config.version, "steps": a.steps, "repeats": a.repeats, "rows": rows}, f, indent=1
+            )
     return 0
 
 

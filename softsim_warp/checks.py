@@ -109,7 +109,7 @@ def _check_precision(value, key, ctx, lo, hi, precision):
         ctx.fail(
             key,
             f"is outside the range of {precision} ({lo:.3g} to {hi:.3g} in magnitude); "
-            f"use a value in range or simulation.precision = \"float64\"",
+            f'use a value in range or simulation.precision = "float64"',
             value,
         )
 
@@ -175,4 +175,3 @@ def check_scene(data: dict, ctx):
         _check_spacing(jelly, f"jelly.{j}", ctx, precision)
     check_host_build(data, ctx.source)
     check_terrain_overlap(data, ctx)
-

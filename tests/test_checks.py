@@ -87,8 +87,14 @@ def test_sphere_and_bowl_distances_match_the_contact_kernels():
     center, radius, cut = np.array([0.1, -0.2, 0.3]), 1.3, 0.25
 
     @wp.kernel
-    def distances(x: wp.array(dtype=wp.vec3d), c: wp.vec3d, r: wp.float64, cut: wp.float64,
-                  sphere: wp.array(dtype=wp.float64), bowl: wp.array(dtype=wp.float64)):
+    def distances(
+        x: wp.array(dtype=wp.vec3d),
+        c: wp.vec3d,
+        r: wp.float64,
+        cut: wp.float64,
+        sphere: wp.array(dtype=wp.float64),
+        bowl: wp.array(dtype=wp.float64),
+    ):
         i = wp.tid()
         phi_s, n_s = k.sphere_distance(x[i], c, r)
         phi_b, n_b = k.bowl_distance(x[i], c, r, cut)
@@ -97,10 +103,16 @@ def test_sphere_and_bowl_distances_match_the_contact_kernels():
 
     sphere = wp.zeros(len(pts), dtype=wp.float64)
     bowl = wp.zeros(len(pts), dtype=wp.float64)
-    wp.launch(distances, dim=len(pts), inputs=[wp.array(pts, dtype=wp.vec3d), wp.vec3d(*center), radius, cut],
-              outputs=[sphere, bowl], device="cpu")
-    np.testing.assert_allclose(checks.sphere_signed_distance({"center": center, "radius": radius}, pts),
-                               sphere.numpy(), rtol=0, atol=1e-12)
+    wp.launch(
+        distances,
+        dim=len(pts),
+        inputs=[wp.array(pts, dtype=wp.vec3d), wp.vec3d(*center), radius, cut],
+        outputs=[sphere, bowl],
+        device="cpu",
+    )
+    np.testing.assert_allclose(
+        checks.sphere_signed_distance({"center": center, "radius": radius}, pts), sphere.numpy(), rtol=0, atol=1e-12
+    )
     ours = checks.bowl_signed_distance({"center": center, "radius": radius, "cut_height": cut}, pts)
     theirs = bowl.numpy()
     above = pts[:, 1] >= cut
@@ -123,7 +135,9 @@ def test_bowl_shell_must_not_cut_the_jelly(center, ok):
     if ok:
         checks.check_terrain_overlap(data, _Ctx())
     else:
-        with pytest.raises(SceneError, match=r"jelly starts across the shell of bowl.0: \d+ of 27 particles are behind"):
+        with pytest.raises(
+            SceneError, match=r"jelly starts across the shell of bowl.0: \d+ of 27 particles are behind"
+        ):
             checks.check_terrain_overlap(data, _Ctx())
 
 

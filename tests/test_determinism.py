@@ -17,8 +17,9 @@ TIMING = {"wall_seconds", "step_seconds", "compile_seconds", "particle_steps_per
 
 
 def _softsim(args, cwd):
-    proc = subprocess.run([sys.executable, "-m", "softsim_warp", *args], cwd=cwd, capture_output=True, text=True,
-                          timeout=300)
+    proc = subprocess.run(
+        [sys.executable, "-m", "softsim_warp", *args], cwd=cwd, capture_output=True, text=True, timeout=300
+    )
     assert proc.returncode == 0, proc.stderr
     return proc
 
@@ -26,8 +27,22 @@ def _softsim(args, cwd):
 def test_cpu_runs_are_bitwise_identical(tmp_path, monkeypatch):
     """Two separate processes: identical USD bytes and identical metrics but for wall times."""
     for i in (1, 2):
-        _softsim(["run", "jelly_drop", "--frames", "6", "--quiet", "--integrator", "rk4", "--out", f"r{i}.usda",
-                  "--metrics", f"r{i}.json"], tmp_path)
+        _softsim(
+            [
+                "run",
+                "jelly_drop",
+                "--frames",
+                "6",
+                "--quiet",
+                "--integrator",
+                "rk4",
+                "--out",
+                f"r{i}.usda",
+                "--metrics",
+                f"r{i}.json",
+            ],
+            tmp_path,
+        )
     assert (tmp_path / "r1.usda").read_bytes() == (tmp_path / "r2.usda").read_bytes()
     # The binary format too (here two runs in this process).
     monkeypatch.chdir(tmp_path)
@@ -144,8 +159,10 @@ def test_deterministic_metrics_agree_with_atomic(device):
 
 
 def test_deterministic_flag_in_outputs(tmp_path):
-    _softsim(["run", "jelly_drop", "--frames", "2", "--quiet", "--deterministic", "--out", "d.usda",
-              "--metrics", "d.json"], tmp_path)
+    _softsim(
+        ["run", "jelly_drop", "--frames", "2", "--quiet", "--deterministic", "--out", "d.usda", "--metrics", "d.json"],
+        tmp_path,
+    )
     assert json.loads((tmp_path / "d.json").read_text())["summary"]["deterministic"] is True
     assert 'bool "softsim:deterministic" = 1' in (tmp_path / "d.usda").read_text()
 

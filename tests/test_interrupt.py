@@ -145,9 +145,23 @@ def test_failed_start_leaves_existing_output_untouched(tmp_path):
     out = tmp_path / "keep.usda"
     out.write_text("#usda 1.0\n")
     proc = subprocess.run(
-        [sys.executable, "-m", "softsim_warp", "run", "jelly_drop", "--frames", "2", "--out", str(out),
-         "--metrics", str(tmp_path / "missing" / "m.json")],
-        cwd=tmp_path, capture_output=True, text=True, timeout=120,
+        [
+            sys.executable,
+            "-m",
+            "softsim_warp",
+            "run",
+            "jelly_drop",
+            "--frames",
+            "2",
+            "--out",
+            str(out),
+            "--metrics",
+            str(tmp_path / "missing" / "m.json"),
+        ],
+        cwd=tmp_path,
+        capture_output=True,
+        text=True,
+        timeout=120,
     )
     assert proc.returncode == 2, proc.stderr
     assert out.read_text() == "#usda 1.0\n"
@@ -158,9 +172,25 @@ def test_concurrent_runs_in_one_directory(tmp_path):
     """Two runs writing different files in one directory at the same time: both complete and correct."""
     runs = {
         name: subprocess.Popen(
-            [sys.executable, "-m", "softsim_warp", "run", "jelly_drop", "--frames", "20", "--quiet",
-             "--integrator", integrator, "--out", f"{name}.usda", "--metrics", f"{name}.json"],
-            cwd=tmp_path, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
+            [
+                sys.executable,
+                "-m",
+                "softsim_warp",
+                "run",
+                "jelly_drop",
+                "--frames",
+                "20",
+                "--quiet",
+                "--integrator",
+                integrator,
+                "--out",
+                f"{name}.usda",
+                "--metrics",
+                f"{name}.json",
+            ],
+            cwd=tmp_path,
+            stdout=subprocess.DEVNULL,
+            stderr=subprocess.PIPE,
         )
         for name, integrator in (("a", "symplectic"), ("b", "midpoint"))
     }

@@ -186,7 +186,9 @@ def test_spring_forces_conserve_momentum(device, res, scale, offset, ks, kd, see
     q32, qd32 = q.astype(np.float32), qd.astype(np.float32)
     f = wp.empty(n, dtype=model.vec3, device=device)
     f.fill_(wp.nan)  # poisoned: every particle must be written
-    eval_forces(model, wp.array(q32, dtype=model.vec3, device=device), wp.array(qd32, dtype=model.vec3, device=device), f)
+    eval_forces(
+        model, wp.array(q32, dtype=model.vec3, device=device), wp.array(qd32, dtype=model.vec3, device=device), f
+    )
     f = f.numpy().astype(np.float64)
     assert np.isfinite(f).all()
 
@@ -195,8 +197,11 @@ def test_spring_forces_conserve_momentum(device, res, scale, offset, ks, kd, see
         assert (f == 0).all()
         return
     fs = _reference_spring_forces(
-        q32.astype(np.float64), qd32.astype(np.float64), pairs,
-        model.spring_rest_length.numpy().astype(np.float64), model.spring_stiffness.numpy().astype(np.float64),
+        q32.astype(np.float64),
+        qd32.astype(np.float64),
+        pairs,
+        model.spring_rest_length.numpy().astype(np.float64),
+        model.spring_stiffness.numpy().astype(np.float64),
         model.spring_damping.numpy().astype(np.float64),
     )
     k_max = np.bincount(pairs.ravel(), minlength=n).max()
