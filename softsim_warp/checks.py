@@ -45,9 +45,28 @@ def plane_signed_distance(plane: dict, points: np.ndarray) -> np.ndarray:
     return phi
 
 
-# Scene key of each terrain type -> signed distance of points to one entry (positive = free space).
-# A terrain module adds its own entry, e.g. TERRAIN_SDF["bowl"] = bowl_signed_distance.
-TERRAIN_SDF = {"plane": plane_signed_distance}
+def sphere_signed_distance(sphere: dict, points: np.ndarray) -> np.ndarray:
+    """Signed distance [m] to a solid ``[[sphere]]``, positive outside (``kernels/contact.py: sphere_distance``)."""
+    return np.linalg.norm(points - np.asarray(sphere["center"], dtype=np.float64), axis=1) - sphere["radius"]
+
+
+def bowl_signed_distance(bowl: dict, points: np.ndarray) -> np.ndarray:
+    """Signed distance [m] to a ``[[bowl]]`` shell, positive inside its sphere, +inf at or above the cut.
+
+    As ``kernels/contact.py: bowl_distance``. The bowl is a shell: both sides are free space, so
+    it is listed in :data:`SHELLS` and a jelly may start on either side, but not across it.
+    """
+    phi = bowl["radius"] - np.linalg.norm(points - np.asarray(bowl["center"], dtype=np.float64), axis=1)
+    cut = bowl.get("cut_height", math.inf)
+    return np.where(points[:, 1] >= cut, np.inf, phi)
+
+
+# Scene key of each terrain type -> signed distance of points to one entry (positive = free space,
+# +inf where the entry does not collide). A new terrain type adds its function here.
+TERRAIN_SDF = {"plane": plane_signed_distance, "sphere": sphere_signed_distance, "bowl": bowl_signed_distance}
+# Terrain types that are thin shells: particles behind them (phi < 0) pass through, so a jelly is
+# wrong only when the shell cuts it, some particles in front and some behind.
+SHELLS = {"bowl"}
 
 
 def jelly_points(jelly: dict, chunk: int = _CHUNK):
@@ -60,17 +79,22 @@ def jelly_points(jelly: dict, chunk: int = _CHUNK):
 
     shape = [int(n) for n in jelly["resolution"]]
     size = jelly["size"]
-    axes = [np.linspace(-0.5 * s, 0.5 * s, n) if n > 1 else np.zeros(1) for n, s in zip(shape, size)]
-    rot = rotation_matrix(jelly["rotation"]["axis"], jelly["rotation"]["degrees"])
     center = np.asarray(jelly["center"], dtype=np.float64)
     rows = max(1, chunk // max(shape[1] * shape[2], 1))
-    # x = center + R (a_i, b_j, c_k) = center + a_i R[:, 0] + b_j R[:, 1] + c_k R[:, 2], by broadcasting
-    # (an (N, 3) @ (3, 3) product is many times slower in NumPy).
-    ey = axes[1][None, :, None, None] * rot[:, 1]
-    ez = axes[2][None, None, :, None] * rot[:, 2]
+    # Extreme but finite float64 scenes may overflow to inf here; that is no error (and NumPy's
+    # warning would break the one-line answer).
+    with np.errstate(all="ignore"):
+        axes = [np.linspace(-0.5 * s, 0.5 * s, n) if n > 1 else np.zeros(1) for n, s in zip(shape, size)]
+        rot = rotation_matrix(jelly["rotation"]["axis"], jelly["rotation"]["degrees"])
+        # x = center + R (a_i, b_j, c_k) = center + a_i R[:, 0] + b_j R[:, 1] + c_k R[:, 2], by
+        # broadcasting (an (N, 3) @ (3, 3) product is many times slower in NumPy).
+        ey = axes[1][None, :, None, None] * rot[:, 1]
+        ez = axes[2][None, None, :, None] * rot[:, 2]
     for i0 in range(0, shape[0], rows):
-        ex = axes[0][i0 : i0 + rows, None, None, None] * rot[:, 0]
-        yield ((ex + center) + ey + ez).reshape(-1, 3)
+        with np.errstate(all="ignore"):
+            ex = axes[0][i0 : i0 + rows, None, None, None] * rot[:, 0]
+            pts = ((ex + center) + ey + ez).reshape(-1, 3)
+        yield pts
 
 
 def _check_precision(value, key, ctx, lo, hi, precision):
@@ -85,7 +109,7 @@ def _check_precision(value, key, ctx, lo, hi, precision):
         ctx.fail(
             key,
             f"is outside the range of {precision} ({lo:.3g} to {hi:.3g} in magnitude); "
-            f"use a value in range or simulation.precision = \"float64\"",
+            f'use a value in range or simulation.precision = "float64"',
             value,
         )
 
@@ -106,22 +130,34 @@ def _check_spacing(jelly, key, ctx, precision):
 
 
 def check_terrain_overlap(data: dict, ctx):
-    """Fail if any particle of any jelly starts with a negative signed distance to any terrain entry."""
+    """Fail if a jelly starts inside terrain: a particle with negative signed distance to a solid (plane,
+    sphere), or particles on both sides of a shell (bowl)."""
     terrain = [(kind, i, entry) for kind, sdf in TERRAIN_SDF.items() for i, entry in enumerate(data.get(kind, []))]
     if not terrain:
         return
     for j, jelly in enumerate(data["jelly"]):
         for kind, i, entry in terrain:
             sdf = TERRAIN_SDF[kind]
-            inside, deepest = 0, 0.0
+            inside, deepest, front = 0, 0.0, 0
             for pts in jelly_points(jelly):
-                phi = sdf(entry, pts)
+                with np.errstate(all="ignore"):  # overflow is no error here (see jelly_points)
+                    phi = sdf(entry, pts)
                 bad = phi < 0.0
+                front += int(((phi >= 0.0) & np.isfinite(phi)).sum())
                 if bad.any():
                     inside += int(bad.sum())
                     deepest = max(deepest, float(-phi[bad].min()))
+            total = math.prod(jelly["resolution"])
+            if kind in SHELLS:
+                if inside and front:
+                    ctx.fail(
+                        f"jelly.{j}.center",
+                        f"jelly starts across the shell of {kind}.{i}: {inside} of {total} particles are behind it "
+                        f"and {front} in front, up to {deepest:.4g} m behind; move the jelly or the {kind}",
+                        jelly["center"],
+                    )
+                continue
             if inside:
-                total = math.prod(jelly["resolution"])
                 ctx.fail(
                     f"jelly.{j}.center",
                     f"jelly starts inside terrain: {inside} of {total} particles are inside {kind}.{i}, "
@@ -139,4 +175,3 @@ def check_scene(data: dict, ctx):
         _check_spacing(jelly, f"jelly.{j}", ctx, precision)
     check_host_build(data, ctx.source)
     check_terrain_overlap(data, ctx)
-

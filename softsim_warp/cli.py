@@ -173,6 +173,21 @@ def resolve_device(name: str, debug=False):
         raise CommandLineError("--device", f"device not available here; available: {names}", name) from None
 
 
+def check_deterministic(integrator: str, device):
+    """--deterministic covers force and metric sums; the implicit solver's own sums use atomics.
+
+    On the CPU every run is deterministic anyway; on CUDA the combination is refused rather than
+    promised and not kept.
+    """
+    if device.is_cuda and integrator == "implicit":
+        raise CommandLineError(
+            "--deterministic",
+            "not available with the implicit integrator on CUDA (its solver sums with atomics); "
+            "use an explicit integrator, or --device cpu",
+            integrator,
+        )
+
+
 class _Signals:
     """Turns SIGINT/SIGTERM into a request to stop after the current frame.
 
@@ -183,6 +198,7 @@ class _Signals:
     def __init__(self):
         self.received = None
         self.closing = False
+        self.busy = lambda: False  # True while a frame is being written: a stop-now waits for it
 
     def __enter__(self):
         self._old = {}
@@ -191,7 +207,7 @@ class _Signals:
         return self
 
     def _handle(self, signum, frame):
-        if self.received is not None and not self.closing:  # a second signal: stop now
+        if self.received is not None and not self.closing and not self.busy():  # a second signal: stop now
             raise KeyboardInterrupt
         if self.received is None:
             self.received = signum
@@ -202,10 +218,15 @@ class _Signals:
         return False
 
 
+_SIGNALS = None  # the run's signal state, for main's exit code after a stop-now
+
+
 def cmd_run(args) -> int:
     # Signals are caught from the start: one that arrives before the first frame ends the run
     # with 128 + signum and leaves no output, one during the run stops it after that frame.
+    global _SIGNALS
     with _Signals() as signals:
+        _SIGNALS = signals
         return _run(args, signals)
 
 
@@ -222,6 +243,8 @@ def _run(args, signals) -> int:
         check_writable(args.preview, "--preview", suffixes=(".gif",))
     device = resolve_device(args.device, args.debug)
     sim = scene.sim
+    if args.deterministic:
+        check_deterministic(sim["integrator"], device)
     frames = scene.frame_count()
     from .resources import check_fits  # noqa: PLC0415
 
@@ -248,11 +271,13 @@ def _run(args, signals) -> int:
 
         progress = tqdm(total=frames + 1, unit="frame", desc=f"{scene.name} {sim['integrator']}", file=sys.stderr, leave=False)
     simulator.stop_requested = lambda: signals.received
+    signals.busy = lambda: simulator.writing
     try:
         result = simulator.run([writer], progress=progress)
-    except BaseException:
+    except BaseException as exc:
         signals.closing = True
-        writer.close(status="failed")
+        writer.close(status="interrupted" if isinstance(exc, KeyboardInterrupt) else "failed",
+                     extra={"softsim:frames": writer.last_frame + 1})
         raise
     finally:
         if progress is not None:
@@ -277,7 +302,7 @@ def _run(args, signals) -> int:
         print("error: " + message, file=sys.stderr)
         return EXIT_EXPLODED
     if result.interrupted:
-        return 128 + int(signals.received)
+        return 128 + int(signals.received or signal.SIGINT)
     return 0
 
 
@@ -309,4 +334,4 @@ def main(argv=None) -> int:
         print(f"error: {e.line()}", file=sys.stderr)
         return e.exit_code
     except KeyboardInterrupt:
-        return 130
+        return 128 + int(getattr(_SIGNALS, "received", None) or signal.SIGINT)

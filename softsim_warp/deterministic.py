@@ -68,7 +68,14 @@ def eval_spring_forces(model, q: wp.array, qd: wp.array, f_out: wp.array):
         wp.launch(
             k.eval_spring_forces,
             dim=model.spring_count,
-            inputs=[model.spring_indices, model.spring_rest_length, model.spring_stiffness, model.spring_damping, q, qd],
+            inputs=[
+                model.spring_indices,
+                model.spring_rest_length,
+                model.spring_stiffness,
+                model.spring_damping,
+                q,
+                qd,
+            ],
             outputs=[model.spring_force_work],
             device=model.device,
         )

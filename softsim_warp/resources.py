@@ -135,8 +135,7 @@ def estimate(data: dict, integrator=None, frames=0, usd_springs=False, determini
     per_frame = c.particles + c.surface + (2 * c.springs if usd_springs else 0)
     usd = (frames + 1) * per_frame * USD_POINT_BYTES if frames else 0
     device = (
-        _device_per_particle(s, integrator) * c.particles
-        + _device_per_spring(s, integrator, deterministic) * c.springs
+        _device_per_particle(s, integrator) * c.particles + _device_per_spring(s, integrator, deterministic) * c.springs
     )
     return Estimate(c, host_build, host_model, usd, device)
 
@@ -191,8 +190,16 @@ def check_host_build(data: dict, source: str, available=None):
         )
 
 
-def check_fits(scene, device, integrator=None, frames=0, usd_springs=False, deterministic=False,
-               host_available=None, device_free=None):
+def check_fits(
+    scene,
+    device,
+    integrator=None,
+    frames=0,
+    usd_springs=False,
+    deterministic=False,
+    host_available=None,
+    device_free=None,
+):
     """Refuse a run that would not fit on ``device`` (a ``wp.Device`` or anything with ``is_cuda``).
 
     ``host_available`` and ``device_free`` override what is measured (for tests).
@@ -208,7 +215,8 @@ def check_fits(scene, device, integrator=None, frames=0, usd_springs=False, dete
     if host_available is not None and host_need > host_available:
         where = "host memory" if device.is_cuda else f"memory on {device}"
         raise SceneError(
-            scene.source, key,
+            scene.source,
+            key,
             f"scene too large: {what} need about {format_bytes(host_need)} of {where}, "
             f"{format_bytes(host_available)} available",
             value,
@@ -217,7 +225,8 @@ def check_fits(scene, device, integrator=None, frames=0, usd_springs=False, dete
         free = device.free_memory if device_free is None else device_free
         if device_need > free:
             raise SceneError(
-                scene.source, key,
+                scene.source,
+                key,
                 f"scene too large: {what} need about {format_bytes(device_need)} on {device}, "
                 f"{format_bytes(free)} free of {format_bytes(device.total_memory)}",
                 value,

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import copy
 import difflib
+import json
 import math
 import re
 import tomllib
@@ -175,8 +176,23 @@ class TableList(Field):
         return [self.item.check(v, f"{key}.{i}", ctx) for i, v in enumerate(value)]
 
 
+_BARE_KEY = re.compile(r"[A-Za-z0-9_-]+")
+
+
+def key_part(name) -> str:
+    """One part of a dotted key as TOML writes it: bare if it can be, else quoted.
+
+    Inside quotes ':' is written as the TOML escape \\u003a, so that the ': ' separators of an
+    error line stay unambiguous whatever a misspelt key contains.
+    """
+    name = str(name)
+    if _BARE_KEY.fullmatch(name):
+        return name
+    return '"' + json.dumps(name)[1:-1].replace(":", "\\u003a") + '"'
+
+
 def _join(key, name):
-    return f"{key}.{name}" if key else str(name)
+    return f"{key}.{key_part(name)}" if key else key_part(name)
 
 
 SPRING = Table(
@@ -405,7 +421,7 @@ def apply_override(data: dict, key: str, value, source=COMMAND_LINE):
     node = data
     for depth, part in enumerate(parts):
         last = depth == len(parts) - 1
-        here = ".".join(parts[: depth + 1])
+        here = ".".join(key_part(p) for p in parts[: depth + 1])
         if isinstance(node, list):
             if not part.isdigit() or int(part) >= len(node):
                 n = len(node)
@@ -448,6 +464,14 @@ def apply_overrides(data: dict, items, source=COMMAND_LINE):
     return list(items)
 
 
+def _unit(v):
+    """``v / |v|`` without overflow or underflow: scaled by its largest component first (v != 0)."""
+    big = max(abs(c) for c in v)
+    v = [c / big for c in v]
+    length = math.sqrt(sum(c * c for c in v))
+    return [c / length for c in v]
+
+
 def validate(data: dict, source: str) -> dict:
     ctx = _Context(source)
     out = SCHEMA.check(data, "", ctx)
@@ -469,9 +493,9 @@ def validate(data: dict, source: str) -> dict:
         if "total_mass" in jelly:
             jelly["particle_mass"] = jelly.pop("total_mass") / count
     for plane in out.get("plane", []):
-        n = plane["normal"]
-        length = math.sqrt(sum(c * c for c in n))
-        plane["normal"] = [c / length for c in n]
+        plane["normal"] = _unit(plane["normal"])
+    for jelly in out["jelly"]:
+        jelly["rotation"]["axis"] = _unit(jelly["rotation"]["axis"])
     for i, bowl in enumerate(out.get("bowl", [])):
         bottom = bowl["center"][1] - bowl["radius"]
         if "cut_height" in bowl and bowl["cut_height"] <= bottom:

@@ -186,6 +186,7 @@ class Simulator:
             self.probe = MetricsProbe(model)
         self._graphs = {}
         self.stop_requested = None  # a callable returning a reason (e.g. a signal) to stop after this frame
+        self.writing = False  # True while writers take a frame
 
     @property
     def state(self) -> State:
@@ -232,17 +233,27 @@ class Simulator:
         Stops early, keeping everything written so far, on an explosion or when ``stop_requested``
         returns a reason.
         """
-        compile_seconds = self.warm_up()
-        result = RunResult(0, 0, 0.0, 0.0, compile_seconds)
+        result = RunResult(0, 0, 0.0, 0.0, 0.0)
+        try:
+            result.compile_seconds = self.warm_up()
+        except KeyboardInterrupt:  # stopped before the first frame
+            result.interrupted = True
+            result.step_seconds = 0.0
+            return result
         t0 = time.perf_counter()
         sim_seconds = 0.0
         prev_step = 0
         for k in range(self.frames + 1):
             n = self.step_of_frame(k) - prev_step
             ts = time.perf_counter()
-            self.advance(n)
-            t_frame = self.step_of_frame(k) * self.dt
-            metrics = self.probe.measure(self.state, k, t_frame)  # synchronises: the frame is done
+            try:
+                self.advance(n)
+                t_frame = self.step_of_frame(k) * self.dt
+                metrics = self.probe.measure(self.state, k, t_frame)  # synchronises: the frame is done
+            except KeyboardInterrupt:
+                # Stop now (e.g. a second Ctrl-C): the frame in progress is dropped, the ones written stay.
+                result.interrupted = True
+                break
             sim_seconds += time.perf_counter() - ts
             prev_step += n
             if metrics.nonfinite or metrics.max_speed > self.max_speed:
@@ -260,8 +271,13 @@ class Simulator:
                 }
                 break
             positions = self.state.particle_q.numpy()
-            for w in writers:
-                w.write_frame(k, t_frame, positions, metrics)
+            # A frame is written whole: a stop-now request waits until it is (see cli._Signals).
+            self.writing = True
+            try:
+                for w in writers:
+                    w.write_frame(k, t_frame, positions, metrics)
+            finally:
+                self.writing = False
             result.metrics.append(metrics)
             result.frames_written = k + 1
             result.steps = prev_step

@@ -109,6 +109,21 @@ def test_signal_keeps_completed_frames(sig, tmp_path):
     assert not list(tmp_path.glob(".*partial*")), "temporary files left behind"
 
 
+def test_second_sigint_stops_mid_frame(tmp_path):
+    """Frames of 5 000 steps: the first SIGINT asks to stop after the frame, the second stops at once,
+    dropping the frame in progress and keeping the frames written."""
+    out = tmp_path / "slow.usda"
+    run = Run(["run", "jelly_drop", "--frames", "100000", "--fps", "2", "--dt", "1e-4", "--out", str(out)], tmp_path)
+    run.wait_for_frames(1)
+    run.proc.send_signal(signal.SIGINT)
+    time.sleep(0.2)
+    run.proc.send_signal(signal.SIGINT)
+    assert run.finish() == 130, run.err.decode(errors="replace")
+    stage, frames = _validate_usd(out)
+    assert frames >= 1
+    assert stage.GetRootLayer().customLayerData["softsim:status"] == "interrupted"
+
+
 def test_sigkill_leaves_existing_output_untouched(tmp_path):
     out = tmp_path / "keep.usdc"
     old = b"the previous, complete output\n"
@@ -130,9 +145,23 @@ def test_failed_start_leaves_existing_output_untouched(tmp_path):
     out = tmp_path / "keep.usda"
     out.write_text("#usda 1.0\n")
     proc = subprocess.run(
-        [sys.executable, "-m", "softsim_warp", "run", "jelly_drop", "--frames", "2", "--out", str(out),
-         "--metrics", str(tmp_path / "missing" / "m.json")],
-        cwd=tmp_path, capture_output=True, text=True, timeout=120,
+        [
+            sys.executable,
+            "-m",
+            "softsim_warp",
+            "run",
+            "jelly_drop",
+            "--frames",
+            "2",
+            "--out",
+            str(out),
+            "--metrics",
+            str(tmp_path / "missing" / "m.json"),
+        ],
+        cwd=tmp_path,
+        capture_output=True,
+        text=True,
+        timeout=120,
     )
     assert proc.returncode == 2, proc.stderr
     assert out.read_text() == "#usda 1.0\n"
@@ -143,9 +172,25 @@ def test_concurrent_runs_in_one_directory(tmp_path):
     """Two runs writing different files in one directory at the same time: both complete and correct."""
     runs = {
         name: subprocess.Popen(
-            [sys.executable, "-m", "softsim_warp", "run", "jelly_drop", "--frames", "20", "--quiet",
-             "--integrator", integrator, "--out", f"{name}.usda", "--metrics", f"{name}.json"],
-            cwd=tmp_path, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
+            [
+                sys.executable,
+                "-m",
+                "softsim_warp",
+                "run",
+                "jelly_drop",
+                "--frames",
+                "20",
+                "--quiet",
+                "--integrator",
+                integrator,
+                "--out",
+                f"{name}.usda",
+                "--metrics",
+                f"{name}.json",
+            ],
+            cwd=tmp_path,
+            stdout=subprocess.DEVNULL,
+            stderr=subprocess.PIPE,
         )
         for name, integrator in (("a", "symplectic"), ("b", "midpoint"))
     }
