@@ -31,11 +31,14 @@ def build(scalar):
         friction: scalar,
         eps: scalar,
         eps_v: scalar,
+        beta_h: scalar,
     ):
         """Contact response of one particle against one surface; returns the new (x, v).
 
         phi and phi_prev are the signed distances after and before the step (positive outside),
         v_prev the velocity before the step; v - v_prev is the step's impulse per unit mass, h f/m.
+        beta_h is h times the integrator's position gain for a constant force over the step
+        (dx = beta h dv: 0 explicit Euler, 1/2 midpoint and RK4, 1 symplectic and implicit Euler).
         """
         if phi >= eps:
             return x, v
@@ -54,10 +57,15 @@ def build(scalar):
             vt = v - vn * normal
             speed = wp.length(vt)
             budget = friction * (-vn)
-            if speed <= budget:
-                v = vec3(scalar(0.0))
-            else:
-                v = vt * ((speed - budget) / speed)
+            v_new = vec3(scalar(0.0))
+            if speed > budget:
+                v_new = vt * ((speed - budget) / speed)
+            # Resting contact and friction act as forces over the whole step: move the position by
+            # what the integrator would have made of them, so a stuck particle does not creep.
+            dv = v_new - v
+            x = x + beta_h * dv
+            phi = phi + beta_h * wp.dot(normal, dv)
+            v = v_new
         elif vn < scalar(0.0):
             # Collision: reflect the approaching normal velocity, keep the tangential part.
             v = v - (scalar(1.0) + restitution) * vn * normal
@@ -91,6 +99,8 @@ def build(scalar):
         plane_friction: wp.array(dtype=scalar),
         eps: scalar,
         eps_v: scalar,
+        h: scalar,
+        world_contact_beta: wp.array(dtype=scalar),
         # State before the step:
         q_prev: wp.array(dtype=vec3),
         qd_prev: wp.array(dtype=vec3),
@@ -116,7 +126,17 @@ def build(scalar):
             phi = plane_distance(x, point, n, hc, hr)
             phi_prev = plane_distance(x_prev, point, n, hc, hr)
             x, v = resolve_contact(
-                x, v, v_prev, phi, phi_prev, n, plane_restitution[p], plane_friction[p], eps, eps_v
+                x,
+                v,
+                v_prev,
+                phi,
+                phi_prev,
+                n,
+                plane_restitution[p],
+                plane_friction[p],
+                eps,
+                eps_v,
+                h * world_contact_beta[w],
             )
         q_out[i] = x
         qd_out[i] = v
@@ -167,6 +187,8 @@ def build(scalar):
         bowl_friction: wp.array(dtype=scalar),
         eps: scalar,
         eps_v: scalar,
+        h: scalar,
+        world_contact_beta: wp.array(dtype=scalar),
         # State before the step:
         q_prev: wp.array(dtype=vec3),
         qd_prev: wp.array(dtype=vec3),
@@ -194,7 +216,19 @@ def build(scalar):
             if phi_prev > eps + radius * scalar(1.0e-4):
                 continue
             phi, n = bowl_distance(x, c, radius, bowl_cut_height[b])
-            x, v = resolve_contact(x, v, v_prev, phi, -phi_prev, n, bowl_restitution[b], bowl_friction[b], eps, eps_v)
+            x, v = resolve_contact(
+                x,
+                v,
+                v_prev,
+                phi,
+                -phi_prev,
+                n,
+                bowl_restitution[b],
+                bowl_friction[b],
+                eps,
+                eps_v,
+                h * world_contact_beta[w],
+            )
         q_out[i] = x
         qd_out[i] = v
 
@@ -211,6 +245,8 @@ def build(scalar):
         sphere_friction: wp.array(dtype=scalar),
         eps: scalar,
         eps_v: scalar,
+        h: scalar,
+        world_contact_beta: wp.array(dtype=scalar),
         # State before the step:
         q_prev: wp.array(dtype=vec3),
         qd_prev: wp.array(dtype=vec3),
@@ -234,7 +270,17 @@ def build(scalar):
             phi, n = sphere_distance(x, c, radius)
             phi_prev, n_prev = sphere_distance(x_prev, c, radius)
             x, v = resolve_contact(
-                x, v, v_prev, phi, phi_prev, n, sphere_restitution[s], sphere_friction[s], eps, eps_v
+                x,
+                v,
+                v_prev,
+                phi,
+                phi_prev,
+                n,
+                sphere_restitution[s],
+                sphere_friction[s],
+                eps,
+                eps_v,
+                h * world_contact_beta[w],
             )
         q_out[i] = x
         qd_out[i] = v

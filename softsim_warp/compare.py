@@ -30,7 +30,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .errors import SceneError, UserError
+from .errors import CommandLineError, SceneError, UserError
 
 COMMAND = "compare"
 DEFAULT_INTEGRATORS = ("euler", "symplectic", "midpoint", "rk4")
@@ -84,9 +84,9 @@ def run(args) -> int:
     if args.plot:
         check_writable(args.plot, "--plot", suffixes=(".png",))
     if args.columns is not None and args.columns < 1:
-        raise UserError("--columns", None, "must be an integer >= 1", args.columns, has_value=True)
+        raise CommandLineError("--columns", "must be an integer >= 1", args.columns)
     if args.gap is not None and not (math.isfinite(args.gap) and args.gap >= 0):
-        raise UserError("--gap", None, "must be a finite number >= 0", args.gap, has_value=True)
+        raise CommandLineError("--gap", "must be a finite number >= 0", args.gap)
     device = cli.resolve_device(args.device)
 
     progress = None
@@ -231,35 +231,19 @@ def plan_variants(args) -> Plan:
     from . import cli  # noqa: PLC0415
     from . import scene as scene_mod  # noqa: PLC0415
 
-    path, read = scene_mod.resolve_scene_path(args.scene)
-    source = str(path)
-    try:
-        text = read()
-    except OSError as e:
-        raise SceneError(source, None, f"cannot read: {e.strerror}") from None
-    base = scene_mod.parse_toml(text, source)
-    for item in args.overrides:
-        key, value = scene_mod.parse_override(item)
-        scene_mod.apply_override(base, key, value)
-    for key, value in cli._flag_overrides(args):
-        sim = base.setdefault("simulation", {})
-        if not isinstance(sim, dict):
-            raise SceneError(source, "simulation", "must be a table", sim)
-        if key == "simulation.duration":
-            sim.pop("frames", None)
-        if key == "simulation.frames":
-            sim.pop("duration", None)
-        scene_mod.apply_override(base, key, value)
+    path, source, base = scene_mod.read_scene_data(args.scene)
+    items = [scene_mod.parse_override(item) for item in args.overrides] + cli._flag_overrides(args)
+    scene_mod.apply_overrides(base, items)
 
     varies = _parse_vary(args.vary)
     if args.integrators is not None:
         integrators = [s.strip() for s in args.integrators.split(",")]
         for name in integrators:
             if name not in scene_mod.INTEGRATORS:
-                raise UserError("--integrators", None, f"unknown integrator; choose from {', '.join(scene_mod.INTEGRATORS)}",
-                                name, has_value=True)
+                raise CommandLineError("--integrators", f"unknown integrator; choose from {', '.join(scene_mod.INTEGRATORS)}",
+                                       name)
         if len(set(integrators)) != len(integrators):
-            raise UserError("--integrators", None, "lists an integrator twice", args.integrators, has_value=True)
+            raise CommandLineError("--integrators", "lists an integrator twice", args.integrators)
     elif varies:
         integrators = [None]  # the scene's own
     else:
@@ -299,7 +283,7 @@ def plan_variants(args) -> Plan:
                 raise SceneError("--vary", f"simulation.{key}", "must be the same for every copy", v.data["simulation"].get(key))
     names = [v.name for v in variants]
     if len(set(names)) != len(names):
-        raise UserError("--vary", None, "two copies would get the same prim name", ", ".join(names), has_value=True)
+        raise CommandLineError("--vary", "two copies would get the same prim name", ", ".join(names))
     for w, v in enumerate(variants):
         v.world = w
     sim = first

@@ -11,6 +11,7 @@ from __future__ import annotations
 import numpy as np
 import warp as wp
 
+from . import deterministic
 from .model import NUMPY_SCALARS, Model, State
 
 # Butcher tableaux of the explicit methods, as (c, b): stage s is evaluated at
@@ -26,11 +27,18 @@ TABLEAUX = {
 }
 EXPLICIT = tuple(TABLEAUX)
 ORDER = {"euler": 1, "symplectic": 1, "midpoint": 2, "rk4": 4, "implicit": 1}
+# Position gain of a constant acceleration a over one step, x_{n+1} = ... + beta h^2 a: sum_s b_s c_s for
+# the RK methods (0 for Euler, 1/2 for every second-order method), 1 when x is updated with v_{n+1}.
+CONTACT_BETA = {"euler": 0.0, "midpoint": 0.5, "rk4": 0.5, "symplectic": 1.0, "implicit": 1.0}
 MAX_STAGES = 4
 
 
 def eval_forces(model: Model, q: wp.array, qd: wp.array, f_out: wp.array):
     """Internal forces (springs and dampers) of the state (q, qd) into ``f_out``; gravity is added as an acceleration."""
+    if getattr(model, "deterministic", False):
+        # Atomic-free: per-spring forces, then a fixed-order gather per particle (deterministic.py).
+        deterministic.eval_spring_forces(model, q, qd, f_out)
+        return
     f_out.zero_()
     if model.spring_count:
         wp.launch(
@@ -49,8 +57,13 @@ def eval_forces(model: Model, q: wp.array, qd: wp.array, f_out: wp.array):
         )
 
 
-def apply_contacts(model: Model, state_in: State, state_out: State):
-    """Terrain contact on ``state_out`` after a step from ``state_in``; one launch per primitive type present."""
+def apply_contacts(model: Model, state_in: State, state_out: State, dt: float, world_contact_beta: wp.array):
+    """Terrain contact on ``state_out`` after a step of ``dt`` from ``state_in``; one launch per primitive type present.
+
+    ``world_contact_beta`` is, per world, the integrator's position gain for a force held constant
+    over the step (x_{n+1} gains beta h^2 a): resting contact and friction shift positions by it.
+    """
+    h = model.scalar(dt)
     if model.plane_count:
         wp.launch(
             model.kernels.collide_planes,
@@ -68,6 +81,8 @@ def apply_contacts(model: Model, state_in: State, state_out: State):
                 model.plane_friction,
                 model.contact_epsilon,
                 model.contact_velocity_epsilon,
+                h,
+                world_contact_beta,
                 state_in.particle_q,
                 state_in.particle_qd,
             ],
@@ -90,6 +105,8 @@ def apply_contacts(model: Model, state_in: State, state_out: State):
                 model.bowl_friction,
                 model.contact_epsilon,
                 model.contact_velocity_epsilon,
+                h,
+                world_contact_beta,
                 state_in.particle_q,
                 state_in.particle_qd,
             ],
@@ -111,6 +128,8 @@ def apply_contacts(model: Model, state_in: State, state_out: State):
                 model.sphere_friction,
                 model.contact_epsilon,
                 model.contact_velocity_epsilon,
+                h,
+                world_contact_beta,
                 state_in.particle_q,
                 state_in.particle_qd,
             ],
@@ -118,7 +137,7 @@ def apply_contacts(model: Model, state_in: State, state_out: State):
             device=model.device,
         )
     for hook in getattr(model, "contact_hooks", ()):
-        hook(model, state_in, state_out)
+        hook(model, state_in, state_out, h, world_contact_beta)
 
 
 class Integrator:
@@ -173,6 +192,9 @@ class ExplicitIntegrator(Integrator):
         self.world_symplectic = wp.array(symplectic, dtype=wp.int32, device=device)
         self.world_stage_c = wp.array2d(c, dtype=model.scalar, device=device)
         self.world_stage_b = wp.array2d(b, dtype=model.scalar, device=device)
+        self.world_contact_beta = wp.array(
+            np.array([CONTACT_BETA[name] for name in methods], dtype=np_scalar), dtype=model.scalar, device=device
+        )
         # Stage buffers, allocated once: forces, the stage state and the RK accumulators.
         n = model.particle_count
         self.f = wp.zeros(n, dtype=model.vec3, device=device)
@@ -211,7 +233,7 @@ class ExplicitIntegrator(Integrator):
                 device=model.device,
             )
             q, qd = self.q_s, self.qd_s
-        apply_contacts(model, state_in, state_out)
+        apply_contacts(model, state_in, state_out, dt, self.world_contact_beta)
 
 
 def make_integrator(name, model: Model, options: dict | None = None) -> Integrator:

@@ -326,6 +326,8 @@ class Model:
         contact_epsilon: distance within which a particle touches a surface [m].
         contact_velocity_epsilon: normal speed below which a touching particle rests [m/s].
         jellies: host list of :class:`JellyInfo`.
+        deterministic: forces without atomics when True; the CSR arrays it needs are documented
+            in ``softsim_warp.deterministic.attach``.
     """
 
     @property
@@ -357,6 +359,8 @@ class Model:
                     mesh = sphere_mesh(it["center"], it["radius"])
                 out.append((f"{roots.get(it['world'], '/World')}/{kind}_{i}", *mesh))
         return out
+
+    deterministic = False
 
     def state(self) -> State:
         """A new state holding the model's initial positions and velocities."""
@@ -392,11 +396,19 @@ class State:
         wp.copy(self.particle_qd, other.particle_qd)
 
 
-def build_model(scene, device=None, precision=None, worlds=None) -> Model:
-    """Build a :class:`Model` from a validated :class:`~softsim_warp.scene.Scene`."""
+def build_model(scene, device=None, precision=None, worlds=None, deterministic=False) -> Model:
+    """Build a :class:`Model` from a validated :class:`~softsim_warp.scene.Scene`.
+
+    ``deterministic`` selects atomic-free force evaluation (``softsim_warp.deterministic.attach``).
+    """
     builder = ModelBuilder(scene.sim["gravity"])
     populate(builder, scene.data)
-    return builder.finalize(device, precision or scene.sim["precision"])
+    model = builder.finalize(device, precision or scene.sim["precision"])
+    if deterministic:
+        from .deterministic import attach  # noqa: PLC0415
+
+        attach(model)
+    return model
 
 
 def populate(builder: ModelBuilder, data: dict, world=0):

@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import sys
 
-from .errors import UserError
+from .errors import CommandLineError, UserError
 
 COMMAND = "preview"
 
@@ -39,7 +39,7 @@ def _size(text):
     try:
         w, h = (int(v) for v in text.lower().split("x"))
     except ValueError:
-        raise UserError("--size", None, "must be WIDTHxHEIGHT in pixels, e.g. 800x600", text, has_value=True) from None
+        raise CommandLineError("--size", "must be WIDTHxHEIGHT in pixels, e.g. 800x600", text) from None
     return (w, h)
 
 
@@ -47,13 +47,13 @@ def run(args) -> int:
     from .outputs import check_writable  # noqa: PLC0415
 
     if not args.png and not args.gif:
-        raise UserError("softsim preview", None, "give --png FILE and/or --gif FILE")
+        raise CommandLineError("softsim preview", "give --png FILE and/or --gif FILE")
     if (args.frame is not None or args.time is not None) and not args.png:
-        raise UserError("--frame/--time", None, "choose the frame of --png; give --png FILE too")
+        raise CommandLineError("--frame/--time", "choose the frame of --png; give --png FILE too")
     if args.fps is not None and not args.gif:
-        raise UserError("--fps", None, "sets the frame rate of --gif; give --gif FILE too")
+        raise CommandLineError("--fps", "sets the frame rate of --gif; give --gif FILE too")
     if args.split and (args.gif or not args.png):
-        raise UserError("--split", None, "tiles one frame of each copy into --png; it does not make GIFs")
+        raise CommandLineError("--split", "tiles one frame of each copy into --png; it does not make GIFs")
     if args.png:
         check_writable(args.png, "--png", suffixes=(".png",))
     if args.gif:

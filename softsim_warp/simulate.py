@@ -44,7 +44,7 @@ class FrameMetrics:
             "max_speed": self.max_speed,
         }
         if len(self.jellies) > 1:
-            d["jellies"] = self.jellies
+            d["jellies"] = [{k: v for k, v in j.items() if k != "nonfinite"} for j in self.jellies]
         return d
 
 
@@ -66,7 +66,8 @@ class MetricsProbe:
             masses[k] = model.particle_mass_host[info.particle_start : info.particle_start + info.particle_count].sum()
         self.jelly_mass = masses
 
-    def measure(self, state: State, frame: int, t: float) -> FrameMetrics:
+    def _reduce(self, state: State):
+        """Fill the per-jelly arrays for ``state`` (atomics; see deterministic_metrics.py for fixed order)."""
         m = self.model
         for a in (self.kinetic, self.gravity_energy, self.spring_energy, self.moment, self.max_speed, self.nonfinite):
             a.zero_()
@@ -85,6 +86,9 @@ class MetricsProbe:
                 outputs=[self.spring_energy],
                 device=m.device,
             )
+
+    def measure(self, state: State, frame: int, t: float) -> FrameMetrics:
+        self._reduce(state)
         ke = self.kinetic.numpy().astype(np.float64)
         ge = self.gravity_energy.numpy().astype(np.float64)
         se = self.spring_energy.numpy().astype(np.float64)
@@ -104,6 +108,7 @@ class MetricsProbe:
                     "gravity_energy": float(ge[k]),
                     "total_energy": float(ke[k] + se[k] + ge[k]),
                     "max_speed": float(vmax[k]),
+                    "nonfinite": int(bad[k]),
                 }
             )
         return FrameMetrics(
@@ -173,7 +178,12 @@ class Simulator:
         self.max_speed = speed_bound(model) if max_speed is None else float(max_speed)
         self.states = [model.state(), model.state()]
         self.current = 0
-        self.probe = MetricsProbe(model)
+        if getattr(model, "deterministic", False):
+            from .deterministic_metrics import DeterministicMetricsProbe  # noqa: PLC0415 - imports this module
+
+            self.probe = DeterministicMetricsProbe(model)
+        else:
+            self.probe = MetricsProbe(model)
         self._graphs = {}
         self.stop_requested = None  # a callable returning a reason (e.g. a signal) to stop after this frame
 
@@ -237,9 +247,11 @@ class Simulator:
             prev_step += n
             if metrics.nonfinite or metrics.max_speed > self.max_speed:
                 result.exploded = True
+                bad = [i for i, j in enumerate(metrics.jellies) if j["nonfinite"] or j["max_speed"] > self.max_speed]
                 result.explosion = {
                     "frame": k,
                     "time": t_frame,
+                    "jelly": bad[0] if bad else 0,
                     "reason": (
                         f"{metrics.nonfinite} particles with non-finite state"
                         if metrics.nonfinite

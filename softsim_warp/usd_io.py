@@ -25,7 +25,9 @@ TERRAIN_COLOR = (0.6, 0.6, 0.6)
 
 def temp_path_for(path: Path) -> Path:
     """A sibling of ``path`` that keeps its extension (USD picks the format from it) and is unique per process."""
-    return path.with_name(f".{path.stem}.partial-{os.getpid()}{path.suffix}")
+    from .outputs import partial_path  # noqa: PLC0415
+
+    return partial_path(path)
 
 
 def plane_mesh(point, normal, size, hole_center=None, hole_radius=0.0, segments=64):
