@@ -85,6 +85,9 @@ def main(argv):
     if len(moving):
         print(f"at rest                mean particle speed last above 0.01 m/s at t = {t[moving[-1] + 1]:.2f} s; "
               f"at the end mean {speed[-1].mean():.4f} m/s, max {speed[-1].max():.4f} m/s")
+    last = t >= t[-1] - 1.0
+    drift = np.linalg.norm(com[last][-1] - com[last][0])
+    print(f"last second            the centre of mass moved {1000 * drift:.1f} mm")
 
 
 if __name__ == "__main__":

@@ -47,7 +47,7 @@ def test_compare_stage_copies_names_and_single_run_agreement(tmp_path):
     from pxr import Usd, UsdGeom
 
     stage = Usd.Stage.Open(str(out))
-    names = ["euler", "symplectic", "midpoint", "rk4"]  # the default set, in the report's order
+    names = ["euler", "implicit", "midpoint", "rk4"]  # the default set, in the report's order
     assert [p.GetName() for p in stage.GetPrimAtPath("/World").GetChildren()] == names
     offsets = []
     for name in names:
@@ -55,7 +55,7 @@ def test_compare_stage_copies_names_and_single_run_agreement(tmp_path):
             assert stage.GetPrimAtPath(f"/World/{name}/{child}").IsValid(), (name, child)
         m = UsdGeom.Xformable(stage.GetPrimAtPath(f"/World/{name}")).ComputeLocalToWorldTransform(0)
         offsets.append(np.array(m.ExtractTranslation()))
-    # 2x2 grid, row by row: Euler | symplectic over midpoint | RK4; a gap between the cells.
+    # 2x2 grid, row by row: explicit Euler | implicit Euler over midpoint | RK4; a gap between cells.
     pitch = offsets[1][0] - offsets[0][0]
     np.testing.assert_allclose(offsets, [[0, 0, 0], [pitch, 0, 0], [0, 0, pitch], [pitch, 0, pitch]])
     # Each copy's plane is drawn one cell wide, so neighbours leave a gap between them.
