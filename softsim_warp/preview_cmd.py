@@ -26,6 +26,9 @@ def add_parser(subparsers, add_common):
     p.add_argument("--gif", help="write the whole clip to this animated GIF, in real time")
     p.add_argument("--fps", type=float, help="GIF frame rate (default the file's, at most 30)")
     p.add_argument("--size", default=None, metavar="WxH", help="image size in pixels (default 800x600 PNG, 640x480 GIF)")
+    p.add_argument("--split", action="store_true",
+                   help="for a `softsim compare` stage: render each copy alone and tile the pictures in the "
+                   "stage's grid, labelled with the copy's name (--png only)")
     add_common(p)
     return p
 
@@ -49,6 +52,8 @@ def run(args) -> int:
         raise CommandLineError("--frame/--time", "choose the frame of --png; give --png FILE too")
     if args.fps is not None and not args.gif:
         raise CommandLineError("--fps", "sets the frame rate of --gif; give --gif FILE too")
+    if args.split and (args.gif or not args.png):
+        raise CommandLineError("--split", "tiles one frame of each copy into --png; it does not make GIFs")
     if args.png:
         check_writable(args.png, "--png", suffixes=(".png",))
     if args.gif:
@@ -57,7 +62,10 @@ def run(args) -> int:
     from . import preview  # noqa: PLC0415
 
     try:
-        if args.png:
+        if args.png and args.split:
+            frame = render_split_png(args.usd, args.png, frame=args.frame, time=args.time, size=size)
+            print(f"{args.usd}: frame {frame:g} of each copy -> {args.png}", file=sys.stderr)
+        elif args.png:
             kw = {"size": size} if size else {}
             frame = preview.render_png(args.usd, args.png, frame=args.frame, time=args.time, **kw)
             print(f"{args.usd}: frame {frame:g} -> {args.png}", file=sys.stderr)
@@ -82,3 +90,89 @@ def render_gif_or_error(usd_path, gif_path, fps=None):
         source, _, message = str(e).partition(": ")
         raise UserError(source, None, message or "cannot render") from None
     print(f"{usd_path}: {count} frames -> {gif_path}", file=sys.stderr)
+
+
+def _copies(stage):
+    """The copies of a comparison stage: ``[(name, (x, z) offset)]`` of /World's translated children."""
+    from pxr import Usd, UsdGeom  # noqa: PLC0415
+
+    out = []
+    world = stage.GetPrimAtPath("/World")
+    for child in world.GetChildren() if world else []:
+        if not child.IsA(UsdGeom.Xform):
+            continue
+        has_jelly = any(p.IsA(UsdGeom.Mesh) and UsdGeom.Mesh(p).GetPointsAttr().GetNumTimeSamples() > 1
+                        for p in Usd.PrimRange(child))
+        if has_jelly:
+            t = UsdGeom.Xformable(child).ComputeLocalToWorldTransform(0).ExtractTranslation()
+            out.append((child.GetName(), (float(t[0]), float(t[2]))))
+    return out
+
+
+def render_split_png(usd_path, png_path, frame=None, time=None, size=None):
+    """Render each copy of a ``softsim compare`` stage alone and tile the pictures in its grid.
+
+    Each copy is shown through a small layer that sublayers the stage and deactivates the other
+    copies, so the renderer (``preview.render_png``) sees one copy; rows and columns follow the
+    copies' offsets in the stage (row by row, as ``softsim compare`` lays them out). Each tile
+    frames its own copy. Returns the frame rendered.
+    """
+    import os  # noqa: PLC0415
+    import tempfile  # noqa: PLC0415
+
+    import numpy as np  # noqa: PLC0415
+    from pxr import Sdf, Usd, UsdGeom  # noqa: PLC0415
+
+    from . import preview  # noqa: PLC0415
+
+    path = os.path.abspath(os.fspath(usd_path))
+    if not os.path.isfile(path):
+        raise ValueError(f"{usd_path}: USD file not found")
+    stage = Usd.Stage.Open(path)
+    copies = _copies(stage)
+    if len(copies) < 2:
+        raise ValueError(f"{usd_path}: --split needs a stage written by `softsim compare`, with copies side by side")
+    xs = sorted({round(x, 6) for _, (x, _) in copies})
+    zs = sorted({round(z, 6) for _, (_, z) in copies})
+    cols, rows = len(xs), len(zs)
+    tile_w, tile_h = size or (480, 360)
+    import matplotlib  # noqa: PLC0415
+
+    if "matplotlib.pyplot" not in sys.modules:
+        matplotlib.use("Agg")
+    from matplotlib.backends.backend_agg import FigureCanvasAgg  # noqa: PLC0415
+    from matplotlib.figure import Figure  # noqa: PLC0415
+
+    fig = Figure(figsize=(cols * tile_w / 100.0, rows * (tile_h + 30) / 100.0), dpi=100, facecolor="white")
+    FigureCanvasAgg(fig)
+    rendered = None
+    with tempfile.TemporaryDirectory() as tmp:
+        for name, (x, z) in copies:
+            layer_path = os.path.join(tmp, f"{name}.usda")
+            layer = Sdf.Layer.CreateNew(layer_path)
+            layer.subLayerPaths.append(path)
+            # A sublayer's timing is read through the root layer: copy it, or the samples rescale.
+            root = stage.GetRootLayer()
+            layer.timeCodesPerSecond = root.timeCodesPerSecond
+            layer.framesPerSecond = root.framesPerSecond
+            layer.startTimeCode = root.startTimeCode
+            layer.endTimeCode = root.endTimeCode
+            sub = Usd.Stage.Open(layer)
+            UsdGeom.SetStageUpAxis(sub, UsdGeom.GetStageUpAxis(stage))
+            for other, _ in copies:
+                if other != name:
+                    sub.OverridePrim(f"/World/{other}").SetActive(False)
+            layer.Save()
+            tile = os.path.join(tmp, f"{name}.png")
+            rendered = preview.render_png(layer_path, tile, frame=frame, time=time, size=(tile_w, tile_h))
+            from PIL import Image  # noqa: PLC0415
+
+            img = np.asarray(Image.open(tile).convert("RGB"))
+            r, c = zs.index(round(z, 6)), xs.index(round(x, 6))
+            ax = fig.add_axes((c / cols, 1.0 - (r + 1) / rows, 1.0 / cols, (1.0 / rows) * tile_h / (tile_h + 30)))
+            ax.imshow(img)
+            ax.set_axis_off()
+            fig.text((c + 0.5) / cols, 1.0 - r / rows - 0.5 * (30 / (tile_h + 30)) / rows, name,
+                     ha="center", va="center", fontsize=13, family="monospace")
+    fig.savefig(os.fspath(png_path), format="png", facecolor="white")
+    return rendered

@@ -47,7 +47,7 @@ def test_compare_stage_copies_names_and_single_run_agreement(tmp_path):
     from pxr import Usd, UsdGeom
 
     stage = Usd.Stage.Open(str(out))
-    names = ["euler", "symplectic", "midpoint", "rk4"]  # the default set, in the report's order
+    names = ["euler", "implicit", "midpoint", "rk4"]  # the default set, in the report's order
     assert [p.GetName() for p in stage.GetPrimAtPath("/World").GetChildren()] == names
     offsets = []
     for name in names:
@@ -55,7 +55,7 @@ def test_compare_stage_copies_names_and_single_run_agreement(tmp_path):
             assert stage.GetPrimAtPath(f"/World/{name}/{child}").IsValid(), (name, child)
         m = UsdGeom.Xformable(stage.GetPrimAtPath(f"/World/{name}")).ComputeLocalToWorldTransform(0)
         offsets.append(np.array(m.ExtractTranslation()))
-    # 2x2 grid, row by row: Euler | symplectic over midpoint | RK4; a gap between the cells.
+    # 2x2 grid, row by row: explicit Euler | implicit Euler over midpoint | RK4; a gap between cells.
     pitch = offsets[1][0] - offsets[0][0]
     np.testing.assert_allclose(offsets, [[0, 0, 0], [pitch, 0, 0], [0, 0, pitch], [pitch, 0, pitch]])
     # Each copy's plane is drawn one cell wide, so neighbours leave a gap between them.
@@ -177,3 +177,19 @@ def test_preview_png_shows_the_jelly(tmp_path):
     grey = (np.abs(r - g) < 0.02) & (np.abs(g - b) < 0.02) & (r < 0.9)
     assert jelly.sum() > 500, jelly.sum()
     assert grey.sum() > 500, grey.sum()
+
+
+def test_preview_split_tiles_each_copy(tmp_path):
+    out = tmp_path / "two.usdc"
+    assert cli.main(["compare", "seed_plane", "--set", "jelly.0.resolution=4", "--duration", "0.6", "--fps", "10",
+                     "--integrators", "euler,rk4", "--out", str(out), "--quiet"]) == 0
+    png = tmp_path / "split.png"
+    assert cli.main(["preview", str(out), "--png", str(png), "--split", "--size", "200x150"]) == 0
+    from PIL import Image
+
+    rgb = np.asarray(Image.open(png).convert("RGB"), dtype=np.float64) / 255.0
+    assert rgb.shape[1] == 400  # two tiles side by side, one row
+    r, g = rgb[..., 0], rgb[..., 1]
+    jelly = (r > 0.25) & (np.abs(g / np.maximum(r, 1e-6) - 0.45) < 0.08)
+    # Each half shows its own copy's jelly.
+    assert jelly[:, :200].sum() > 50 and jelly[:, 200:].sum() > 50
