@@ -51,8 +51,16 @@ def stiff_jelly(size: int, ks: float, device, precision="float32"):
     """The jelly_drop jelly at ``size`` particles per axis, in free flight, spinning about a tilted axis."""
     b = ModelBuilder(gravity=(0.0, -9.8, 0.0))
     springs = {t: {"ks": ks, "kd": DAMPING[t]} for t in SPRING_TYPES}
-    b.add_jelly((size,) * 3, EDGE, TOTAL_MASS / size**3, springs, center=(0.0, 1.0, 0.0), axis=(1.0, 0.0, 1.0),
-                degrees=20.0, angular_velocity=(2.0, 4.0, 1.0))
+    b.add_jelly(
+        (size,) * 3,
+        EDGE,
+        TOTAL_MASS / size**3,
+        springs,
+        center=(0.0, 1.0, 0.0),
+        axis=(1.0, 0.0, 1.0),
+        degrees=20.0,
+        angular_velocity=(2.0, 4.0, 1.0),
+    )
     return b.finalize(device, precision)
 
 
@@ -60,7 +68,10 @@ def stable_dt(size: int, ks: float, method: str) -> float:
     """0.9 times the largest stable step of ``method`` for the benchmark jelly (linear analysis, 4^3 lattice)."""
     n = min(size, 4)
     spacing = EDGE / (size - 1)
-    return 0.9 * predict_lattice_dt((n,) * 3, spacing * (n - 1), TOTAL_MASS / size**3, ks, DAMPING, methods=(method,))[method]
+    return (
+        0.9
+        * predict_lattice_dt((n,) * 3, spacing * (n - 1), TOTAL_MASS / size**3, ks, DAMPING, methods=(method,))[method]
+    )
 
 
 def _time_steps(integ, model, dt, steps):
@@ -126,7 +137,9 @@ def measure_implicit(size: int, dt: float = 0.01, device="cpu", steps: int = 10,
     }
 
 
-def measure_explicit(size: int, method: str, device="cpu", steps: int = 200, ks: float = 1.0e5, dt: float | None = None) -> dict:
+def measure_explicit(
+    size: int, method: str, device="cpu", steps: int = 200, ks: float = 1.0e5, dt: float | None = None
+) -> dict:
     """ms per step of an explicit method on the stiff jelly at ``dt`` (default: 0.9 x its stable step)."""
     dt = stable_dt(size, ks, method) if dt is None else dt
     model = stiff_jelly(size, ks, device)
@@ -170,15 +183,28 @@ def euler_limit(ks: float, steps: int, device="cpu", iterations: int = 8) -> dic
     lo, hi = pred / 4.0, pred * 16.0
     assert euler_survives(ks, lo, steps, device), "euler fails even at a quarter of the predicted limit"
     if euler_survives(ks, hi, steps, device):
-        return {"ks": ks, "predicted_dt": pred, "survives_up_to_dt": hi, "steps": steps, "note": "survived the upper end"}
+        return {
+            "ks": ks,
+            "predicted_dt": pred,
+            "survives_up_to_dt": hi,
+            "steps": steps,
+            "note": "survived the upper end",
+        }
     for _ in range(iterations):
         mid = math.sqrt(lo * hi)
         if euler_survives(ks, mid, steps, device):
             lo = mid
         else:
             hi = mid
-    return {"ks": ks, "predicted_dt": pred, "survives_up_to_dt": lo, "fails_at_dt": hi, "steps": steps,
-            "simulated_seconds": lo * steps, "implicit_dt_ratio": 0.01 / lo}
+    return {
+        "ks": ks,
+        "predicted_dt": pred,
+        "survives_up_to_dt": lo,
+        "fails_at_dt": hi,
+        "steps": steps,
+        "simulated_seconds": lo * steps,
+        "implicit_dt_ratio": 0.01 / lo,
+    }
 
 
 def main(argv=None) -> int:
@@ -198,7 +224,10 @@ def main(argv=None) -> int:
     wp.init()
     device = wp.get_device(args.device)
     rows, limits = [], []
-    header = f"{'ks':>8} {'n^3':>5} {'particles':>9} {'integrator':>22} {'dt [s]':>9} {'ms/step':>9} {'ms/sim s':>10} {'CG it mean/max':>15}"
+    header = (
+        f"{'ks':>8} {'n^3':>5} {'particles':>9} {'integrator':>22} {'dt [s]':>9} {'ms/step':>9} {'ms/sim s':>10} "
+        f"{'CG it mean/max':>15}"
+    )
     print(header)
     print("-" * len(header))
     for ks in args.ks:
@@ -209,14 +238,20 @@ def main(argv=None) -> int:
                 r["ks"] = ks
                 name = r["integrator"] + (f"/{r['solver']}" if "solver" in r else "")
                 cg = f"{r['cg_iterations_mean']:.1f}/{r['cg_iterations_max']}" if "solver" in r else "-"
-                print(f"{ks:8.0e} {size:5d} {r['particles']:9d} {name:>22} {r['dt']:9.2e} {r['ms_per_step']:9.2f} "
-                      f"{r['ms_per_sim_second']:10.1f} {cg:>15}", flush=True)
+                print(
+                    f"{ks:8.0e} {size:5d} {r['particles']:9d} {name:>22} {r['dt']:9.2e} {r['ms_per_step']:9.2f} "
+                    f"{r['ms_per_sim_second']:10.1f} {cg:>15}",
+                    flush=True,
+                )
                 rows.append(r)
         if args.euler_limit:
             lim = euler_limit(ks, args.euler_steps, device)
             limits.append(lim)
-            print(f"euler on jelly_drop, ks={ks:.0e}: predicted limit {lim['predicted_dt']:.3e} s, survives "
-                  f"{lim['steps']} steps up to dt = {lim['survives_up_to_dt']:.3e} s", flush=True)
+            print(
+                f"euler on jelly_drop, ks={ks:.0e}: predicted limit {lim['predicted_dt']:.3e} s, survives "
+                f"{lim['steps']} steps up to dt = {lim['survives_up_to_dt']:.3e} s",
+                flush=True,
+            )
     result = {
         "device": str(device),
         "device_name": device.name,

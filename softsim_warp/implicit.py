@@ -215,7 +215,7 @@ class ImplicitIntegrator(Integrator):
 
         def locate(r, c):
             out = np.empty(len(r), dtype=np.int32)
-            for k, (ri, ci) in enumerate(zip(r, c)):
+            for k, (ri, ci) in enumerate(zip(r, c, strict=True)):
                 lo, hi = offsets[ri], offsets[ri + 1]
                 out[k] = lo + np.searchsorted(columns[lo:hi], ci)
             return out
@@ -314,8 +314,8 @@ class ImplicitIntegrator(Integrator):
         model = self.model
         device = model.device
         k = model.kernels
-        n, s = model.particle_count, model.spring_count
-        pblocks, sblocks = _blocks(n), _blocks(s)
+        n = model.particle_count
+        pblocks = _blocks(n)
         matrix_free = self.solver == "matrix_free"
 
         spring_mv = self._spring_mv
@@ -421,7 +421,16 @@ class ImplicitIntegrator(Integrator):
         wp.launch(
             model.kernels.apply_velocity_update,
             dim=model.particle_count,
-            inputs=[h, model.scalar(dv_scale), int(save_warm), self.fixed, model.gravity, state_in.particle_q, qd_k, self.x],
+            inputs=[
+                h,
+                model.scalar(dv_scale),
+                int(save_warm),
+                self.fixed,
+                model.gravity,
+                state_in.particle_q,
+                qd_k,
+                self.x,
+            ],
             outputs=[state_out.particle_q, state_out.particle_qd, self.dv_warm],
             device=model.device,
         )
@@ -434,7 +443,9 @@ class ImplicitIntegrator(Integrator):
         scalar = model.scalar
         n = model.particle_count
         # Linearisation point: (x_n, v_n) for Baraff-Witkin's solve, else the iterate (x_n + h v_k, v_k).
-        q, qd = (state_in.particle_q, state_in.particle_qd) if at_start else (state_out.particle_q, state_out.particle_qd)
+        q, qd = (
+            (state_in.particle_q, state_in.particle_qd) if at_start else (state_out.particle_q, state_out.particle_qd)
+        )
         eval_forces(model, q, qd, self.f)
         self.diag_block.zero_()
         self.rhs.zero_()
@@ -535,8 +546,6 @@ class ImplicitIntegrator(Integrator):
             # iterate instead (particles bounced by the response, their neighbours not yet)
             # would start Newton from a distorted lattice and can diverge.
             n = model.particle_count
-            k = model.kernels
-            device = model.device
             self.scalars.zero_()
             wp.launch(
                 model.kernels.constrain_last_system,

@@ -229,9 +229,9 @@ SCHEMA = Table(
         "implicit": Table(
             {
                 "newton_iterations": Int(lo=1, doc="linear solves per step (default 1)"),
-                "cg_tolerance": Float(lo=0, lo_open=True, hi=1, hi_open=True, doc="CG stops at |r| <= tol |b| (default 1e-4)"),
+                "cg_tolerance": Float(lo=0, lo_open=True, hi=1, hi_open=True, doc="CG stops at |r| <= tol |b| (1e-4)"),
                 "cg_max_iterations": Int(lo=1, doc="CG iteration cap per solve (default 200)"),
-                "linearization": Choice(("predictor", "baraff_witkin"), doc="where forces are linearised (default predictor)"),
+                "linearization": Choice(("predictor", "baraff_witkin"), doc="where forces are linearised (predictor)"),
             },
             optional=True,
         ),

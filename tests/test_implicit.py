@@ -10,12 +10,12 @@ import json
 import numpy as np
 import pytest
 import warp as wp
+from softsim_warp.kernels import implicit as ki
 
 from softsim_warp.cli import main as cli_main
 from softsim_warp.implicit import ImplicitIntegrator
 from softsim_warp.integrators import ExplicitIntegrator, make_integrator
-from softsim_warp.kernels import implicit as ki
-from softsim_warp.model import ModelBuilder, build_model
+from softsim_warp.model import ModelBuilder, build_model, populate
 from softsim_warp.scene import load_scene
 from softsim_warp.simulate import MetricsProbe, Simulator
 from softsim_warp.stability_analysis import lattice_jacobians, predict_lattice_dt, step_spectral_radius
@@ -82,7 +82,11 @@ def _perturbed_lattice(precision="float32", with_anchor=True, seed=0, device="cp
     """A 3x3x3 jelly, perturbed and moving at random, plus a fixed anchor particle on a spring."""
     rng = np.random.default_rng(seed)
     b = ModelBuilder(gravity=(0.0, -9.8, 0.0))
-    springs = {"structural": {"ks": 300.0, "kd": 0.4}, "shear": {"ks": 200.0, "kd": 0.3}, "bending": {"ks": 100.0, "kd": 0.2}}
+    springs = {
+        "structural": {"ks": 300.0, "kd": 0.4},
+        "shear": {"ks": 200.0, "kd": 0.3},
+        "bending": {"ks": 100.0, "kd": 0.2},
+    }
     b.add_jelly((3, 3, 3), 0.3, 0.02, springs, center=(0.0, 0.5, 0.0))
     if with_anchor:
         anchor = b.add_particles([[0.0, 0.9, 0.0]], [0.0, 0.0, 0.0], 0.0)  # mass 0: fixed
@@ -129,18 +133,26 @@ def test_one_step_equals_dense_float64_solve(device, linearization):
     lam_min = np.linalg.eigvalsh(Aff)[0]
     springs_per_particle = np.bincount(pairs.ravel(), minlength=len(q)).max()
     d = q[pairs[:, 0]] - q[pairs[:, 1]]
-    term_scale = h * (ks * (np.linalg.norm(d, axis=1) + rest) + kd * np.linalg.norm(v[pairs[:, 0]] - v[pairs[:, 1]], axis=1))
+    term_scale = h * (
+        ks * (np.linalg.norm(d, axis=1) + rest) + kd * np.linalg.norm(v[pairs[:, 0]] - v[pairs[:, 1]], axis=1)
+    )
     db = np.sqrt(len(pairs)) * term_scale.max() + np.linalg.norm(h * mass * np.linalg.norm(model.gravity_host))
     dA = np.abs(Aff).sum(axis=1).max()
-    bound = (tol * np.linalg.norm(b[free]) + (springs_per_particle + 2) * EPS32 * (db + dA * np.linalg.norm(dv_ref))) / lam_min
+    bound = (
+        tol * np.linalg.norm(b[free]) + (springs_per_particle + 2) * EPS32 * (db + dA * np.linalg.norm(dv_ref))
+    ) / lam_min
     assert err <= bound, (err, bound)
     # The bound is tight enough to see the parts of the system: without the definiteness clamp or
     # (Baraff-Witkin) without the h^2 K v term, the solution moves by far more than the bound.
-    A2, b2 = _dense_system(q, v, pairs, rest, ks, kd, mass, model.gravity_host, h, linearization, clamp=False, kv_term=False)
+    A2, b2 = _dense_system(
+        q, v, pairs, rest, ks, kd, mass, model.gravity_host, h, linearization, clamp=False, kv_term=False
+    )
     other = np.linalg.solve(A2[np.ix_(free, free)], b2[free])
     assert np.linalg.norm(other - dv_ref[free]) > 10.0 * bound
     # Positions follow x_{n+1} = x_n + h v_{n+1}.
-    np.testing.assert_allclose(s1.particle_q.numpy(), (q + h * (v + dv_ref.reshape(-1, 3))).astype(np.float32), atol=h * bound + 4 * EPS32)
+    np.testing.assert_allclose(
+        s1.particle_q.numpy(), (q + h * (v + dv_ref.reshape(-1, 3))).astype(np.float32), atol=h * bound + 4 * EPS32
+    )
 
 
 def test_coincident_particles_stay_finite(device):
@@ -193,8 +205,6 @@ def _free_flight_jelly(ks, precision):
     data = scene.data
     data["plane"] = []
     b = ModelBuilder(scene.sim["gravity"])
-    from softsim_warp.model import populate  # noqa: PLC0415
-
     populate(b, data)
     model = b.finalize("cpu", precision)
     q = model.particle_q_host
@@ -324,9 +334,22 @@ def test_undamped_oscillator_loses_energy_as_backward_euler_predicts(h_omega):
 def _converging_jelly():
     """A 4x4x4 jelly in free flight, spinning and breathing: smooth, no contact."""
     b = ModelBuilder(gravity=(0.0, -9.8, 0.0))
-    springs = {"structural": {"ks": 60.0, "kd": 0.05}, "shear": {"ks": 40.0, "kd": 0.05}, "bending": {"ks": 20.0, "kd": 0.02}}
-    b.add_jelly((4, 4, 4), 0.3, 0.05, springs, center=(0, 1, 0), axis=(1, 1, 0), degrees=15,
-                angular_velocity=(1.0, 2.0, 0.5), velocity=(0.3, 0.5, 0.0))
+    springs = {
+        "structural": {"ks": 60.0, "kd": 0.05},
+        "shear": {"ks": 40.0, "kd": 0.05},
+        "bending": {"ks": 20.0, "kd": 0.02},
+    }
+    b.add_jelly(
+        (4, 4, 4),
+        0.3,
+        0.05,
+        springs,
+        center=(0, 1, 0),
+        axis=(1, 1, 0),
+        degrees=15,
+        angular_velocity=(1.0, 2.0, 0.5),
+        velocity=(0.3, 0.5, 0.0),
+    )
     model = b.finalize("cpu", "float64")
     q = model.particle_q_host
     v = model.particle_qd.numpy() + 1.5 * (q - q.mean(axis=0)) * np.array([1.0, -0.5, 0.3])
@@ -366,9 +389,13 @@ def test_float64_agrees_with_float32():
     for precision in ("float32", "float64"):
         b = ModelBuilder(gravity=(0.0, -9.8, 0.0))
         springs = {t: {"ks": 1.0e4, "kd": 0.1} for t in SPRING_TYPES}
-        b.add_jelly((4, 4, 4), 0.3, 0.01, springs, center=(0, 1, 0), axis=(0, 0, 1), degrees=10, angular_velocity=(0, 0, 3.0))
+        b.add_jelly(
+            (4, 4, 4), 0.3, 0.01, springs, center=(0, 1, 0), axis=(0, 0, 1), degrees=10, angular_velocity=(0, 0, 3.0)
+        )
         model = b.finalize("cpu", precision)
-        integ = ImplicitIntegrator(model, cg_tolerance=tol if precision == "float32" else 1.0e-12, cg_max_iterations=1000)
+        integ = ImplicitIntegrator(
+            model, cg_tolerance=tol if precision == "float32" else 1.0e-12, cg_max_iterations=1000
+        )
         s0, s1 = model.state(), model.state()
         bnorm = []
         for _ in range(steps):
@@ -402,8 +429,26 @@ def test_cli_runs_implicit_and_reports_cg_iterations(tmp_path):
     overrides = []
     for item in _stiff_overrides(1.0e5) + ["implicit.cg_tolerance=1e-5", "implicit.newton_iterations=1"]:
         overrides += ["--set", item]
-    rc = cli_main(["run", "jelly_drop", "--integrator", "implicit", *overrides, "--dt", "0.01", "--frames", "3",
-                   "--fps", "50", "--out", str(out), "--metrics", str(metrics), "--quiet"])
+    rc = cli_main(
+        [
+            "run",
+            "jelly_drop",
+            "--integrator",
+            "implicit",
+            *overrides,
+            "--dt",
+            "0.01",
+            "--frames",
+            "3",
+            "--fps",
+            "50",
+            "--out",
+            str(out),
+            "--metrics",
+            str(metrics),
+            "--quiet",
+        ]
+    )
     assert rc == 0 and out.exists()
     summary = json.loads(metrics.read_text())["summary"]
     assert summary["integrator"] == "implicit" and summary["cg_tolerance"] == 1e-5
@@ -422,7 +467,20 @@ def test_cli_runs_implicit_and_reports_cg_iterations(tmp_path):
     ],
 )
 def test_bad_implicit_settings_are_one_line_errors(tmp_path, capsys, item, message):
-    rc = cli_main(["run", "jelly_drop", "--integrator", "implicit", "--set", item, "--frames", "1",
-                   "--out", str(tmp_path / "x.usdc"), "--quiet"])
+    rc = cli_main(
+        [
+            "run",
+            "jelly_drop",
+            "--integrator",
+            "implicit",
+            "--set",
+            item,
+            "--frames",
+            "1",
+            "--out",
+            str(tmp_path / "x.usdc"),
+            "--quiet",
+        ]
+    )
     err = capsys.readouterr().err.strip().splitlines()
     assert rc == 2 and len(err) == 1 and message in err[0], err
