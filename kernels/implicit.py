@@ -1,4 +1,4 @@
-"""Linearised backward Euler (Baraff and Witkin 1998): spring Jacobians and a preconditioned CG.
+"""Linearised backward Euler (Baraff and Witkin 1998): spring Jacobians and a filtered PCG.
 
 One step solves ``A dv = b`` with
 
@@ -27,9 +27,14 @@ difference p_a - p_b first matters in float32: with stiff springs B_s is ~1e4 ti
 mass, and the assembled form D_a p_a - B_s p_b cancels those large terms for smooth p (rigid
 motion, gravity), losing about four digits of the residual. The diagonal blocks
 D_i = m_i I + sum B_s are accumulated only for the preconditioner (and the assembled solver).
-Fixed particles (inverse mass 0) are eliminated symmetrically: their rows and columns are dropped,
-their diagonal block is I, their preconditioner and right-hand side 0, so their dv (and every CG
-direction there) is 0.
+
+Constraints (Baraff and Witkin's modified PCG): each particle has a filter S_i, a symmetric
+projector onto the directions in which its dv is free: I for a free particle, 0 for a fixed one
+(inverse mass 0) or one whose velocity the contact response decided, I - n n^T for one whose
+velocity along the contact normal n is prescribed. The initial guess holds the prescribed part,
+(I - S_i) dv_i; residuals, preconditioned residuals and search directions are filtered, so CG
+solves for the free part only, and the prescribed part enters the free rows through the springs.
+The preconditioner is stored already filtered, S_i P_i S_i.
 
 CG reductions (dot products) are tile sums over blocks of ``TILE`` threads with one atomic add per
 block; the kernels that reduce are launched with ``dim=(blocks, TILE)`` and ``block_dim=TILE``.
@@ -45,7 +50,7 @@ wp.set_module_options({"enable_backward": False})
 TILE = 256
 
 # Slots of the CG scalar array.
-BB = 0  # b.b
+BB = 0  # b.b (filtered)
 RZ = 1  # r.z of the current iterate
 RR = 2  # r.r of the current iterate
 PAP = 3  # p.Ap accumulator
@@ -60,7 +65,7 @@ ITER = 0
 COND = 1
 
 # Slots of the statistics array (whole run, updated on the device).
-STEP_ITERS = 0  # CG iterations of the step in progress (summed over Newton iterations)
+STEP_ITERS = 0  # CG iterations of the step in progress (summed over its solves)
 TOTAL_ITERS = 1
 MAX_ITERS = 2  # largest per-step total
 STEPS = 3
@@ -146,18 +151,21 @@ def build(scalar):
         h: scalar,
         warm_scale: scalar,
         block_jacobi: int,
+        reset_filters: int,
         # Model:
         particle_mass: wp.array(dtype=scalar),
-        particle_inv_mass: wp.array(dtype=scalar),
         gravity: vec3,
+        fixed: wp.array(dtype=wp.int32),
         # State: v_n, the iterate v_k and the spring forces at the linearisation point
         qd_n: wp.array(dtype=vec3),
         qd_k: wp.array(dtype=vec3),
         f: wp.array(dtype=vec3),
         dv_warm: wp.array(dtype=vec3),
-        # In: spring sums of the diagonal blocks and of the df/dx v term; out: D and b
+        # In: spring sums of the diagonal blocks and of the df/dx v term; out: D and b (filtered)
         diag_block: wp.array(dtype=mat33),
         rhs: wp.array(dtype=vec3),
+        # In/out: filters (reset to free/fixed, or kept from the contact constraints)
+        filters: wp.array(dtype=mat33),
         # Out: preconditioner, initial guess x0 and M x0, b.b
         precond_out: wp.array(dtype=mat33),
         x_out: wp.array(dtype=vec3),
@@ -169,30 +177,144 @@ def build(scalar):
         bb = scalar(0.0)
         if i < n:
             identity = wp.identity(n=3, dtype=scalar)
-            if particle_inv_mass[i] == scalar(0.0):
-                # Fixed particle: its row and column are eliminated (identity block, dv = 0).
-                diag_block[i] = identity
-                rhs[i] = vec3(scalar(0.0))
-                precond_out[i] = mat33(scalar(0.0))
-                x_out[i] = vec3(scalar(0.0))
-                ax_out[i] = vec3(scalar(0.0))
-            else:
-                m = particle_mass[i]
-                d = m * identity + diag_block[i]
-                b = m * (qd_n[i] - qd_k[i]) + h * (f[i] + m * gravity) + rhs[i]
-                diag_block[i] = d
-                rhs[i] = b
+            sf = filters[i]
+            if reset_filters != 0:
+                # Fixed particles have dv = 0: nothing of them is solved for.
+                sf = wp.where(fixed[i] != 0, mat33(scalar(0.0)), identity)
+                filters[i] = sf
+            m = particle_mass[i]
+            d = m * identity + diag_block[i]
+            diag_block[i] = d
+            b = sf * (m * (qd_n[i] - qd_k[i]) + h * (f[i] + m * gravity) + rhs[i])
+            rhs[i] = b
+            pre = mat33(scalar(0.0))
+            if fixed[i] == 0:
                 if block_jacobi != 0:
-                    precond_out[i] = wp.inverse(d)
+                    pre = wp.inverse(d)
                 else:
-                    precond_out[i] = diagonal_inverse(d)
-                # Initial guess: the last step's dv minus its gravity part, plus this step's h g.
-                # Springs do not resist a uniform velocity change (A (h g) = M h g), so the guess
-                # is exact for free fall, and the first step needs no special case.
-                x0 = warm_scale * (dv_warm[i] + h * gravity)
-                x_out[i] = x0
-                ax_out[i] = m * x0
-                bb = wp.dot(b, b)
+                    pre = diagonal_inverse(d)
+            precond_out[i] = sf * pre * sf
+            # Initial guess: the last step's dv minus its gravity part, plus this step's h g.
+            # Springs do not resist a uniform velocity change (A (h g) = M h g), so the guess is
+            # exact for free fall, and the first step needs no special case. Prescribed parts
+            # of dv are 0: the iterate already satisfies the constraints.
+            x0 = sf * (warm_scale * (dv_warm[i] + h * gravity))
+            x_out[i] = x0
+            ax_out[i] = m * x0
+            bb = wp.dot(b, b)
+        total = wp.tile_sum(wp.tile(bb))
+        wp.tile_atomic_add(scalars_out, total, offset=BB)
+
+    @wp.func
+    def differs(a: vec3, b: vec3):
+        return a[0] != b[0] or a[1] != b[1] or a[2] != b[2]
+
+    @wp.kernel(module="unique")
+    def constrain_contacts(
+        h: scalar,
+        # Model:
+        particle_world: wp.array(dtype=wp.int32),
+        fixed: wp.array(dtype=wp.int32),
+        plane_count: int,
+        plane_world: wp.array(dtype=wp.int32),
+        plane_point: wp.array(dtype=vec3),
+        plane_normal: wp.array(dtype=vec3),
+        plane_hole_center: wp.array(dtype=vec3),
+        plane_hole_radius: wp.array(dtype=scalar),
+        contact_epsilon: scalar,
+        # The step's start, and its result before and after the contact response:
+        q_n: wp.array(dtype=vec3),
+        q_free: wp.array(dtype=vec3),
+        qd_free: wp.array(dtype=vec3),
+        q_contact: wp.array(dtype=vec3),
+        qd_contact: wp.array(dtype=vec3),
+        # Out: filters, the constrained iterate (x_n + h v, v), and whether anything touched
+        filters_out: wp.array(dtype=mat33),
+        q_out: wp.array(dtype=vec3),
+        qd_out: wp.array(dtype=vec3),
+        any_contact_out: wp.array(dtype=wp.int32),
+    ):
+        i = wp.tid()
+        identity = wp.identity(n=3, dtype=scalar)
+        v = qd_free[i]
+        sf = identity
+        if fixed[i] != 0:
+            sf = mat33(scalar(0.0))
+        elif differs(q_contact[i], q_free[i]) or differs(qd_contact[i], v):
+            any_contact_out[0] = 1
+            v_c = qd_contact[i]
+            # The plane the particle touches (as the response saw it); more than one, or a contact
+            # primitive other than a plane (a contact hook), gives no single normal.
+            touching = int(0)
+            plane = int(-1)
+            w = particle_world[i]
+            xf = q_free[i]
+            for p in range(plane_count):
+                if plane_world[p] == w:
+                    nrm = plane_normal[p]
+                    phi = wp.dot(xf - plane_point[p], nrm)
+                    hr = plane_hole_radius[p]
+                    if hr > scalar(0.0):
+                        off = xf - plane_hole_center[p]
+                        off = off - wp.dot(off, nrm) * nrm
+                        if wp.length_sq(off) < hr * hr:
+                            phi = scalar(1.0e30)
+                    if phi < contact_epsilon:
+                        touching = touching + 1
+                        plane = p
+            # Otherwise (friction acted, or no single normal) the whole velocity is prescribed.
+            sf = mat33(scalar(0.0))
+            target = v_c
+            if touching == 1:
+                nrm = plane_normal[plane]
+                vn = wp.dot(v, nrm)
+                vt = v - vn * nrm
+                if not differs(vt, v_c - wp.dot(v_c, nrm) * nrm):
+                    # The response changed only the normal velocity (a collision keeps the
+                    # tangential one): prescribe the normal part, leave the tangential part to
+                    # the solve; prescribing it too would act like an impact with unlimited
+                    # friction, which can add energy. An approaching particle is stopped: the
+                    # impact is inelastic (see softsim_warp/implicit.py on restitution).
+                    sf = identity - wp.outer(nrm, nrm)
+                    target = wp.where(vn < scalar(0.0), vt, v)
+            v = sf * v + (identity - sf) * target
+        filters_out[i] = sf
+        qd_out[i] = v
+        q_out[i] = q_n[i] + h * v
+
+    @wp.kernel(module="unique")
+    def constrain_last_system(
+        n: int,
+        particle_mass: wp.array(dtype=scalar),
+        filters: wp.array(dtype=mat33),
+        rhs: wp.array(dtype=vec3),
+        # The last solve's result and the constrained iterate (constrain_contacts):
+        qd_free: wp.array(dtype=vec3),
+        qd_iter: wp.array(dtype=vec3),
+        # In/out: the last solve's dv becomes the initial guess holding the prescribed parts;
+        # the preconditioner gets filtered
+        x: wp.array(dtype=vec3),
+        precond: wp.array(dtype=mat33),
+        # Out: the iterate the last system is relative to, M x0, b.b of the free part
+        qd_k_out: wp.array(dtype=vec3),
+        ax_out: wp.array(dtype=vec3),
+        scalars_out: wp.array(dtype=scalar),
+    ):
+        blk, lane = wp.tid()
+        i = blk * TILE + lane
+        bb = scalar(0.0)
+        if i < n:
+            sf = filters[i]
+            dv = x[i]
+            v_free = qd_free[i]
+            qd_k_out[i] = v_free - dv
+            # The prescribed velocity differs from the solve's only in constrained directions.
+            x0 = dv + (qd_iter[i] - v_free)
+            x[i] = x0
+            precond[i] = sf * precond[i] * sf
+            ax_out[i] = particle_mass[i] * x0
+            b = sf * rhs[i]
+            bb = wp.dot(b, b)
         total = wp.tile_sum(wp.tile(bb))
         wp.tile_atomic_add(scalars_out, total, offset=BB)
 
@@ -202,7 +324,6 @@ def build(scalar):
         slot: int,
         # Model:
         spring_indices: wp.array(dtype=wp.vec2i),
-        particle_inv_mass: wp.array(dtype=scalar),
         # System:
         spring_block: wp.array(dtype=mat33),
         p: wp.array(dtype=vec3),
@@ -217,13 +338,11 @@ def build(scalar):
             pair = spring_indices[tid]
             a = pair[0]
             b = pair[1]
-            # p is 0 at fixed particles, so only their rows need skipping.
+            # Rows of constrained directions get values too; the filter drops them.
             delta = p[a] - p[b]
             t = spring_block[tid] * delta
-            if particle_inv_mass[a] != scalar(0.0):
-                wp.atomic_add(y_out, a, t)
-            if particle_inv_mass[b] != scalar(0.0):
-                wp.atomic_sub(y_out, b, t)
+            wp.atomic_add(y_out, a, t)
+            wp.atomic_sub(y_out, b, t)
             quad = wp.dot(delta, t)
         total = wp.tile_sum(wp.tile(quad))
         wp.tile_atomic_add(scalars_out, total, offset=slot)
@@ -231,6 +350,7 @@ def build(scalar):
     @wp.kernel(module="unique")
     def init_residual(
         n: int,
+        filters: wp.array(dtype=mat33),
         rhs: wp.array(dtype=vec3),
         precond: wp.array(dtype=mat33),
         ax: wp.array(dtype=vec3),
@@ -245,7 +365,7 @@ def build(scalar):
         rz = scalar(0.0)
         rr = scalar(0.0)
         if i < n:
-            r = rhs[i] - ax[i]
+            r = filters[i] * (rhs[i] - ax[i])
             z = precond[i] * r
             r_out[i] = r
             z_out[i] = z
@@ -278,10 +398,10 @@ def build(scalar):
     @wp.kernel(module="unique")
     def cg_direction(
         n: int,
+        mass_part: int,
         particle_mass: wp.array(dtype=scalar),
-        particle_inv_mass: wp.array(dtype=scalar),
         z: wp.array(dtype=vec3),
-        # In/out: direction p <- z + beta p; out: mass part of A p, and p.(M p) into PAP
+        # In/out: direction p <- z + beta p; out (if mass_part): M p, and p.(M p) into PAP
         p: wp.array(dtype=vec3),
         ap_out: wp.array(dtype=vec3),
         scalars: wp.array(dtype=scalar),
@@ -290,17 +410,34 @@ def build(scalar):
         i = blk * TILE + lane
         quad = scalar(0.0)
         if i < n:
+            # z and p are filtered, so p stays filtered.
             pi = z[i] + scalars[BETA] * p[i]
-            m = wp.where(particle_inv_mass[i] == scalar(0.0), scalar(0.0), particle_mass[i])
-            mp = m * pi
             p[i] = pi
-            ap_out[i] = mp
-            quad = wp.dot(pi, mp)
+            if mass_part != 0:
+                mp = particle_mass[i] * pi
+                ap_out[i] = mp
+                quad = wp.dot(pi, mp)
         wp.tile_atomic_add(scalars, wp.tile_sum(wp.tile(quad)), offset=PAP)
+
+    @wp.kernel(module="unique")
+    def dot_accumulate(
+        n: int,
+        slot: int,
+        a: wp.array(dtype=vec3),
+        b: wp.array(dtype=vec3),
+        scalars_out: wp.array(dtype=scalar),
+    ):
+        blk, lane = wp.tid()
+        i = blk * TILE + lane
+        v = scalar(0.0)
+        if i < n:
+            v = wp.dot(a[i], b[i])
+        wp.tile_atomic_add(scalars_out, wp.tile_sum(wp.tile(v)), offset=slot)
 
     @wp.kernel(module="unique")
     def cg_update(
         n: int,
+        filters: wp.array(dtype=mat33),
         precond: wp.array(dtype=mat33),
         p: wp.array(dtype=vec3),
         ap: wp.array(dtype=vec3),
@@ -319,7 +456,7 @@ def build(scalar):
             # p.Ap <= 0 only when p = 0 (A is positive definite): take no step then.
             alpha = wp.where(pap > scalar(0.0), scalars[RZ] / pap, scalar(0.0))
             x[i] = x[i] + alpha * p[i]
-            ri = r[i] - alpha * ap[i]
+            ri = r[i] - alpha * (filters[i] * ap[i])
             zi = precond[i] * ri
             r[i] = ri
             z_out[i] = zi
@@ -376,7 +513,7 @@ def build(scalar):
         h: scalar,
         dv_scale: scalar,
         save_warm: int,
-        inv_mass: wp.array(dtype=scalar),
+        fixed: wp.array(dtype=wp.int32),
         gravity: vec3,
         q_n: wp.array(dtype=vec3),
         qd_k: wp.array(dtype=vec3),
@@ -392,7 +529,7 @@ def build(scalar):
         q_out[i] = q_n[i] + h * v
         if save_warm != 0:
             # Without its gravity part, so the guess stays right when the step size changes.
-            dv_warm_out[i] = dv[i] - wp.where(inv_mass[i] == scalar(0.0), scalar(0.0), h) * gravity
+            dv_warm_out[i] = dv[i] - wp.where(fixed[i] != 0, scalar(0.0), h) * gravity
 
     @wp.kernel(module="unique")
     def precondition(
@@ -409,17 +546,20 @@ def build(scalar):
 
     @wp.kernel(module="unique")
     def assemble_bsr_diagonal(
+        fixed: wp.array(dtype=wp.int32),
         diag_block: wp.array(dtype=mat33),
         diag_index: wp.array(dtype=wp.int32),
         values_out: wp.array(dtype=mat33),
     ):
         i = wp.tid()
-        values_out[diag_index[i]] = diag_block[i]
+        # A fixed particle's row and column are eliminated: an identity block (and rhs 0) keeps
+        # the assembled matrix nonsingular for solvers that do not filter.
+        values_out[diag_index[i]] = wp.where(fixed[i] != 0, wp.identity(n=3, dtype=scalar), diag_block[i])
 
     @wp.kernel(module="unique")
     def assemble_bsr_offdiagonal(
         spring_indices: wp.array(dtype=wp.vec2i),
-        particle_inv_mass: wp.array(dtype=scalar),
+        fixed: wp.array(dtype=wp.int32),
         spring_block: wp.array(dtype=mat33),
         index_ab: wp.array(dtype=wp.int32),
         index_ba: wp.array(dtype=wp.int32),
@@ -428,7 +568,7 @@ def build(scalar):
     ):
         tid = wp.tid()
         pair = spring_indices[tid]
-        if particle_inv_mass[pair[0]] == scalar(0.0) or particle_inv_mass[pair[1]] == scalar(0.0):
+        if fixed[pair[0]] != 0 or fixed[pair[1]] != 0:
             return
         m = spring_block[tid]
         wp.atomic_sub(values_out, index_ab[tid], m)
@@ -438,10 +578,13 @@ def build(scalar):
         "spring_jacobian": spring_jacobian,
         "eval_spring_jacobians": eval_spring_jacobians,
         "build_system": build_system,
+        "constrain_contacts": constrain_contacts,
+        "constrain_last_system": constrain_last_system,
         "spring_mv": spring_mv,
         "init_residual": init_residual,
         "cg_begin": cg_begin,
         "cg_direction": cg_direction,
+        "dot_accumulate": dot_accumulate,
         "cg_update": cg_update,
         "cg_end_iteration": cg_end_iteration,
         "record_solve": record_solve,

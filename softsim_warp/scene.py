@@ -245,6 +245,16 @@ SCHEMA = Table(
             min_len=1,
             required=True,
         ),
+        # Settings of the implicit integrator; absent keys take ImplicitIntegrator's defaults.
+        "implicit": Table(
+            {
+                "newton_iterations": Int(lo=1, doc="linear solves per step (default 1)"),
+                "cg_tolerance": Float(lo=0, lo_open=True, hi=1, hi_open=True, doc="CG stops at |r| <= tol |b| (1e-4)"),
+                "cg_max_iterations": Int(lo=1, doc="CG iteration cap per solve (default 200)"),
+                "linearization": Choice(("predictor", "baraff_witkin"), doc="where forces are linearised (predictor)"),
+            },
+            optional=True,
+        ),
         "plane": TableList(
             Table(
                 {
