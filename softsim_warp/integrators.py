@@ -31,6 +31,11 @@ MAX_STAGES = 4
 
 def eval_forces(model: Model, q: wp.array, qd: wp.array, f_out: wp.array):
     """Internal forces (springs and dampers) of the state (q, qd) into ``f_out``; gravity is added as an acceleration."""
+    if model.lattice is not None:
+        from .lattice_model import eval_lattice_forces  # noqa: PLC0415
+
+        eval_lattice_forces(model, q, qd, f_out)
+        return
     f_out.zero_()
     if model.spring_count:
         wp.launch(
@@ -49,9 +54,12 @@ def eval_forces(model: Model, q: wp.array, qd: wp.array, f_out: wp.array):
         )
 
 
-def apply_contacts(model: Model, state_in: State, state_out: State):
-    """Terrain contact on ``state_out`` after a step from ``state_in``; one launch per primitive type present."""
-    if model.plane_count:
+def apply_contacts(model: Model, state_in: State, state_out: State, planes=True):
+    """Terrain contact on ``state_out`` after a step from ``state_in``; one launch per primitive type present.
+
+    ``planes=False`` skips the planes (a fused lattice stage has already applied them).
+    """
+    if model.plane_count and planes:
         wp.launch(
             model.kernels.collide_planes,
             dim=model.particle_count,
@@ -103,7 +111,7 @@ class ExplicitIntegrator(Integrator):
             a side-by-side comparison advance in the same launches).
     """
 
-    def __init__(self, model: Model, method="symplectic"):
+    def __init__(self, model: Model, method="symplectic", fused=None, fuse_contact=None):
         super().__init__(model)
         methods = [method] * model.world_count if isinstance(method, str) else list(method)
         if len(methods) != model.world_count:
@@ -130,9 +138,14 @@ class ExplicitIntegrator(Integrator):
         self.world_symplectic = wp.array(symplectic, dtype=wp.int32, device=device)
         self.world_stage_c = wp.array2d(c, dtype=model.scalar, device=device)
         self.world_stage_b = wp.array2d(b, dtype=model.scalar, device=device)
+        # Lattice fast path: one fused kernel per stage (forces + stage update, plane contact on the
+        # last stage) where it pays; see softsim_warp/fastpath.py and docs/PERFORMANCE.md.
+        from .fastpath import configure_fused  # noqa: PLC0415
+
+        configure_fused(self, fused, fuse_contact)
         # Stage buffers, allocated once: forces, the stage state and the RK accumulators.
         n = model.particle_count
-        self.f = wp.zeros(n, dtype=model.vec3, device=device)
+        self.f = wp.zeros(0 if self.fused else n, dtype=model.vec3, device=device)
         multi = self.stage_count > 1
         self.q_s = wp.zeros(n if multi else 0, dtype=model.vec3, device=device)
         self.qd_s = wp.zeros(n if multi else 0, dtype=model.vec3, device=device)
@@ -140,6 +153,11 @@ class ExplicitIntegrator(Integrator):
         self.acc_qd = wp.zeros(n if multi else 0, dtype=model.vec3, device=device)
 
     def step(self, state_in: State, state_out: State, dt: float):
+        if self.fused:
+            from .fastpath import step_fused  # noqa: PLC0415
+
+            step_fused(self, state_in, state_out, dt)
+            return
         model = self.model
         h = model.scalar(dt)
         q, qd = state_in.particle_q, state_in.particle_qd

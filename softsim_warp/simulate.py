@@ -77,7 +77,18 @@ class MetricsProbe:
             outputs=[self.kinetic, self.gravity_energy, self.moment, self.max_speed, self.nonfinite],
             device=m.device,
         )
-        if m.spring_count:
+        if m.spring_count and m.lattice is not None:
+            # Lattice path: the same energy from the stencil, without making the spring arrays.
+            lat = m.lattice
+            wp.launch(
+                m.kernels.reduce_lattice_springs,
+                dim=m.particle_count,
+                inputs=[m.particle_jelly, lat.jelly_start, lat.jelly_shape, lat.jelly_types, lat.jelly_rest, lat.jelly_ks,
+                        state.particle_q],
+                outputs=[self.spring_energy],
+                device=m.device,
+            )
+        elif m.spring_count:
             wp.launch(
                 m.kernels.reduce_springs,
                 dim=m.spring_count,
