@@ -486,8 +486,8 @@ def build(scalar):
         # Out, per jelly (zeroed by the caller):
         spring_energy_out: wp.array(dtype=scalar),
     ):
-        # Each particle sums 1/2 ks (l - r)^2 over its neighbours; every spring is seen from both
-        # ends, so the sum is halved.
+        # Each particle sums 1/2 ks (l - r)^2 over its forward (half-stencil) neighbours, so each
+        # spring is counted once, from its lexicographically smaller end.
         i = wp.tid()
         j = particle_jelly[i]
         shape = jelly_shape[j]
@@ -495,25 +495,25 @@ def build(scalar):
         types = jelly_types[j]
         x = q[i]
         e = scalar(0.0)
-        for di in range(-2, 3):
-            for dj in range(-2, 3):
-                for dk in range(-2, 3):
-                    m = wp.abs(di) + wp.abs(dj) + wp.abs(dk)
-                    mx = wp.max(wp.max(wp.abs(di), wp.abs(dj)), wp.abs(dk))
-                    ty = -1
-                    slot = 0
-                    if mx == 1:
-                        ty = wp.min(m - 1, 1)
-                        slot = (di + 1) * 9 + (dj + 1) * 3 + dk + 1
-                    elif mx == 2 and m == 2:
-                        ty = 2
-                        slot = 27 + wp.abs(dj) // 2 + 2 * (wp.abs(dk) // 2)
-                    if ty >= 0:
+        for di in range(-1, 2):
+            for dj in range(-1, 2):
+                for dk in range(-1, 2):
+                    forward = di > 0 or (di == 0 and (dj > 0 or (dj == 0 and dk > 0)))
+                    if forward:
+                        ty = wp.min(wp.abs(di) + wp.abs(dj) + wp.abs(dk) - 1, 1)
                         if ((types >> ty) & 1) != 0 and inside(lc[0] + di, lc[1] + dj, lc[2] + dk, shape):
                             p = i + (di * shape[1] + dj) * shape[2] + dk
-                            stretch = wp.length(x - q[p]) - jelly_rest[j, slot]
+                            stretch = wp.length(x - q[p]) - jelly_rest[j, (di + 1) * 9 + (dj + 1) * 3 + dk + 1]
                             e += jelly_ks[j, ty] * stretch * stretch
-        e = scalar(0.25) * e
+        if ((types >> 2) & 1) != 0:
+            for axis in range(3):
+                o = wp.vec3i(0, 0, 0)
+                o[axis] = 2
+                if inside(lc[0] + o[0], lc[1] + o[1], lc[2] + o[2], shape):
+                    p = i + (o[0] * shape[1] + o[1]) * shape[2] + o[2]
+                    stretch = wp.length(x - q[p]) - jelly_rest[j, 27 + axis]
+                    e += jelly_ks[j, 2] * stretch * stretch
+        e = scalar(0.5) * e
         if wp.isfinite(e):
             wp.atomic_add(spring_energy_out, j, e)
 

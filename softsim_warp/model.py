@@ -325,11 +325,11 @@ class State:
         wp.copy(self.particle_qd, other.particle_qd)
 
 
-def build_model(scene, device=None, precision=None, worlds=None) -> Model:
-    """Build a :class:`Model` from a validated :class:`~softsim_warp.scene.Scene`."""
+def build_model(scene, device=None, precision=None, worlds=None, force_path="auto") -> Model:
+    """Build a :class:`Model` from a validated :class:`~softsim_warp.scene.Scene` (``force_path``: see ``finalize``)."""
     builder = ModelBuilder(scene.sim["gravity"])
     populate(builder, scene.data)
-    return builder.finalize(device, precision or scene.sim["precision"])
+    return builder.finalize(device, precision or scene.sim["precision"], force_path=force_path)
 
 
 def populate(builder: ModelBuilder, data: dict, world=0):
