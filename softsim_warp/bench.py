@@ -32,6 +32,7 @@ from .errors import UserError
 COMMAND = "bench"
 DEFAULT_INTEGRATORS = ("euler", "symplectic", "midpoint", "rk4")
 STAGES = {"euler": 1, "symplectic": 1, "midpoint": 2, "rk4": 4}
+BATCH_MAX_PARTICLES = 1_000_000
 
 
 @dataclass(frozen=True)
@@ -217,13 +218,15 @@ class _Case:
 
 
 class _OurCase(_Case):
-    def __init__(self, model, method, dt, steps, use_graph):
-        from .integrators import make_integrator  # noqa: PLC0415
+    """Our integrator on one model; ``options`` (fused, fuse_contact) go to ExplicitIntegrator."""
+
+    def __init__(self, model, method, dt, steps, use_graph, options=None):
+        from .integrators import ExplicitIntegrator, make_integrator  # noqa: PLC0415
 
         self.model = model
         self.method = method
         try:
-            self.integrator = make_integrator(method, model)
+            self.integrator = ExplicitIntegrator(model, method, **options) if options else make_integrator(method, model)
         except ImportError as exc:  # the implicit integrator lives in its own module
             raise UserError("--integrators", None, f"{method} is not available here ({exc})", method, has_value=True) from None
         self.states = [model.state(), model.state()]
@@ -236,6 +239,22 @@ class _OurCase(_Case):
 
     def finite(self) -> bool:
         return bool(np.all(np.isfinite(self.states[0].particle_q.numpy())))
+
+
+class _SeparateCase(_Case):
+    """Several models stepped one after another (the unbatched reference for ``--variants``)."""
+
+    def __init__(self, models, method, dt, steps, use_graph):
+        self.parts = [_OurCase(m, method, dt, steps, False) for m in models]
+
+        def step(count):
+            for part in self.parts:
+                part.step_fn(count)
+
+        super().__init__(models[0].device, step, steps, use_graph)
+
+    def finite(self) -> bool:
+        return all(p.finite() for p in self.parts)
 
 
 class _NewtonCase(_Case):
@@ -293,6 +312,8 @@ def add_parser(subparsers, add_common):
     p.add_argument("--no-graph", action="store_true", help="launch kernels one by one instead of replaying a graph")
     p.add_argument("--scene", help="benchmark this scene (name or .toml, with its dt) instead of the size sweep")
     p.add_argument("--peer", choices=["newton"], help="also step the same jelly with Newton's SolverSemiImplicit")
+    p.add_argument("--variants", action="store_true",
+                   help="measure the fast paths one by one (graph, lattice, fusion, batching) instead of --paths")
     p.add_argument("--out", help="write the results as JSON")
     p.add_argument("--plot", help="write a log-log plot of particle-steps/s over particle count (PNG)")
     add_common(p)
@@ -368,32 +389,24 @@ def run(args) -> int:
         from .scene import load_scene  # noqa: PLC0415
 
         scene = load_scene(args.scene, args.overrides)
-        groups = [(scene.name, lambda path: build_model(scene, device, args.precision, force_path=path), scene.sim["dt"])]
+        groups = [(scene.name, lambda path, copies=1: build_model(scene, device, args.precision, force_path=path),
+                   scene.sim["dt"])]
     else:
         groups = [
-            (f"{n}^3", lambda path, n=n: build_jelly_model(n, spec, device, path, args.precision, args.copies), spec.dt)
+            (f"{n}^3", lambda path, copies=args.copies, n=n: build_jelly_model(n, spec, device, path, args.precision, copies),
+             spec.dt)
             for n in sizes
         ]
 
     for label, make_model, dt in groups:
-        cases = []
-        for path in paths:
-            t0 = time.perf_counter()
-            try:
-                model = make_model(path)
-            except ValueError as exc:  # e.g. --paths lattice for a scene with custom springs
-                raise UserError("--paths", None, str(exc), path, has_value=True) from None
-            build_s = time.perf_counter() - t0
-            for method in methods:
-                case = _OurCase(model, method, dt, args.steps, use_graph)
-                case.meta = {"case": label, "path": path, "resolved_path": _path_name(model), "integrator": method,
-                             "build_s": build_s}
-                cases.append(case)
+        if args.variants:
+            cases = _variant_cases(label, make_model, dt, methods, args, device, use_graph)
+        else:
+            cases = _standard_cases(label, make_model, dt, methods, paths, args, use_graph)
         peer = None
         if args.peer:
             # Newton gets the spring list of the same jelly; building it is not timed.
-            model = cases[0].model
-            peer = _NewtonCase(model, spec, args.steps, use_graph)
+            peer = _NewtonCase(cases[0].model, spec, args.steps, use_graph)
         everyone = cases + ([peer] if peer else [])
         for case in everyone:
             case.compile_s = case.prepare()
@@ -416,8 +429,10 @@ def run(args) -> int:
                 "finite": peer.finite(),
             }
             peers.append(peer_row)
-        for case in cases:
-            results.append(_result_row(case, bandwidth, peer_row, use_graph, args.copies))
+        rows = [_result_row(case, bandwidth, peer_row, case.use_graph, case.meta.get("copies", args.copies)) for case in cases]
+        if args.variants:
+            _relative_speeds(rows)
+        results += rows
 
     _print_table(results, bandwidth, device)
     data = {
@@ -446,6 +461,91 @@ def run(args) -> int:
     return 0
 
 
+def _standard_cases(label, make_model, dt, methods, paths, args, use_graph):
+    """Every integrator on every requested force path, with the model's own choices (the defaults)."""
+    cases = []
+    for path in paths:
+        t0 = time.perf_counter()
+        try:
+            model = make_model(path)
+        except ValueError as exc:  # e.g. --paths lattice for a scene with custom springs
+            raise UserError("--paths", None, str(exc), path, has_value=True) from None
+        build_s = time.perf_counter() - t0
+        for method in methods:
+            case = _OurCase(model, method, dt, args.steps, use_graph)
+            case.meta = {"case": label, "path": path, "resolved_path": _path_name(model), "integrator": method,
+                         "build_s": build_s}
+            cases.append(case)
+    return cases
+
+
+def fast_path_variants(device):
+    """The ``--variants`` ablation: (label, force path, lattice kernel, integrator options, graph), slowest first.
+
+    The CPU row kernel is left out on CUDA, where one thread per jelly would leave the GPU idle.
+    """
+    variants = [
+        ("springs, plain launches", "springs", None, None, False),
+        ("springs, graph", "springs", None, None, True),
+        ("lattice gather, unfused, graph", "lattice", "gather", {"fused": False}, True),
+        ("lattice gather, fused, graph", "lattice", "gather", {"fused": True, "fuse_contact": False}, True),
+        ("lattice gather, fused+contact, graph", "lattice", "gather", {"fused": True, "fuse_contact": True}, True),
+    ]
+    if device.is_cpu:
+        variants += [
+            ("lattice rows, unfused, graph", "lattice", "rows", {"fused": False}, True),
+            ("lattice rows, fused, plain launches", "lattice", "rows", {"fused": True}, False),
+            ("lattice rows, fused, graph", "lattice", "rows", {"fused": True}, True),
+        ]
+    else:
+        variants.append(("lattice gather, fused+contact, plain launches", "lattice", "gather",
+                         {"fused": True, "fuse_contact": True}, False))
+    return variants
+
+
+def _variant_cases(label, make_model, dt, methods, args, device, use_graph):
+    """Fast paths one by one (see :func:`fast_path_variants`) and, for the size sweep, batching."""
+    cases = []
+    for name, path, kernel, options, graph in fast_path_variants(device):
+        model = make_model(path, 1)
+        if kernel is not None:
+            model.lattice.set_kernel(kernel)
+        for method in methods:
+            case = _OurCase(model, method, dt, args.steps, graph, options)
+            case.meta = {"case": label, "path": path, "resolved_path": name, "integrator": method, "copies": 1}
+            cases.append(case)
+    copies = args.copies if args.copies > 1 else 8
+    # Batching is about many small scenes; past a million particles one copy fills the device.
+    if not args.scene and copies * cases[0].model.particle_count <= BATCH_MAX_PARTICLES:
+        for method in methods:
+            batch = _OurCase(make_model("auto", copies), method, dt, args.steps, use_graph)
+            batch.meta = {"case": label, "path": "auto", "resolved_path": f"batch: {copies} copies, one model",
+                          "integrator": method, "copies": copies}
+            separate = _SeparateCase([make_model("auto", 1) for _ in range(copies)], method, dt, args.steps, use_graph)
+            separate.model, separate.integrator = separate.parts[0].model, separate.parts[0].integrator
+            separate.states = separate.parts[0].states
+            separate.method = method
+            separate.meta = {"case": label, "path": "auto", "resolved_path": f"batch: {copies} separate models",
+                             "integrator": method, "copies": copies, "separate_models": copies}
+            cases += [separate, batch]
+    return cases
+
+
+def _relative_speeds(rows):
+    """Per integrator: speed over the first variant (springs, plain launches) and over the previous row."""
+    by_method = {}
+    for r in rows:
+        by_method.setdefault(r["integrator"], []).append(r)
+    for group in by_method.values():
+        base = group[0]["ms_per_step"] / group[0]["particles"]
+        prev = None
+        for r in group:
+            per_particle = r["ms_per_step"] / r["particles"]
+            r["speedup_vs_baseline"] = base / per_particle
+            r["speedup_vs_previous"] = prev / per_particle if prev else None
+            prev = per_particle
+
+
 def _path_name(model) -> str:
     if model.lattice is None:
         return "springs"
@@ -453,13 +553,16 @@ def _path_name(model) -> str:
 
 
 def _result_row(case, bandwidth, peer_row, use_graph, copies) -> dict:
-    model, integrator = case.model, case.integrator
+    parts = getattr(case, "parts", [case])  # K separate models step as one case
     ms = case.ms_per_step()
-    n, springs = model.particle_count, model.spring_count
-    moved = step_bytes(model, integrator) if integrator.name in STAGES else None
-    held = device_arrays_bytes(model, integrator, *case.states) + (
-        device_arrays_bytes(model.lattice) if model.lattice is not None else 0
-    )
+    n = sum(p.model.particle_count for p in parts)
+    springs = sum(p.model.spring_count for p in parts)
+    moved = sum(step_bytes(p.model, p.integrator) for p in parts) if case.method in STAGES else None
+    held = 0
+    for p in parts:
+        held += device_arrays_bytes(p.model, p.integrator, *p.states)
+        held += device_arrays_bytes(p.model.lattice) if p.model.lattice is not None else 0
+    integrator = case.integrator
     row = dict(case.meta)
     row.update(
         {
@@ -490,7 +593,8 @@ def _result_row(case, bandwidth, peer_row, use_graph, copies) -> dict:
         row["mempool_high_bytes"] = int(wp.get_mempool_used_mem_high(case.device))
     if peer_row is not None:
         row["newton_ms_per_step"] = peer_row["ms_per_step"]
-        row["speedup_vs_newton"] = peer_row["ms_per_step"] / ms
+        # Per particle-step, so that rows of several copies compare too (one copy: the step ratio).
+        row["speedup_vs_newton"] = (peer_row["ms_per_step"] / peer_row["particles"]) / (ms / n)
     return row
 
 
@@ -507,31 +611,42 @@ def _si(x: float) -> str:
 
 def _print_table(results, bandwidth, device):
     print(f"device {device} ({_device_name(device)}), copy bandwidth {bandwidth / 1e9:.1f} GB/s (read + write)")
-    header = ("case", "integrator", "path", "particles", "springs", "ms/step", "particle-steps/s", "spring-evals/s",
-              "compile s", "memory", "bytes/step", "% bw", "x newton")
+    variants = any("speedup_vs_baseline" in r for r in results)
+    header = ["case", "integrator", "variant" if variants else "path", "particles", "springs", "ms/step",
+              "particle-steps/s", "spring-evals/s", "compile s", "memory", "bytes/step", "% bw"]
+    header += ["x base", "x prev"] if variants else []
+    header += ["x newton"] if any("speedup_vs_newton" in r for r in results) else []
     rows = []
     for r in results:
-        rows.append(
-            (
-                r["case"],
-                r["integrator"],
-                r["resolved_path"] + ("+fused" if r["fused"] else ""),
-                str(r["particles"]),
-                str(r["springs"]),
-                f"{r['ms_per_step']:.4g}",
-                _si(r["particle_steps_per_s"]),
-                _si(r["spring_evals_per_s"]) if r["spring_evals_per_s"] else "-",
-                f"{r['compile_s']:.3g}",
-                _si(r["memory_bytes"]) + "B",
-                _si(r["bytes_per_step"]) + "B" if r["bytes_per_step"] else "-",
-                f"{100 * r['bandwidth_fraction']:.1f}" if r["bandwidth_fraction"] else "-",
-                f"{r['speedup_vs_newton']:.2f}" if "speedup_vs_newton" in r else "-",
-            )
-        )
+        row = [
+            r["case"],
+            r["integrator"],
+            r["resolved_path"] if variants else r["resolved_path"] + ("+fused" if r["fused"] else ""),
+            str(r["particles"]),
+            str(r["springs"]),
+            f"{r['ms_per_step']:.4g}",
+            _si(r["particle_steps_per_s"]),
+            _si(r["spring_evals_per_s"]) if r["spring_evals_per_s"] else "-",
+            f"{r['compile_s']:.3g}",
+            _si(r["memory_bytes"]) + "B",
+            _si(r["bytes_per_step"]) + "B" if r["bytes_per_step"] else "-",
+            f"{100 * r['bandwidth_fraction']:.1f}" if r["bandwidth_fraction"] else "-",
+        ]
+        if variants:
+            row += [f"{r['speedup_vs_baseline']:.2f}",
+                    f"{r['speedup_vs_previous']:.2f}" if r.get("speedup_vs_previous") else "-"]
+        if "x newton" in header:
+            row.append(f"{r['speedup_vs_newton']:.2f}" if "speedup_vs_newton" in r else "-")
+        rows.append(row)
     widths = [max(len(h), *(len(row[i]) for row in rows)) for i, h in enumerate(header)]
-    print("  ".join(h.rjust(w) for h, w in zip(header, widths)))
+
+    def line(cells):
+        # Text columns left-aligned, numbers right-aligned.
+        return "  ".join(c.ljust(w) if i < 3 else c.rjust(w) for i, (c, w) in enumerate(zip(cells, widths)))
+
+    print(line(header))
     for row in rows:
-        print("  ".join(c.rjust(w) for c, w in zip(row, widths)))
+        print(line(row))
     newton = {}
     for r in results:
         if "newton_ms_per_step" in r:
