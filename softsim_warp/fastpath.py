@@ -23,7 +23,7 @@ import warp as wp
 
 
 def configure_fused(integrator, fused=None, fuse_contact=None):
-    """Decide whether ``integrator`` uses fused stages (default: on the lattice path's gather kernel)."""
+    """Decide whether ``integrator`` uses fused stages (default: whenever the model takes the lattice path)."""
     model = integrator.model
     lat = model.lattice
     if fused is None:
@@ -37,8 +37,11 @@ def configure_fused(integrator, fused=None, fuse_contact=None):
     integrator._stage_buffers = None
 
 
-def _stage_buffers(integrator):
-    """Two stage states (q, qd) to ping-pong between; the second only for methods of three or more stages."""
+def stage_buffers(integrator):
+    """Two stage states (q, qd) to ping-pong between; the second only for methods of three or more stages.
+
+    Made once (the integrator's constructor calls this after allocating its own stage state).
+    """
     if integrator._stage_buffers is None:
         model = integrator.model
         n = model.particle_count
@@ -59,14 +62,8 @@ def step_fused(integrator, state_in, state_out, dt):
     model = integrator.model
     lat = model.lattice
     h = model.scalar(dt)
-    bufs = _stage_buffers(integrator)
+    bufs = stage_buffers(integrator)
     rows = lat.kernel == "rows"
-    if rows:
-        n = model.particle_count
-        if lat.scratch is None or lat.scratch.shape[0] != n:
-            lat.scratch = wp.empty(n, dtype=model.vec3, device=model.device)
-        if integrator.f.shape[0] != n:
-            integrator.f = wp.empty(n, dtype=model.vec3, device=model.device)
     q, qd = state_in.particle_q, state_in.particle_qd
     for stage in range(integrator.stage_count):
         q_next, qd_next = bufs[stage % 2]

@@ -145,12 +145,18 @@ class ExplicitIntegrator(Integrator):
         configure_fused(self, fused, fuse_contact)
         # Stage buffers, allocated once: forces, the stage state and the RK accumulators.
         n = model.particle_count
-        self.f = wp.zeros(0 if self.fused else n, dtype=model.vec3, device=device)
+        # A fused gather stage keeps forces in registers; the row kernel and the plain path need f.
+        gather_fused = self.fused and model.lattice.kernel == "gather"
+        self.f = wp.zeros(0 if gather_fused else n, dtype=model.vec3, device=device)
         multi = self.stage_count > 1
         self.q_s = wp.zeros(n if multi else 0, dtype=model.vec3, device=device)
         self.qd_s = wp.zeros(n if multi else 0, dtype=model.vec3, device=device)
         self.acc_q = wp.zeros(n if multi else 0, dtype=model.vec3, device=device)
         self.acc_qd = wp.zeros(n if multi else 0, dtype=model.vec3, device=device)
+        if self.fused:
+            from .fastpath import stage_buffers  # noqa: PLC0415
+
+            stage_buffers(self)
 
     def step(self, state_in: State, state_out: State, dt: float):
         if self.fused:

@@ -123,7 +123,8 @@ class LatticeData:
         jelly_world: world of each jelly, shape [J], int32.
         particle_coord_k: third lattice coordinate k of each particle, shape [particle_count],
             int32; allocated only for the CPU row kernel, which reads it.
-        scratch: workspace of the row kernel, shape [particle_count], vec3 (None until used).
+        scratch: workspace of the row kernel, shape [particle_count], vec3; allocated with
+            ``particle_coord_k``.
         kernel: "rows" (CPU: one vectorised native loop per jelly) or "gather" (one thread per
             particle); chosen by device, overridable for tests and benchmarks.
         layout: the host :class:`LatticeLayout`.
@@ -141,13 +142,17 @@ class LatticeData:
         self.jelly_kd = wp.array2d(layout.kd.astype(np_scalar), dtype=scalar, device=device)
         self.jelly_world = wp.array(layout.world, dtype=wp.int32, device=device)
         self._particle_count = particle_count
+        self.layout_vec3 = wp.types.vector(3, scalar)
         self.particle_coord_k = None
-        self.scratch = None  # rows kernel: one vec3 per particle, made when it is first needed
+        self.scratch = None
         self.kernel = None
         self.set_kernel(kernel or ("rows" if device.is_cpu else "gather"))
 
     def set_kernel(self, kernel: str):
-        """Choose the force kernel: "rows" (native CPU loop) or "gather" (thread per particle)."""
+        """Choose the force kernel: "rows" (native CPU loop) or "gather" (thread per particle).
+
+        Choose before making integrators: they size their buffers for the kernel in use.
+        """
         if kernel not in ("rows", "gather"):
             raise ValueError(f"lattice kernel must be 'rows' or 'gather' (got {kernel!r})")
         if kernel == "rows" and self.particle_coord_k is None:
@@ -156,6 +161,7 @@ class LatticeData:
                 n = int(np.prod(shape))
                 coord_k[start : start + n] = np.arange(n) % shape[2]
             self.particle_coord_k = wp.array(coord_k, dtype=wp.int32, device=self.device)
+            self.scratch = wp.empty(self._particle_count, dtype=self.layout_vec3, device=self.device)
         self.kernel = kernel
 
     def nbytes(self) -> int:
@@ -170,8 +176,6 @@ def eval_lattice_forces(model, q: wp.array, qd: wp.array, f_out: wp.array):
     """Spring forces of a lattice model into ``f_out`` (every element written), with its chosen kernel."""
     lat = model.lattice
     if lat.kernel == "rows":
-        if lat.scratch is None or lat.scratch.shape[0] != model.particle_count:
-            lat.scratch = wp.empty(model.particle_count, dtype=model.vec3, device=model.device)
         wp.launch(
             model.kernels.eval_lattice_rows,
             dim=lat.jelly_count,

@@ -257,3 +257,20 @@ def test_bench_cli_writes_json(tmp_path, capsys):
                     "bytes_per_step", "bandwidth_fraction"):
             assert r[key] > 0, key
     assert "particle-steps/s" in capsys.readouterr().out
+
+
+@pytest.mark.parametrize(
+    "argv, message",
+    [
+        (["--sizes", "1"], "error: --sizes: each size must be at least 2 (got '1')"),
+        (["--sizes", "ten"], "error: --sizes: not a comma-separated list of integers (got 'ten')"),
+        (["--integrators", "verlet"], "error: --integrators: unknown value 'verlet'"),
+        (["--steps", "0"], "error: --steps: must be at least 1 (got 0)"),
+    ],
+)
+def test_bench_cli_rejects_bad_input(argv, message, capsys):
+    from softsim_warp.cli import main
+
+    assert main(["bench", *argv]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith(message) and err.count("\n") == 1, err
