@@ -18,11 +18,14 @@ Two kernels evaluate the same forces:
   call each (about 5.5 ns per spring on the development machine), so a thread-per-particle
   kernel cannot use the CPU's vector units. This kernel runs one thread per jelly and does the
   work in a native C++ loop (``wp.func_native``) over the 16 half-stencil offsets; the inner loops
-  are plain array loops that the C++ compiler vectorises (about 0.9 ns per spring measured with
-  AVX-512), and each spring is evaluated once. It is race-free on CUDA too (each thread owns one
-  jelly's particles) but slow there, so the model uses it on the CPU only.
+  are plain array loops that the C++ compiler vectorises (about 1.4 ns per spring measured with
+  AVX-512, both ends included), and each spring is evaluated once.
+  ``integrate_lattice_rows_stage`` appends the stage update to the same loop. It is race-free on
+  CUDA too (each thread owns one jelly's particles) but slow there, so the model uses it on the
+  CPU only.
 
 Both agree with ``eval_springs`` over the spring list to float32 rounding (tests/test_perf_paths.py).
+Measurements and the reasons for each choice: docs/PERFORMANCE.md.
 """
 
 import warp as wp

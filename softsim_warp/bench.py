@@ -21,7 +21,6 @@ from __future__ import annotations
 import datetime
 import math
 import platform
-import sys
 import time
 from dataclasses import asdict, dataclass
 
@@ -436,7 +435,7 @@ def run(args) -> int:
 
     _print_table(results, bandwidth, device)
     data = {
-        "command": " ".join(["softsim"] + sys.argv[1:]) if sys.argv and sys.argv[0].endswith("softsim") else None,
+        "arguments": {k: v for k, v in vars(args).items() if isinstance(v, (str, int, float, bool, list, type(None)))},
         "date": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
         "device": str(device),
         "device_name": _device_name(device),
@@ -662,7 +661,7 @@ def plot(data: dict, path: str):
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt  # noqa: PLC0415
 
-    fig, ax = plt.subplots(figsize=(7, 4.5))
+    fig, ax = plt.subplots(figsize=(9, 4.5))
     lines = {}
     for r in data["results"]:
         key = f"{r['integrator']} ({r['resolved_path']}{'+fused' if r['fused'] else ''})"
@@ -679,7 +678,7 @@ def plot(data: dict, path: str):
     ax.set_ylabel("particle-steps / s")
     ax.set_title(f"softsim bench on {data['device_name']}", fontsize=9)
     ax.grid(True, which="both", alpha=0.3)
-    ax.legend(fontsize=7)
+    ax.legend(fontsize=7, loc="center left", bbox_to_anchor=(1.01, 0.5))
     fig.tight_layout()
     fig.savefig(path, dpi=120)
     plt.close(fig)
