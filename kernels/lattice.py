@@ -67,8 +67,11 @@ def _rows_snippet(ctype, with_stage=False):
     const int w = ((const int*)jelly_world.data)[j];
     const int count = ((const int*)world_stage_count.data)[w];
     if (stage >= count) return;"""
-    return head + _ROWS_FORCES.format(T=ctype, REST_SLOTS=REST_SLOTS, NOFF=len(HALF_OFFSETS)) + (
-        _ROWS_STAGE if with_stage else "")
+    return (
+        head
+        + _ROWS_FORCES.format(T=ctype, REST_SLOTS=REST_SLOTS, NOFF=len(HALF_OFFSETS))
+        + (_ROWS_STAGE if with_stage else "")
+    )
 
 
 _ROWS_STAGE = """
@@ -199,7 +202,6 @@ return 1.0f / wp::sqrt(x);
     @wp.func_native(inv_sqrt_snippet)
     def inv_sqrt(x: scalar) -> scalar:
         """1/sqrt(x): on CUDA in float32 the hardware rsqrtf (within 2 ulp), elsewhere exact."""
-        ...
 
     @wp.func
     def stencil_spring_force(x: vec3, xb: vec3, v: vec3, vb: vec3, rest: scalar, ks: scalar, kd: scalar):
@@ -301,7 +303,9 @@ return 1.0f / wp::sqrt(x);
     ):
         i = wp.tid()
         j = particle_jelly[i]
-        f_out[i] = gather_lattice_force(i, j, jelly_start, jelly_shape, jelly_types, jelly_rest, jelly_ks, jelly_kd, q, qd)
+        f_out[i] = gather_lattice_force(
+            i, j, jelly_start, jelly_shape, jelly_types, jelly_rest, jelly_ks, jelly_kd, q, qd
+        )
 
     @wp.func
     def contact_planes(
@@ -386,14 +390,45 @@ return 1.0f / wp::sqrt(x);
         j = particle_jelly[i]
         f = gather_lattice_force(i, j, jelly_start, jelly_shape, jelly_types, jelly_rest, jelly_ks, jelly_kd, q_s, qd_s)
         last = advance_stage(
-            i, stage, h, f, particle_inv_mass, particle_world, gravity, world_stage_count, world_symplectic,
-            world_stage_c, world_stage_b, q_n, qd_n, qd_s, acc_q_out, acc_qd_out, q_next_out, qd_next_out, q_out, qd_out,
+            i,
+            stage,
+            h,
+            f,
+            particle_inv_mass,
+            particle_world,
+            gravity,
+            world_stage_count,
+            world_symplectic,
+            world_stage_c,
+            world_stage_b,
+            q_n,
+            qd_n,
+            qd_s,
+            acc_q_out,
+            acc_qd_out,
+            q_next_out,
+            qd_next_out,
+            q_out,
+            qd_out,
         )
         if with_contact != 0 and last and particle_inv_mass[i] != scalar(0.0):
             # Plane contact on the step's result, as collide_planes would do after the step.
             x, v = contact_planes(
-                q_out[i], qd_out[i], q_n[i], qd_n[i], particle_world[i], plane_count, plane_world, plane_point,
-                plane_normal, plane_hole_center, plane_hole_radius, plane_restitution, plane_friction, eps, eps_v,
+                q_out[i],
+                qd_out[i],
+                q_n[i],
+                qd_n[i],
+                particle_world[i],
+                plane_count,
+                plane_world,
+                plane_point,
+                plane_normal,
+                plane_hole_center,
+                plane_hole_radius,
+                plane_restitution,
+                plane_friction,
+                eps,
+                eps_v,
             )
             q_out[i] = x
             qd_out[i] = v
@@ -434,7 +469,18 @@ return 1.0f / wp::sqrt(x);
         # One thread per jelly; jellies own disjoint particle ranges, so threads never collide.
         j = wp.tid()
         lattice_rows_native(
-            j, jelly_start, jelly_shape, jelly_types, jelly_rest, jelly_ks, jelly_kd, particle_coord_k, q, qd, scratch, f_out
+            j,
+            jelly_start,
+            jelly_shape,
+            jelly_types,
+            jelly_rest,
+            jelly_ks,
+            jelly_kd,
+            particle_coord_k,
+            q,
+            qd,
+            scratch,
+            f_out,
         )
 
     @wp.func_native(_rows_snippet("float" if scalar == wp.float32 else "double", with_stage=True))
@@ -509,10 +555,35 @@ return 1.0f / wp::sqrt(x);
         # its particles' stage update, both vectorised. Jellies own disjoint particle ranges.
         j = wp.tid()
         lattice_rows_stage_native(
-            j, stage, h, jelly_start, jelly_shape, jelly_types, jelly_rest, jelly_ks, jelly_kd, jelly_world,
-            particle_coord_k, particle_inv_mass, gravity, world_stage_count, world_symplectic, world_stage_c,
-            world_stage_b, q_n, qd_n, q_s, qd_s, scratch, f_scratch, acc_q_out, acc_qd_out, q_next_out, qd_next_out,
-            q_out, qd_out,
+            j,
+            stage,
+            h,
+            jelly_start,
+            jelly_shape,
+            jelly_types,
+            jelly_rest,
+            jelly_ks,
+            jelly_kd,
+            jelly_world,
+            particle_coord_k,
+            particle_inv_mass,
+            gravity,
+            world_stage_count,
+            world_symplectic,
+            world_stage_c,
+            world_stage_b,
+            q_n,
+            qd_n,
+            q_s,
+            qd_s,
+            scratch,
+            f_scratch,
+            acc_q_out,
+            acc_qd_out,
+            q_next_out,
+            qd_next_out,
+            q_out,
+            qd_out,
         )
 
     @wp.kernel(module="unique")

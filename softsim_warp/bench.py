@@ -64,7 +64,9 @@ def build_jelly_model(size: int, spec: JellySpec, device, force_path="auto", pre
     edge = spec.spacing * (size - 1)
     springs = {t: {"ks": spec.ks, "kd": spec.kd} for t in ("structural", "shear", "bending")}
     for w in range(copies):
-        builder.add_jelly((size,) * 3, edge, spec.particle_mass, springs, center=(0.0, spec.gap + 0.5 * edge, 0.0), world=w)
+        builder.add_jelly(
+            (size,) * 3, edge, spec.particle_mass, springs, center=(0.0, spec.gap + 0.5 * edge, 0.0), world=w
+        )
         builder.add_plane((0.0, 0.0, 0.0), (0.0, 1.0, 0.0), spec.restitution, spec.friction, world=w)
     return builder.finalize(device, precision, force_path=force_path)
 
@@ -225,9 +227,13 @@ class _OurCase(_Case):
         self.model = model
         self.method = method
         try:
-            self.integrator = ExplicitIntegrator(model, method, **options) if options else make_integrator(method, model)
+            self.integrator = (
+                ExplicitIntegrator(model, method, **options) if options else make_integrator(method, model)
+            )
         except ImportError as exc:  # the implicit integrator lives in its own module
-            raise UserError("--integrators", None, f"{method} is not available here ({exc})", method, has_value=True) from None
+            raise UserError(
+                "--integrators", None, f"{method} is not available here ({exc})", method, has_value=True
+            ) from None
         self.states = [model.state(), model.state()]
 
         def step(count):
@@ -294,16 +300,24 @@ def _parse_list(text, flag, allowed=None, convert=str):
         except ValueError:
             raise UserError(flag, None, "not a comma-separated list of integers", text, has_value=True) from None
         if allowed is not None and value not in allowed:
-            raise UserError(flag, None, f"unknown value {item!r}; choose from {', '.join(allowed)}", text, has_value=True)
+            raise UserError(
+                flag, None, f"unknown value {item!r}; choose from {', '.join(allowed)}", text, has_value=True
+            )
         out.append(value)
     return out
 
 
 def add_parser(subparsers, add_common):
     p = subparsers.add_parser("bench", help="particle-steps per second per jelly size and integrator (and vs Newton)")
-    p.add_argument("--sizes", default="10,20,40", help="jelly sizes n (n^3 particles), comma-separated (default 10,20,40)")
-    p.add_argument("--integrators", default=",".join(DEFAULT_INTEGRATORS), help="comma-separated (default: all explicit)")
-    p.add_argument("--paths", default="auto", help="force paths: auto (what the model picks), lattice, springs; comma-separated")
+    p.add_argument(
+        "--sizes", default="10,20,40", help="jelly sizes n (n^3 particles), comma-separated (default 10,20,40)"
+    )
+    p.add_argument(
+        "--integrators", default=",".join(DEFAULT_INTEGRATORS), help="comma-separated (default: all explicit)"
+    )
+    p.add_argument(
+        "--paths", default="auto", help="force paths: auto (what the model picks), lattice, springs; comma-separated"
+    )
     p.add_argument("--steps", type=int, default=200, help="steps per timed repeat (default 200)")
     p.add_argument("--repeats", type=int, default=7, help="timed repeats; the median is reported (default 7)")
     p.add_argument("--copies", type=int, default=1, help="copies of the jelly, one per world, in one model (batching)")
@@ -311,8 +325,11 @@ def add_parser(subparsers, add_common):
     p.add_argument("--no-graph", action="store_true", help="launch kernels one by one instead of replaying a graph")
     p.add_argument("--scene", help="benchmark this scene (name or .toml, with its dt) instead of the size sweep")
     p.add_argument("--peer", choices=["newton"], help="also step the same jelly with Newton's SolverSemiImplicit")
-    p.add_argument("--variants", action="store_true",
-                   help="measure the fast paths one by one (graph, lattice, fusion, batching) instead of --paths")
+    p.add_argument(
+        "--variants",
+        action="store_true",
+        help="measure the fast paths one by one (graph, lattice, fusion, batching) instead of --paths",
+    )
     p.add_argument("--out", help="write the results as JSON")
     p.add_argument("--plot", help="write a log-log plot of particle-steps/s over particle count (PNG)")
     add_common(p)
@@ -324,7 +341,12 @@ def _versions(peer):
 
     from . import __version__  # noqa: PLC0415
 
-    versions = {"softsim": __version__, "warp": wp.config.version, "numpy": np.__version__, "python": platform.python_version()}
+    versions = {
+        "softsim": __version__,
+        "warp": wp.config.version,
+        "numpy": np.__version__,
+        "python": platform.python_version(),
+    }
     if peer:
         from .bench_newton import newton_version  # noqa: PLC0415
 
@@ -388,12 +410,20 @@ def run(args) -> int:
         from .scene import load_scene  # noqa: PLC0415
 
         scene = load_scene(args.scene, args.overrides)
-        groups = [(scene.name, lambda path, copies=1: build_model(scene, device, args.precision, force_path=path),
-                   scene.sim["dt"])]
+        groups = [
+            (
+                scene.name,
+                lambda path, copies=1: build_model(scene, device, args.precision, force_path=path),
+                scene.sim["dt"],
+            )
+        ]
     else:
         groups = [
-            (f"{n}^3", lambda path, copies=args.copies, n=n: build_jelly_model(n, spec, device, path, args.precision, copies),
-             spec.dt)
+            (
+                f"{n}^3",
+                lambda path, copies=args.copies, n=n: build_jelly_model(n, spec, device, path, args.precision, copies),
+                spec.dt,
+            )
             for n in sizes
         ]
 
@@ -428,7 +458,10 @@ def run(args) -> int:
                 "finite": peer.finite(),
             }
             peers.append(peer_row)
-        rows = [_result_row(case, bandwidth, peer_row, case.use_graph, case.meta.get("copies", args.copies)) for case in cases]
+        rows = [
+            _result_row(case, bandwidth, peer_row, case.use_graph, case.meta.get("copies", args.copies))
+            for case in cases
+        ]
         if args.variants:
             _relative_speeds(rows)
         results += rows
@@ -436,7 +469,7 @@ def run(args) -> int:
     _print_table(results, bandwidth, device)
     data = {
         "arguments": {k: v for k, v in vars(args).items() if isinstance(v, (str, int, float, bool, list, type(None)))},
-        "date": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
+        "date": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"),
         "device": str(device),
         "device_name": _device_name(device),
         "versions": _versions(args.peer),
@@ -472,8 +505,13 @@ def _standard_cases(label, make_model, dt, methods, paths, args, use_graph):
         build_s = time.perf_counter() - t0
         for method in methods:
             case = _OurCase(model, method, dt, args.steps, use_graph)
-            case.meta = {"case": label, "path": path, "resolved_path": _path_name(model), "integrator": method,
-                         "build_s": build_s}
+            case.meta = {
+                "case": label,
+                "path": path,
+                "resolved_path": _path_name(model),
+                "integrator": method,
+                "build_s": build_s,
+            }
             cases.append(case)
     return cases
 
@@ -497,8 +535,15 @@ def fast_path_variants(device):
             ("lattice rows, fused, graph", "lattice", "rows", {"fused": True}, True),
         ]
     else:
-        variants.append(("lattice gather, fused+contact, plain launches", "lattice", "gather",
-                         {"fused": True, "fuse_contact": True}, False))
+        variants.append(
+            (
+                "lattice gather, fused+contact, plain launches",
+                "lattice",
+                "gather",
+                {"fused": True, "fuse_contact": True},
+                False,
+            )
+        )
     return variants
 
 
@@ -518,14 +563,25 @@ def _variant_cases(label, make_model, dt, methods, args, device, use_graph):
     if not args.scene and copies * cases[0].model.particle_count <= BATCH_MAX_PARTICLES:
         for method in methods:
             batch = _OurCase(make_model("auto", copies), method, dt, args.steps, use_graph)
-            batch.meta = {"case": label, "path": "auto", "resolved_path": f"batch: {copies} copies, one model",
-                          "integrator": method, "copies": copies}
+            batch.meta = {
+                "case": label,
+                "path": "auto",
+                "resolved_path": f"batch: {copies} copies, one model",
+                "integrator": method,
+                "copies": copies,
+            }
             separate = _SeparateCase([make_model("auto", 1) for _ in range(copies)], method, dt, args.steps, use_graph)
             separate.model, separate.integrator = separate.parts[0].model, separate.parts[0].integrator
             separate.states = separate.parts[0].states
             separate.method = method
-            separate.meta = {"case": label, "path": "auto", "resolved_path": f"batch: {copies} separate models",
-                             "integrator": method, "copies": copies, "separate_models": copies}
+            separate.meta = {
+                "case": label,
+                "path": "auto",
+                "resolved_path": f"batch: {copies} separate models",
+                "integrator": method,
+                "copies": copies,
+                "separate_models": copies,
+            }
             cases += [separate, batch]
     return cases
 
@@ -602,7 +658,7 @@ def _si(x: float) -> str:
         return "-"
     if x == 0:
         return "0"
-    exp = int(math.floor(math.log10(abs(x)) / 3))
+    exp = math.floor(math.log10(abs(x)) / 3)
     exp = max(min(exp, 4), -2)
     prefix = {-2: "u", -1: "m", 0: "", 1: "k", 2: "M", 3: "G", 4: "T"}[exp]
     return f"{x / 10 ** (3 * exp):.3g}{prefix}"
@@ -611,8 +667,20 @@ def _si(x: float) -> str:
 def _print_table(results, bandwidth, device):
     print(f"device {device} ({_device_name(device)}), copy bandwidth {bandwidth / 1e9:.1f} GB/s (read + write)")
     variants = any("speedup_vs_baseline" in r for r in results)
-    header = ["case", "integrator", "variant" if variants else "path", "particles", "springs", "ms/step",
-              "particle-steps/s", "spring-evals/s", "compile s", "memory", "bytes/step", "% bw"]
+    header = [
+        "case",
+        "integrator",
+        "variant" if variants else "path",
+        "particles",
+        "springs",
+        "ms/step",
+        "particle-steps/s",
+        "spring-evals/s",
+        "compile s",
+        "memory",
+        "bytes/step",
+        "% bw",
+    ]
     header += ["x base", "x prev"] if variants else []
     header += ["x newton"] if any("speedup_vs_newton" in r for r in results) else []
     rows = []
@@ -632,8 +700,10 @@ def _print_table(results, bandwidth, device):
             f"{100 * r['bandwidth_fraction']:.1f}" if r["bandwidth_fraction"] else "-",
         ]
         if variants:
-            row += [f"{r['speedup_vs_baseline']:.2f}",
-                    f"{r['speedup_vs_previous']:.2f}" if r.get("speedup_vs_previous") else "-"]
+            row += [
+                f"{r['speedup_vs_baseline']:.2f}",
+                f"{r['speedup_vs_previous']:.2f}" if r.get("speedup_vs_previous") else "-",
+            ]
         if "x newton" in header:
             row.append(f"{r['speedup_vs_newton']:.2f}" if "speedup_vs_newton" in r else "-")
         rows.append(row)

@@ -49,8 +49,12 @@ def stage_buffers(integrator):
         bufs = []
         for k in range(2):
             size = n if k < count else 0
-            bufs.append((integrator.q_s if k == 0 else wp.zeros(size, dtype=model.vec3, device=model.device),
-                         integrator.qd_s if k == 0 else wp.zeros(size, dtype=model.vec3, device=model.device)))
+            bufs.append(
+                (
+                    integrator.q_s if k == 0 else wp.zeros(size, dtype=model.vec3, device=model.device),
+                    integrator.qd_s if k == 0 else wp.zeros(size, dtype=model.vec3, device=model.device),
+                )
+            )
         integrator._stage_buffers = bufs
     return integrator._stage_buffers
 

@@ -166,8 +166,15 @@ class LatticeData:
 
     def nbytes(self) -> int:
         """Bytes of the device arrays held here."""
-        arrays = [self.jelly_start, self.jelly_shape, self.jelly_types, self.jelly_rest, self.jelly_ks, self.jelly_kd,
-                  self.jelly_world]
+        arrays = [
+            self.jelly_start,
+            self.jelly_shape,
+            self.jelly_types,
+            self.jelly_rest,
+            self.jelly_ks,
+            self.jelly_kd,
+            self.jelly_world,
+        ]
         arrays += [a for a in (self.particle_coord_k, self.scratch) if a is not None]
         return sum(a.capacity for a in arrays)
 
@@ -179,8 +186,18 @@ def eval_lattice_forces(model, q: wp.array, qd: wp.array, f_out: wp.array):
         wp.launch(
             model.kernels.eval_lattice_rows,
             dim=lat.jelly_count,
-            inputs=[lat.jelly_start, lat.jelly_shape, lat.jelly_types, lat.jelly_rest, lat.jelly_ks, lat.jelly_kd,
-                    lat.particle_coord_k, q, qd, lat.scratch],
+            inputs=[
+                lat.jelly_start,
+                lat.jelly_shape,
+                lat.jelly_types,
+                lat.jelly_rest,
+                lat.jelly_ks,
+                lat.jelly_kd,
+                lat.particle_coord_k,
+                q,
+                qd,
+                lat.scratch,
+            ],
             outputs=[f_out],
             device=model.device,
         )
@@ -188,8 +205,17 @@ def eval_lattice_forces(model, q: wp.array, qd: wp.array, f_out: wp.array):
         wp.launch(
             model.kernels.eval_lattice_springs,
             dim=model.particle_count,
-            inputs=[model.particle_jelly, lat.jelly_start, lat.jelly_shape, lat.jelly_types, lat.jelly_rest,
-                    lat.jelly_ks, lat.jelly_kd, q, qd],
+            inputs=[
+                model.particle_jelly,
+                lat.jelly_start,
+                lat.jelly_shape,
+                lat.jelly_types,
+                lat.jelly_rest,
+                lat.jelly_ks,
+                lat.jelly_kd,
+                q,
+                qd,
+            ],
             outputs=[f_out],
             device=model.device,
         )

@@ -26,12 +26,26 @@ SPRINGS = {
 
 def _builder(shape=(4, 5, 6), springs=SPRINGS, degrees=30.0, second=True, world=0, builder=None):
     b = builder or ModelBuilder((0.0, -9.8, 0.0))
-    b.add_jelly(shape, (0.3, 0.4, 0.5), 0.01, springs, center=(0.0, 0.3, 0.0), axis=(1.0, 0.0, 1.0), degrees=degrees,
-                world=world)
+    b.add_jelly(
+        shape,
+        (0.3, 0.4, 0.5),
+        0.01,
+        springs,
+        center=(0.0, 0.3, 0.0),
+        axis=(1.0, 0.0, 1.0),
+        degrees=degrees,
+        world=world,
+    )
     if second:
         # A second jelly with another shape and without shear springs: per-jelly tables and type masks.
-        b.add_jelly((3, 2, 4), 0.2, 0.02, {"structural": {"ks": 100.0, "kd": 1.0}, "bending": {"ks": 30.0, "kd": 0.2}},
-                    center=(1.0, 0.5, 0.0), world=world)
+        b.add_jelly(
+            (3, 2, 4),
+            0.2,
+            0.02,
+            {"structural": {"ks": 100.0, "kd": 1.0}, "bending": {"ks": 30.0, "kd": 0.2}},
+            center=(1.0, 0.5, 0.0),
+            world=world,
+        )
     return b
 
 
@@ -142,8 +156,9 @@ def test_lattice_trajectories_match(device, method):
         assert np.abs(results[path] - ref_q).max() <= bound, path
     assert np.abs(results["lattice"] - results["springs"]).max() <= 2 * bound
     # In float64 the fused lattice path follows the float64 spring list to float64 rounding.
-    lattice64, _ = _run(_dropping(_builder(second=False)).finalize(device, "float64", force_path="lattice"), method,
-                        steps, dt)
+    lattice64, _ = _run(
+        _dropping(_builder(second=False)).finalize(device, "float64", force_path="lattice"), method, steps, dt
+    )
     assert np.abs(lattice64 - ref_q).max() <= steps * 4.0 * EPS64 * np.abs(ref_q).max()
 
 
@@ -221,7 +236,9 @@ def test_crushed_jelly_forces_match(device):
     q, qd = _perturbed_state(models["springs"], device, seed=5)
     f_ref, scale = _reference_forces(models["springs"], q, qd)
     f = wp.zeros(len(q), dtype=wp.vec3, device=device)
-    eval_forces(models["lattice"], wp.array(q, dtype=wp.vec3, device=device), wp.array(qd, dtype=wp.vec3, device=device), f)
+    eval_forces(
+        models["lattice"], wp.array(q, dtype=wp.vec3, device=device), wp.array(qd, dtype=wp.vec3, device=device), f
+    )
     assert np.all(np.linalg.norm(f.numpy() - f_ref, axis=1) <= EPS32 * scale)
 
 
@@ -239,7 +256,9 @@ def test_lazy_spring_arrays_and_spring_energy(device):
     energy = 0.5 * model.spring_stiffness_host * stretch**2
     scale = model.spring_stiffness_host * (np.abs(stretch) * 2.0 * model.spring_rest_host + stretch**2)
     # float32 l carries ~eps l error, so each term is good to ~eps ks |l - r| l, plus the sum's rounding.
-    assert metrics.spring_energy == pytest.approx(energy.sum(), abs=4 * EPS32 * (scale.sum() + energy.sum() * len(energy)))
+    assert metrics.spring_energy == pytest.approx(
+        energy.sum(), abs=4 * EPS32 * (scale.sum() + energy.sum() * len(energy))
+    )
     # The spring arrays appear on first use, with the builder's values.
     assert np.array_equal(model.spring_indices.numpy(), pairs)
     assert np.allclose(model.spring_rest_length.numpy(), model.spring_rest_host, rtol=EPS32)
@@ -249,16 +268,43 @@ def test_bench_cli_writes_json(tmp_path, capsys):
     from softsim_warp.cli import main
 
     out = tmp_path / "bench.json"
-    assert main(["bench", "--sizes", "3", "--steps", "5", "--integrators", "euler,rk4", "--out", str(out),
-                 "--repeats", "2", "--paths", "lattice,springs"]) == 0
+    assert (
+        main(
+            [
+                "bench",
+                "--sizes",
+                "3",
+                "--steps",
+                "5",
+                "--integrators",
+                "euler,rk4",
+                "--out",
+                str(out),
+                "--repeats",
+                "2",
+                "--paths",
+                "lattice,springs",
+            ]
+        )
+        == 0
+    )
     data = json.loads(out.read_text())
     assert {"device", "versions", "bandwidth_gbs", "results"} <= set(data)
     rows = data["results"]
-    assert {(r["integrator"], r["path"]) for r in rows} == {(i, p) for i in ("euler", "rk4") for p in ("lattice", "springs")}
+    assert {(r["integrator"], r["path"]) for r in rows} == {
+        (i, p) for i in ("euler", "rk4") for p in ("lattice", "springs")
+    }
     for r in rows:
         assert r["particles"] == 27 and r["springs"] == sum(spring_counts((3, 3, 3)).values())
-        for key in ("ms_per_step", "particle_steps_per_s", "spring_evals_per_s", "compile_s", "memory_bytes",
-                    "bytes_per_step", "bandwidth_fraction"):
+        for key in (
+            "ms_per_step",
+            "particle_steps_per_s",
+            "spring_evals_per_s",
+            "compile_s",
+            "memory_bytes",
+            "bytes_per_step",
+            "bandwidth_fraction",
+        ):
             assert r[key] > 0, key
     assert "particle-steps/s" in capsys.readouterr().out
 
