@@ -38,6 +38,10 @@ def eval_forces(model: Model, q: wp.array, qd: wp.array, f_out: wp.array):
     if getattr(model, "deterministic", False):
         # Atomic-free: per-spring forces, then a fixed-order gather per particle (deterministic.py).
         deterministic.eval_spring_forces(model, q, qd, f_out)
+    elif model.lattice is not None:
+        from .lattice_model import eval_lattice_forces  # noqa: PLC0415
+
+        eval_lattice_forces(model, q, qd, f_out)
         return
     f_out.zero_()
     if model.spring_count:
@@ -57,14 +61,15 @@ def eval_forces(model: Model, q: wp.array, qd: wp.array, f_out: wp.array):
         )
 
 
-def apply_contacts(model: Model, state_in: State, state_out: State, dt: float, world_contact_beta: wp.array):
+def apply_contacts(model: Model, state_in: State, state_out: State, dt: float, world_contact_beta: wp.array, planes=True):
     """Terrain contact on ``state_out`` after a step of ``dt`` from ``state_in``; one launch per primitive type present.
 
     ``world_contact_beta`` is, per world, the integrator's position gain for a force held constant
     over the step (x_{n+1} gains beta h^2 a): resting contact and friction shift positions by it.
+    ``planes=False`` skips the planes (a fused lattice stage has already applied them).
     """
     h = model.scalar(dt)
-    if model.plane_count:
+    if model.plane_count and planes:
         wp.launch(
             model.kernels.collide_planes,
             dim=model.particle_count,
@@ -165,7 +170,7 @@ class ExplicitIntegrator(Integrator):
             a side-by-side comparison advance in the same launches).
     """
 
-    def __init__(self, model: Model, method="symplectic"):
+    def __init__(self, model: Model, method="symplectic", fused=None, fuse_contact=None):
         super().__init__(model)
         methods = [method] * model.world_count if isinstance(method, str) else list(method)
         if len(methods) != model.world_count:
@@ -195,16 +200,32 @@ class ExplicitIntegrator(Integrator):
         self.world_contact_beta = wp.array(
             np.array([CONTACT_BETA[name] for name in methods], dtype=np_scalar), dtype=model.scalar, device=device
         )
+        # Lattice fast path: one fused kernel per stage (forces + stage update, plane contact on the
+        # last stage) where it pays; see softsim_warp/fastpath.py and docs/PERFORMANCE.md.
+        from .fastpath import configure_fused  # noqa: PLC0415
+
+        configure_fused(self, fused, fuse_contact)
         # Stage buffers, allocated once: forces, the stage state and the RK accumulators.
         n = model.particle_count
-        self.f = wp.zeros(n, dtype=model.vec3, device=device)
+        # A fused gather stage keeps forces in registers; the row kernel and the plain path need f.
+        gather_fused = self.fused and model.lattice.kernel == "gather"
+        self.f = wp.zeros(0 if gather_fused else n, dtype=model.vec3, device=device)
         multi = self.stage_count > 1
         self.q_s = wp.zeros(n if multi else 0, dtype=model.vec3, device=device)
         self.qd_s = wp.zeros(n if multi else 0, dtype=model.vec3, device=device)
         self.acc_q = wp.zeros(n if multi else 0, dtype=model.vec3, device=device)
         self.acc_qd = wp.zeros(n if multi else 0, dtype=model.vec3, device=device)
+        if self.fused:
+            from .fastpath import stage_buffers  # noqa: PLC0415
+
+            stage_buffers(self)
 
     def step(self, state_in: State, state_out: State, dt: float):
+        if self.fused:
+            from .fastpath import step_fused  # noqa: PLC0415
+
+            step_fused(self, state_in, state_out, dt)
+            return
         model = self.model
         h = model.scalar(dt)
         q, qd = state_in.particle_q, state_in.particle_qd

@@ -204,8 +204,15 @@ class ModelBuilder:
 
     # -- finalize -------------------------------------------------------------------------------
 
-    def finalize(self, device=None, precision="float32") -> Model:
-        """Copy everything to ``device`` as a :class:`Model` in ``precision`` ("float32" or "float64")."""
+    def finalize(self, device=None, precision="float32", force_path="auto") -> Model:
+        """Copy everything to ``device`` as a :class:`Model` in ``precision`` ("float32" or "float64").
+
+        ``force_path``: "auto" takes the lattice path (no spring arrays, see ``lattice_model``)
+        when every spring is a standard lattice spring, "lattice" requires it, "springs" keeps
+        the general spring list.
+        """
+        if force_path not in ("auto", "lattice", "springs"):
+            raise ValueError(f"force_path must be auto, lattice or springs (got {force_path!r})")
         if precision not in SCALARS:
             raise ValueError(f"precision must be one of {', '.join(SCALARS)} (got {precision!r})")
         device = wp.get_device(device)
@@ -247,10 +254,21 @@ class ModelBuilder:
         m.spring_rest_host = np.concatenate(self._rest) if self._rest else np.zeros(0)
         m.spring_stiffness_host = np.concatenate(self._ks) if self._ks else np.zeros(0)
         m.spring_damping_host = np.concatenate(self._kd) if self._kd else np.zeros(0)
-        m.spring_indices = arr(pairs, wp.vec2i, np.int32)
-        m.spring_rest_length = arr(m.spring_rest_host, scalar, np_scalar)
-        m.spring_stiffness = arr(m.spring_stiffness_host, scalar, np_scalar)
-        m.spring_damping = arr(m.spring_damping_host, scalar, np_scalar)
+        # --- lattice fast path (perf): without it the spring arrays go to the device now; with it
+        # they are made on first use only (Model.__getattr__), e.g. by an implicit integrator.
+        m.lattice = None
+        m.lattice_reason = "force_path=springs"
+        if force_path != "springs":
+            from .lattice_model import LatticeData, detect_lattice  # noqa: PLC0415
+
+            layout, m.lattice_reason = detect_lattice(self)
+            if layout is None and force_path == "lattice":
+                raise ValueError(f"the lattice path does not apply: {m.lattice_reason}")
+            if layout is not None:
+                m.lattice = LatticeData(layout, device, scalar, np_scalar, m.particle_count)
+        if m.lattice is None:
+            m._make_spring_arrays()
+        # --- end lattice fast path
 
         m.gravity = vec3(*[scalar(g) for g in self.gravity])
         m.gravity_host = self.gravity.copy()
@@ -310,6 +328,10 @@ class Model:
         spring_rest_length: rest length [m], shape [spring_count], scalar.
         spring_stiffness: ks [N/m], shape [spring_count], scalar.
         spring_damping: kd [N s/m], shape [spring_count], scalar.
+            On the lattice path the four spring arrays are made on first access only.
+        lattice: :class:`~softsim_warp.lattice_model.LatticeData` (per-jelly tables of the
+            lattice force path) or None when the general spring list is used.
+        lattice_reason: host string, why the lattice path does or does not apply.
         gravity: acceleration [m/s^2], vec3 value.
         plane_*: per plane point [m], unit normal, hole centre [m] and radius [m] (0 = none),
             restitution, friction coefficient and world, shape [plane_count].
@@ -362,6 +384,23 @@ class Model:
 
     deterministic = False
 
+    _SPRING_ARRAYS = ("spring_indices", "spring_rest_length", "spring_stiffness", "spring_damping")
+
+    def _make_spring_arrays(self):
+        """Copy the spring list to the device (at finalize, or lazily on the lattice path)."""
+        np_scalar = NUMPY_SCALARS[self.precision]
+        self.spring_indices = wp.array(np.asarray(self.spring_indices_host, np.int32), dtype=wp.vec2i, device=self.device)
+        for name, host in (("spring_rest_length", self.spring_rest_host), ("spring_stiffness", self.spring_stiffness_host),
+                           ("spring_damping", self.spring_damping_host)):
+            setattr(self, name, wp.array(np.asarray(host, np_scalar), dtype=self.scalar, device=self.device))
+
+    def __getattr__(self, name):
+        # Only called for missing attributes: the spring arrays a lattice model has not made yet.
+        if name in Model._SPRING_ARRAYS and "spring_indices_host" in self.__dict__:
+            self._make_spring_arrays()
+            return self.__dict__[name]
+        raise AttributeError(name)
+
     def state(self) -> State:
         """A new state holding the model's initial positions and velocities."""
         s = State()
@@ -396,14 +435,15 @@ class State:
         wp.copy(self.particle_qd, other.particle_qd)
 
 
-def build_model(scene, device=None, precision=None, worlds=None, deterministic=False) -> Model:
+def build_model(scene, device=None, precision=None, worlds=None, deterministic=False, force_path="auto") -> Model:
     """Build a :class:`Model` from a validated :class:`~softsim_warp.scene.Scene`.
 
-    ``deterministic`` selects atomic-free force evaluation (``softsim_warp.deterministic.attach``).
+    ``deterministic`` selects atomic-free force evaluation (``softsim_warp.deterministic.attach``);
+    ``force_path``: see ``ModelBuilder.finalize``.
     """
     builder = ModelBuilder(scene.sim["gravity"])
     populate(builder, scene.data)
-    model = builder.finalize(device, precision or scene.sim["precision"])
+    model = builder.finalize(device, precision or scene.sim["precision"], force_path=force_path)
     if deterministic:
         from .deterministic import attach  # noqa: PLC0415
 
