@@ -22,6 +22,62 @@ def build(scalar):
             return vec3(scalar(0.0))
         return f * inv_mass + gravity
 
+    @wp.func
+    def advance_stage(
+        i: int,
+        stage: int,
+        h: scalar,
+        f: vec3,
+        particle_inv_mass: wp.array(dtype=scalar),
+        particle_world: wp.array(dtype=wp.int32),
+        gravity: vec3,
+        world_stage_count: wp.array(dtype=wp.int32),
+        world_symplectic: wp.array(dtype=wp.int32),
+        world_stage_c: wp.array2d(dtype=scalar),
+        world_stage_b: wp.array2d(dtype=scalar),
+        q_n: wp.array(dtype=vec3),
+        qd_n: wp.array(dtype=vec3),
+        qd_s: wp.array(dtype=vec3),
+        acc_q_out: wp.array(dtype=vec3),
+        acc_qd_out: wp.array(dtype=vec3),
+        q_next_out: wp.array(dtype=vec3),
+        qd_next_out: wp.array(dtype=vec3),
+        q_out: wp.array(dtype=vec3),
+        qd_out: wp.array(dtype=vec3),
+    ):
+        """Stage ``stage`` of particle i given its force f at the stage state; True when it wrote y_{n+1}.
+
+        Shared by ``integrate_stage`` and the fused lattice stage (kernels/lattice.py).
+        """
+        w = particle_world[i]
+        count = world_stage_count[w]
+        if stage >= count:
+            return False
+        a = acceleration(f, particle_inv_mass[i], gravity)
+        v = qd_s[i]
+        if world_symplectic[w] != 0:
+            # Semi-implicit Euler: velocity first, then position with the new velocity.
+            v_new = qd_n[i] + h * a
+            qd_out[i] = v_new
+            q_out[i] = q_n[i] + h * v_new
+            return True
+        b = world_stage_b[w, stage]
+        acc_q = b * v
+        acc_qd = b * a
+        if stage > 0:
+            acc_q = acc_q + acc_q_out[i]
+            acc_qd = acc_qd + acc_qd_out[i]
+        if stage == count - 1:
+            q_out[i] = q_n[i] + h * acc_q
+            qd_out[i] = qd_n[i] + h * acc_qd
+            return True
+        acc_q_out[i] = acc_q
+        acc_qd_out[i] = acc_qd
+        c = world_stage_c[w, stage + 1]
+        q_next_out[i] = q_n[i] + (h * c) * v
+        qd_next_out[i] = qd_n[i] + (h * c) * a
+        return False
+
     @wp.kernel(module="unique")
     def integrate_stage(
         stage: int,
@@ -49,32 +105,9 @@ def build(scalar):
         qd_out: wp.array(dtype=vec3),
     ):
         i = wp.tid()
-        w = particle_world[i]
-        count = world_stage_count[w]
-        if stage >= count:
-            return
-        a = acceleration(f_s[i], particle_inv_mass[i], gravity)
-        v = qd_s[i]
-        if world_symplectic[w] != 0:
-            # Semi-implicit Euler: velocity first, then position with the new velocity.
-            v_new = qd_n[i] + h * a
-            qd_out[i] = v_new
-            q_out[i] = q_n[i] + h * v_new
-            return
-        b = world_stage_b[w, stage]
-        acc_q = b * v
-        acc_qd = b * a
-        if stage > 0:
-            acc_q = acc_q + acc_q_out[i]
-            acc_qd = acc_qd + acc_qd_out[i]
-        if stage == count - 1:
-            q_out[i] = q_n[i] + h * acc_q
-            qd_out[i] = qd_n[i] + h * acc_qd
-        else:
-            acc_q_out[i] = acc_q
-            acc_qd_out[i] = acc_qd
-            c = world_stage_c[w, stage + 1]
-            q_next_out[i] = q_n[i] + (h * c) * v
-            qd_next_out[i] = qd_n[i] + (h * c) * a
+        advance_stage(
+            i, stage, h, f_s[i], particle_inv_mass, particle_world, gravity, world_stage_count, world_symplectic,
+            world_stage_c, world_stage_b, q_n, qd_n, qd_s, acc_q_out, acc_qd_out, q_next_out, qd_next_out, q_out, qd_out,
+        )
 
-    return {"acceleration": acceleration, "integrate_stage": integrate_stage}
+    return {"acceleration": acceleration, "advance_stage": advance_stage, "integrate_stage": integrate_stage}

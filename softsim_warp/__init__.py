@@ -10,11 +10,20 @@ Typical use::
     integrator.step(state_0, state_1, scene.sim["dt"])
 """
 
-from .errors import ExplosionError, SceneError, UserError
-from .integrators import ExplicitIntegrator, Integrator, eval_forces, make_integrator
-from .model import Model, ModelBuilder, State, build_model
-from .scene import INTEGRATORS, Scene, builtin_scenes, load_scene, scene_from_dict
-from .simulate import FrameMetrics, RunResult, Simulator
+import os as _os
+
+# In an installed package, kernels/ and scenes/ sit inside softsim_warp/ (pyproject maps them there).
+# Run from a source checkout (python -m softsim_warp in the repository), they sit beside it instead.
+_here = _os.path.dirname(_os.path.abspath(__file__))
+_root = _os.path.dirname(_here)
+if not _os.path.isdir(_os.path.join(_here, "kernels")) and _os.path.isfile(_os.path.join(_root, "kernels", "__init__.py")):
+    __path__.append(_root)
+
+from .errors import ExplosionError  # noqa: E402, SceneError, UserError
+from .integrators import ExplicitIntegrator, Integrator, eval_forces, make_integrator  # noqa: E402
+from .model import Model, ModelBuilder, State, build_model  # noqa: E402
+from .scene import INTEGRATORS, Scene, builtin_scenes, load_scene, scene_from_dict  # noqa: E402
+from .simulate import FrameMetrics, RunResult, Simulator  # noqa: E402
 
 __version__ = "0.1.0"
 

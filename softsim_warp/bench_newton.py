@@ -68,8 +68,8 @@ _MISSING = "Newton is not installed: pip install 'softsim-warp[bench]'"
 
 def _import_newton():
     try:
-        import newton  # noqa: PLC0415
-        import newton.solvers  # noqa: F401, PLC0415
+        import newton
+        import newton.solvers
     except ImportError as exc:
         raise RuntimeError(_MISSING) from exc
     return newton
@@ -134,7 +134,7 @@ class NewtonJelly:
         collide_every_step=True,
     ):
         newton = _import_newton()
-        import warp as wp  # noqa: PLC0415
+        import warp as wp
 
         self.wp = wp
         points = np.asarray(points, dtype=np.float32).reshape(-1, 3)
@@ -254,7 +254,7 @@ def newton_steps_per_second(
         collide_every_step, particles, springs, newton_version, device).
     """
     _import_newton()
-    import warp as wp  # noqa: PLC0415
+    import warp as wp
 
     steps = int(steps)
     if steps < 1:

@@ -11,6 +11,7 @@ from __future__ import annotations
 import numpy as np
 import warp as wp
 
+from . import deterministic
 from .model import NUMPY_SCALARS, Model, State
 
 # Butcher tableaux of the explicit methods, as (c, b): stage s is evaluated at
@@ -26,11 +27,22 @@ TABLEAUX = {
 }
 EXPLICIT = tuple(TABLEAUX)
 ORDER = {"euler": 1, "symplectic": 1, "midpoint": 2, "rk4": 4, "implicit": 1}
+# Position gain of a constant acceleration a over one step, x_{n+1} = ... + beta h^2 a: sum_s b_s c_s for
+# the RK methods (0 for Euler, 1/2 for every second-order method), 1 when x is updated with v_{n+1}.
+CONTACT_BETA = {"euler": 0.0, "midpoint": 0.5, "rk4": 0.5, "symplectic": 1.0, "implicit": 1.0}
 MAX_STAGES = 4
 
 
 def eval_forces(model: Model, q: wp.array, qd: wp.array, f_out: wp.array):
     """Internal forces (springs and dampers) of the state (q, qd) into ``f_out``; gravity is added as an acceleration."""
+    if getattr(model, "deterministic", False):
+        # Atomic-free: per-spring forces, then a fixed-order gather per particle (deterministic.py).
+        deterministic.eval_spring_forces(model, q, qd, f_out)
+    elif model.lattice is not None:
+        from .lattice_model import eval_lattice_forces  # noqa: PLC0415
+
+        eval_lattice_forces(model, q, qd, f_out)
+        return
     f_out.zero_()
     if model.spring_count:
         wp.launch(
@@ -49,9 +61,15 @@ def eval_forces(model: Model, q: wp.array, qd: wp.array, f_out: wp.array):
         )
 
 
-def apply_contacts(model: Model, state_in: State, state_out: State):
-    """Terrain contact on ``state_out`` after a step from ``state_in``; one launch per primitive type present."""
-    if model.plane_count:
+def apply_contacts(model: Model, state_in: State, state_out: State, dt: float, world_contact_beta: wp.array, planes=True):
+    """Terrain contact on ``state_out`` after a step of ``dt`` from ``state_in``; one launch per primitive type present.
+
+    ``world_contact_beta`` is, per world, the integrator's position gain for a force held constant
+    over the step (x_{n+1} gains beta h^2 a): resting contact and friction shift positions by it.
+    ``planes=False`` skips the planes (a fused lattice stage has already applied them).
+    """
+    h = model.scalar(dt)
+    if model.plane_count and planes:
         wp.launch(
             model.kernels.collide_planes,
             dim=model.particle_count,
@@ -68,6 +86,55 @@ def apply_contacts(model: Model, state_in: State, state_out: State):
                 model.plane_friction,
                 model.contact_epsilon,
                 model.contact_velocity_epsilon,
+                h,
+                world_contact_beta,
+                state_in.particle_q,
+                state_in.particle_qd,
+            ],
+            outputs=[state_out.particle_q, state_out.particle_qd],
+            device=model.device,
+        )
+    if model.bowl_count:
+        wp.launch(
+            model.kernels.collide_bowls,
+            dim=model.particle_count,
+            inputs=[
+                model.particle_inv_mass,
+                model.particle_world,
+                model.bowl_count,
+                model.bowl_world,
+                model.bowl_center,
+                model.bowl_radius,
+                model.bowl_cut_height,
+                model.bowl_restitution,
+                model.bowl_friction,
+                model.contact_epsilon,
+                model.contact_velocity_epsilon,
+                h,
+                world_contact_beta,
+                state_in.particle_q,
+                state_in.particle_qd,
+            ],
+            outputs=[state_out.particle_q, state_out.particle_qd],
+            device=model.device,
+        )
+    if model.sphere_count:
+        wp.launch(
+            model.kernels.collide_spheres,
+            dim=model.particle_count,
+            inputs=[
+                model.particle_inv_mass,
+                model.particle_world,
+                model.sphere_count,
+                model.sphere_world,
+                model.sphere_center,
+                model.sphere_radius,
+                model.sphere_restitution,
+                model.sphere_friction,
+                model.contact_epsilon,
+                model.contact_velocity_epsilon,
+                h,
+                world_contact_beta,
                 state_in.particle_q,
                 state_in.particle_qd,
             ],
@@ -75,7 +142,7 @@ def apply_contacts(model: Model, state_in: State, state_out: State):
             device=model.device,
         )
     for hook in getattr(model, "contact_hooks", ()):
-        hook(model, state_in, state_out)
+        hook(model, state_in, state_out, h, world_contact_beta)
 
 
 class Integrator:
@@ -103,7 +170,7 @@ class ExplicitIntegrator(Integrator):
             a side-by-side comparison advance in the same launches).
     """
 
-    def __init__(self, model: Model, method="symplectic"):
+    def __init__(self, model: Model, method="symplectic", fused=None, fuse_contact=None):
         super().__init__(model)
         methods = [method] * model.world_count if isinstance(method, str) else list(method)
         if len(methods) != model.world_count:
@@ -130,16 +197,35 @@ class ExplicitIntegrator(Integrator):
         self.world_symplectic = wp.array(symplectic, dtype=wp.int32, device=device)
         self.world_stage_c = wp.array2d(c, dtype=model.scalar, device=device)
         self.world_stage_b = wp.array2d(b, dtype=model.scalar, device=device)
+        self.world_contact_beta = wp.array(
+            np.array([CONTACT_BETA[name] for name in methods], dtype=np_scalar), dtype=model.scalar, device=device
+        )
+        # Lattice fast path: one fused kernel per stage (forces + stage update, plane contact on the
+        # last stage) where it pays; see softsim_warp/fastpath.py and docs/PERFORMANCE.md.
+        from .fastpath import configure_fused  # noqa: PLC0415
+
+        configure_fused(self, fused, fuse_contact)
         # Stage buffers, allocated once: forces, the stage state and the RK accumulators.
         n = model.particle_count
-        self.f = wp.zeros(n, dtype=model.vec3, device=device)
+        # A fused gather stage keeps forces in registers; the row kernel and the plain path need f.
+        gather_fused = self.fused and model.lattice.kernel == "gather"
+        self.f = wp.zeros(0 if gather_fused else n, dtype=model.vec3, device=device)
         multi = self.stage_count > 1
         self.q_s = wp.zeros(n if multi else 0, dtype=model.vec3, device=device)
         self.qd_s = wp.zeros(n if multi else 0, dtype=model.vec3, device=device)
         self.acc_q = wp.zeros(n if multi else 0, dtype=model.vec3, device=device)
         self.acc_qd = wp.zeros(n if multi else 0, dtype=model.vec3, device=device)
+        if self.fused:
+            from .fastpath import stage_buffers  # noqa: PLC0415
+
+            stage_buffers(self)
 
     def step(self, state_in: State, state_out: State, dt: float):
+        if self.fused:
+            from .fastpath import step_fused  # noqa: PLC0415
+
+            step_fused(self, state_in, state_out, dt)
+            return
         model = self.model
         h = model.scalar(dt)
         q, qd = state_in.particle_q, state_in.particle_qd
@@ -168,7 +254,7 @@ class ExplicitIntegrator(Integrator):
                 device=model.device,
             )
             q, qd = self.q_s, self.qd_s
-        apply_contacts(model, state_in, state_out)
+        apply_contacts(model, state_in, state_out, dt, self.world_contact_beta)
 
 
 def make_integrator(name, model: Model, options: dict | None = None) -> Integrator:

@@ -58,6 +58,8 @@ class ModelBuilder:
         self._pairs, self._rest, self._ks, self._kd, self._type = [], [], [], [], []
         self.jellies: list[JellyInfo] = []
         self.planes: list[dict] = []
+        self.bowls: list[dict] = []
+        self.spheres: list[dict] = []
         self.world_count = 1
         self._particle_count = 0
         self._spring_count = 0
@@ -184,10 +186,46 @@ class ModelBuilder:
             }
         )
 
+    def add_bowl(self, center, radius, cut_height=None, restitution=0.5, friction=0.3, world=0):
+        """Add a bowl: the inside of a sphere below ``cut_height`` (``None``: the whole sphere).
+
+        Particles inside the sphere stay inside where y < cut_height; at or above the cut, and
+        for particles that start a step outside the sphere, the bowl does not collide.
+        """
+        self.bowls.append(
+            {
+                "center": np.asarray(center, dtype=np.float64),
+                "radius": float(radius),
+                "cut_height": math.inf if cut_height is None else float(cut_height),
+                "restitution": float(restitution),
+                "friction": float(friction),
+                "world": int(world),
+            }
+        )
+
+    def add_sphere(self, center, radius, restitution=0.5, friction=0.3, world=0):
+        """Add a solid sphere: particles stay outside it."""
+        self.spheres.append(
+            {
+                "center": np.asarray(center, dtype=np.float64),
+                "radius": float(radius),
+                "restitution": float(restitution),
+                "friction": float(friction),
+                "world": int(world),
+            }
+        )
+
     # -- finalize -------------------------------------------------------------------------------
 
-    def finalize(self, device=None, precision="float32") -> Model:
-        """Copy everything to ``device`` as a :class:`Model` in ``precision`` ("float32" or "float64")."""
+    def finalize(self, device=None, precision="float32", force_path="auto") -> Model:
+        """Copy everything to ``device`` as a :class:`Model` in ``precision`` ("float32" or "float64").
+
+        ``force_path``: "auto" takes the lattice path (no spring arrays, see ``lattice_model``)
+        when every spring is a standard lattice spring, "lattice" requires it, "springs" keeps
+        the general spring list.
+        """
+        if force_path not in ("auto", "lattice", "springs"):
+            raise ValueError(f"force_path must be auto, lattice or springs (got {force_path!r})")
         if precision not in SCALARS:
             raise ValueError(f"precision must be one of {', '.join(SCALARS)} (got {precision!r})")
         device = wp.get_device(device)
@@ -229,10 +267,21 @@ class ModelBuilder:
         m.spring_rest_host = np.concatenate(self._rest) if self._rest else np.zeros(0)
         m.spring_stiffness_host = np.concatenate(self._ks) if self._ks else np.zeros(0)
         m.spring_damping_host = np.concatenate(self._kd) if self._kd else np.zeros(0)
-        m.spring_indices = arr(pairs, wp.vec2i, np.int32)
-        m.spring_rest_length = arr(m.spring_rest_host, scalar, np_scalar)
-        m.spring_stiffness = arr(m.spring_stiffness_host, scalar, np_scalar)
-        m.spring_damping = arr(m.spring_damping_host, scalar, np_scalar)
+        # --- lattice fast path (perf): without it the spring arrays go to the device now; with it
+        # they are made on first use only (Model.__getattr__), e.g. by an implicit integrator.
+        m.lattice = None
+        m.lattice_reason = "force_path=springs"
+        if force_path != "springs":
+            from .lattice_model import LatticeData, detect_lattice  # noqa: PLC0415
+
+            layout, m.lattice_reason = detect_lattice(self)
+            if layout is None and force_path == "lattice":
+                raise ValueError(f"the lattice path does not apply: {m.lattice_reason}")
+            if layout is not None:
+                m.lattice = LatticeData(layout, device, scalar, np_scalar, m.particle_count)
+        if m.lattice is None:
+            m._make_spring_arrays()
+        # --- end lattice fast path
 
         m.gravity = vec3(*[scalar(g) for g in self.gravity])
         m.gravity_host = self.gravity.copy()
@@ -253,6 +302,28 @@ class ModelBuilder:
         m.plane_restitution = arr(col("restitution", (n,)), scalar, np_scalar)
         m.plane_friction = arr(col("friction", (n,)), scalar, np_scalar)
         m.plane_world = arr(col("world", (n,)), wp.int32, np.int32)
+
+        # Bowls and spheres; float32 cannot hold an infinite cut, so "no cut" is stored as 1e30.
+        m.bowls = [dict(b) for b in self.bowls]
+        m.bowl_count = len(self.bowls)
+        m.spheres = [dict(s) for s in self.spheres]
+        m.sphere_count = len(self.spheres)
+
+        def cols(items, name, shape):
+            return np.array([it[name] for it in items], dtype=np.float64).reshape(shape)
+
+        nb, ns = m.bowl_count, m.sphere_count
+        m.bowl_center = arr(cols(self.bowls, "center", (nb, 3)), vec3, np_scalar)
+        m.bowl_radius = arr(cols(self.bowls, "radius", (nb,)), scalar, np_scalar)
+        m.bowl_cut_height = arr(np.minimum(cols(self.bowls, "cut_height", (nb,)), 1.0e30), scalar, np_scalar)
+        m.bowl_restitution = arr(cols(self.bowls, "restitution", (nb,)), scalar, np_scalar)
+        m.bowl_friction = arr(cols(self.bowls, "friction", (nb,)), scalar, np_scalar)
+        m.bowl_world = arr(cols(self.bowls, "world", (nb,)), wp.int32, np.int32)
+        m.sphere_center = arr(cols(self.spheres, "center", (ns, 3)), vec3, np_scalar)
+        m.sphere_radius = arr(cols(self.spheres, "radius", (ns,)), scalar, np_scalar)
+        m.sphere_restitution = arr(cols(self.spheres, "restitution", (ns,)), scalar, np_scalar)
+        m.sphere_friction = arr(cols(self.spheres, "friction", (ns,)), scalar, np_scalar)
+        m.sphere_world = arr(cols(self.spheres, "world", (ns,)), wp.int32, np.int32)
         return m
 
 
@@ -270,13 +341,78 @@ class Model:
         spring_rest_length: rest length [m], shape [spring_count], scalar.
         spring_stiffness: ks [N/m], shape [spring_count], scalar.
         spring_damping: kd [N s/m], shape [spring_count], scalar.
+            On the lattice path the four spring arrays are made on first access only.
+        lattice: :class:`~softsim_warp.lattice_model.LatticeData` (per-jelly tables of the
+            lattice force path) or None when the general spring list is used.
+        lattice_reason: host string, why the lattice path does or does not apply.
         gravity: acceleration [m/s^2], vec3 value.
         plane_*: per plane point [m], unit normal, hole centre [m] and radius [m] (0 = none),
             restitution, friction coefficient and world, shape [plane_count].
+        bowl_center: sphere centre of each bowl [m], shape [bowl_count], vec3.
+        bowl_radius: sphere radius [m], shape [bowl_count], scalar.
+        bowl_cut_height: the bowl exists where y < cut height [m] (1e30: whole sphere), shape [bowl_count], scalar.
+        bowl_restitution, bowl_friction: coefficients [1], shape [bowl_count], scalar.
+        bowl_world: world of each bowl, shape [bowl_count], int32.
+        sphere_center: centre of each solid sphere [m], shape [sphere_count], vec3.
+        sphere_radius: radius [m], shape [sphere_count], scalar.
+        sphere_restitution, sphere_friction: coefficients [1], shape [sphere_count], scalar.
+        sphere_world: world of each sphere, shape [sphere_count], int32.
+        bowls, spheres: host lists of dicts with the same values (float64).
         contact_epsilon: distance within which a particle touches a surface [m].
         contact_velocity_epsilon: normal speed below which a touching particle rests [m/s].
         jellies: host list of :class:`JellyInfo`.
+        deterministic: forces without atomics when True; the CSR arrays it needs are documented
+            in ``softsim_warp.deterministic.attach``.
     """
+
+    @property
+    def terrain_anchor_points(self) -> list:
+        """Host points spanning the bowls and spheres [m] (for the explosion speed bound)."""
+        return terrain_anchors(self.bowls, self.spheres)
+
+    def terrain_meshes(self, roots=None) -> list:
+        """Static meshes of the bowls (their cap below the cut) and spheres, for the USD stage.
+
+        Args:
+            roots: optional ``{world: prim path}`` under which each world's terrain goes
+                (default ``/World``).
+
+        Returns:
+            A list of ``(prim_path, points (V, 3), face counts (F,), face indices)``.
+        """
+        from .terrain_mesh import bowl_mesh, sphere_mesh  # noqa: PLC0415 - host geometry, only for output
+
+        roots = roots or {}
+        out = []
+        for kind, items in (("Bowl", self.bowls), ("Sphere", self.spheres)):
+            index = {}  # numbered within each world: every copy of a comparison has Bowl_0
+            for it in items:
+                i = index[it["world"]] = index.get(it["world"], -1) + 1
+                if kind == "Bowl":
+                    mesh = bowl_mesh(it["center"], it["radius"], it["cut_height"])
+                else:
+                    mesh = sphere_mesh(it["center"], it["radius"])
+                out.append((f"{roots.get(it['world'], '/World')}/{kind}_{i}", *mesh))
+        return out
+
+    deterministic = False
+
+    _SPRING_ARRAYS = ("spring_indices", "spring_rest_length", "spring_stiffness", "spring_damping")
+
+    def _make_spring_arrays(self):
+        """Copy the spring list to the device (at finalize, or lazily on the lattice path)."""
+        np_scalar = NUMPY_SCALARS[self.precision]
+        self.spring_indices = wp.array(np.asarray(self.spring_indices_host, np.int32), dtype=wp.vec2i, device=self.device)
+        for name, host in (("spring_rest_length", self.spring_rest_host), ("spring_stiffness", self.spring_stiffness_host),
+                           ("spring_damping", self.spring_damping_host)):
+            setattr(self, name, wp.array(np.asarray(host, np_scalar), dtype=self.scalar, device=self.device))
+
+    def __getattr__(self, name):
+        # Only called for missing attributes: the spring arrays a lattice model has not made yet.
+        if name in Model._SPRING_ARRAYS and "spring_indices_host" in self.__dict__:
+            self._make_spring_arrays()
+            return self.__dict__[name]
+        raise AttributeError(name)
 
     def state(self) -> State:
         """A new state holding the model's initial positions and velocities."""
@@ -284,6 +420,19 @@ class Model:
         s.particle_q = wp.clone(self.particle_q)
         s.particle_qd = wp.clone(self.particle_qd)
         return s
+
+
+def terrain_anchors(bowls, spheres) -> list:
+    """Points spanning bowls (lowest point and rim) and spheres (bounding-box corners) [m]."""
+    pts = []
+    for b in bowls:
+        c, r = b["center"], b["radius"]
+        bottom = c - np.array([0.0, r, 0.0])
+        top = c + np.array([0.0, min(r, max(b["cut_height"] - c[1], -r)), 0.0])
+        pts += [bottom, top]
+    for s in spheres:
+        pts += [s["center"] - s["radius"], s["center"] + s["radius"]]
+    return pts
 
 
 class State:
@@ -299,11 +448,20 @@ class State:
         wp.copy(self.particle_qd, other.particle_qd)
 
 
-def build_model(scene, device=None, precision=None, worlds=None) -> Model:
-    """Build a :class:`Model` from a validated :class:`~softsim_warp.scene.Scene`."""
+def build_model(scene, device=None, precision=None, worlds=None, deterministic=False, force_path="auto") -> Model:
+    """Build a :class:`Model` from a validated :class:`~softsim_warp.scene.Scene`.
+
+    ``deterministic`` selects atomic-free force evaluation (``softsim_warp.deterministic.attach``);
+    ``force_path``: see ``ModelBuilder.finalize``.
+    """
     builder = ModelBuilder(scene.sim["gravity"])
     populate(builder, scene.data)
-    return builder.finalize(device, precision or scene.sim["precision"])
+    model = builder.finalize(device, precision or scene.sim["precision"], force_path=force_path)
+    if deterministic:
+        from .deterministic import attach  # noqa: PLC0415
+
+        attach(model)
+    return model
 
 
 def populate(builder: ModelBuilder, data: dict, world=0):
@@ -338,3 +496,7 @@ def populate(builder: ModelBuilder, data: dict, world=0):
             size=p["size"],
             world=world,
         )
+    for b in data.get("bowl", []):
+        builder.add_bowl(b["center"], b["radius"], b.get("cut_height"), b["restitution"], b["friction"], world=world)
+    for s in data.get("sphere", []):
+        builder.add_sphere(s["center"], s["radius"], s["restitution"], s["friction"], world=world)

@@ -3,18 +3,23 @@
 The renderer is a small software pipeline on top of matplotlib's Agg backend (no mplot3d, no GPU):
 
 * every ``UsdGeom.Mesh`` is put in world space with ``UsdGeom.XformCache``; a mesh whose ``points``
-  have more than one time sample is *jelly* (deforming), every other mesh is static *terrain*.
-  ``UsdGeom.Points`` are drawn (as small squares) only when there is no deforming mesh at all;
-  ``BasisCurves`` and other prims are ignored;
+  have more than one time sample is *jelly* (deforming; so is a ``Jelly_*/Surface`` with one sample,
+  a run that has written only frame 0), every other mesh is static *terrain*. ``UsdGeom.Points``
+  are drawn (as small squares) only when there is no deforming mesh at all; ``BasisCurves`` and
+  other prims are ignored; invisible, guide and proxy prims are skipped;
 * a fixed perspective camera looks at the bounding box of the jelly over *all* frames from an
   elevated 3/4 view, so a PNG of any frame and every frame of a GIF share one camera;
 * terrain is clipped to a horizontal neighbourhood of that box (a 60 m plane does not dominate the
-  view), subdivided near the jelly so the painter's algorithm orders ground and jelly correctly,
+  view), subdivided near the jelly (so the painter's algorithm orders ground and jelly correctly),
   shaded once (two-sided Lambert, ``primvars:displayColor`` or grey) and projected once;
-* each frame, the jelly faces are fan-triangulated, back-face culled (closed surfaces), Lambert
-  shaded in orange, projected, depth-sorted together with the terrain triangles (far to near, by
-  mean camera depth; terrain gets a small depth bias of half a jelly edge, so a jelly resting on or
-  slightly sunk into the ground is drawn on top of it) and drawn as one ``PolyCollection``.
+* each frame, the jelly faces are fan-triangulated, back-face culled (closed surfaces, winding
+  checked by signed volume), Lambert shaded in orange, projected, depth-sorted together with the
+  terrain triangles (far to near, by mean camera depth; terrain gets a depth bias of half a jelly
+  edge, so a jelly resting on or slightly sunk into the ground is drawn on top of it) and drawn as
+  one ``PolyCollection``; the terrain straight below each jelly is darkened (a soft contact shadow
+  that fades with height, only on the topmost terrain), which shows whether a jelly rests or floats;
+* GIF frames are blitted: the terrain-only picture is drawn once and restored, and only the jelly,
+  its shadow and the terrain triangles that may cover them are painted again (same picture).
 
 Public API: :func:`render_png` and :func:`render_gif`. Bad input (missing or unreadable file,
 frame or time out of range, bad fps/size) raises ``ValueError`` with a one-line message naming
@@ -31,7 +36,7 @@ import sys
 
 import numpy as np
 
-__all__ = ["render_png", "render_gif"]
+__all__ = ["render_gif", "render_png"]
 
 JELLY_RGB = np.array([1.0, 0.45, 0.08])
 TERRAIN_RGB = np.array([0.70, 0.70, 0.70])
@@ -44,7 +49,8 @@ ELEVATION_DEG, AZIMUTH_DEG, HALF_FOV_DEG = 27.0, 35.0, 16.0
 MAX_GIF_FPS = 30.0  # default cap on the GIF frame rate
 MIN_GIF_FRAME_MS = 20  # browsers play GIF frames shorter than 20 ms at 100 ms
 TERRAIN_TRIANGLE_BUDGET = 5000
-SHADOW = 0.45  # darkening of the terrain right under a jelly at rest
+SHADOW = 0.35  # darkening of the terrain right under a jelly at rest
+EDGE_WIDTH = 0.5  # points; triangle outlines in the fill colour
 
 
 # --------------------------------------------------------------------------------------------------
@@ -63,7 +69,7 @@ def render_png(usd_path, png_path, frame=None, time=None, size=(800, 600)):
         time: alternatively, the time in seconds (``frame = time * timeCodesPerSecond``).
         size: image size ``(width, height)`` in pixels.
 
-    Default (neither ``frame`` nor ``time``): the last frame. Returns the frame rendered.
+    Default (neither ``frame`` nor ``time``): the last frame. Returns the frame (time code) rendered.
     """
     width, height = _check_size(usd_path, size)
     _check_out_dir(png_path)
@@ -79,9 +85,7 @@ def render_png(usd_path, png_path, frame=None, time=None, size=(800, 600)):
     elif frame is not None:
         f = _as_number(scene.path, "frame", frame)
         if not (scene.start - 1e-9 <= f <= scene.end + 1e-9):
-            raise ValueError(
-                f"{scene.path}: frame {frame} out of range, allowed {scene.start:g}..{scene.end:g}"
-            )
+            raise ValueError(f"{scene.path}: frame {frame} out of range, allowed {scene.start:g}..{scene.end:g}")
         frame = min(max(f, scene.start), scene.end)
     else:
         frame = scene.end
@@ -118,11 +122,15 @@ def render_gif(usd_path, gif_path, fps=None, size=(640, 480), max_frames=None):
         if not fps > 0:
             raise ValueError(f"{scene.path}: fps must be > 0 (got {fps:g})")
     if max_frames is not None:
-        if isinstance(max_frames, bool) or int(max_frames) != max_frames or max_frames < 1:
-            raise ValueError(f"{scene.path}: max_frames must be an integer >= 1 (got {max_frames})")
+        try:
+            ok = not isinstance(max_frames, bool) and int(max_frames) == max_frames and max_frames >= 1
+        except (TypeError, ValueError):
+            ok = False
+        if not ok:
+            raise ValueError(f"{scene.path}: max_frames must be an integer >= 1 (got {max_frames!r})")
         max_frames = int(max_frames)
     all_frames = scene.frame_codes()
-    step = max(1, int(round(scene.fps / fps)), math.ceil(scene.fps * MIN_GIF_FRAME_MS / 1000.0 - 1e-9))
+    step = max(1, round(scene.fps / fps), math.ceil(scene.fps * MIN_GIF_FRAME_MS / 1000.0 - 1e-9))
     if max_frames is not None and math.ceil(len(all_frames) / step) > max_frames:
         step = math.ceil(len(all_frames) / max_frames)
     frames = all_frames[::step]
@@ -132,13 +140,10 @@ def render_gif(usd_path, gif_path, fps=None, size=(640, 480), max_frames=None):
     renderer = _Renderer(scene, width, height)
     # One palette for the whole GIF, from the first, middle and last frames (no flicker, fast mapping).
     samples = [renderer.render_rgb(frames[i]) for i in sorted({0, len(frames) // 2, len(frames) - 1})]
-    palette = Image.fromarray(np.concatenate(samples, axis=0)).quantize(
-        colors=255, method=Image.Quantize.MEDIANCUT, dither=Image.Dither.NONE
-    )
-    images = [
-        Image.fromarray(renderer.render_rgb(f)).quantize(palette=palette, dither=Image.Dither.NONE)
-        for f in frames
-    ]
+    mediancut = getattr(Image, "Quantize", Image).MEDIANCUT  # enums since Pillow 9.1
+    no_dither = getattr(Image, "Dither", Image).NONE
+    palette = Image.fromarray(np.concatenate(samples, axis=0)).quantize(colors=255, method=mediancut, dither=no_dither)
+    images = [Image.fromarray(renderer.render_rgb(f)).quantize(palette=palette, dither=no_dither) for f in frames]
     # Frame delays in whole centiseconds (GIF's unit) whose running sum tracks real time.
     ends = np.round(np.arange(1, len(frames) + 1) * step / scene.fps * 100.0).astype(int)
     delays_ms = (np.diff(ends, prepend=0) * 10).tolist()
@@ -254,14 +259,15 @@ class _Scene:
     """Everything the renderer needs from the stage, in world space."""
 
     def __init__(self, usd_path):
-        from pxr import Usd, UsdGeom
+        from pxr import Tf, Usd, UsdGeom
 
         self.path = os.fspath(usd_path)
         if not os.path.isfile(self.path):
-            raise ValueError(f"{self.path}: USD file not found")
+            what = "is a folder, not a USD file" if os.path.isdir(self.path) else "USD file not found"
+            raise ValueError(f"{self.path}: {what}")
         try:
             stage = Usd.Stage.Open(self.path)
-        except Exception as exc:  # pxr.Tf.ErrorException and friends
+        except (Tf.ErrorException, RuntimeError) as exc:
             raise ValueError(f"{self.path}: cannot read USD file ({_one_line(exc)})") from None
         if stage is None:
             raise ValueError(f"{self.path}: cannot read USD file")
@@ -284,7 +290,10 @@ class _Scene:
                 continue
             matrix = np.array(xcache.GetLocalToWorldTransform(prim), dtype=np.float64)
             attr = UsdGeom.PointBased(prim).GetPointsAttr()
-            deforming = attr.GetNumTimeSamples() > 1
+            samples = attr.GetNumTimeSamples()
+            # Deforming: more than one time sample; also a softsim jelly (``Jelly_*/Surface`` or
+            # ``Particles``) of a run that has written only its first frame so far.
+            deforming = samples > 1 or (samples == 1 and prim.GetParent().GetName().startswith("Jelly"))
             if is_points:
                 if deforming:
                     clouds.append((prim, attr, matrix))
@@ -339,6 +348,7 @@ class _Scene:
                     if len(p) <= body.used[-1]:
                         continue
                     p = p[body.used]
+                p = p[np.all(np.isfinite(p), axis=1)]  # an exploded run may hold NaN or inf
                 if len(p):
                     lo, hi = np.minimum(lo, p.min(axis=0)), np.maximum(hi, p.max(axis=0))
             self._setup_body(body, edges)
@@ -352,7 +362,9 @@ class _Scene:
         self.lo, self.hi = lo, hi
         extent = max(float(np.max(hi - lo)), 1e-6)
         self.extent = extent
-        self.edge = float(np.median(np.concatenate(edges))) if edges else extent / 10.0
+        edges = np.concatenate(edges) if edges else np.zeros(0)
+        edges = edges[np.isfinite(edges) & (edges > 0)]
+        self.edge = float(np.median(edges)) if len(edges) else extent / 10.0
         for body in jelly:
             if body.tri is None and body.radius <= 0.0:
                 body.radius = 0.25 * self.edge
@@ -390,9 +402,13 @@ class _Scene:
 
 
 def _one_line(exc):
+    """The gist of a (multi-line, pxr.Tf) exception message, on one line."""
+    import re
+
     text = " ".join(str(exc).split())
-    if " -- " in text:
-        text = text.rsplit(" -- ", 1)[1]
+    quoted = re.findall(r" in file \S+ : '(.*?)'(?= Error in |$)", text)
+    if quoted:
+        text = quoted[0]
     return text[:300] or type(exc).__name__
 
 
@@ -503,15 +519,20 @@ def _crop(tris, colors, axes, lo, hi):
     return np.concatenate(keep_t), np.concatenate(keep_c)
 
 
+def _drop_degenerate(tris, colors):
+    """Drop zero-area triangles (clipping leaves them where an edge runs along the box); they
+    have no normal and would be drawn as dark hairlines."""
+    area2 = np.linalg.norm(np.cross(tris[:, 1] - tris[:, 0], tris[:, 2] - tris[:, 0]), axis=1)
+    longest = np.linalg.norm(tris - np.roll(tris, 1, axis=1), axis=2).max(axis=1)
+    keep = area2 > 1e-6 * longest**2
+    return tris[keep], colors[keep]
+
+
 def _subdivide(tris, colors, limit_fn, budget):
     """Split triangles (4-way, midpoints) while their longest edge exceeds ``limit_fn(tris)``."""
     for _ in range(12):
         a, b, c = tris[:, 0], tris[:, 1], tris[:, 2]
-        longest = np.sqrt(
-            np.maximum.reduce(
-                [((b - a) ** 2).sum(-1), ((c - b) ** 2).sum(-1), ((a - c) ** 2).sum(-1)]
-            )
-        )
+        longest = np.sqrt(np.maximum.reduce([((b - a) ** 2).sum(-1), ((c - b) ** 2).sum(-1), ((a - c) ** 2).sum(-1)]))
         ratio = longest / limit_fn(tris)
         need = ratio > 1.0
         room = (budget - len(tris)) // 3
@@ -523,12 +544,32 @@ def _subdivide(tris, colors, limit_fn, budget):
             need[order] = True
         a, b, c = a[need], b[need], c[need]
         ab, bc, ca = 0.5 * (a + b), 0.5 * (b + c), 0.5 * (c + a)
-        children = np.concatenate(
-            [np.stack(t, axis=1) for t in ((a, ab, ca), (ab, b, bc), (ca, bc, c), (ab, bc, ca))]
-        )
+        children = np.concatenate([np.stack(t, axis=1) for t in ((a, ab, ca), (ab, b, bc), (ca, bc, c), (ab, bc, ca))])
         tris = np.concatenate([tris[~need], children])
         colors = np.concatenate([colors[~need], np.tile(colors[need], (4, 1))])
     return tris, colors
+
+
+def _topmost(tris, centers, up, tol, cells=64):
+    """Mask of triangles on top: centre no lower than ``tol`` below the highest terrain sample in its
+    cell of a horizontal grid (a plane under a bowl is not on top; the bowl is). Shadows fall on these."""
+    hz = [a for a in range(3) if a != up]
+    mids = 0.5 * (tris + np.roll(tris, 1, axis=1))
+    samples = np.concatenate([tris.reshape(-1, 3), mids.reshape(-1, 3), centers])
+    lo = samples[:, hz].min(axis=0)
+    cell = max(float(np.max(samples[:, hz].max(axis=0) - lo)) / cells, 1e-12)
+    shape = tuple(int(n) for n in np.floor((samples[:, hz].max(axis=0) - lo) / cell) + 1)
+
+    def cell_of(x):
+        ij = np.floor((x[:, hz] - lo) / cell).astype(np.int64)
+        return np.clip(ij[:, 0], 0, shape[0] - 1), np.clip(ij[:, 1], 0, shape[1] - 1)
+
+    top = np.full(shape, -np.inf)
+    np.maximum.at(top, cell_of(samples), samples[:, up])
+    # A sloped triangle's centre may lie below higher samples of its own surface in the same cell.
+    normals = np.cross(tris[:, 1] - tris[:, 0], tris[:, 2] - tris[:, 0])
+    slope = np.linalg.norm(normals[:, hz], axis=1) / np.maximum(np.abs(normals[:, up]), 1e-12)
+    return centers[:, up] >= top[cell_of(centers)] - tol - 2.0 * cell * np.minimum(slope, 10.0)
 
 
 def _shade(normals, base_rgb, light):
@@ -586,12 +627,19 @@ class _Renderer:
         ax.set_xlim(*self.xlim)
         ax.set_ylim(*self.ylim)
         ax.set_aspect("equal", adjustable="datalim")
-        self.coll = PolyCollection(np.zeros((0, 3, 2)), closed=True, linewidths=0.5, antialiased=True)
+        self.coll = PolyCollection(np.zeros((0, 3, 2)), closed=True, linewidths=EDGE_WIDTH, antialiased=True)
         ax.add_collection(self.coll, autolim=False)
         fontsize = max(7.0, min(14.0, height / 48.0))
         self.label = ax.text(
-            0.015, 0.02, "", transform=ax.transAxes, fontsize=fontsize, color=TEXT_RGB,
-            family="monospace", ha="left", va="bottom",
+            0.015,
+            0.02,
+            "",
+            transform=ax.transAxes,
+            fontsize=fontsize,
+            color=TEXT_RGB,
+            family="monospace",
+            ha="left",
+            va="bottom",
         )
         self.fig, self.ax = fig, ax
         self.background = None
@@ -604,12 +652,16 @@ class _Renderer:
         self.t_rgb = np.zeros((0, 3))
         self.t_min = self.t_max = np.zeros((0, 2))
         self.t_center = np.zeros((0, 3))
+        self.t_points = np.zeros((0, 7, 3))
+        self.t_size = np.zeros(0)
+        self.t_receiver = np.zeros(0, dtype=bool)
         if len(tris) == 0:
             return
         axes = [a for a in range(3) if a != scene.up]
         if scene.has_jelly_box:
             margin = 0.75 * scene.extent
             tris, rgb = _crop(tris, rgb, axes, scene.lo[axes] - margin, scene.hi[axes] + margin)
+        tris, rgb = _drop_degenerate(tris, rgb)
         if len(tris) == 0:
             return
         # Drop what lies wholly behind the near plane or off screen, before subdividing.
@@ -619,8 +671,10 @@ class _Renderer:
         in_front = depth_min > cam.near
         xy = cam.project(np.where(cam_pts[..., 2:3] > cam.near, cam_pts, cam.near))
         off = in_front & (
-            (xy[..., 0].max(axis=1) < self.xlim[0]) | (xy[..., 0].min(axis=1) > self.xlim[1])
-            | (xy[..., 1].max(axis=1) < self.ylim[0]) | (xy[..., 1].min(axis=1) > self.ylim[1])
+            (xy[..., 0].max(axis=1) < self.xlim[0])
+            | (xy[..., 0].min(axis=1) > self.xlim[1])
+            | (xy[..., 1].max(axis=1) < self.ylim[0])
+            | (xy[..., 1].min(axis=1) > self.ylim[1])
         )
         tris, rgb = tris[keep & ~off], rgb[keep & ~off]
         if len(tris) == 0:
@@ -647,6 +701,10 @@ class _Renderer:
         self.t_depth = cam_pts[..., 2].mean(axis=1) + 0.5 * scene.edge
         self.t_min, self.t_max = self.t_xy.min(axis=1), self.t_xy.max(axis=1)
         self.t_center = tris.mean(axis=1)
+        self.t_size = np.linalg.norm(tris - np.roll(tris, 1, axis=1), axis=2).max(axis=1)
+        mids = 0.5 * (tris + np.roll(tris, 1, axis=1))
+        self.t_points = np.concatenate([tris, mids, self.t_center[:, None]], axis=1)  # 7 samples
+        self.t_receiver = _topmost(tris, self.t_center, scene.up, tol=max(0.5 * scene.edge, 0.01 * scene.extent))
 
     def _bodies(self, frame):
         """Per body: ``(xy (n, 3, 2), depth (n,), rgb (n, 3), shadow_idx, shadow_factor)``."""
@@ -655,20 +713,22 @@ class _Renderer:
         for body in self.scene.jelly:
             p = body.points(frame)
             if body.tri is None:  # point cloud: a camera-facing square (2 triangles) per point
-                cp = cam.to_camera(p)
+                cp = cam.to_camera(p[np.all(np.isfinite(p), axis=1)])
                 cp = cp[cp[:, 2] > cam.near]
                 r = body.radius
                 quad = np.array([[-r, -r], [r, -r], [r, r], [-r, r]])
                 xy = (cp[:, None, :2] + quad[None]) / cp[:, None, 2:3]
                 xy = np.concatenate([xy[:, [0, 1, 2]], xy[:, [0, 2, 3]]])
                 depth = np.concatenate([cp[:, 2], cp[:, 2]])
-                shade = 1.0 - 0.35 * (depth - depth.min(initial=0.0)) / max(np.ptp(depth) if len(depth) else 0.0, 1e-9)
-                rgb = POINTS_RGB * shade[:, None]
+                rgb = np.tile(POINTS_RGB, (len(depth), 1))
+                if len(depth):  # farther points a little darker
+                    rgb *= 1.0 - 0.35 * ((depth - depth.min()) / max(float(np.ptp(depth)), 1e-12))[:, None]
                 out.append((xy, depth, rgb) + self._shadow(p))
                 continue
             if len(body.tri) == 0 or len(p) <= body.used[-1]:
                 continue
             v = p[body.tri]
+            v = v[np.all(np.isfinite(v), axis=(1, 2))]
             normals = np.cross(v[:, 1] - v[:, 0], v[:, 2] - v[:, 0])
             if body.flip:
                 normals = -normals
@@ -697,14 +757,17 @@ class _Renderer:
         lo, hi = p[:, hz].min(axis=0), p[:, hz].max(axis=0)
         bottom = p[:, up].min()
         size = max(float(np.max(hi - lo)), 1e-9)
-        centers = self.t_center
-        gap = bottom - centers[:, up]
-        below = gap > -0.5 * self.scene.edge
+        gap = bottom - self.t_center[:, up]
+        below = self.t_receiver & (gap > -0.5 * self.scene.edge)
         gap = np.maximum(gap, 0.0)
-        width = 0.15 * size + 0.3 * gap
-        dist = np.linalg.norm(np.maximum(np.maximum(lo - centers[:, hz], centers[:, hz] - hi), 0.0), axis=1)
-        strength = SHADOW * np.exp(-gap / (1.5 * size)) * np.clip(1.0 - dist / width, 0.0, 1.0)
-        idx = np.nonzero(below & (strength > 0.01))[0]
+        width = (0.4 * size + 0.5 * gap)[:, None]
+        pts = self.t_points[..., hz]  # (T, 7, 2): coverage averaged over corners, mid-edges, centre
+        dist = np.linalg.norm(np.maximum(np.maximum(lo - pts, pts - hi), 0.0), axis=2)
+        x = np.clip(dist / width, 0.0, 1.0)
+        cover = (1.0 - x * x * (3.0 - 2.0 * x)).mean(axis=1)  # smoothstep fall-off
+        strength = SHADOW * np.exp(-gap / (1.5 * size)) * cover
+        fine = self.t_size < width[:, 0]  # a coarse triangle cannot show a soft edge: leave it
+        idx = np.nonzero(below & fine & (strength > 0.01))[0]
         return idx, 1.0 - strength[idx]
 
     def _terrain_rgb(self, bodies):
@@ -722,7 +785,7 @@ class _Renderer:
     def _set_polys(self, xy, rgb, clip_box):
         self.coll.set_verts(xy)
         self.coll.set_facecolor(rgb)
-        self.coll.set_edgecolor(rgb)  # hides hairline seams between neighbouring triangles
+        self.coll.set_edgecolor(rgb)  # outlines in the face colour hide hairline seams
         self.coll.set_clip_box(clip_box)
 
     def _set_label(self, frame):
@@ -804,8 +867,10 @@ class _Renderer:
             far = max(jdepth.max(initial=-np.inf), self.t_depth[sidx].max(initial=-np.inf))
             sel = (
                 ((self.t_depth < far) | shadowed)
-                & (self.t_max[:, 0] >= u0) & (self.t_min[:, 0] <= u1)
-                & (self.t_max[:, 1] >= v0) & (self.t_min[:, 1] <= v1)
+                & (self.t_max[:, 0] >= u0)
+                & (self.t_min[:, 0] <= u1)
+                & (self.t_max[:, 1] >= v0)
+                & (self.t_min[:, 1] <= v1)
             )
             order = np.argsort(-np.concatenate([self.t_depth[sel], jdepth]), kind="stable")
             xy = np.concatenate([self.t_xy[sel], jxy])[order]

@@ -59,44 +59,48 @@ def summary_line(s: dict, out) -> str:
     )
 
 
-def predicted_stable_dt(scene, method) -> float | None:
-    """Largest dt predicted stable for the scene's jellies, from a linear analysis at rest.
+def predicted_stable_dt(scene, method, jelly=0) -> float | None:
+    """Largest dt predicted stable for jelly ``jelly`` of the scene, from a linear analysis at rest.
 
-    The analysis runs, per jelly, on a lattice of at most 4 particles per axis with the jelly's
-    spacing, masses and spring constants: the stiffest modes are local, so a small lattice predicts
-    the limit. The scene's limit is the smallest over its jellies (a light jelly in a scene limits
-    the step of all of them).
+    The analysis runs on a lattice of at most 4 particles per axis with the jelly's spacing, masses
+    and spring constants: the stiffest modes are local, so a small lattice predicts the limit.
     """
     try:
         from .stability_analysis import predict_lattice_dt  # noqa: PLC0415
     except ImportError:
         return None
-    best = None
-    for j in scene.jellies:
-        res = j["resolution"]
-        small = [min(n, 4) for n in res]
-        spacing = [s / (n - 1) if n > 1 else 0.0 for s, n in zip(j["size"], res)]
-        size = [sp * (n - 1) if n > 1 else 0.0 for sp, n in zip(spacing, small)]
-        springs = j["springs"]
-        ks = {k: v["ks"] for k, v in springs.items()}
-        kd = {k: v.get("kd", 0.0) for k, v in springs.items()}
-        try:
-            dt = predict_lattice_dt(small, size, j["particle_mass"], ks, kd, methods=(method,))[method]
-        except Exception:  # noqa: BLE001 - a prediction is advice; never let it hide the explosion itself
-            return None
-        best = dt if best is None else min(best, dt)
-    return best
+    j = scene.jellies[jelly]
+    res = j["resolution"]
+    small = [min(n, 4) for n in res]
+    spacing = [s / (n - 1) if n > 1 else 0.0 for s, n in zip(j["size"], res)]
+    size = [sp * (n - 1) if n > 1 else 0.0 for sp, n in zip(spacing, small)]
+    springs = j["springs"]
+    ks = {k: v["ks"] for k, v in springs.items()}
+    kd = {k: v.get("kd", 0.0) for k, v in springs.items()}
+    try:
+        return predict_lattice_dt(small, size, j["particle_mass"], ks, kd, methods=(method,))[method]
+    except Exception:  # noqa: BLE001 - a prediction is advice; never let it hide the explosion itself
+        return None
 
 
 def explosion_message(scene, model, result) -> str:
+    """The exit-3 message: frame, time, integrator, dt, what was seen, the stable dt predicted for the
+    jelly that exploded, and the frames kept. Also stores the prediction in ``result.explosion``."""
     e = result.explosion
     sim = scene.sim
+    k = e.get("jelly", 0)
+    which = f" (jelly.{k})" if len(scene.jellies) > 1 else ""
     text = (
         f"{scene.source}: simulation exploded at frame {e['frame']} (t = {e['time']:.4g} s) with integrator "
-        f"{sim['integrator']} at dt = {sim['dt']:g} s: {e['reason']}"
+        f"{sim['integrator']} at dt = {sim['dt']:g} s: {e['reason']}{which}"
     )
-    pred = predicted_stable_dt(scene, sim["integrator"])
-    if pred is not None and np.isfinite(pred):
-        text += f"; largest dt predicted stable for {'this jelly' if len(scene.jellies) == 1 else 'these jellies'}: {pred:.3g} s"
-    text += f"; frames 0-{result.frames_written - 1} were kept"
-    return text
+    pred = predicted_stable_dt(scene, sim["integrator"], k)
+    e["predicted_stable_dt"] = pred if pred is not None and np.isfinite(pred) else None
+    if pred is None:
+        text += "; no stability prediction is available for this jelly"
+    elif pred == 0.0:
+        text += f"; the linear analysis predicts {sim['integrator']} unstable at every dt for this jelly (an undamped mode)"
+    elif np.isfinite(pred):
+        text += f"; largest dt predicted stable for this jelly: {pred:.3g} s"
+    kept = f"frames 0-{result.frames_written - 1} were kept" if result.frames_written else "no frame was kept"
+    return f"{text}; {kept}"

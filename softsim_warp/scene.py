@@ -9,13 +9,15 @@ from __future__ import annotations
 
 import copy
 import difflib
+import json
 import math
+import re
 import tomllib
 from dataclasses import dataclass, field
 from importlib import resources
 from pathlib import Path
 
-from .errors import SceneError
+from .errors import COMMAND_LINE, SceneError
 
 INTEGRATORS = ("euler", "symplectic", "midpoint", "rk4", "implicit")
 PRECISIONS = ("float32", "float64")
@@ -69,7 +71,8 @@ class Int(Field):
         self.lo = lo
 
     def check(self, value, key, ctx):
-        if isinstance(value, float) and value.is_integer():
+        # 3.0 reads as 3; a float beyond 2^53 is not an exact integer and stays a float (rejected).
+        if isinstance(value, float) and value.is_integer() and abs(value) <= 2.0**53:
             value = int(value)
         if not isinstance(value, int) or isinstance(value, bool) or (self.lo is not None and value < self.lo):
             ctx.fail(key, "must be an integer" + (f" >= {self.lo}" if self.lo is not None else ""), value)
@@ -116,6 +119,7 @@ class Vec3(Field):
 
 class Int3(Field):
     def check(self, value, key, ctx):
+        given = value
         if isinstance(value, int) and not isinstance(value, bool):
             value = [value] * 3
         if (
@@ -124,7 +128,7 @@ class Int3(Field):
             or not all(isinstance(c, int) and not isinstance(c, bool) for c in value)
             or min(value) < 1
         ):
-            ctx.fail(key, "must be an integer >= 1 or a list of 3 such integers", value)
+            ctx.fail(key, "must be an integer >= 1 or a list of 3 such integers", given)
         return list(value)
 
 
@@ -142,7 +146,7 @@ class Table(Field):
             if name not in self.fields:
                 near = difflib.get_close_matches(name, list(self.fields), n=1)
                 hint = f"; did you mean '{near[0]}'?" if near else f"; allowed: {', '.join(self.fields)}"
-                ctx.fail(_join(key, name), "unknown key" + hint)
+                ctx.fail(_join(key, name), "unknown key" + hint, value[name])
         for name, spec in self.fields.items():
             sub = _join(key, name)
             if name in value:
@@ -172,8 +176,23 @@ class TableList(Field):
         return [self.item.check(v, f"{key}.{i}", ctx) for i, v in enumerate(value)]
 
 
+_BARE_KEY = re.compile(r"[A-Za-z0-9_-]+")
+
+
+def key_part(name) -> str:
+    """One part of a dotted key as TOML writes it: bare if it can be, else quoted.
+
+    Inside quotes ':' is written as the TOML escape \\u003a, so that the ': ' separators of an
+    error line stay unambiguous whatever a misspelt key contains.
+    """
+    name = str(name)
+    if _BARE_KEY.fullmatch(name):
+        return name
+    return '"' + json.dumps(name)[1:-1].replace(":", "\\u003a") + '"'
+
+
 def _join(key, name):
-    return f"{key}.{name}" if key else str(name)
+    return f"{key}.{key_part(name)}" if key else key_part(name)
 
 
 SPRING = Table(
@@ -229,6 +248,17 @@ SCHEMA = Table(
                 }
             ),
             min_len=1,
+            required=True,
+        ),
+        # Settings of the implicit integrator; absent keys take ImplicitIntegrator's defaults.
+        "implicit": Table(
+            {
+                "newton_iterations": Int(lo=1, doc="linear solves per step (default 1)"),
+                "cg_tolerance": Float(lo=0, lo_open=True, hi=1, hi_open=True, doc="CG stops at |r| <= tol |b| (1e-4)"),
+                "cg_max_iterations": Int(lo=1, doc="CG iteration cap per solve (default 200)"),
+                "linearization": Choice(("predictor", "baraff_witkin"), doc="where forces are linearised (predictor)"),
+            },
+            optional=True,
         ),
         "plane": TableList(
             Table(
@@ -245,6 +275,28 @@ SCHEMA = Table(
                         optional=True,
                     ),
                     "size": Float(20.0, lo=0, lo_open=True, doc="edge of the drawn square [m]"),
+                }
+            )
+        ),
+        # Curved terrain (see model.ModelBuilder.add_bowl / add_sphere).
+        "bowl": TableList(
+            Table(
+                {
+                    "center": Vec3(required=True, doc="sphere centre [m]"),
+                    "radius": Float(lo=0, lo_open=True, required=True, doc="sphere radius [m]"),
+                    "cut_height": Float(doc="the bowl exists where y < cut_height [m]; absent: the whole sphere"),
+                    "restitution": Float(0.5, lo=0, hi=1),
+                    "friction": Float(0.3, lo=0),
+                }
+            )
+        ),
+        "sphere": TableList(
+            Table(
+                {
+                    "center": Vec3(required=True, doc="[m]"),
+                    "radius": Float(lo=0, lo_open=True, required=True, doc="[m]"),
+                    "restitution": Float(0.5, lo=0, hi=1),
+                    "friction": Float(0.3, lo=0),
                 }
             )
         ),
@@ -307,36 +359,70 @@ def builtin_scenes() -> dict:
 
 
 def resolve_scene_path(name_or_path: str):
-    """A scene argument is a path if it names an existing file or ends in .toml, else a built-in name."""
+    """A scene argument is a path if it names an existing file or ends in .toml, else a built-in name.
+
+    Returns:
+        ``(path, read)``: the path shown in messages and a callable returning the file's bytes.
+    """
     p = Path(name_or_path)
     if p.suffix == ".toml" or p.exists() or "/" in name_or_path:
+        if p.is_dir():
+            raise SceneError(name_or_path, "scene", "is a directory, not a scene file", name_or_path)
         if not p.is_file():
-            raise SceneError(name_or_path, None, "no such scene file")
-        return p, p.read_text
+            raise SceneError(name_or_path, "scene", "no such scene file", name_or_path)
+        return p, p.read_bytes
     entry = builtin_dir() / f"{name_or_path}.toml"
     if not entry.is_file():
         names = list(builtin_scenes())
         near = difflib.get_close_matches(name_or_path, names, n=1)
         hint = f"; did you mean '{near[0]}'?" if near else ""
-        raise SceneError(name_or_path, None, f"no such built-in scene; built-ins: {', '.join(names)}{hint}")
-    return Path(f"{name_or_path}.toml"), entry.read_text
+        raise SceneError(
+            name_or_path, "scene", f"no such scene file or built-in scene; built-ins: {', '.join(names)}{hint}", name_or_path
+        )
+    return Path(f"{name_or_path}.toml"), entry.read_bytes
+
+
+def read_scene_data(name_or_path: str) -> tuple[Path, str, dict]:
+    """Find, read and parse a scene file or built-in scene; returns ``(path, source, data)``."""
+    path, read = resolve_scene_path(name_or_path)
+    source = str(path)
+    try:
+        raw = read()
+    except OSError as e:
+        raise SceneError(source, "scene", f"cannot read the file: {e.strerror}", str(path)) from None
+    try:
+        text = raw.decode("utf-8")
+    except UnicodeDecodeError as e:
+        line = raw[: e.start].count(b"\n") + 1
+        raise SceneError(source, f"line {line}", "TOML files must be UTF-8 text", raw[e.start : e.start + 4]) from None
+    return path, source, parse_toml(text, source)
+
+
+_TOML_POSITION = re.compile(r"^(.*) \(at (line (\d+), column \d+|end of document)\)$", re.S)
 
 
 def parse_toml(text: str, source: str) -> dict:
+    """Parse TOML; a syntax error names its line and column and shows that line."""
     try:
         return tomllib.loads(text)
     except tomllib.TOMLDecodeError as e:
-        raise SceneError(source, None, f"TOML syntax error: {e}") from None
+        m = _TOML_POSITION.match(str(e))
+        lines = text.splitlines() or [""]
+        if m is None:  # a message without a position: name the whole file
+            raise SceneError(source, "(file)", f"TOML syntax error: {e}", lines[-1]) from None
+        what, where, line = m.group(1), m.group(2), m.group(3)
+        shown = lines[min(int(line), len(lines)) - 1] if line else lines[-1]
+        raise SceneError(source, where, f"TOML syntax error: {what[:1].lower()}{what[1:]}", shown) from None
 
 
-def parse_override(item: str, source="--set"):
+def parse_override(item: str, source=COMMAND_LINE):
     """Split ``a.b.0.c=VALUE``; VALUE is read as a TOML value, or as a bare string if it is not one."""
     if "=" not in item:
-        raise SceneError(source, item, "expected KEY=VALUE")
+        raise SceneError(source, "--set", "expected KEY=VALUE, such as simulation.dt=0.001", item)
     key, raw = item.split("=", 1)
     key = key.strip()
     if not key or any(not part for part in key.split(".")):
-        raise SceneError(source, key, "expected a dotted key such as simulation.dt", item)
+        raise SceneError(source, "--set", "expected a dotted key such as simulation.dt before '='", item)
     try:
         value = tomllib.loads(f"v = {raw}")["v"]
     except tomllib.TOMLDecodeError:
@@ -344,32 +430,61 @@ def parse_override(item: str, source="--set"):
     return key, value
 
 
-def apply_override(data: dict, key: str, value, source="--set"):
+def apply_override(data: dict, key: str, value, source=COMMAND_LINE):
     """Set ``data[a][b][0][c] = value`` for the dotted key ``a.b.0.c``; creates missing tables."""
     parts = key.split(".")
     node = data
     for depth, part in enumerate(parts):
         last = depth == len(parts) - 1
-        here = ".".join(parts[: depth + 1])
+        here = ".".join(key_part(p) for p in parts[: depth + 1])
         if isinstance(node, list):
             if not part.isdigit() or int(part) >= len(node):
-                raise SceneError(source, here, f"index out of range; this scene has {len(node)} entries", part)
+                n = len(node)
+                what = f"{n} {parts[depth - 1]} table{'' if n == 1 else 's'}" if depth else f"{n} entries"
+                raise SceneError(source, f"--set {here}", f"index out of range; the scene has {what}", part)
             if last:
                 node[int(part)] = value
             else:
                 node = node[int(part)]
             continue
         if not isinstance(node, dict):
-            raise SceneError(source, here, "cannot set a key inside a value that is not a table")
+            raise SceneError(source, f"--set {here}", "cannot set a key inside a value that is not a table", node)
         if last:
             node[part] = value
         else:
             if part not in node:
                 # "jelly.0..." on a scene without jellies cannot be created; a new table can.
                 if parts[depth + 1].isdigit():
-                    raise SceneError(source, here, "index out of range; this scene has 0 entries", parts[depth + 1])
+                    raise SceneError(
+                        source, f"--set {here}", f"index out of range; the scene has no {part} tables", parts[depth + 1]
+                    )
                 node[part] = {}
             node = node[part]
+
+
+# Keys that replace each other: overriding one drops the other from the file's values.
+EXCLUSIVE = {"simulation.duration": "simulation.frames", "simulation.frames": "simulation.duration"}
+
+
+def apply_overrides(data: dict, items, source=COMMAND_LINE):
+    """Apply ``[(dotted_key, value), ...]`` in order; returns the list applied."""
+    for key, value in items:
+        other = EXCLUSIVE.get(key)
+        if other:
+            table, _, name = other.rpartition(".")
+            node = data.get(table)
+            if isinstance(node, dict):
+                node.pop(name, None)
+        apply_override(data, key, value, source)
+    return list(items)
+
+
+def _unit(v):
+    """``v / |v|`` without overflow or underflow: scaled by its largest component first (v != 0)."""
+    big = max(abs(c) for c in v)
+    v = [c / big for c in v]
+    length = math.sqrt(sum(c * c for c in v))
+    return [c / length for c in v]
 
 
 def validate(data: dict, source: str) -> dict:
@@ -385,8 +500,11 @@ def validate(data: dict, source: str) -> dict:
         count = jelly["resolution"][0] * jelly["resolution"][1] * jelly["resolution"][2]
         if count < 2:
             ctx.fail(f"{key}.resolution", "a jelly needs at least 2 particles", jelly["resolution"])
-        if ("particle_mass" in jelly) == ("total_mass" in jelly):
-            ctx.fail(f"{key}.particle_mass", "give exactly one of particle_mass and total_mass")
+        if "particle_mass" in jelly and "total_mass" in jelly:
+            both = {"particle_mass": jelly["particle_mass"], "total_mass": jelly["total_mass"]}
+            ctx.fail(f"{key}.particle_mass", "give exactly one of particle_mass and total_mass, not both", both)
+        if "particle_mass" not in jelly and "total_mass" not in jelly:
+            ctx.fail(f"{key}.particle_mass", "is required (or give total_mass)")
         if "total_mass" in jelly:
             jelly["particle_mass"] = jelly.pop("total_mass") / count
         if "initial_scale" in jelly and any(c == 0.0 for c in jelly["initial_scale"]):
@@ -394,26 +512,26 @@ def validate(data: dict, source: str) -> dict:
             ctx.fail(f"{key}.initial_scale", "components must be nonzero (negative mirrors the lattice)",
                      jelly["initial_scale"])
     for plane in out.get("plane", []):
-        n = plane["normal"]
-        length = math.sqrt(sum(c * c for c in n))
-        plane["normal"] = [c / length for c in n]
+        plane["normal"] = _unit(plane["normal"])
+    for jelly in out["jelly"]:
+        jelly["rotation"]["axis"] = _unit(jelly["rotation"]["axis"])
+    for i, bowl in enumerate(out.get("bowl", [])):
+        bottom = bowl["center"][1] - bowl["radius"]
+        if "cut_height" in bowl and bowl["cut_height"] <= bottom:
+            ctx.fail(f"bowl.{i}.cut_height", f"must be above the bowl's lowest point center.y - radius = {bottom:g}",
+                     bowl["cut_height"])
+    # Checks of the scene as a whole (sizes, precision range, a jelly starting inside terrain);
+    # see checks.py.
+    from .checks import check_scene  # noqa: PLC0415
+
+    check_scene(out, ctx)
     return out
 
 
 def load_scene(name_or_path: str, overrides=()) -> Scene:
     """Load a scene file or a built-in scene by name, apply ``--set`` overrides and validate it."""
-    path, read = resolve_scene_path(name_or_path)
-    source = str(path)
-    try:
-        text = read()
-    except OSError as e:
-        raise SceneError(source, None, f"cannot read: {e.strerror}") from None
-    data = parse_toml(text, source)
-    applied = []
-    for item in overrides:
-        key, value = parse_override(item)
-        apply_override(data, key, value)
-        applied.append((key, value))
+    path, source, data = read_scene_data(name_or_path)
+    applied = apply_overrides(data, [parse_override(item) for item in overrides])
     validated = validate(data, source)
     return Scene(validated, source=source, name=validated.get("name", path.stem), overrides=applied)
 

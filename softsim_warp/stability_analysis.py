@@ -432,7 +432,7 @@ def max_stable_dt_from_eigenvalues(method, eigenvalues, *, zero_tol=_ZERO_TOL):
         best = min(best, h)
         if best == 0.0:
             break
-    return best
+    return float(best)
 
 
 def _symplectic_modal_estimate(Kr, Cr):
@@ -445,7 +445,8 @@ def _symplectic_modal_estimate(Kr, Cr):
     w2, phi = np.linalg.eigh(-Kr)
     c = np.einsum("ij,ij->j", phi, -Cr @ phi)  # modal damping, the diagonal of phi^T (-Cr) phi
     with np.errstate(divide="ignore", invalid="ignore"):
-        h = np.where(w2 > 0.0, (np.sqrt(c * c + 4.0 * np.maximum(w2, 0.0)) - c) / w2, np.where(c > 0.0, 2.0 / c, np.inf))
+        undamped_bound = (np.sqrt(c * c + 4.0 * np.maximum(w2, 0.0)) - c) / w2
+        h = np.where(w2 > 0.0, undamped_bound, np.where(c > 0.0, 2.0 / c, np.inf))
     return float(np.min(h)) if h.size else math.inf
 
 
@@ -490,7 +491,7 @@ def _symplectic_max_dt(Kr, Cr, rtol, growth_tol, zero_tol):
             lo = mid
         else:
             hi = mid
-    return lo
+    return float(lo)
 
 
 def max_stable_dt(method, K, C, masses, *, rtol=1e-4, growth_tol=1e-9, zero_tol=_ZERO_TOL):

@@ -25,7 +25,9 @@ TERRAIN_COLOR = (0.6, 0.6, 0.6)
 
 def temp_path_for(path: Path) -> Path:
     """A sibling of ``path`` that keeps its extension (USD picks the format from it) and is unique per process."""
-    return path.with_name(f".{path.stem}.partial-{os.getpid()}{path.suffix}")
+    from .outputs import partial_path  # noqa: PLC0415
+
+    return partial_path(path)
 
 
 def plane_mesh(point, normal, size, hole_center=None, hole_radius=0.0, segments=64):
@@ -156,10 +158,13 @@ class UsdWriter:
                     curves[tname] = (c, model.spring_indices_host[sel].ravel())
             self.jelly_prims.append((info, pts, mesh, used, curves))
 
-        for i, p in enumerate(model.planes):
+        plane_index = {}  # numbered within each world, so every copy of a comparison has Plane_0
+        for p in model.planes:
+            i = plane_index[p["world"]] = plane_index.get(p["world"], -1) + 1
             points, counts, indices = plane_mesh(p["point"], p["normal"], p["size"], p["hole_center"], p["hole_radius"])
             self.add_static_mesh(f"{self.roots[p['world']]}/Plane_{i}", points, counts, indices)
-        for prim_path, points, counts, indices in getattr(model, "terrain_meshes", lambda: [])():
+        # Bowls and spheres; ``self.roots`` puts each world's terrain under its group.
+        for prim_path, points, counts, indices in getattr(model, "terrain_meshes", lambda roots: [])(self.roots):
             self.add_static_mesh(prim_path, points, counts, indices)
         self.save()
 

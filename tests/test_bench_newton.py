@@ -8,8 +8,8 @@ import pytest
 
 pytest.importorskip("newton")
 
-from softsim_warp.bench_newton import NewtonJelly, newton_steps_per_second, newton_version  # noqa: E402
-from softsim_warp.lattice import lattice_points, lattice_springs  # noqa: E402
+from softsim_warp.bench_newton import NewtonJelly, newton_steps_per_second, newton_version
+from softsim_warp.lattice import lattice_points, lattice_springs
 
 G = 9.81
 
@@ -38,9 +38,7 @@ def test_free_fall_of_center_of_mass():
     vel = rng.normal(scale=0.05, size=(n, 3)).astype(np.float32)
     vel -= vel.mean(axis=0)
     dt, steps = 1.0e-4, 2000  # t = 0.2 s, drop 0.196 m; the bottom (y = 0.85) stays clear of y = 0
-    jelly = NewtonJelly(
-        points, pairs, rest, 1000.0, 1.0, np.full(n, 0.01), (0.0, -G, 0.0), 0.0, "cpu", velocities=vel
-    )
+    jelly = NewtonJelly(points, pairs, rest, 1000.0, 1.0, np.full(n, 0.01), (0.0, -G, 0.0), 0.0, "cpu", velocities=vel)
     y0 = jelly.positions()[:, 1].mean()
     jelly.step(dt, steps)
     q = jelly.positions()

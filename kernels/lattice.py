@@ -1,0 +1,648 @@
+"""Lattice fast path: spring forces of regular jellies without spring index arrays or atomics.
+
+In a jelly built by ``ModelBuilder.add_jelly`` the springs are implicit in the lattice index: the
+particle at lattice coordinate (a, b, c) is joined to the particles at the 32 offsets of the
+standard stencil (structural: +-1 along an axis, 6; shear: face and body diagonals of the
+3x3x3 block, 12 + 8; bending: +-2 along an axis, 6), when they exist. Each jelly carries one rest
+length per offset (table ``jelly_rest[j, slot]``, see :func:`rest_slot`) and one ks/kd per spring
+type, so a step reads no per-spring data at all.
+
+Two kernels evaluate the same forces:
+
+* ``eval_lattice_springs`` (the GPU path): one thread per particle gathers its up-to-32
+  neighbours and writes its own force once. Each spring is evaluated twice (once from each end),
+  there are no atomics, and the sum order per particle is fixed, so the result is deterministic.
+  ``integrate_lattice_stage`` fuses the same gather with an integrator stage (and, on the last
+  stage, plane contact): one kernel per stage.
+* ``eval_lattice_rows`` (the CPU path): Warp's CPU backend runs a kernel's threads as one scalar
+  call each (about 5.5 ns per spring on the development machine), so a thread-per-particle
+  kernel cannot use the CPU's vector units. This kernel runs one thread per jelly and does the
+  work in a native C++ loop (``wp.func_native``) over the 16 half-stencil offsets; the inner loops
+  are plain array loops that the C++ compiler vectorises (about 1.4 ns per spring measured with
+  AVX-512, both ends included), and each spring is evaluated once.
+  ``integrate_lattice_rows_stage`` appends the stage update to the same loop. It is race-free on
+  CUDA too (each thread owns one jelly's particles) but slow there, so the model uses it on the
+  CPU only.
+
+Both agree with ``eval_springs`` over the spring list to float32 rounding (tests/test_perf_paths.py).
+Measurements and the reasons for each choice: docs/PERFORMANCE.md.
+"""
+
+import warp as wp
+
+from softsim_warp.lattice import STENCILS
+
+from . import contact, integration
+
+wp.set_module_options({"enable_backward": False})
+
+# Half-stencil offsets (one per +/- pair) and their spring types, in lattice.STENCILS order.
+HALF_OFFSETS = [(off, t) for t, stencil in STENCILS.items() for off in stencil]
+REST_SLOTS = 32
+
+
+def rest_slot(di, dj, dk):
+    """Column of ``jelly_rest`` for a stencil offset; symmetric offsets share a value.
+
+    Offsets inside the 3x3x3 block use (di+1)*9 + (dj+1)*3 + (dk+1) (0..26); bending offsets
+    (+-2 along an axis) use 27 + axis.
+    """
+    if max(abs(di), abs(dj), abs(dk)) == 2:
+        return 27 + [abs(di), abs(dj), abs(dk)].index(2)
+    return (di + 1) * 9 + (dj + 1) * 3 + (dk + 1)
+
+
+def _rows_snippet(ctype, with_stage=False):
+    """C++ body of the CPU row kernel for scalar type ``ctype`` ("float" or "double").
+
+    With ``with_stage`` the forces go to a scratch buffer and an integrator stage follows (the
+    same arithmetic as ``advance_stage`` in kernels/integration.py, for the jelly's world).
+    """
+    table = ", ".join(f"{{{di}, {dj}, {dk}, {t}, {rest_slot(di, dj, dk)}}}" for (di, dj, dk), t in HALF_OFFSETS)
+    head = f"""
+    typedef {ctype} T;
+    static const int OFFSETS[{len(HALF_OFFSETS)}][5] = {{{table}}};"""
+    if with_stage:
+        head += """
+    const int w = ((const int*)jelly_world.data)[j];
+    const int count = ((const int*)world_stage_count.data)[w];
+    if (stage >= count) return;"""
+    return (
+        head
+        + _ROWS_FORCES.format(T=ctype, REST_SLOTS=REST_SLOTS, NOFF=len(HALF_OFFSETS))
+        + (_ROWS_STAGE if with_stage else "")
+    )
+
+
+_ROWS_STAGE = """
+    // Stage update of the jelly's particles (advance_stage, vectorised): a = f/m + g.
+    const T* __restrict__ im = (const T*)particle_inv_mass.data + start;
+    const T* __restrict__ xn = (const T*)q_n.data + 3 * start;
+    const T* __restrict__ vn = (const T*)qd_n.data + 3 * start;
+    T* __restrict__ xo = (T*)q_out.data + 3 * start;
+    T* __restrict__ vo = (T*)qd_out.data + 3 * start;
+    const T g[3] = {gravity[0], gravity[1], gravity[2]};
+    if (((const int*)world_symplectic.data)[w]) {
+        // Semi-implicit Euler: velocity first, then position with the new velocity.
+        for (int p = 0; p < n; ++p) {
+            const T mi = im[p];
+            for (int d = 0; d < 3; ++d) {
+                const T a = mi == T(0) ? T(0) : fo[3 * p + d] * mi + g[d];
+                const T vnew = vn[3 * p + d] + h * a;
+                vo[3 * p + d] = vnew;
+                xo[3 * p + d] = xn[3 * p + d] + h * vnew;
+            }
+        }
+        return;
+    }
+    const int cols = world_stage_b.shape[1];
+    const T b = ((const T*)world_stage_b.data)[w * cols + stage];
+    T* __restrict__ aq = (T*)acc_q_out.data + 3 * start;
+    T* __restrict__ aqd = (T*)acc_qd_out.data + 3 * start;
+    const bool first = stage == 0, last = stage == count - 1;
+    const T hc = last ? T(0) : h * ((const T*)world_stage_c.data)[w * cols + stage + 1];
+    T* __restrict__ xnext = (T*)q_next_out.data + 3 * start;
+    T* __restrict__ vnext = (T*)qd_next_out.data + 3 * start;
+    for (int p = 0; p < n; ++p) {
+        const T mi = im[p];
+        for (int d = 0; d < 3; ++d) {
+            const int e = 3 * p + d;
+            const T a = mi == T(0) ? T(0) : fo[e] * mi + g[d];
+            const T vs = v[e];
+            T acc_x = b * vs, acc_v = b * a;
+            if (!first) { acc_x = acc_x + aq[e]; acc_v = acc_v + aqd[e]; }
+            if (last) {
+                xo[e] = xn[e] + h * acc_x;
+                vo[e] = vn[e] + h * acc_v;
+            } else {
+                aq[e] = acc_x;
+                aqd[e] = acc_v;
+                xnext[e] = xn[e] + hc * vs;
+                vnext[e] = vn[e] + hc * a;
+            }
+        }
+    }
+"""
+
+_ROWS_FORCES = """
+    const int start = ((const int*)jelly_start.data)[j];
+    const int* shape = (const int*)jelly_shape.data + 3 * j;
+    const int nx = shape[0], ny = shape[1], nz = shape[2];
+    const int n = nx * ny * nz;
+    const T* rest = (const T*)jelly_rest.data + {REST_SLOTS} * j;
+    const T* ks = (const T*)jelly_ks.data + 3 * j;
+    const T* kd = (const T*)jelly_kd.data + 3 * j;
+    const int types = ((const int*)jelly_types.data)[j];
+    const T* __restrict__ x = (const T*)q.data + 3 * start;
+    const T* __restrict__ v = (const T*)qd.data + 3 * start;
+    const int* __restrict__ cz = (const int*)coord_k.data + start;
+    T* __restrict__ fo = (T*)f_out.data + 3 * start;
+    T* __restrict__ t = (T*)scratch.data + 3 * start;
+    for (int e = 0; e < 3 * n; ++e) fo[e] = T(0);
+    for (int o = 0; o < {NOFF}; ++o) {{
+        const int di = OFFSETS[o][0], dj = OFFSETS[o][1], dk = OFFSETS[o][2], ty = OFFSETS[o][3];
+        if (!((types >> ty) & 1)) continue;
+        const T r = rest[OFFSETS[o][4]], k = ks[ty], c = kd[ty];
+        // Spring (p, p + L). Loop bounds keep a + di and b + dj inside the lattice; within a slab
+        // of fixed a the valid b form one contiguous range of p, and only k + dk needs a test.
+        const int L = (di * ny + dj) * nz + dk;
+        const int a0 = di < 0 ? -di : 0, a1 = di > 0 ? nx - di : nx;
+        const int b0 = dj < 0 ? -dj : 0, b1 = dj > 0 ? ny - dj : ny;
+        for (int a = a0; a < a1; ++a) {{
+            int p0 = (a * ny + b0) * nz, p1 = (a * ny + b1) * nz;
+            // Partners past either end of the jelly are out-of-lattice k + dk anyway: skip them.
+            if (p0 < -L) p0 = -L;
+            if (p1 > n - L) p1 = n - L;
+            // Pass 1: force on the first end, kept for pass 2. No iteration reads another's
+            // output, so the compiler vectorises it; an out-of-lattice partner gives zero.
+            for (int p = p0; p < p1; ++p) {{
+                const int s = 3 * p, e = 3 * (p + L);
+                const bool ok = (unsigned)(cz[p] + dk) < (unsigned)nz;
+                const T dx = x[s] - x[e], dy = x[s + 1] - x[e + 1], dz = x[s + 2] - x[e + 2];
+                const T ux = v[s] - v[e], uy = v[s + 1] - v[e + 1], uz = v[s + 2] - v[e + 2];
+                const T l2 = dx * dx + dy * dy + dz * dz;
+                // Coincident particles have no direction: zero force, as in spring_force.
+                const T inv = l2 > T(0) ? T(1) / wp::sqrt(l2) : T(0);
+                const T m_all = -(k * (l2 * inv - r) + c * (ux * dx + uy * dy + uz * dz) * inv) * inv;
+                // Select after computing: folding the test into the expression made the compiler
+                // predicate the divide and square root, 2.5x slower.
+                const T m = ok ? m_all : T(0);
+                const T fx = m * dx, fy = m * dy, fz = m * dz;
+                fo[s] += fx; fo[s + 1] += fy; fo[s + 2] += fz;
+                t[s] = fx; t[s + 1] = fy; t[s + 2] = fz;
+            }}
+            // Pass 2: the opposite force on the second end (apart from pass 1: p + L may be p + 1).
+            for (int p = p0; p < p1; ++p) {{
+                const int s = 3 * p, e = 3 * (p + L);
+                fo[e] -= t[s]; fo[e + 1] -= t[s + 1]; fo[e + 2] -= t[s + 2];
+            }}
+        }}
+    }}
+"""
+
+
+def build(scalar):
+    vec3 = wp.types.vector(3, scalar)
+    contact_funcs = contact.build(scalar)
+    resolve_contact = contact_funcs["resolve_contact"]
+    plane_distance = contact_funcs["plane_distance"]
+    advance_stage = integration.build(scalar)["advance_stage"]
+
+    if scalar == wp.float32:
+        inv_sqrt_snippet = """
+#if defined(__CUDA_ARCH__)
+return rsqrtf(x);
+#else
+return 1.0f / wp::sqrt(x);
+#endif
+"""
+    else:
+        inv_sqrt_snippet = "return 1.0 / wp::sqrt(x);"
+
+    @wp.func_native(inv_sqrt_snippet)
+    def inv_sqrt(x: scalar) -> scalar:
+        """1/sqrt(x): on CUDA in float32 the hardware rsqrtf (within 2 ulp), elsewhere exact."""
+
+    @wp.func
+    def stencil_spring_force(x: vec3, xb: vec3, v: vec3, vb: vec3, rest: scalar, ks: scalar, kd: scalar):
+        """``spring_force`` with one reciprocal square root for both the length and the direction.
+
+        The IEEE square root and the three divisions of d / |d| cost the gather kernel a third of
+        its time on an H200; rsqrtf's 2 ulp are of the order of the float32 rounding the sum
+        already has. Coincident particles give zero force, as in ``spring_force``.
+        """
+        d = x - xb
+        l2 = wp.dot(d, d)
+        inv = scalar(0.0)
+        if l2 > scalar(0.0):
+            inv = inv_sqrt(l2)
+        magnitude = ks * (l2 * inv - rest) + kd * wp.dot(v - vb, d) * inv
+        return (-magnitude * inv) * d
+
+    @wp.func
+    def lattice_coord(local: int, shape: wp.vec3i):
+        """Lattice coordinate (a, b, c) of a jelly-local particle index (i*ny + j)*nz + k."""
+        c = local % shape[2]
+        t = local // shape[2]
+        return wp.vec3i(t // shape[1], t % shape[1], c)
+
+    @wp.func
+    def inside(a: int, b: int, c: int, shape: wp.vec3i):
+        return a >= 0 and a < shape[0] and b >= 0 and b < shape[1] and c >= 0 and c < shape[2]
+
+    @wp.func
+    def gather_lattice_force(
+        i: int,
+        j: int,
+        jelly_start: wp.array(dtype=wp.int32),
+        jelly_shape: wp.array(dtype=wp.vec3i),
+        jelly_types: wp.array(dtype=wp.int32),
+        jelly_rest: wp.array2d(dtype=scalar),
+        jelly_ks: wp.array2d(dtype=scalar),
+        jelly_kd: wp.array2d(dtype=scalar),
+        q: wp.array(dtype=vec3),
+        qd: wp.array(dtype=vec3),
+    ):
+        """Spring force on particle i of lattice jelly j: the sum over its stencil neighbours."""
+        shape = jelly_shape[j]
+        lc = lattice_coord(i - jelly_start[j], shape)
+        a = lc[0]
+        b = lc[1]
+        c = lc[2]
+        types = jelly_types[j]
+        # Per-type coefficients read once (the unrolled loop would otherwise load them per neighbour).
+        ks_structural = jelly_ks[j, 0]
+        ks_shear = jelly_ks[j, 1]
+        kd_structural = jelly_kd[j, 0]
+        kd_shear = jelly_kd[j, 1]
+        x = q[i]
+        v = qd[i]
+        f = vec3(scalar(0.0))
+        # Structural and shear: the 26 neighbours in the 3x3x3 block. These loops have constant
+        # bounds, so Warp unrolls them and every offset below is a compile-time constant.
+        for di in range(-1, 2):
+            for dj in range(-1, 2):
+                for dk in range(-1, 2):
+                    m = wp.abs(di) + wp.abs(dj) + wp.abs(dk)
+                    if m > 0:
+                        ty = wp.min(m - 1, 1)  # one nonzero component: structural, else shear
+                        if ((types >> ty) & 1) != 0 and inside(a + di, b + dj, c + dk, shape):
+                            p = i + (di * shape[1] + dj) * shape[2] + dk
+                            rest = jelly_rest[j, (di + 1) * 9 + (dj + 1) * 3 + dk + 1]
+                            ks = wp.where(ty == 0, ks_structural, ks_shear)
+                            kd = wp.where(ty == 0, kd_structural, kd_shear)
+                            f += stencil_spring_force(x, q[p], v, qd[p], rest, ks, kd)
+        # Bending: +-2 along each axis.
+        if ((types >> 2) & 1) != 0:
+            ks_bending = jelly_ks[j, 2]
+            kd_bending = jelly_kd[j, 2]
+            for axis in range(3):
+                for side in range(2):
+                    o = wp.vec3i(0, 0, 0)
+                    o[axis] = 4 * side - 2
+                    if inside(a + o[0], b + o[1], c + o[2], shape):
+                        p = i + (o[0] * shape[1] + o[1]) * shape[2] + o[2]
+                        f += stencil_spring_force(x, q[p], v, qd[p], jelly_rest[j, 27 + axis], ks_bending, kd_bending)
+        return f
+
+    @wp.kernel(module="unique")
+    def eval_lattice_springs(
+        # Model:
+        particle_jelly: wp.array(dtype=wp.int32),
+        jelly_start: wp.array(dtype=wp.int32),
+        jelly_shape: wp.array(dtype=wp.vec3i),
+        jelly_types: wp.array(dtype=wp.int32),
+        jelly_rest: wp.array2d(dtype=scalar),
+        jelly_ks: wp.array2d(dtype=scalar),
+        jelly_kd: wp.array2d(dtype=scalar),
+        # State in:
+        q: wp.array(dtype=vec3),
+        qd: wp.array(dtype=vec3),
+        # Out (every element written; no zeroing needed):
+        f_out: wp.array(dtype=vec3),
+    ):
+        i = wp.tid()
+        j = particle_jelly[i]
+        f_out[i] = gather_lattice_force(
+            i, j, jelly_start, jelly_shape, jelly_types, jelly_rest, jelly_ks, jelly_kd, q, qd
+        )
+
+    @wp.func
+    def contact_planes(
+        x: vec3,
+        v: vec3,
+        x_prev: vec3,
+        v_prev: vec3,
+        w: int,
+        plane_count: int,
+        plane_world: wp.array(dtype=wp.int32),
+        plane_point: wp.array(dtype=vec3),
+        plane_normal: wp.array(dtype=vec3),
+        plane_hole_center: wp.array(dtype=vec3),
+        plane_hole_radius: wp.array(dtype=scalar),
+        plane_restitution: wp.array(dtype=scalar),
+        plane_friction: wp.array(dtype=scalar),
+        eps: scalar,
+        eps_v: scalar,
+        beta_h: scalar,
+    ):
+        """The per-particle loop of ``collide_planes`` (kernels/contact.py), for the fused last stage."""
+        for p in range(plane_count):
+            if plane_world[p] == w:
+                n = plane_normal[p]
+                point = plane_point[p]
+                hc = plane_hole_center[p]
+                hr = plane_hole_radius[p]
+                phi = plane_distance(x, point, n, hc, hr)
+                phi_prev = plane_distance(x_prev, point, n, hc, hr)
+                x, v = resolve_contact(
+                    x, v, v_prev, phi, phi_prev, n, plane_restitution[p], plane_friction[p], eps, eps_v, beta_h
+                )
+        return x, v
+
+    @wp.kernel(module="unique")
+    def integrate_lattice_stage(
+        stage: int,
+        h: scalar,
+        with_contact: int,
+        # Model:
+        particle_inv_mass: wp.array(dtype=scalar),
+        particle_world: wp.array(dtype=wp.int32),
+        particle_jelly: wp.array(dtype=wp.int32),
+        gravity: vec3,
+        jelly_start: wp.array(dtype=wp.int32),
+        jelly_shape: wp.array(dtype=wp.vec3i),
+        jelly_types: wp.array(dtype=wp.int32),
+        jelly_rest: wp.array2d(dtype=scalar),
+        jelly_ks: wp.array2d(dtype=scalar),
+        jelly_kd: wp.array2d(dtype=scalar),
+        world_stage_count: wp.array(dtype=wp.int32),
+        world_symplectic: wp.array(dtype=wp.int32),
+        world_stage_c: wp.array2d(dtype=scalar),
+        world_stage_b: wp.array2d(dtype=scalar),
+        # Model, planes (read when with_contact != 0):
+        plane_count: int,
+        plane_world: wp.array(dtype=wp.int32),
+        plane_point: wp.array(dtype=vec3),
+        plane_normal: wp.array(dtype=vec3),
+        plane_hole_center: wp.array(dtype=vec3),
+        plane_hole_radius: wp.array(dtype=scalar),
+        plane_restitution: wp.array(dtype=scalar),
+        plane_friction: wp.array(dtype=scalar),
+        eps: scalar,
+        eps_v: scalar,
+        world_contact_beta: wp.array(dtype=scalar),
+        # State in (y_n) and stage state (y_s):
+        q_n: wp.array(dtype=vec3),
+        qd_n: wp.array(dtype=vec3),
+        q_s: wp.array(dtype=vec3),
+        qd_s: wp.array(dtype=vec3),
+        # Out: accumulators, next stage state, and the step's result
+        acc_q_out: wp.array(dtype=vec3),
+        acc_qd_out: wp.array(dtype=vec3),
+        q_next_out: wp.array(dtype=vec3),
+        qd_next_out: wp.array(dtype=vec3),
+        q_out: wp.array(dtype=vec3),
+        qd_out: wp.array(dtype=vec3),
+    ):
+        # Forces, gravity and the stage update in one pass. A thread reads neighbours only from
+        # the stage state y_s and writes only its own particle into other buffers, so no thread
+        # depends on another's output within the launch.
+        i = wp.tid()
+        j = particle_jelly[i]
+        f = gather_lattice_force(i, j, jelly_start, jelly_shape, jelly_types, jelly_rest, jelly_ks, jelly_kd, q_s, qd_s)
+        last = advance_stage(
+            i,
+            stage,
+            h,
+            f,
+            particle_inv_mass,
+            particle_world,
+            gravity,
+            world_stage_count,
+            world_symplectic,
+            world_stage_c,
+            world_stage_b,
+            q_n,
+            qd_n,
+            qd_s,
+            acc_q_out,
+            acc_qd_out,
+            q_next_out,
+            qd_next_out,
+            q_out,
+            qd_out,
+        )
+        if with_contact != 0 and last and particle_inv_mass[i] != scalar(0.0):
+            # Plane contact on the step's result, as collide_planes would do after the step.
+            x, v = contact_planes(
+                q_out[i],
+                qd_out[i],
+                q_n[i],
+                qd_n[i],
+                particle_world[i],
+                plane_count,
+                plane_world,
+                plane_point,
+                plane_normal,
+                plane_hole_center,
+                plane_hole_radius,
+                plane_restitution,
+                plane_friction,
+                eps,
+                eps_v,
+                h * world_contact_beta[particle_world[i]],
+            )
+            q_out[i] = x
+            qd_out[i] = v
+
+    @wp.func_native(_rows_snippet("float" if scalar == wp.float32 else "double"))
+    def lattice_rows_native(
+        j: int,
+        jelly_start: wp.array(dtype=wp.int32),
+        jelly_shape: wp.array(dtype=wp.vec3i),
+        jelly_types: wp.array(dtype=wp.int32),
+        jelly_rest: wp.array2d(dtype=scalar),
+        jelly_ks: wp.array2d(dtype=scalar),
+        jelly_kd: wp.array2d(dtype=scalar),
+        coord_k: wp.array(dtype=wp.int32),
+        q: wp.array(dtype=vec3),
+        qd: wp.array(dtype=vec3),
+        scratch: wp.array(dtype=vec3),
+        f_out: wp.array(dtype=vec3),
+    ): ...
+
+    @wp.kernel(module="unique")
+    def eval_lattice_rows(
+        # Model:
+        jelly_start: wp.array(dtype=wp.int32),
+        jelly_shape: wp.array(dtype=wp.vec3i),
+        jelly_types: wp.array(dtype=wp.int32),
+        jelly_rest: wp.array2d(dtype=scalar),
+        jelly_ks: wp.array2d(dtype=scalar),
+        jelly_kd: wp.array2d(dtype=scalar),
+        particle_coord_k: wp.array(dtype=wp.int32),
+        # State in:
+        q: wp.array(dtype=vec3),
+        qd: wp.array(dtype=vec3),
+        # Scratch (one vec3 per particle) and out (every element written):
+        scratch: wp.array(dtype=vec3),
+        f_out: wp.array(dtype=vec3),
+    ):
+        # One thread per jelly; jellies own disjoint particle ranges, so threads never collide.
+        j = wp.tid()
+        lattice_rows_native(
+            j,
+            jelly_start,
+            jelly_shape,
+            jelly_types,
+            jelly_rest,
+            jelly_ks,
+            jelly_kd,
+            particle_coord_k,
+            q,
+            qd,
+            scratch,
+            f_out,
+        )
+
+    @wp.func_native(_rows_snippet("float" if scalar == wp.float32 else "double", with_stage=True))
+    def lattice_rows_stage_native(
+        j: int,
+        stage: int,
+        h: scalar,
+        jelly_start: wp.array(dtype=wp.int32),
+        jelly_shape: wp.array(dtype=wp.vec3i),
+        jelly_types: wp.array(dtype=wp.int32),
+        jelly_rest: wp.array2d(dtype=scalar),
+        jelly_ks: wp.array2d(dtype=scalar),
+        jelly_kd: wp.array2d(dtype=scalar),
+        jelly_world: wp.array(dtype=wp.int32),
+        coord_k: wp.array(dtype=wp.int32),
+        particle_inv_mass: wp.array(dtype=scalar),
+        gravity: vec3,
+        world_stage_count: wp.array(dtype=wp.int32),
+        world_symplectic: wp.array(dtype=wp.int32),
+        world_stage_c: wp.array2d(dtype=scalar),
+        world_stage_b: wp.array2d(dtype=scalar),
+        q_n: wp.array(dtype=vec3),
+        qd_n: wp.array(dtype=vec3),
+        q: wp.array(dtype=vec3),
+        qd: wp.array(dtype=vec3),
+        scratch: wp.array(dtype=vec3),
+        f_out: wp.array(dtype=vec3),
+        acc_q_out: wp.array(dtype=vec3),
+        acc_qd_out: wp.array(dtype=vec3),
+        q_next_out: wp.array(dtype=vec3),
+        qd_next_out: wp.array(dtype=vec3),
+        q_out: wp.array(dtype=vec3),
+        qd_out: wp.array(dtype=vec3),
+    ): ...
+
+    @wp.kernel(module="unique")
+    def integrate_lattice_rows_stage(
+        stage: int,
+        h: scalar,
+        # Model:
+        jelly_start: wp.array(dtype=wp.int32),
+        jelly_shape: wp.array(dtype=wp.vec3i),
+        jelly_types: wp.array(dtype=wp.int32),
+        jelly_rest: wp.array2d(dtype=scalar),
+        jelly_ks: wp.array2d(dtype=scalar),
+        jelly_kd: wp.array2d(dtype=scalar),
+        jelly_world: wp.array(dtype=wp.int32),
+        particle_coord_k: wp.array(dtype=wp.int32),
+        particle_inv_mass: wp.array(dtype=scalar),
+        gravity: vec3,
+        world_stage_count: wp.array(dtype=wp.int32),
+        world_symplectic: wp.array(dtype=wp.int32),
+        world_stage_c: wp.array2d(dtype=scalar),
+        world_stage_b: wp.array2d(dtype=scalar),
+        # State in (y_n) and stage state (y_s):
+        q_n: wp.array(dtype=vec3),
+        qd_n: wp.array(dtype=vec3),
+        q_s: wp.array(dtype=vec3),
+        qd_s: wp.array(dtype=vec3),
+        # Scratch (two vec3 per particle):
+        scratch: wp.array(dtype=vec3),
+        f_scratch: wp.array(dtype=vec3),
+        # Out: accumulators, next stage state, and the step's result
+        acc_q_out: wp.array(dtype=vec3),
+        acc_qd_out: wp.array(dtype=vec3),
+        q_next_out: wp.array(dtype=vec3),
+        qd_next_out: wp.array(dtype=vec3),
+        q_out: wp.array(dtype=vec3),
+        qd_out: wp.array(dtype=vec3),
+    ):
+        # The CPU fused stage: one thread per jelly computes its forces (row loops) and then
+        # its particles' stage update, both vectorised. Jellies own disjoint particle ranges.
+        j = wp.tid()
+        lattice_rows_stage_native(
+            j,
+            stage,
+            h,
+            jelly_start,
+            jelly_shape,
+            jelly_types,
+            jelly_rest,
+            jelly_ks,
+            jelly_kd,
+            jelly_world,
+            particle_coord_k,
+            particle_inv_mass,
+            gravity,
+            world_stage_count,
+            world_symplectic,
+            world_stage_c,
+            world_stage_b,
+            q_n,
+            qd_n,
+            q_s,
+            qd_s,
+            scratch,
+            f_scratch,
+            acc_q_out,
+            acc_qd_out,
+            q_next_out,
+            qd_next_out,
+            q_out,
+            qd_out,
+        )
+
+    @wp.kernel(module="unique")
+    def reduce_lattice_springs(
+        # Model:
+        particle_jelly: wp.array(dtype=wp.int32),
+        jelly_start: wp.array(dtype=wp.int32),
+        jelly_shape: wp.array(dtype=wp.vec3i),
+        jelly_types: wp.array(dtype=wp.int32),
+        jelly_rest: wp.array2d(dtype=scalar),
+        jelly_ks: wp.array2d(dtype=scalar),
+        # State in:
+        q: wp.array(dtype=vec3),
+        # Out, per jelly (zeroed by the caller):
+        spring_energy_out: wp.array(dtype=scalar),
+    ):
+        # Each particle sums 1/2 ks (l - r)^2 over its forward (half-stencil) neighbours, so each
+        # spring is counted once, from its lexicographically smaller end.
+        i = wp.tid()
+        j = particle_jelly[i]
+        shape = jelly_shape[j]
+        lc = lattice_coord(i - jelly_start[j], shape)
+        types = jelly_types[j]
+        x = q[i]
+        e = scalar(0.0)
+        for di in range(-1, 2):
+            for dj in range(-1, 2):
+                for dk in range(-1, 2):
+                    forward = di > 0 or (di == 0 and (dj > 0 or (dj == 0 and dk > 0)))
+                    if forward:
+                        ty = wp.min(wp.abs(di) + wp.abs(dj) + wp.abs(dk) - 1, 1)
+                        if ((types >> ty) & 1) != 0 and inside(lc[0] + di, lc[1] + dj, lc[2] + dk, shape):
+                            p = i + (di * shape[1] + dj) * shape[2] + dk
+                            stretch = wp.length(x - q[p]) - jelly_rest[j, (di + 1) * 9 + (dj + 1) * 3 + dk + 1]
+                            e += jelly_ks[j, ty] * stretch * stretch
+        if ((types >> 2) & 1) != 0:
+            for axis in range(3):
+                o = wp.vec3i(0, 0, 0)
+                o[axis] = 2
+                if inside(lc[0] + o[0], lc[1] + o[1], lc[2] + o[2], shape):
+                    p = i + (o[0] * shape[1] + o[1]) * shape[2] + o[2]
+                    stretch = wp.length(x - q[p]) - jelly_rest[j, 27 + axis]
+                    e += jelly_ks[j, 2] * stretch * stretch
+        e = scalar(0.5) * e
+        if wp.isfinite(e):
+            wp.atomic_add(spring_energy_out, j, e)
+
+    return {
+        "inv_sqrt": inv_sqrt,
+        "stencil_spring_force": stencil_spring_force,
+        "lattice_coord": lattice_coord,
+        "gather_lattice_force": gather_lattice_force,
+        "eval_lattice_springs": eval_lattice_springs,
+        "integrate_lattice_stage": integrate_lattice_stage,
+        "contact_planes": contact_planes,
+        "eval_lattice_rows": eval_lattice_rows,
+        "integrate_lattice_rows_stage": integrate_lattice_rows_stage,
+        "reduce_lattice_springs": reduce_lattice_springs,
+    }

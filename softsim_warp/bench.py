@@ -1,0 +1,750 @@
+"""``softsim bench``: particle-steps per second per jelly size and integrator, optionally against Newton.
+
+Each case is a cubic jelly of size^3 particles with all three spring types resting 1 mm above a
+ground plane (:class:`JellySpec`), or a scene file (``--scene``). For every case and integrator
+the command reports particles, springs, ms per step, particle-steps/s, spring evaluations/s
+(springs x force evaluations per step / time), the compile time of the first step (apart from
+the rate), the device memory the run holds, the bytes a step must move (:func:`step_bytes`) and
+the fraction of the copy bandwidth measured in the same run that this represents.
+
+Timing: one untimed step loads (or compiles) the kernels; ``--steps`` steps are captured as one
+graph (``wp.ScopedCapture``, CPU and CUDA) unless ``--no-graph``; after a warm-up replay, every
+repeat synchronises, reads the clock, replays, synchronises and reads the clock again; the median
+over ``--repeats`` is reported. Cases of one size (ours and Newton's) run their repeats in turn,
+so load from other processes on a shared machine hits them alike.
+
+Nothing here imports pxr (the GPU machine has no usd-core) or Newton unless ``--peer newton``.
+"""
+
+from __future__ import annotations
+
+import datetime
+import math
+import platform
+import time
+from dataclasses import asdict, dataclass
+
+import numpy as np
+
+from .errors import CommandLineError, UserError
+
+COMMAND = "bench"
+DEFAULT_INTEGRATORS = ("euler", "symplectic", "midpoint", "rk4")
+STAGES = {"euler": 1, "symplectic": 1, "midpoint": 2, "rk4": 4}
+BATCH_MAX_PARTICLES = 1_000_000
+
+
+@dataclass(frozen=True)
+class JellySpec:
+    """The benchmark jelly (the issue's setting: dt 1e-4, particle mass 0.01, ground contact on)."""
+
+    spacing: float = 0.05
+    """Rest spacing of the lattice [m]."""
+    particle_mass: float = 0.01
+    """[kg]"""
+    ks: float = 1000.0
+    """Stiffness of every spring type [N/m]."""
+    kd: float = 1.0
+    """Damping of every spring type [N s/m]."""
+    dt: float = 1.0e-4
+    """Step [s]."""
+    gravity: float = -9.81
+    """[m/s^2] along y."""
+    gap: float = 1.0e-3
+    """Height of the jelly's bottom above the ground plane y = 0 [m]."""
+    restitution: float = 0.5
+    friction: float = 0.5
+
+
+def build_jelly_model(size: int, spec: JellySpec, device, force_path="auto", precision="float32", copies=1):
+    """The benchmark jelly (``copies`` of it, one per world, each on its own ground plane) as a Model."""
+    from .model import ModelBuilder  # noqa: PLC0415
+
+    builder = ModelBuilder((0.0, spec.gravity, 0.0))
+    edge = spec.spacing * (size - 1)
+    springs = {t: {"ks": spec.ks, "kd": spec.kd} for t in ("structural", "shear", "bending")}
+    for w in range(copies):
+        builder.add_jelly(
+            (size,) * 3, edge, spec.particle_mass, springs, center=(0.0, spec.gap + 0.5 * edge, 0.0), world=w
+        )
+        builder.add_plane((0.0, 0.0, 0.0), (0.0, 1.0, 0.0), spec.restitution, spec.friction, world=w)
+    return builder.finalize(device, precision, force_path=force_path)
+
+
+# -- accounting ----------------------------------------------------------------------------------
+
+
+def device_arrays_bytes(*objects) -> int:
+    """Bytes of the distinct Warp arrays held (one level deep, lists and tuples included) by ``objects``."""
+    import warp as wp  # noqa: PLC0415
+
+    seen = {}
+
+    def visit(value):
+        if isinstance(value, wp.array):
+            if value.ptr is not None:
+                seen[value.ptr] = value.capacity
+        elif isinstance(value, (list, tuple)):
+            for item in value:
+                visit(item)
+
+    for obj in objects:
+        for value in vars(obj).values():
+            visit(value)
+    return int(sum(seen.values()))
+
+
+def step_bytes(model, integrator) -> int:
+    """Bytes one step must move between the device memory and the cores, for the kernels it launches.
+
+    The model counts every per-particle or per-spring array a kernel reads or writes once per
+    launch (a read-modify-write twice), neighbour reads as cache hits, and small per-jelly or
+    per-world tables as free: the least traffic these kernels can cause. N particles, S springs,
+    s the scalar size, v = 3 s the vector size:
+
+    * spring list, per stage: zero f (N v), ``eval_springs`` (S (8 + 3 s) index and parameters,
+      x and v 2 N v, f read-modify-write 2 N v), ``integrate_stage`` (inverse mass and world
+      N (s + 4), f and the stage velocity 2 N v, plus the stage I/O below);
+    * lattice rows (CPU), per stage: x, v of the stage state 2 N v, lattice k-coordinate 4 N,
+      the force buffer written and read 2 N v, inverse mass N s, plus the stage I/O;
+    * lattice gather (CUDA), per stage: x, v of the stage state 2 N v, jelly and world 8 N,
+      inverse mass N s, plus the stage I/O (contact fused into the last stage moves nothing more);
+    * stage I/O: y_n read 2 N v; accumulators read on stages after the first and written before
+      the last 2 N v each; next stage state written before the last 2 N v; y_{n+1} written 2 N v;
+    * contact when not fused: inverse mass and world N (s + 4), y_n 2 N v, y_{n+1} read and
+      written 4 N v. Symplectic Euler reads y_n and writes y_{n+1} only.
+    """
+    n, springs = model.particle_count, model.spring_count
+    s = 8 if model.precision == "float64" else 4
+    v = 3 * s
+    stages = integrator.stage_count
+    symplectic = all(m == "symplectic" for m in integrator.methods)
+    lattice = model.lattice
+    total = 0
+    for stage in range(stages):
+        if lattice is None:
+            total += n * v + springs * (8 + 3 * s) + 4 * n * v + n * (s + 4) + 2 * n * v
+        elif lattice.kernel == "rows" and integrator.fused:
+            total += 2 * n * v + 4 * n + 2 * n * v + n * s
+        elif integrator.fused:
+            total += 2 * n * v + 8 * n + n * s
+        else:  # lattice forces (f written), then integrate_stage (f and stage velocity read)
+            total += 2 * n * v + (4 * n if lattice.kernel == "rows" else 8 * n) + n * v + 2 * n * v + n * (s + 4)
+        if symplectic:
+            total += 4 * n * v
+            continue
+        total += 2 * n * v  # y_n
+        if stage > 0:
+            total += 2 * n * v
+        total += 2 * n * v if stage == stages - 1 else 6 * n * v
+    if model.plane_count and not getattr(integrator, "fuse_contact", False):
+        total += n * (s + 4) + 6 * n * v
+    return int(total)
+
+
+def measure_copy_bandwidth(device, nbytes=None, repeats=5) -> float:
+    """Copy bandwidth of ``device`` [bytes/s], counting bytes read plus bytes written (median of ``repeats``)."""
+    import warp as wp  # noqa: PLC0415
+
+    if nbytes is None:
+        nbytes = (1 << 30) if device.is_cuda else (256 << 20)
+    count = nbytes // 4
+    src = wp.zeros(count, dtype=wp.float32, device=device)
+    dst = wp.empty(count, dtype=wp.float32, device=device)
+    wp.copy(dst, src)
+    wp.synchronize_device(device)
+    times = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        wp.copy(dst, src)
+        wp.synchronize_device(device)
+        times.append(time.perf_counter() - t0)
+    del src, dst
+    return 2.0 * count * 4 / float(np.median(times))
+
+
+# -- timed cases ---------------------------------------------------------------------------------
+
+
+class _Case:
+    """A stepper whose ``steps`` steps run as one timed unit (a graph replay or a Python loop)."""
+
+    def __init__(self, device, step_fn, steps, use_graph):
+        import warp as wp  # noqa: PLC0415
+
+        self.wp = wp
+        self.device = device
+        self.step_fn = step_fn
+        self.steps = steps + (steps % 2)  # even: double-buffered states end where they began
+        self.use_graph = use_graph
+        self.graph = None
+        self.wall = []
+        self.cpu = []
+
+    def prepare(self) -> float:
+        """First step (module load or compile), graph capture, warm-up; returns the first step's seconds."""
+        wp = self.wp
+        t0 = time.perf_counter()
+        self.step_fn(2)
+        wp.synchronize_device(self.device)
+        compile_s = time.perf_counter() - t0
+        if self.use_graph:
+            with wp.ScopedCapture(device=self.device, force_module_load=False) as capture:
+                self.step_fn(self.steps)
+            self.graph = capture.graph
+        self.run()
+        wp.synchronize_device(self.device)
+        return compile_s
+
+    def run(self):
+        if self.graph is not None:
+            self.wp.capture_launch(self.graph)
+        else:
+            self.step_fn(self.steps)
+
+    def time_once(self):
+        wp = self.wp
+        wp.synchronize_device(self.device)
+        c0, t0 = time.process_time(), time.perf_counter()
+        self.run()
+        wp.synchronize_device(self.device)
+        self.wall.append(time.perf_counter() - t0)
+        self.cpu.append(time.process_time() - c0)
+
+    def ms_per_step(self) -> float:
+        return 1e3 * float(np.median(self.wall)) / self.steps
+
+    def cpu_ms_per_step(self) -> float:
+        return 1e3 * float(np.median(self.cpu)) / self.steps
+
+
+class _OurCase(_Case):
+    """Our integrator on one model; ``options`` (fused, fuse_contact) go to ExplicitIntegrator."""
+
+    def __init__(self, model, method, dt, steps, use_graph, options=None):
+        from .integrators import ExplicitIntegrator, make_integrator  # noqa: PLC0415
+
+        self.model = model
+        self.method = method
+        try:
+            self.integrator = (
+                ExplicitIntegrator(model, method, **options) if options else make_integrator(method, model)
+            )
+        except ImportError as exc:  # the implicit integrator lives in its own module
+            raise CommandLineError("--integrators", f"{method} is not available here ({exc})", method) from None
+        self.states = [model.state(), model.state()]
+
+        def step(count):
+            for k in range(count):
+                self.integrator.step(self.states[k % 2], self.states[1 - k % 2], dt)
+
+        super().__init__(model.device, step, steps, use_graph)
+
+    def finite(self) -> bool:
+        return bool(np.all(np.isfinite(self.states[0].particle_q.numpy())))
+
+
+class _SeparateCase(_Case):
+    """Several models stepped one after another (the unbatched reference for ``--variants``)."""
+
+    def __init__(self, models, method, dt, steps, use_graph):
+        self.parts = [_OurCase(m, method, dt, steps, False) for m in models]
+
+        def step(count):
+            for part in self.parts:
+                part.step_fn(count)
+
+        super().__init__(models[0].device, step, steps, use_graph)
+
+    def finite(self) -> bool:
+        return all(p.finite() for p in self.parts)
+
+
+class _NewtonCase(_Case):
+    def __init__(self, model, spec: JellySpec, steps, use_graph):
+        from .bench_newton import NewtonJelly  # noqa: PLC0415
+
+        t0 = time.perf_counter()
+        self.jelly = NewtonJelly(
+            model.particle_q_host,
+            model.spring_indices_host,
+            model.spring_rest_host,
+            model.spring_stiffness_host,
+            model.spring_damping_host,
+            model.particle_mass_host,
+            model.gravity_host,
+            0.0,
+            model.device,
+        )
+        self.build_s = time.perf_counter() - t0
+        dt = spec.dt
+        super().__init__(model.device, lambda count: self.jelly.step(dt, count), steps, use_graph)
+
+    def finite(self) -> bool:
+        return bool(np.all(np.isfinite(self.jelly.positions())))
+
+
+# -- the command ---------------------------------------------------------------------------------
+
+
+def _parse_list(text, flag, allowed=None, convert=str):
+    items = [t.strip() for t in str(text).split(",") if t.strip()]
+    if not items:
+        raise CommandLineError(flag, "needs at least one value", text)
+    out = []
+    for item in items:
+        try:
+            value = convert(item)
+        except ValueError:
+            raise CommandLineError(flag, "not a comma-separated list of integers", text) from None
+        if allowed is not None and value not in allowed:
+            raise CommandLineError(flag, f"unknown value {item!r}; choose from {', '.join(allowed)}", text)
+        out.append(value)
+    return out
+
+
+def add_parser(subparsers, add_common):
+    p = subparsers.add_parser("bench", help="particle-steps per second per jelly size and integrator (and vs Newton)")
+    p.add_argument(
+        "--sizes", default="10,20,40", help="jelly sizes n (n^3 particles), comma-separated (default 10,20,40)"
+    )
+    p.add_argument(
+        "--integrators", default=",".join(DEFAULT_INTEGRATORS), help="comma-separated (default: all explicit)"
+    )
+    p.add_argument(
+        "--paths", default="auto", help="force paths: auto (what the model picks), lattice, springs; comma-separated"
+    )
+    p.add_argument("--steps", type=int, default=200, help="steps per timed repeat (default 200)")
+    p.add_argument("--repeats", type=int, default=7, help="timed repeats; the median is reported (default 7)")
+    p.add_argument("--copies", type=int, default=1, help="copies of the jelly, one per world, in one model (batching)")
+    p.add_argument("--precision", choices=["float32", "float64"], default="float32")
+    p.add_argument("--no-graph", action="store_true", help="launch kernels one by one instead of replaying a graph")
+    p.add_argument("--scene", help="benchmark this scene (name or .toml, with its dt) instead of the size sweep")
+    p.add_argument("--peer", choices=["newton"], help="also step the same jelly with Newton's SolverSemiImplicit")
+    p.add_argument(
+        "--variants",
+        action="store_true",
+        help="measure the fast paths one by one (graph, lattice, fusion, batching) instead of --paths",
+    )
+    p.add_argument("--out", help="write the results as JSON")
+    p.add_argument("--plot", help="write a log-log plot of particle-steps/s over particle count (PNG)")
+    add_common(p)
+    return p
+
+
+def _versions(peer):
+    import warp as wp  # noqa: PLC0415
+
+    from . import __version__  # noqa: PLC0415
+
+    versions = {
+        "softsim": __version__,
+        "warp": wp.config.version,
+        "numpy": np.__version__,
+        "python": platform.python_version(),
+    }
+    if peer:
+        from .bench_newton import newton_version  # noqa: PLC0415
+
+        versions["newton"] = newton_version()
+    return versions
+
+
+def _device_name(device) -> str:
+    if device.is_cuda:
+        return f"{device.name} ({device.alias})"
+    name = platform.processor() or platform.machine()
+    try:
+        with open("/proc/cpuinfo") as f:
+            for line in f:
+                if line.startswith("model name"):
+                    name = line.split(":", 1)[1].strip()
+                    break
+    except OSError:
+        pass
+    return f"{name} (Warp runs a CPU kernel on one core)"
+
+
+def run(args) -> int:
+    from .cli import resolve_device  # noqa: PLC0415
+    from .outputs import check_writable, write_json_atomic  # noqa: PLC0415
+
+    sizes = _parse_list(args.sizes, "--sizes", convert=int)
+    if any(n < 2 for n in sizes):
+        raise CommandLineError("--sizes", "each size must be at least 2", args.sizes)
+    methods = _parse_list(args.integrators, "--integrators", allowed=DEFAULT_INTEGRATORS + ("implicit",))
+    paths = _parse_list(args.paths, "--paths", allowed=("auto", "lattice", "springs"))
+    for flag, value, low in (("--steps", args.steps, 1), ("--repeats", args.repeats, 1), ("--copies", args.copies, 1)):
+        if value < low:
+            raise CommandLineError(flag, f"must be at least {low}", value)
+    if args.peer and args.scene:
+        raise CommandLineError("--peer", "compares the size sweep only; leave out --scene", args.peer)
+    if args.out:
+        check_writable(args.out, "--out", suffixes=(".json",))
+    if args.plot:
+        check_writable(args.plot, "--plot", suffixes=(".png",))
+    device = resolve_device(args.device)
+    if args.peer:
+        from .bench_newton import newton_version  # noqa: PLC0415
+
+        try:
+            newton_version()
+        except RuntimeError as exc:
+            raise CommandLineError("--peer", str(exc), args.peer) from None
+
+    import warp as wp  # noqa: PLC0415
+
+    wp.config.quiet = True
+    wp.init()
+    spec = JellySpec()
+    bandwidth = measure_copy_bandwidth(device)
+    use_graph = not args.no_graph
+    results, peers = [], []
+
+    if args.scene:
+        from .model import build_model  # noqa: PLC0415
+        from .scene import load_scene  # noqa: PLC0415
+
+        scene = load_scene(args.scene, args.overrides)
+        groups = [
+            (
+                scene.name,
+                lambda path, copies=1: build_model(scene, device, args.precision, force_path=path),
+                scene.sim["dt"],
+            )
+        ]
+    else:
+        groups = [
+            (
+                f"{n}^3",
+                lambda path, copies=args.copies, n=n: build_jelly_model(n, spec, device, path, args.precision, copies),
+                spec.dt,
+            )
+            for n in sizes
+        ]
+
+    for label, make_model, dt in groups:
+        if args.variants:
+            cases = _variant_cases(label, make_model, dt, methods, args, device, use_graph)
+        else:
+            cases = _standard_cases(label, make_model, dt, methods, paths, args, use_graph)
+        peer = None
+        if args.peer:
+            # Newton gets the spring list of the same jelly; building it is not timed.
+            peer = _NewtonCase(cases[0].model, spec, args.steps, use_graph)
+        everyone = cases + ([peer] if peer else [])
+        for case in everyone:
+            case.compile_s = case.prepare()
+        for _ in range(args.repeats):
+            for case in everyone:
+                case.time_once()
+        peer_row = None
+        if peer is not None:
+            peer_row = {
+                "case": label,
+                "particles": cases[0].model.particle_count,
+                "springs": cases[0].model.spring_count,
+                "solver": "newton.SolverSemiImplicit",
+                "ms_per_step": peer.ms_per_step(),
+                "steps_per_s": 1e3 / peer.ms_per_step(),
+                "particle_steps_per_s": cases[0].model.particle_count * 1e3 / peer.ms_per_step(),
+                "compile_s": peer.compile_s,
+                "build_s": peer.build_s,
+                "graph": use_graph,
+                "finite": peer.finite(),
+            }
+            peers.append(peer_row)
+        rows = [
+            _result_row(case, bandwidth, peer_row, case.use_graph, case.meta.get("copies", args.copies))
+            for case in cases
+        ]
+        if args.variants:
+            _relative_speeds(rows)
+        results += rows
+
+    _print_table(results, bandwidth, device)
+    data = {
+        "arguments": {k: v for k, v in vars(args).items() if isinstance(v, (str, int, float, bool, list, type(None)))},
+        "date": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"),
+        "device": str(device),
+        "device_name": _device_name(device),
+        "versions": _versions(args.peer),
+        "bandwidth_gbs": bandwidth / 1e9,
+        "settings": {
+            "steps": args.steps + (args.steps % 2),
+            "repeats": args.repeats,
+            "graph": use_graph,
+            "precision": args.precision,
+            "copies": args.copies,
+            "jelly": asdict(spec) if not args.scene else None,
+            "scene": args.scene,
+        },
+        "results": results,
+        "peer": peers,
+    }
+    if args.out:
+        write_json_atomic(args.out, data)
+    if args.plot:
+        plot(data, args.plot)
+    return 0
+
+
+def _standard_cases(label, make_model, dt, methods, paths, args, use_graph):
+    """Every integrator on every requested force path, with the model's own choices (the defaults)."""
+    cases = []
+    for path in paths:
+        t0 = time.perf_counter()
+        try:
+            model = make_model(path)
+        except ValueError as exc:  # e.g. --paths lattice for a scene with custom springs
+            raise CommandLineError("--paths", str(exc), path) from None
+        build_s = time.perf_counter() - t0
+        for method in methods:
+            case = _OurCase(model, method, dt, args.steps, use_graph)
+            case.meta = {
+                "case": label,
+                "path": path,
+                "resolved_path": _path_name(model),
+                "integrator": method,
+                "build_s": build_s,
+            }
+            cases.append(case)
+    return cases
+
+
+def fast_path_variants(device):
+    """The ``--variants`` ablation: (label, force path, lattice kernel, integrator options, graph), slowest first.
+
+    The CPU row kernel is left out on CUDA, where one thread per jelly would leave the GPU idle.
+    """
+    variants = [
+        ("springs, plain launches", "springs", None, None, False),
+        ("springs, graph", "springs", None, None, True),
+        ("lattice gather, unfused, graph", "lattice", "gather", {"fused": False}, True),
+        ("lattice gather, fused, graph", "lattice", "gather", {"fused": True, "fuse_contact": False}, True),
+        ("lattice gather, fused+contact, graph", "lattice", "gather", {"fused": True, "fuse_contact": True}, True),
+    ]
+    if device.is_cpu:
+        variants += [
+            ("lattice rows, unfused, graph", "lattice", "rows", {"fused": False}, True),
+            ("lattice rows, fused, plain launches", "lattice", "rows", {"fused": True}, False),
+            ("lattice rows, fused, graph", "lattice", "rows", {"fused": True}, True),
+        ]
+    else:
+        variants.append(
+            (
+                "lattice gather, fused+contact, plain launches",
+                "lattice",
+                "gather",
+                {"fused": True, "fuse_contact": True},
+                False,
+            )
+        )
+    return variants
+
+
+def _variant_cases(label, make_model, dt, methods, args, device, use_graph):
+    """Fast paths one by one (see :func:`fast_path_variants`) and, for the size sweep, batching."""
+    cases = []
+    for name, path, kernel, options, graph in fast_path_variants(device):
+        model = make_model(path, 1)
+        if kernel is not None:
+            model.lattice.set_kernel(kernel)
+        for method in methods:
+            case = _OurCase(model, method, dt, args.steps, graph, options)
+            case.meta = {"case": label, "path": path, "resolved_path": name, "integrator": method, "copies": 1}
+            cases.append(case)
+    copies = args.copies if args.copies > 1 else 8
+    # Batching is about many small scenes; past a million particles one copy fills the device.
+    if not args.scene and copies * cases[0].model.particle_count <= BATCH_MAX_PARTICLES:
+        for method in methods:
+            batch = _OurCase(make_model("auto", copies), method, dt, args.steps, use_graph)
+            batch.meta = {
+                "case": label,
+                "path": "auto",
+                "resolved_path": f"batch: {copies} copies, one model",
+                "integrator": method,
+                "copies": copies,
+            }
+            separate = _SeparateCase([make_model("auto", 1) for _ in range(copies)], method, dt, args.steps, use_graph)
+            separate.model, separate.integrator = separate.parts[0].model, separate.parts[0].integrator
+            separate.states = separate.parts[0].states
+            separate.method = method
+            separate.meta = {
+                "case": label,
+                "path": "auto",
+                "resolved_path": f"batch: {copies} separate models",
+                "integrator": method,
+                "copies": copies,
+                "separate_models": copies,
+            }
+            cases += [separate, batch]
+    return cases
+
+
+def _relative_speeds(rows):
+    """Per integrator: speed over the first variant (springs, plain launches) and over the previous row."""
+    by_method = {}
+    for r in rows:
+        by_method.setdefault(r["integrator"], []).append(r)
+    for group in by_method.values():
+        base = group[0]["ms_per_step"] / group[0]["particles"]
+        prev = None
+        for r in group:
+            per_particle = r["ms_per_step"] / r["particles"]
+            r["speedup_vs_baseline"] = base / per_particle
+            r["speedup_vs_previous"] = prev / per_particle if prev else None
+            prev = per_particle
+
+
+def _path_name(model) -> str:
+    if model.lattice is None:
+        return "springs"
+    return f"lattice-{model.lattice.kernel}"
+
+
+def _result_row(case, bandwidth, peer_row, use_graph, copies) -> dict:
+    parts = getattr(case, "parts", [case])  # K separate models step as one case
+    ms = case.ms_per_step()
+    n = sum(p.model.particle_count for p in parts)
+    springs = sum(p.model.spring_count for p in parts)
+    moved = sum(step_bytes(p.model, p.integrator) for p in parts) if case.method in STAGES else None
+    held = 0
+    for p in parts:
+        held += device_arrays_bytes(p.model, p.integrator, *p.states)
+        held += device_arrays_bytes(p.model.lattice) if p.model.lattice is not None else 0
+    integrator = case.integrator
+    row = dict(case.meta)
+    row.update(
+        {
+            "particles": n,
+            "springs": springs,
+            "copies": copies,
+            "graph": use_graph,
+            "fused": bool(getattr(integrator, "fused", False)),
+            "ms_per_step": ms,
+            "cpu_ms_per_step": case.cpu_ms_per_step() if case.device.is_cpu else None,
+            "steps_per_s": 1e3 / ms,
+            "particle_steps_per_s": n * 1e3 / ms,
+            # Force evaluations per step: the explicit methods' stage counts (unknown for implicit).
+            "spring_evals_per_s": springs * STAGES[case.method] * 1e3 / ms if case.method in STAGES else None,
+            "compile_s": case.compile_s,
+            "memory_bytes": held,
+            "memory_method": "sum of the Warp arrays of model, integrator and states",
+            "bytes_per_step": moved,
+            "bandwidth_fraction": (moved / (ms * 1e-3)) / bandwidth if moved else None,
+            "finite": case.finite(),
+            "repeats_ms_per_step": [1e3 * t / case.steps for t in case.wall],
+        }
+    )
+    if case.device.is_cuda:
+        import warp as wp  # noqa: PLC0415
+
+        row["mempool_used_bytes"] = int(wp.get_mempool_used_mem_current(case.device))
+        row["mempool_high_bytes"] = int(wp.get_mempool_used_mem_high(case.device))
+    if peer_row is not None:
+        row["newton_ms_per_step"] = peer_row["ms_per_step"]
+        # Per particle-step, so that rows of several copies compare too (one copy: the step ratio).
+        row["speedup_vs_newton"] = (peer_row["ms_per_step"] / peer_row["particles"]) / (ms / n)
+    return row
+
+
+def _si(x: float) -> str:
+    if x is None:
+        return "-"
+    if x == 0:
+        return "0"
+    exp = math.floor(math.log10(abs(x)) / 3)
+    exp = max(min(exp, 4), -2)
+    prefix = {-2: "u", -1: "m", 0: "", 1: "k", 2: "M", 3: "G", 4: "T"}[exp]
+    return f"{x / 10 ** (3 * exp):.3g}{prefix}"
+
+
+def _print_table(results, bandwidth, device):
+    print(f"device {device} ({_device_name(device)}), copy bandwidth {bandwidth / 1e9:.1f} GB/s (read + write)")
+    variants = any("speedup_vs_baseline" in r for r in results)
+    header = [
+        "case",
+        "integrator",
+        "variant" if variants else "path",
+        "particles",
+        "springs",
+        "ms/step",
+        "particle-steps/s",
+        "spring-evals/s",
+        "compile s",
+        "memory",
+        "bytes/step",
+        "% bw",
+    ]
+    header += ["x base", "x prev"] if variants else []
+    header += ["x newton"] if any("speedup_vs_newton" in r for r in results) else []
+    rows = []
+    for r in results:
+        row = [
+            r["case"],
+            r["integrator"],
+            r["resolved_path"] if variants else r["resolved_path"] + ("+fused" if r["fused"] else ""),
+            str(r["particles"]),
+            str(r["springs"]),
+            f"{r['ms_per_step']:.4g}",
+            _si(r["particle_steps_per_s"]),
+            _si(r["spring_evals_per_s"]) if r["spring_evals_per_s"] else "-",
+            f"{r['compile_s']:.3g}",
+            _si(r["memory_bytes"]) + "B",
+            _si(r["bytes_per_step"]) + "B" if r["bytes_per_step"] else "-",
+            f"{100 * r['bandwidth_fraction']:.1f}" if r["bandwidth_fraction"] else "-",
+        ]
+        if variants:
+            row += [
+                f"{r['speedup_vs_baseline']:.2f}",
+                f"{r['speedup_vs_previous']:.2f}" if r.get("speedup_vs_previous") else "-",
+            ]
+        if "x newton" in header:
+            row.append(f"{r['speedup_vs_newton']:.2f}" if "speedup_vs_newton" in r else "-")
+        rows.append(row)
+    widths = [max(len(h), *(len(row[i]) for row in rows)) for i, h in enumerate(header)]
+
+    def line(cells):
+        # Text columns left-aligned, numbers right-aligned.
+        return "  ".join(c.ljust(w) if i < 3 else c.rjust(w) for i, (c, w) in enumerate(zip(cells, widths)))
+
+    print(line(header))
+    for row in rows:
+        print(line(row))
+    newton = {}
+    for r in results:
+        if "newton_ms_per_step" in r:
+            newton[r["case"]] = r["newton_ms_per_step"]
+    for case, ms in newton.items():
+        print(f"newton SolverSemiImplicit {case}: {ms:.4g} ms/step ({1e3 / ms:.4g} steps/s)")
+
+
+def plot(data: dict, path: str):
+    """Log-log plot of particle-steps/s over particle count, one line per integrator and path (and Newton)."""
+    import matplotlib  # noqa: PLC0415
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt  # noqa: PLC0415
+
+    fig, ax = plt.subplots(figsize=(9, 4.5))
+    lines = {}
+    for r in data["results"]:
+        key = f"{r['integrator']} ({r['resolved_path']}{'+fused' if r['fused'] else ''})"
+        lines.setdefault(key, []).append((r["particles"], r["particle_steps_per_s"]))
+    for key, pts in sorted(lines.items()):
+        pts.sort()
+        ax.plot(*zip(*pts), marker="o", label=key)
+    if data.get("peer"):
+        pts = sorted((p["particles"], p["particle_steps_per_s"]) for p in data["peer"])
+        ax.plot(*zip(*pts), marker="s", linestyle="--", color="black", label="Newton SolverSemiImplicit")
+    ax.set_xscale("log")
+    ax.set_yscale("log")
+    ax.set_xlabel("particles")
+    ax.set_ylabel("particle-steps / s")
+    ax.set_title(f"softsim bench on {data['device_name']}", fontsize=9)
+    ax.grid(True, which="both", alpha=0.3)
+    ax.legend(fontsize=7, loc="center left", bbox_to_anchor=(1.01, 0.5))
+    fig.tight_layout()
+    fig.savefig(path, dpi=120)
+    plt.close(fig)

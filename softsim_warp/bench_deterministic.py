@@ -1,0 +1,144 @@
+"""Cost of ``--deterministic``: step time of the atomic-free force path against the atomic one.
+
+Run::
+
+    python -m softsim_warp.bench_deterministic --device cpu --json bench_det_cpu.json
+    python -m softsim_warp.bench_deterministic --device cuda:0 --res 10 40 100 --json bench_det_cuda.json
+
+For each lattice resolution and integrator it builds the jelly_drop scene twice (atomic and
+deterministic), compiles and warms up, then times ``--steps`` steps ``--repeats`` times, the two
+variants alternately (on CUDA one captured graph, wall time; on the CPU launch by launch, the
+calling thread's CPU time, since Warp runs CPU kernels on that thread and other processes on the
+machine then do not skew the numbers). It reports the median time per step and the median ratio
+deterministic / atomic. Compile time is recorded apart. Nothing here is asserted.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import statistics
+import sys
+import time
+
+
+class Case:
+    """One model and integrator, warmed up, that times ``steps`` steps (a captured graph on CUDA)."""
+
+    def __init__(self, device, res, integrator, deterministic, steps, dt=1e-4):
+        import warp as wp  # noqa: PLC0415
+
+        from .integrators import make_integrator  # noqa: PLC0415
+        from .model import build_model  # noqa: PLC0415
+        from .scene import load_scene  # noqa: PLC0415
+
+        self.wp, self.device, self.steps, self.dt = wp, device, steps, dt
+        scene = load_scene("jelly_drop", [f"jelly.0.resolution=[{res},{res},{res}]"])
+        self.model = build_model(scene, device=device, deterministic=deterministic)
+        self.integ = make_integrator(integrator, self.model)
+        self.states = [self.model.state(), self.model.state()]
+        t0 = time.perf_counter()
+        self._run(2)
+        wp.synchronize_device(device)
+        self.compile_seconds = time.perf_counter() - t0
+        self.graph = None
+        if wp.get_device(device).is_cuda:
+            with wp.ScopedCapture(device=device) as cap:
+                self._run(steps)
+            self.graph = cap.graph
+
+    def _run(self, n):
+        for i in range(n):
+            self.integ.step(self.states[i % 2], self.states[(i + 1) % 2], self.dt)
+
+    def time(self) -> tuple[float, float]:
+        """(wall seconds, this thread's CPU seconds) per step."""
+        wp = self.wp
+        wp.synchronize_device(self.device)
+        t0, c0 = time.perf_counter(), time.thread_time()
+        if self.graph is not None:
+            wp.capture_launch(self.graph)
+        else:
+            self._run(self.steps)
+        wp.synchronize_device(self.device)
+        return (time.perf_counter() - t0) / self.steps, (time.thread_time() - c0) / self.steps
+
+
+def compare(device, res, integrator, steps, repeats) -> dict:
+    """Atomic against deterministic, timed alternately so that a busy machine slows both alike."""
+    cases = {
+        "atomic": Case(device, res, integrator, False, steps),
+        "deterministic": Case(device, res, integrator, True, steps),
+    }
+    samples = {name: [] for name in cases}
+    for _ in range(repeats):
+        for name, case in cases.items():
+            samples[name].append(case.time())
+    out = {
+        "res": res,
+        "integrator": integrator,
+        "particles": cases["atomic"].model.particle_count,
+        "springs": cases["atomic"].model.spring_count,
+    }
+    # On the CPU, Warp runs kernels on the calling thread: its CPU time is the cost, unaffected by
+    # other processes taking turns on the cores. On CUDA the wall time of the graph is.
+    use_cpu_time = not cases["atomic"].model.device.is_cuda
+    for name, case in cases.items():
+        out[name] = {
+            "compile_seconds": case.compile_seconds,
+            "wall_seconds_per_step": statistics.median(w for w, _ in samples[name]),
+            "cpu_seconds_per_step": statistics.median(c for _, c in samples[name]),
+        }
+    key = "cpu_seconds_per_step" if use_cpu_time else "wall_seconds_per_step"
+    ratios = [
+        d[1 if use_cpu_time else 0] / a[1 if use_cpu_time else 0]
+        for a, d in zip(samples["atomic"], samples["deterministic"])
+    ]
+    out["timed"] = key
+    out["ratio"] = statistics.median(ratios)
+    return out
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(prog="python -m softsim_warp.bench_deterministic", description=__doc__.splitlines()[0])
+    p.add_argument("--device", default="cpu")
+    p.add_argument("--res", type=int, nargs="+", default=[10, 20, 30], help="particles per axis")
+    p.add_argument("--integrators", nargs="+", default=["symplectic", "rk4"])
+    p.add_argument("--steps", type=int, default=50)
+    p.add_argument("--repeats", type=int, default=5)
+    p.add_argument("--json", help="write the rows as JSON")
+    a = p.parse_args(argv)
+
+    import warp as wp  # noqa: PLC0415
+
+    wp.config.log_level = wp.LOG_WARNING
+    wp.init()
+    device = wp.get_device(a.device)
+    rows = []
+    timed = "CPU-thread" if not device.is_cuda else "wall (graph)"
+    print(f"device {device} ({device.name}), warp {wp.config.version}, {a.steps} steps x {a.repeats}, {timed} time")
+    print(
+        f"{'res':>5} {'particles':>10} {'springs':>10} {'integrator':>10} {'atomic ms/step':>15} "
+        f"{'determ. ms/step':>16} {'ratio':>6}"
+    )
+    for res in a.res:
+        for integrator in a.integrators:
+            row = compare(device, res, integrator, a.steps, a.repeats)
+            row["device"], row["device_name"] = str(device), device.name
+            rows.append(row)
+            k = row["timed"]
+            print(
+                f"{res:>5} {row['particles']:>10} {row['springs']:>10} {integrator:>10} "
+                f"{1e3 * row['atomic'][k]:>15.4f} {1e3 * row['deterministic'][k]:>16.4f} {row['ratio']:>6.2f}"
+            )
+            sys.stdout.flush()
+    if a.json:
+        with open(a.json, "w") as f:
+            json.dump(
+                {"warp_version": wp.config.version, "steps": a.steps, "repeats": a.repeats, "rows": rows}, f, indent=1
+            )
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

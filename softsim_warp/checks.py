@@ -1,0 +1,177 @@
+"""Checks of a scene as a whole, run by :func:`softsim_warp.scene.validate` after the schema.
+
+The schema checks each value alone; these check what only the whole scene shows:
+
+* every number is representable in the scene's precision (a stiffness of 1e39 is finite in the
+  TOML file but infinite in float32, and a mass of 1e-40 is zero there, so 1/m is infinite);
+* neighbouring particles are farther apart than the precision can resolve at their position;
+* the scene fits in host memory before anything is built (:mod:`softsim_warp.resources`);
+* no jelly starts inside terrain: every terrain type registers a signed-distance function in
+  :data:`TERRAIN_SDF`, evaluated in NumPy on the jelly's initial particles.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from .resources import check_host_build
+
+# Normal range of each precision: a non-zero value outside it becomes 0 or inf on the device.
+PRECISION_RANGE = {
+    "float32": (float(np.finfo(np.float32).tiny), float(np.finfo(np.float32).max)),
+    "float64": (float(np.finfo(np.float64).tiny), float(np.finfo(np.float64).max)),
+}
+PRECISION_EPS = {"float32": float(np.finfo(np.float32).eps), "float64": float(np.finfo(np.float64).eps)}
+
+# Particles per chunk when evaluating terrain distances, so a large jelly is checked in bounded memory.
+_CHUNK = 1 << 18
+
+
+def plane_signed_distance(plane: dict, points: np.ndarray) -> np.ndarray:
+    """Signed distance [m] of ``points`` (N, 3) to a validated ``[[plane]]`` (unit normal), +inf over its hole.
+
+    Positive on the side the normal points to; a point over the hole passes through the plane,
+    as in ``kernels/contact.py: plane_distance``, so it can never be inside it.
+    """
+    n = np.asarray(plane["normal"], dtype=np.float64)
+    phi = (points - np.asarray(plane["point"], dtype=np.float64)) @ n
+    hole = plane.get("hole")
+    if hole:
+        r = points - np.asarray(hole["center"], dtype=np.float64)
+        r = r - np.outer(r @ n, n)
+        phi = np.where(np.einsum("ij,ij->i", r, r) < hole["radius"] ** 2, np.inf, phi)
+    return phi
+
+
+def sphere_signed_distance(sphere: dict, points: np.ndarray) -> np.ndarray:
+    """Signed distance [m] to a solid ``[[sphere]]``, positive outside (``kernels/contact.py: sphere_distance``)."""
+    return np.linalg.norm(points - np.asarray(sphere["center"], dtype=np.float64), axis=1) - sphere["radius"]
+
+
+def bowl_signed_distance(bowl: dict, points: np.ndarray) -> np.ndarray:
+    """Signed distance [m] to a ``[[bowl]]`` shell, positive inside its sphere, +inf at or above the cut.
+
+    As ``kernels/contact.py: bowl_distance``. The bowl is a shell: both sides are free space, so
+    it is listed in :data:`SHELLS` and a jelly may start on either side, but not across it.
+    """
+    phi = bowl["radius"] - np.linalg.norm(points - np.asarray(bowl["center"], dtype=np.float64), axis=1)
+    cut = bowl.get("cut_height", math.inf)
+    return np.where(points[:, 1] >= cut, np.inf, phi)
+
+
+# Scene key of each terrain type -> signed distance of points to one entry (positive = free space,
+# +inf where the entry does not collide). A new terrain type adds its function here.
+TERRAIN_SDF = {"plane": plane_signed_distance, "sphere": sphere_signed_distance, "bowl": bowl_signed_distance}
+# Terrain types that are thin shells: particles behind them (phi < 0) pass through, so a jelly is
+# wrong only when the shell cuts it, some particles in front and some behind.
+SHELLS = {"bowl"}
+
+
+def jelly_points(jelly: dict, chunk: int = _CHUNK):
+    """Yield a validated jelly's initial particle positions [m] in chunks of at most ~``chunk`` rows.
+
+    Same placement as ``ModelBuilder.add_jelly``: the lattice centred on the origin, rotated, then
+    moved to ``center``.
+    """
+    from .model import rotation_matrix  # noqa: PLC0415
+
+    shape = [int(n) for n in jelly["resolution"]]
+    size = jelly["size"]
+    center = np.asarray(jelly["center"], dtype=np.float64)
+    rows = max(1, chunk // max(shape[1] * shape[2], 1))
+    # Extreme but finite float64 scenes may overflow to inf here; that is no error (and NumPy's
+    # warning would break the one-line answer).
+    with np.errstate(all="ignore"):
+        axes = [np.linspace(-0.5 * s, 0.5 * s, n) if n > 1 else np.zeros(1) for n, s in zip(shape, size)]
+        rot = rotation_matrix(jelly["rotation"]["axis"], jelly["rotation"]["degrees"])
+        # x = center + R (a_i, b_j, c_k) = center + a_i R[:, 0] + b_j R[:, 1] + c_k R[:, 2], by
+        # broadcasting (an (N, 3) @ (3, 3) product is many times slower in NumPy).
+        ey = axes[1][None, :, None, None] * rot[:, 1]
+        ez = axes[2][None, None, :, None] * rot[:, 2]
+    for i0 in range(0, shape[0], rows):
+        with np.errstate(all="ignore"):
+            ex = axes[0][i0 : i0 + rows, None, None, None] * rot[:, 0]
+            pts = ((ex + center) + ey + ez).reshape(-1, 3)
+        yield pts
+
+
+def _check_precision(value, key, ctx, lo, hi, precision):
+    if isinstance(value, dict):
+        for k, v in value.items():
+            _check_precision(v, f"{key}.{k}" if key else k, ctx, lo, hi, precision)
+    elif isinstance(value, list):
+        for i, v in enumerate(value):
+            # Vectors are reported whole; lists of tables by index.
+            _check_precision(v, f"{key}.{i}" if isinstance(v, dict) else key, ctx, lo, hi, precision)
+    elif isinstance(value, float) and value != 0.0 and not lo <= abs(value) <= hi:
+        ctx.fail(
+            key,
+            f"is outside the range of {precision} ({lo:.3g} to {hi:.3g} in magnitude); "
+            f'use a value in range or simulation.precision = "float64"',
+            value,
+        )
+
+
+def _check_spacing(jelly, key, ctx, precision):
+    """Neighbours must stay distinct after rounding positions to the precision."""
+    extent = max(abs(c) for c in jelly["center"]) + 0.5 * math.sqrt(sum(s * s for s in jelly["size"]))
+    resolution = PRECISION_EPS[precision] * max(extent, 1e-300)
+    for n, s in zip(jelly["resolution"], jelly["size"]):
+        if n > 1 and s / (n - 1) <= 4 * resolution:
+            # 4 ulps: below that, rest lengths are mostly rounding error and spring forces noise.
+            ctx.fail(
+                f"{key}.size",
+                f"particle spacing {s / (n - 1):.3g} m is below the {precision} resolution at this position "
+                f"(4 x eps x {extent:.3g} m = {4 * resolution:.3g} m)",
+                jelly["size"],
+            )
+
+
+def check_terrain_overlap(data: dict, ctx):
+    """Fail if a jelly starts inside terrain: a particle with negative signed distance to a solid (plane,
+    sphere), or particles on both sides of a shell (bowl)."""
+    terrain = [(kind, i, entry) for kind, sdf in TERRAIN_SDF.items() for i, entry in enumerate(data.get(kind, []))]
+    if not terrain:
+        return
+    for j, jelly in enumerate(data["jelly"]):
+        for kind, i, entry in terrain:
+            sdf = TERRAIN_SDF[kind]
+            inside, deepest, front = 0, 0.0, 0
+            for pts in jelly_points(jelly):
+                with np.errstate(all="ignore"):  # overflow is no error here (see jelly_points)
+                    phi = sdf(entry, pts)
+                bad = phi < 0.0
+                front += int(((phi >= 0.0) & np.isfinite(phi)).sum())
+                if bad.any():
+                    inside += int(bad.sum())
+                    deepest = max(deepest, float(-phi[bad].min()))
+            total = math.prod(jelly["resolution"])
+            if kind in SHELLS:
+                if inside and front:
+                    ctx.fail(
+                        f"jelly.{j}.center",
+                        f"jelly starts across the shell of {kind}.{i}: {inside} of {total} particles are behind it "
+                        f"and {front} in front, up to {deepest:.4g} m behind; move the jelly or the {kind}",
+                        jelly["center"],
+                    )
+                continue
+            if inside:
+                ctx.fail(
+                    f"jelly.{j}.center",
+                    f"jelly starts inside terrain: {inside} of {total} particles are inside {kind}.{i}, "
+                    f"the deepest by {deepest:.4g} m; move the jelly or the terrain",
+                    jelly["center"],
+                )
+
+
+def check_scene(data: dict, ctx):
+    """All whole-scene checks; ``ctx.fail(key, message, value)`` raises the one-line error."""
+    precision = data["simulation"]["precision"]
+    lo, hi = PRECISION_RANGE[precision]
+    _check_precision(data, "", ctx, lo, hi, precision)
+    for j, jelly in enumerate(data["jelly"]):
+        _check_spacing(jelly, f"jelly.{j}", ctx, precision)
+    check_host_build(data, ctx.source)
+    check_terrain_overlap(data, ctx)

@@ -1,0 +1,631 @@
+"""``softsim compare``: one scene under several integrators or parameter values, side by side.
+
+Every variant becomes one *world* (a copy) of a single model, so one launch of each kernel
+advances all copies: :class:`~softsim_warp.integrators.ExplicitIntegrator` takes one method per
+world, and springs and contacts only ever join particles and terrain of the same world. The
+copies are laid out in a grid in one USD stage, each under ``/World/<variant>``, in the order
+given (four variants make the report's 2x2: explicit Euler, implicit Euler / midpoint, RK4).
+
+Implicit variants cannot share those launches: the implicit integrator solves one linear system
+for its whole model and stops its conjugate-gradient iterations on a residual norm over all
+particles, so copies in one system would change each other's iteration counts. Each implicit
+variant therefore runs as a model of its own, stepped frame by frame in lockstep with the
+explicit batch; the stage and the metrics do not show the difference.
+
+All copies share one clock and one model-wide setting: the ``[simulation]`` table (dt, duration,
+fps, gravity, contact tolerances, precision) must be the same for every variant; varying one of
+its keys is refused with a one-line error (run those values as separate ``softsim run``s).
+"""
+
+from __future__ import annotations
+
+import copy
+import itertools
+import math
+import re
+import sys
+import types
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from .errors import CommandLineError, SceneError, UserError
+
+COMMAND = "compare"
+DEFAULT_INTEGRATORS = ("euler", "implicit", "midpoint", "rk4")  # the report's 2x2
+
+
+# ---------------------------------------------------------------------------------------------
+# Command line
+
+
+def add_parser(subparsers, add_common):
+    p = subparsers.add_parser(
+        COMMAND,
+        help="run copies of a scene with different integrators or parameters side by side in one USD stage",
+        description="Run one copy of SCENE per variant (integrator and/or --vary values) in the same launches and "
+        "write them side by side, laid out in a grid, to one USD stage.",
+    )
+    p.add_argument("scene", help="scene file (.toml) or built-in scene name")
+    p.add_argument(
+        "--integrators",
+        help="comma-separated integrators, one copy each, in grid order "
+        f"(default {','.join(DEFAULT_INTEGRATORS)}; with --vary: the scene's integrator)",
+    )
+    p.add_argument("--vary", action="append", default=[], metavar="KEY=V1,V2,...",
+                   help="one copy per value of a dotted scene key, e.g. jelly.0.springs.structural.ks=1000,2000; "
+                   "several --vary make a product")
+    p.add_argument("--out", help="USD output (.usdc or .usda; default <scene>_compare.usdc)")
+    p.add_argument("--metrics", help="write per-copy, per-frame metrics as JSON")
+    p.add_argument("--plot", help="write a PNG of COM height, total energy and deformation over time, one line per copy")
+    p.add_argument("--columns", type=int, help="copies per grid row (default ceil(sqrt(copies)))")
+    p.add_argument("--gap", type=float, help="space between neighbouring copies [m] (default a quarter of a cell)")
+    g = p.add_mutually_exclusive_group()
+    g.add_argument("--duration", type=float, help="simulated seconds")
+    g.add_argument("--frames", type=int, help="output frames after frame 0")
+    p.add_argument("--dt", type=float, help="step size [s]")
+    p.add_argument("--fps", type=float, help="output frames per second")
+    p.add_argument("--precision", choices=["float32", "float64"], help="scalar type of every kernel")
+    p.add_argument("--springs", action="store_true", help="also write springs as BasisCurves")
+    p.add_argument("--no-graph", action="store_true", help="launch kernels one by one instead of replaying a captured graph")
+    add_common(p)
+    return p
+
+
+def run(args) -> int:
+    from . import cli  # noqa: PLC0415 - shared helpers of the run command
+    from .outputs import check_writable  # noqa: PLC0415
+
+    plan = plan_variants(args)
+    out = check_writable(args.out or f"{Path(plan.source).stem}_compare.usdc", "--out", suffixes=(".usdc", ".usda", ".usd"))
+    if args.metrics:
+        check_writable(args.metrics, "--metrics")
+    if args.plot:
+        check_writable(args.plot, "--plot", suffixes=(".png",))
+    if args.columns is not None and args.columns < 1:
+        raise CommandLineError("--columns", "must be an integer >= 1", args.columns)
+    if args.gap is not None and not (math.isfinite(args.gap) and args.gap >= 0):
+        raise CommandLineError("--gap", "must be a finite number >= 0", args.gap)
+    device = cli.resolve_device(args.device)
+
+    progress = None
+    if not args.quiet:
+        from tqdm import tqdm  # noqa: PLC0415
+
+        progress = tqdm(total=plan.frames + 1, unit="frame", desc=f"{plan.name} x{len(plan.variants)}",
+                        file=sys.stderr, leave=False)
+    try:
+        with cli._Signals() as signals:
+            result = run_comparison(plan, device, out, metrics_path=args.metrics, plot_path=args.plot,
+                                    columns=args.columns, gap=args.gap, springs=args.springs,
+                                    use_graph=None if not args.no_graph else False, progress=progress,
+                                    stop_requested=lambda: signals.received)
+    finally:
+        if progress is not None:
+            progress.close()
+    for v in result.variants:
+        state = f"exploded at t = {v.exploded['time']:.4g} s ({v.exploded['reason']})" if v.exploded else "complete"
+        print(f"{plan.name} [{v.name}]: {v.integrator}, {state}", file=sys.stderr)
+    print(f"{plan.name}: {len(result.variants)} copies, {result.frames_written} frames, {result.steps} steps at "
+          f"dt={plan.dt:g} s in {result.wall_seconds:.2f} s -> {out}", file=sys.stderr)
+    if result.interrupted:
+        return 128 + int(signals.received)
+    exploded = [v.name for v in result.variants if v.exploded]
+    if exploded:
+        print(f"error: {plan.source}: copies exploded: {', '.join(exploded)}; the others ran to the end and every "
+              "frame was kept (an exploded copy stays at its last finite frame)", file=sys.stderr)
+        return cli.EXIT_EXPLODED
+    return 0
+
+
+# ---------------------------------------------------------------------------------------------
+# Variants
+
+
+@dataclass
+class Variant:
+    """One copy: its validated scene data, name and the overrides that made it."""
+
+    name: str
+    data: dict
+    overrides: dict
+    world: int = 0
+
+    @property
+    def integrator(self) -> str:
+        return self.data["simulation"]["integrator"]
+
+
+@dataclass
+class Plan:
+    source: str
+    name: str
+    variants: list
+    dt: float
+    fps: float
+    frames: int
+    sim: dict
+
+
+def split_values(text: str) -> list[str]:
+    """Split ``1,2,[1,0,1]`` on the commas outside brackets and quotes."""
+    parts, depth, quote, cur = [], 0, None, []
+    for ch in text:
+        if quote:
+            quote = None if ch == quote else quote
+        elif ch in "\"'":
+            quote = ch
+        elif ch in "[{":
+            depth += 1
+        elif ch in "]}":
+            depth -= 1
+        elif ch == "," and depth == 0:
+            parts.append("".join(cur))
+            cur = []
+            continue
+        cur.append(ch)
+    parts.append("".join(cur))
+    return [p.strip() for p in parts]
+
+
+def prim_token(value) -> str:
+    """A value as part of a USD prim name: ``1000`` -> ``1000``, ``0.5`` -> ``0p5``, ``-2`` -> ``m2``."""
+    if isinstance(value, bool):
+        text = "true" if value else "false"
+    elif isinstance(value, float) and value.is_integer() and abs(value) < 1e15:
+        text = str(int(value))
+    elif isinstance(value, float):
+        text = f"{value:g}"
+    elif isinstance(value, (list, tuple)):
+        text = "_".join(prim_token(v) for v in value)
+    else:
+        text = str(value)
+    text = text.replace("-", "m").replace(".", "p").replace("+", "")
+    return re.sub(r"[^A-Za-z0-9_]", "_", text)
+
+
+def short_keys(keys: list[str]) -> dict:
+    """The shortest dotted suffix of each key that tells it apart from the others, joined by ``_``."""
+    out = {}
+    for key in keys:
+        parts = key.split(".")
+        for n in range(1, len(parts) + 1):
+            suffix = parts[-n:]
+            if sum(1 for k in keys if k.split(".")[-n:] == suffix) == 1 or n == len(parts):
+                out[key] = "_".join(p for p in suffix if not p.isdigit()) or "_".join(suffix)
+                break
+    return out
+
+
+def _parse_vary(items) -> list[tuple[str, list]]:
+    from .scene import parse_override  # noqa: PLC0415
+
+    varies = []
+    for item in items:
+        if "=" not in item:
+            raise SceneError("--vary", item, "expected KEY=V1,V2,...")
+        key, raw = item.split("=", 1)
+        key = key.strip()
+        values = []
+        for text in split_values(raw):
+            if not text:
+                raise SceneError("--vary", key, "empty value in the list", raw)
+            values.append(parse_override(f"{key}={text}", source="--vary")[1])
+        if any(k == key for k, _ in varies):
+            raise SceneError("--vary", key, "given twice; list all its values in one --vary")
+        if len(set(map(repr, values))) != len(values):
+            raise SceneError("--vary", key, "repeats a value (each copy needs its own name)", raw)
+        if key.split(".")[0] == "simulation" and key != "simulation.integrator":
+            raise SceneError(
+                "--vary", key,
+                "every copy shares one clock and one model, so [simulation] values cannot vary; "
+                "run them as separate `softsim run`s", raw,
+            )
+        varies.append((key, values))
+    return varies
+
+
+def plan_variants(args) -> Plan:
+    """Load the scene (with --set and flags), expand --integrators x --vary and validate every copy."""
+    from . import cli  # noqa: PLC0415
+    from . import scene as scene_mod  # noqa: PLC0415
+
+    path, source, base = scene_mod.read_scene_data(args.scene)
+    items = [scene_mod.parse_override(item) for item in args.overrides] + cli._flag_overrides(args)
+    scene_mod.apply_overrides(base, items)
+
+    varies = _parse_vary(args.vary)
+    if args.integrators is not None:
+        integrators = [s.strip() for s in args.integrators.split(",")]
+        for name in integrators:
+            if name not in scene_mod.INTEGRATORS:
+                raise CommandLineError("--integrators", f"unknown integrator; choose from {', '.join(scene_mod.INTEGRATORS)}",
+                                       name)
+        if len(set(integrators)) != len(integrators):
+            raise CommandLineError("--integrators", "lists an integrator twice", args.integrators)
+    elif varies:
+        integrators = [None]  # the scene's own
+    else:
+        integrators = list(DEFAULT_INTEGRATORS)
+    if any(k == "simulation.integrator" for k, _ in varies):
+        if args.integrators is not None:
+            raise SceneError("--vary", "simulation.integrator", "use --integrators or this --vary, not both")
+
+    keys = [k for k, _ in varies]
+    labels = short_keys(keys)
+    variants = []
+    for combo in itertools.product(integrators, *[vals for _, vals in varies]):
+        integrator, values = combo[0], combo[1:]
+        data = copy.deepcopy(base)
+        overrides = {}
+        parts = []
+        if integrator is not None:
+            scene_mod.apply_override(data, "simulation.integrator", integrator, source="--integrators")
+            overrides["simulation.integrator"] = integrator
+            if len(integrators) > 1:
+                parts.append(integrator)
+        for key, value in zip(keys, values):
+            scene_mod.apply_override(data, key, value, source="--vary")
+            overrides[key] = value
+            parts.append(prim_token(value) if key == "simulation.integrator" else f"{labels[key]}_{prim_token(value)}")
+        validated = scene_mod.validate(data, source)
+        name = "_".join(parts) or validated["simulation"]["integrator"]
+        if not re.match(r"[A-Za-z_]", name):
+            name = "v_" + name
+        variants.append(Variant(name=name, data=validated, overrides=overrides))
+
+    # One clock and one model: [simulation] must agree (the integrator aside).
+    first = variants[0].data["simulation"]
+    for v in variants[1:]:
+        for key in sorted(set(first) | set(v.data["simulation"])):
+            if key != "integrator" and first.get(key) != v.data["simulation"].get(key):
+                raise SceneError("--vary", f"simulation.{key}", "must be the same for every copy", v.data["simulation"].get(key))
+    names = [v.name for v in variants]
+    if len(set(names)) != len(names):
+        raise CommandLineError("--vary", "two copies would get the same prim name", ", ".join(names))
+    for w, v in enumerate(variants):
+        v.world = w
+    sim = first
+    if sim["dt"] > 1.0 / sim["fps"]:
+        raise SceneError(source, "simulation.dt", f"must not exceed the frame interval 1/fps = {1.0 / sim['fps']:g} s", sim["dt"])
+    frames = scene_mod.Scene(variants[0].data).frame_count()
+    name = variants[0].data.get("name", path.stem)
+    return Plan(source=source, name=name, variants=variants, dt=sim["dt"], fps=sim["fps"], frames=frames, sim=sim)
+
+
+# ---------------------------------------------------------------------------------------------
+# Layout
+
+
+def layout(data: dict, count: int, columns=None, gap=None):
+    """Grid offsets for ``count`` copies of the scene ``data``, and the drawn plane size.
+
+    The cell is a square around the horizontal centre of the first plane's hole (or its point),
+    or of the scene's bounding box when it has no plane, big enough for the jellies' start, the
+    holes, bowls and spheres. Planes are drawn one cell wide, so neighbours never overlap.
+
+    Returns:
+        ``(offsets [(x, y, z)] in grid order, row by row; plane size [m] or None; cell [m])``.
+    """
+    pts = []
+    for j in data["jelly"]:
+        half = 0.5 * math.sqrt(sum(s * s for s in j["size"]))
+        c = np.asarray(j["center"])
+        pts += [c - half, c + half]
+    for p in data.get("plane", []):
+        if p.get("hole"):
+            c = np.asarray(p["hole"]["center"])
+            pts += [c - p["hole"]["radius"], c + p["hole"]["radius"]]
+    for b in data.get("bowl", []):
+        c = np.asarray(b["center"])
+        pts += [c - b["radius"], c + b["radius"]]
+    for s in data.get("sphere", []):
+        c = np.asarray(s["center"])
+        pts += [c - s["radius"], c + s["radius"]]
+    pts = np.array(pts)[:, [0, 2]]
+    planes = data.get("plane", [])
+    if planes:
+        p = planes[0]
+        centre = np.asarray(p["hole"]["center"] if p.get("hole") else p["point"])[[0, 2]]
+    else:
+        centre = 0.5 * (pts.min(axis=0) + pts.max(axis=0))
+    half = 1.1 * float(np.max(np.abs(pts - centre)))
+    cell = 2.0 * half
+    gap = 0.25 * cell if gap is None else float(gap)
+    columns = columns or math.ceil(math.sqrt(count))
+    pitch = cell + gap
+    offsets = [(float((w % columns) * pitch), 0.0, float((w // columns) * pitch)) for w in range(count)]
+    return offsets, (cell if planes else None), cell
+
+
+# ---------------------------------------------------------------------------------------------
+# Running
+
+
+@dataclass
+class VariantResult:
+    name: str
+    integrator: str
+    overrides: dict
+    world: int
+    prim: str
+    offset: tuple
+    frames: list = field(default_factory=list)
+    exploded: dict | None = None
+    stats: dict = field(default_factory=dict)
+
+    def as_dict(self) -> dict:
+        return {
+            "name": self.name,
+            "integrator": self.integrator,
+            "overrides": self.overrides,
+            "world": self.world,
+            "prim": self.prim,
+            "offset": list(self.offset),
+            "exploded": self.exploded,
+            "stats": self.stats,
+            "frames": self.frames,
+        }
+
+
+@dataclass
+class ComparisonResult:
+    variants: list
+    frames_written: int = 0
+    steps: int = 0
+    wall_seconds: float = 0.0
+    interrupted: bool = False
+
+
+class _Group:
+    """Variants advanced by one model and one integrator (the explicit batch, or one implicit copy)."""
+
+    def __init__(self, variants, builder_fn, device, precision, dt, fps, frames, use_graph, max_speed):
+        from .integrators import ExplicitIntegrator, make_integrator  # noqa: PLC0415
+        from .simulate import Simulator  # noqa: PLC0415
+
+        self.variants = variants
+        self.model = builder_fn([v.data for v in variants]).finalize(device, precision)
+        if all(v.integrator != "implicit" for v in variants):
+            integrator = ExplicitIntegrator(self.model, [v.integrator for v in variants])
+        else:
+            assert len(variants) == 1
+            integrator = make_integrator("implicit", self.model, variants[0].data.get("implicit"))
+        self.integrator = integrator
+        self.sim = Simulator(self.model, integrator, dt, fps, frames, use_graph=use_graph, max_speed=max_speed)
+        self.done_steps = 0
+        # Particle range of each local world (populate adds a variant's jellies one after another).
+        self.ranges = []
+        for w in range(len(variants)):
+            infos = [j for j in self.model.jellies if j.world == w]
+            self.ranges.append((infos[0].particle_start, infos[-1].particle_start + infos[-1].particle_count))
+
+
+def _make_builder(datas):
+    from .model import ModelBuilder, populate  # noqa: PLC0415
+
+    builder = ModelBuilder(datas[0]["simulation"]["gravity"])
+    for w, data in enumerate(datas):
+        populate(builder, data, world=w)
+    return builder
+
+
+def _variant_speed_bound(model, start, end, world):
+    """The explosion speed bound a single run of this copy would use (see simulate.speed_bound)."""
+    from .model import terrain_anchors  # noqa: PLC0415
+    from .simulate import speed_bound  # noqa: PLC0415
+
+    qd = model.particle_qd.numpy()[start:end]
+    # speed_bound reads only these host-side fields; this view holds one world's share of them.
+    view = types.SimpleNamespace(
+        particle_q_host=model.particle_q_host[start:end],
+        planes=[p for p in model.planes if p["world"] == world],
+        terrain_anchor_points=terrain_anchors([b for b in model.bowls if b["world"] == world],
+                                              [s for s in model.spheres if s["world"] == world]),
+        particle_qd=types.SimpleNamespace(numpy=lambda: qd),
+        particle_count=end - start,
+        gravity_host=model.gravity_host,
+    )
+    return speed_bound(view)
+
+
+def rigid_deviation(rest: np.ndarray, current: np.ndarray, mass: np.ndarray) -> float:
+    """RMS distance [m] of the particles from the best-fit rigid motion of their rest shape.
+
+    Kabsch: with both point sets centred on their centres of mass, the rotation maximising
+    sum m_i x_i . R r_i comes from the SVD of the mass-weighted covariance (a reflection is
+    excluded by the sign of the determinant).
+    """
+    w = mass / mass.sum()
+    r = rest - w @ rest
+    x = current - w @ current
+    h = (r * w[:, None]).T @ x
+    u, _, vt = np.linalg.svd(h)
+    d = np.sign(np.linalg.det(vt.T @ u.T)) or 1.0
+    rot = vt.T @ np.diag([1.0, 1.0, d]) @ u.T
+    resid = x - r @ rot.T
+    return float(math.sqrt(max(float(w @ np.einsum("ij,ij->i", resid, resid)), 0.0)))
+
+
+def run_comparison(plan: Plan, device, out, metrics_path=None, plot_path=None, columns=None, gap=None,
+                   springs=False, use_graph=None, progress=None, stop_requested=None) -> ComparisonResult:
+    """Run every variant of ``plan`` and write the stage (and metrics / plot when asked)."""
+    import time  # noqa: PLC0415
+
+    import warp as wp  # noqa: PLC0415
+
+    wp.config.quiet = True
+    from .outputs import write_json_atomic  # noqa: PLC0415
+    from .usd_io import UsdWriter  # noqa: PLC0415
+
+    variants = plan.variants
+    precision = plan.sim["precision"]
+    offsets, plane_size, _ = layout(variants[0].data, len(variants), columns, gap)
+    if plane_size is not None:
+        for v in variants:
+            for p in v.data.get("plane", []):
+                p["size"] = min(p["size"], plane_size)
+
+    # The stage's model holds every copy, in variant order; the groups that compute them are the
+    # explicit batch (all explicit variants, one world each) and one model per implicit variant.
+    display = _make_builder([v.data for v in variants]).finalize("cpu", precision)
+    explicit = [v for v in variants if v.integrator != "implicit"]
+    implicit = [v for v in variants if v.integrator == "implicit"]
+    groups = []
+    max_speed = plan.sim.get("max_speed")
+    if explicit:
+        groups.append(_Group(explicit, _make_builder, device, precision, plan.dt, plan.fps, plan.frames, use_graph, max_speed))
+    for v in implicit:
+        groups.append(_Group([v], _make_builder, device, precision, plan.dt, plan.fps, plan.frames, use_graph, max_speed))
+
+    display_ranges = []
+    for v in variants:
+        infos = [j for j in display.jellies if j.world == v.world]
+        display_ranges.append((infos[0].particle_start, infos[-1].particle_start + infos[-1].particle_count))
+    # (group, local world) of each variant, and its explosion bound and rest shape.
+    where = {}
+    for g in groups:
+        for lw, v in enumerate(g.variants):
+            where[v.world] = (g, lw)
+    results, bounds, rest, masses = [], [], [], []
+    for v, off in zip(variants, offsets):
+        g, lw = where[v.world]
+        start, end = g.ranges[lw]
+        bounds.append(max_speed if max_speed is not None else _variant_speed_bound(g.model, start, end, lw))
+        jellies = [(j.particle_start - start, j.particle_count) for j in g.model.jellies if j.world == lw]
+        rest.append([(display.particle_q_host[display_ranges[v.world][0] + s: display_ranges[v.world][0] + s + n],
+                      display.particle_mass_host[display_ranges[v.world][0] + s: display_ranges[v.world][0] + s + n])
+                     for s, n in jellies])
+        results.append(VariantResult(v.name, v.integrator, v.overrides, v.world, f"/World/{v.name}", off))
+
+    groups_usd = {v.world: (v.name, off) for v, off in zip(variants, offsets)}
+    metadata = {
+        "softsim:scene": plan.name,
+        "softsim:variants": ", ".join(v.name for v in variants),
+        "softsim:dt": plan.dt,
+    }
+    writer = UsdWriter(out, display, plan.fps, springs=springs, groups=groups_usd, metadata=metadata)
+    result = ComparisonResult(results)
+    positions = display.particle_q_host.copy()
+    try:
+        for g in groups:
+            g.sim.warm_up()
+        t0 = time.perf_counter()
+        for k in range(plan.frames + 1):
+            target = groups[0].sim.step_of_frame(k)
+            for g in groups:
+                g.sim.advance(target - g.done_steps)
+                g.done_steps = target
+            t_frame = target * plan.dt
+            per_group = {}
+            for g in groups:
+                m = g.sim.probe.measure(g.sim.state, k, t_frame)
+                per_group[id(g)] = (m, g.sim.state.particle_q.numpy(), g.sim.state.particle_qd.numpy())
+            for v, res in zip(variants, results):
+                g, lw = where[v.world]
+                m, q, qd = per_group[id(g)]
+                start, end = g.ranges[lw]
+                ds, de = display_ranges[v.world]
+                if res.exploded is None:
+                    jm = [m.jellies[i] for i, j in enumerate(g.model.jellies) if j.world == lw]
+                    nonfinite = not (np.all(np.isfinite(q[start:end])) and np.all(np.isfinite(qd[start:end])))
+                    vmax = max(x["max_speed"] for x in jm)
+                    if nonfinite or vmax > bounds[v.world]:
+                        res.exploded = {
+                            "frame": k,
+                            "time": t_frame,
+                            "reason": "non-finite state" if nonfinite
+                            else f"max speed {vmax:.4g} m/s exceeds the bound {bounds[v.world]:.4g} m/s",
+                        }
+                    else:
+                        positions[ds:de] = q[start:end]
+                        res.frames.append(_frame_metrics(k, t_frame, jm, q[start:end], rest[v.world]))
+            writer.write_frame(k, t_frame, positions)
+            result.frames_written = k + 1
+            result.steps = target
+            if progress is not None:
+                progress.update(1)
+            if all(r.exploded for r in results):
+                break
+            if stop_requested is not None and stop_requested():
+                result.interrupted = True
+                break
+        result.wall_seconds = time.perf_counter() - t0
+    except BaseException:
+        writer.close(status="failed")
+        raise
+    for g in groups:
+        stats = g.integrator.stats()
+        for v in g.variants:
+            results[v.world].stats = stats
+    status = "interrupted" if result.interrupted else ("exploded" if any(r.exploded for r in results) else "complete")
+    writer.close(status=status, extra={"softsim:frames": result.frames_written})
+    if metrics_path:
+        write_json_atomic(metrics_path, {
+            "scene": plan.name,
+            "source": plan.source,
+            "dt": plan.dt,
+            "fps": plan.fps,
+            "precision": precision,
+            "device": str(device),
+            "frames": result.frames_written,
+            "steps": result.steps,
+            "wall_seconds": result.wall_seconds,
+            "variants": [r.as_dict() for r in results],
+        })
+    if plot_path:
+        plot_comparison(results, plot_path, title=f"{plan.name}: dt = {plan.dt:g} s")
+    return result
+
+
+def _frame_metrics(k, t, jelly_metrics, q, rest) -> dict:
+    mass = sum(sum(m) for _, m in rest)
+    com = sum(np.asarray(j["com"]) * float(m.sum()) for j, (_, m) in zip(jelly_metrics, rest)) / mass
+    ke = sum(j["kinetic_energy"] for j in jelly_metrics)
+    se = sum(j["spring_energy"] for j in jelly_metrics)
+    ge = sum(j["gravity_energy"] for j in jelly_metrics)
+    offset, sq = 0, 0.0
+    for r, m in rest:
+        n = len(r)
+        dev = rigid_deviation(r, q[offset: offset + n].astype(np.float64), m)
+        sq += dev * dev * float(m.sum())
+        offset += n
+    return {
+        "frame": k,
+        "time": t,
+        "com": [float(c) for c in com],
+        "kinetic_energy": ke,
+        "spring_energy": se,
+        "gravity_energy": ge,
+        "total_energy": ke + se + ge,
+        "max_speed": max(j["max_speed"] for j in jelly_metrics),
+        "deformation": math.sqrt(sq / mass),
+    }
+
+
+def plot_comparison(results, path, title=""):
+    """COM height, total energy and deformation over time, one line per copy (matplotlib Agg)."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg  # noqa: PLC0415
+    from matplotlib.figure import Figure  # noqa: PLC0415
+
+    fig = Figure(figsize=(8.0, 8.0), dpi=100)
+    FigureCanvasAgg(fig)
+    axes = fig.subplots(3, 1, sharex=True)
+    rows = (
+        ("centre of mass height [m]", lambda f: f["com"][1]),
+        ("total energy [J]", lambda f: f["total_energy"]),
+        ("deformation: RMS from rigid fit [m]", lambda f: f["deformation"]),
+    )
+    for ax, (label, get) in zip(axes, rows):
+        for r in results:
+            t = [f["time"] for f in r.frames]
+            ax.plot(t, [get(f) for f in r.frames], label=r.name + (" (exploded)" if r.exploded else ""), linewidth=1.2)
+        ax.set_ylabel(label)
+        ax.grid(True, alpha=0.3)
+    axes[-1].set_xlabel("time [s]")
+    axes[0].legend(loc="best", fontsize="small")
+    if title:
+        axes[0].set_title(title)
+    fig.tight_layout()
+    fig.savefig(str(path), format="png")

@@ -1,0 +1,88 @@
+"""Deterministic runs (``softsim run --deterministic``): bitwise-identical results from run to run on CUDA.
+
+Two parts of a step and a frame sum floats from many threads into one place with atomics: the
+spring forces on each particle and the per-jelly metrics. :func:`attach` gives a model a CSR list
+of each particle's incident springs, after which :func:`softsim_warp.integrators.eval_forces`
+evaluates forces with the atomic-free kernels of ``kernels/deterministic.py``, and
+:class:`~softsim_warp.deterministic_metrics.DeterministicMetricsProbe` sums metrics in a fixed order. Integration and contact are
+per-particle already. The implicit integrator's own solver reductions are not covered here.
+
+On the CPU every run is deterministic anyway (Warp runs a launch's threads in order); there the
+gather gives the same bits as the atomic kernel (see the kernel module's docstring).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import warp as wp
+
+
+def incident_springs_csr(pairs: np.ndarray, particle_count: int) -> tuple[np.ndarray, np.ndarray]:
+    """Each particle's incident springs in ascending spring order, as CSR.
+
+    Args:
+        pairs: ``(S, 2)`` particle indices of the springs.
+        particle_count: number of particles N.
+
+    Returns:
+        ``(offsets (N + 1,), entries (2 S,))`` int32: the entries of particle i are
+        ``entries[offsets[i]:offsets[i + 1]]``; entry ``s`` means i is the first particle of spring
+        s, ``-(s + 1)`` the second.
+    """
+    pairs = np.asarray(pairs, dtype=np.int64).reshape(-1, 2)
+    s = np.arange(pairs.shape[0], dtype=np.int64)
+    # Interleave (a_0, b_0, a_1, b_1, ...) so that a stable sort by particle keeps ascending spring
+    # order, with a spring's first particle before its second: the order of the atomic kernel.
+    particle = pairs.reshape(-1)
+    code = np.stack([s, -(s + 1)], axis=1).reshape(-1)
+    order = np.argsort(particle, kind="stable")
+    counts = np.bincount(particle, minlength=particle_count)
+    offsets = np.zeros(particle_count + 1, dtype=np.int64)
+    np.cumsum(counts, out=offsets[1:])
+    if offsets[-1] > np.iinfo(np.int32).max:
+        raise ValueError("too many springs for an int32 CSR list")
+    return offsets.astype(np.int32), code[order].astype(np.int32)
+
+
+def attach(model) -> None:
+    """Switch ``model`` to deterministic force evaluation (call before making an integrator).
+
+    Adds to the model:
+        deterministic: True.
+        spring_csr_offsets: start of each particle's incident-spring list, shape [particle_count + 1], int32.
+        spring_csr_springs: signed incident spring ids (see :func:`incident_springs_csr`), shape [2 spring_count], int32.
+        spring_force_work: workspace, each spring's force on its first particle [N], shape [spring_count], vec3.
+    """
+    offsets, entries = incident_springs_csr(model.spring_indices_host, model.particle_count)
+    dev = model.device
+    model.spring_csr_offsets = wp.array(offsets, dtype=wp.int32, device=dev)
+    model.spring_csr_springs = wp.array(entries, dtype=wp.int32, device=dev)
+    model.spring_force_work = wp.zeros(model.spring_count, dtype=model.vec3, device=dev)
+    model.deterministic = True
+
+
+def eval_spring_forces(model, q: wp.array, qd: wp.array, f_out: wp.array):
+    """Spring and damper forces of (q, qd) into ``f_out`` without atomics; every entry is written."""
+    k = model.kernels
+    if model.spring_count:
+        wp.launch(
+            k.eval_spring_forces,
+            dim=model.spring_count,
+            inputs=[
+                model.spring_indices,
+                model.spring_rest_length,
+                model.spring_stiffness,
+                model.spring_damping,
+                q,
+                qd,
+            ],
+            outputs=[model.spring_force_work],
+            device=model.device,
+        )
+    wp.launch(
+        k.gather_spring_forces,
+        dim=model.particle_count,
+        inputs=[model.spring_csr_offsets, model.spring_csr_springs, model.spring_force_work],
+        outputs=[f_out],
+        device=model.device,
+    )

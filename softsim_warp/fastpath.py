@@ -1,0 +1,150 @@
+"""Fused explicit stages on the lattice path: one kernel per stage evaluates forces and updates.
+
+``ExplicitIntegrator`` calls :func:`configure_fused` from its constructor and, when ``fused`` is
+set, :func:`step_fused` from ``step``. The kernel follows the lattice kernel the model chose:
+
+* gather (CUDA): ``integrate_lattice_stage`` gathers each particle's spring force, adds gravity
+  and writes the particle's stage update; on a world's last stage it also applies plane contact,
+  so a symplectic or Euler step is a single launch.
+* rows (CPU): ``integrate_lattice_rows_stage`` computes a jelly's forces with the vectorised row
+  loops and then its particles' stage update; contact follows as its own kernel.
+
+Other terrain (``model.contact_hooks``) always runs after the step.
+
+A fused stage reads neighbours from the stage state and writes the next stage state, so the two
+must be different buffers: multi-stage methods ping-pong between two stage buffers.
+
+``eval_forces`` stays the one force routine for everything else (the implicit integrator, tests).
+"""
+
+from __future__ import annotations
+
+import warp as wp
+
+
+def configure_fused(integrator, fused=None, fuse_contact=None):
+    """Decide whether ``integrator`` uses fused stages (default: whenever the model takes the lattice path)."""
+    model = integrator.model
+    lat = model.lattice
+    if fused is None:
+        fused = lat is not None
+    if fused and lat is None:
+        raise ValueError(f"fused stages need the lattice path ({model.lattice_reason})")
+    integrator.fused = bool(fused)
+    # Only the gather kernel can apply contact per particle; the row kernel works per jelly.
+    gather = fused and lat.kernel == "gather"
+    # Off by default: the fused copy of plane contact predates the shared kernel's position gain and
+    # separation rule; the shared collide_planes is the reference until the copy is brought in line.
+    integrator.fuse_contact = bool(gather and model.plane_count and bool(fuse_contact))
+    integrator._stage_buffers = None
+
+
+def stage_buffers(integrator):
+    """Two stage states (q, qd) to ping-pong between; the second only for methods of three or more stages.
+
+    Made once (the integrator's constructor calls this after allocating its own stage state).
+    """
+    if integrator._stage_buffers is None:
+        model = integrator.model
+        n = model.particle_count
+        count = 0 if integrator.stage_count == 1 else (1 if integrator.stage_count == 2 else 2)
+        bufs = []
+        for k in range(2):
+            size = n if k < count else 0
+            bufs.append(
+                (
+                    integrator.q_s if k == 0 else wp.zeros(size, dtype=model.vec3, device=model.device),
+                    integrator.qd_s if k == 0 else wp.zeros(size, dtype=model.vec3, device=model.device),
+                )
+            )
+        integrator._stage_buffers = bufs
+    return integrator._stage_buffers
+
+
+def step_fused(integrator, state_in, state_out, dt):
+    """One step with one fused kernel per stage (see the module docstring)."""
+    from .integrators import apply_contacts  # noqa: PLC0415
+
+    model = integrator.model
+    lat = model.lattice
+    h = model.scalar(dt)
+    bufs = stage_buffers(integrator)
+    rows = lat.kernel == "rows"
+    q, qd = state_in.particle_q, state_in.particle_qd
+    for stage in range(integrator.stage_count):
+        q_next, qd_next = bufs[stage % 2]
+        outputs = [integrator.acc_q, integrator.acc_qd, q_next, qd_next, state_out.particle_q, state_out.particle_qd]
+        if rows:
+            wp.launch(
+                model.kernels.integrate_lattice_rows_stage,
+                dim=lat.jelly_count,
+                inputs=[
+                    stage,
+                    h,
+                    lat.jelly_start,
+                    lat.jelly_shape,
+                    lat.jelly_types,
+                    lat.jelly_rest,
+                    lat.jelly_ks,
+                    lat.jelly_kd,
+                    lat.jelly_world,
+                    lat.particle_coord_k,
+                    model.particle_inv_mass,
+                    model.gravity,
+                    integrator.world_stage_count,
+                    integrator.world_symplectic,
+                    integrator.world_stage_c,
+                    integrator.world_stage_b,
+                    state_in.particle_q,
+                    state_in.particle_qd,
+                    q,
+                    qd,
+                    lat.scratch,
+                    integrator.f,
+                ],
+                outputs=outputs,
+                device=model.device,
+            )
+        else:
+            wp.launch(
+                model.kernels.integrate_lattice_stage,
+                dim=model.particle_count,
+                inputs=[
+                    stage,
+                    h,
+                    int(integrator.fuse_contact),
+                    model.particle_inv_mass,
+                    model.particle_world,
+                    model.particle_jelly,
+                    model.gravity,
+                    lat.jelly_start,
+                    lat.jelly_shape,
+                    lat.jelly_types,
+                    lat.jelly_rest,
+                    lat.jelly_ks,
+                    lat.jelly_kd,
+                    integrator.world_stage_count,
+                    integrator.world_symplectic,
+                    integrator.world_stage_c,
+                    integrator.world_stage_b,
+                    model.plane_count,
+                    model.plane_world,
+                    model.plane_point,
+                    model.plane_normal,
+                    model.plane_hole_center,
+                    model.plane_hole_radius,
+                    model.plane_restitution,
+                    model.plane_friction,
+                    model.contact_epsilon,
+                    model.contact_velocity_epsilon,
+                    integrator.world_contact_beta,
+                    state_in.particle_q,
+                    state_in.particle_qd,
+                    q,
+                    qd,
+                ],
+                outputs=outputs,
+                device=model.device,
+            )
+        q, qd = q_next, qd_next
+    apply_contacts(model, state_in, state_out, dt, integrator.world_contact_beta, planes=not integrator.fuse_contact)

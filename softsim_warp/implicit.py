@@ -1,0 +1,604 @@
+"""Implicit (backward) Euler, linearised as in Baraff and Witkin, "Large steps in cloth simulation" (1998).
+
+Backward Euler advances ``v_{n+1} = v_n + h M^-1 (f(x_{n+1}, v_{n+1}) + M g)`` and
+``x_{n+1} = x_n + h v_{n+1}``. Its stability function is ``1/(1 - h lambda)``: every decaying or
+oscillating mode decays, at any step, which is why stiff springs and large steps do not explode.
+The price is numerical damping: an undamped oscillator of frequency omega keeps only the factor
+``1/(1 + (h omega)^2)`` of its energy per step (see docs/IMPLICIT.md).
+
+Each step solves, once per Newton iteration, ``(M - h df/dv - h^2 df/dx) delta = rhs`` for a
+velocity correction. Two linearisations are offered (``linearization``):
+
+* ``"baraff_witkin"``: the forces are linearised about the start of the step (x_n, v_n):
+
+      (M - h df/dv - h^2 df/dx) dv = h (f(x_n, v_n) + M g + h df/dx v_n).
+
+  This is Baraff and Witkin's step. It sees a spring's length only to first order, so a spinning
+  stiff body (springs rotated by h omega per step) is stretched by the second-order amount
+  ~ h^2 omega^2 |d| / 2 every step, which adds energy ~ ks (h^2 omega^2 |d|)^2 / 8 per spring:
+  with ks = 1e5 at h = 0.01 a jelly spinning at 7 rad/s gains more energy in one step than it has.
+* ``"predictor"`` (default): Newton's method on the exact backward Euler equations, started from
+  v_0 = v_n, so every iteration linearises about (x_n + h v_k, v_k):
+
+      (M - h df/dv - h^2 df/dx) delta = M (v_n - v_k) + h (f(x_n + h v_k, v_k) + M g),
+      v_{k+1} = v_k + delta.
+
+  Its first iteration differs from Baraff-Witkin's only by the force's nonlinear remainder
+  f(x_n + h v_n) - f(x_n) - h df/dx v_n: it costs the same, and the energy never rises.
+
+More Newton iterations (``newton_iterations > 1``) continue from the current iterate with the
+second formula in either mode, converging to the exact backward Euler step. The Jacobian blocks,
+the definiteness fix and which derivative terms are left out are described in
+``kernels/implicit.py``.
+
+The linear system is solved on the device with preconditioned conjugate gradient. The default,
+``solver="matrix_free"``, computes A p from the spring list; ``"bsr"`` assembles a ``warp.sparse``
+block matrix for the same loop and ``"warp_cg"`` hands that matrix to ``warp.optim.linear.cg``
+(both slower, kept for the comparison in docs/IMPLICIT.md). This module's loop keeps its scalars on
+the device and runs under ``wp.capture_while``: on CUDA the loop is a conditional graph node (no
+host synchronisation), on the CPU the condition is read directly from memory.
+
+Contact: the shared post-step response (:func:`~softsim_warp.integrators.apply_contacts`:
+collision, resting contact, Coulomb friction) decides which particles touch and what happens to
+them, as for the explicit integrators; but on its own it breaks a stiff jelly at a large step.
+A stiff jelly is nearly rigid within one step, yet the response changes only the particles that
+touch: at dt = 0.01 a jelly falling at 3 m/s sinks 3 cm per step, the response lifts its bottom
+layer back by those 3 cm, and springs squeezed by half a lattice spacing invert the lattice (with
+ks = 1e5 the jelly_drop jelly ended with 4e4 J of spring energy from 10 J). So a step with
+contact goes on after the free solve (Baraff and Witkin's constraints, section 5 of the paper):
+
+1. the response runs on the free result; every particle it changed becomes constrained. Where it
+   only changed the normal velocity of a particle touching one plane (a collision), the normal
+   velocity is prescribed and the tangential one left free; where friction acted (resting
+   contact), or the particle touches several planes or another primitive, its whole velocity is.
+   A colliding particle's normal velocity is prescribed as 0, not reflected: the impact is
+   inelastic, restitution is not reproduced. (Reflected velocities prescribed on a few particles
+   of a stiff lattice act as velocity sources and added up to 40 J to the 10 J jelly; applying
+   Poisson's restitution impulse as point forces excited local modes and added more.)
+2. The last linear system is solved again with these constraints: it is linearised where the
+   free solve ended, close to the answer.
+3. ``newton_iterations`` Newton iterations re-linearise at the result: an impact can turn the jelly
+   by ~0.1 rad in one step, which a single linearisation turns into spring stretch.
+
+The springs carry the impact through the whole jelly in the step it happens. Steps 2 and 3 run
+under ``wp.capture_if`` on a device flag set when anything touched, so a step without contact pays
+only for the response and one small kernel. The response then runs once more on the final state,
+as the post-step impulse every integrator gets.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import warp as wp
+import warp.optim.linear
+import warp.sparse
+
+from .integrators import Integrator, apply_contacts, eval_forces
+from .kernels import implicit as ki
+from .model import Model, State
+
+PRECONDITIONERS = ("block_jacobi", "jacobi")
+LINEARIZATIONS = ("predictor", "baraff_witkin")
+SOLVERS = ("matrix_free", "bsr", "warp_cg")
+
+# Defaults; the scene's optional [implicit] table overrides them (softsim_warp/scene.py).
+DEFAULT_NEWTON_ITERATIONS = 1
+DEFAULT_CG_TOLERANCE = 1.0e-4
+DEFAULT_CG_MAX_ITERATIONS = 200
+DEFAULT_LINEARIZATION = "predictor"
+
+
+def _blocks(count: int) -> int:
+    return (count + ki.TILE - 1) // ki.TILE
+
+
+class ImplicitIntegrator(Integrator):
+    """Linearised backward Euler with a preconditioned conjugate-gradient solve on the device.
+
+    Args:
+        model: the model to advance.
+        newton_iterations: linear solves per step (before the contact solve); more iterate
+            Newton's method towards the exact backward Euler step.
+        cg_tolerance: CG stops when ``|b - A dv| <= cg_tolerance |b|`` (2-norms over free rows).
+        cg_max_iterations: iteration cap of each CG solve.
+        linearization: ``"predictor"`` (Newton from v_n, forces linearised about x_n + h v_n) or
+            ``"baraff_witkin"`` (the first solve linearises about x_n); see the module docstring.
+        preconditioner: ``"block_jacobi"`` (inverse of each particle's 3x3 diagonal block) or
+            ``"jacobi"`` (inverse of the diagonal).
+        solver: ``"matrix_free"`` (A p from the spring list, this module's PCG loop), ``"bsr"``
+            (an assembled ``warp.sparse`` block matrix, ``bsr_mv`` in the same PCG loop) or
+            ``"warp_cg"`` (the assembled matrix solved by ``warp.optim.linear.cg``). The last two
+            are kept for the benchmark comparison: matrix-free is the fastest. ``"warp_cg"`` has no
+            constraint filter, so it skips the contact solve (contact is the post-step response
+            only).
+    """
+
+    name = "implicit"
+
+    def __init__(
+        self,
+        model: Model,
+        newton_iterations: int = DEFAULT_NEWTON_ITERATIONS,
+        cg_tolerance: float = DEFAULT_CG_TOLERANCE,
+        cg_max_iterations: int = DEFAULT_CG_MAX_ITERATIONS,
+        linearization: str = DEFAULT_LINEARIZATION,
+        preconditioner: str = "block_jacobi",
+        solver: str = "matrix_free",
+    ):
+        super().__init__(model)
+        # x_{n+1} = x_n + h v_{n+1}: a force held over the step moves x by h^2 a (contact gain 1).
+        self.world_contact_beta = wp.full(model.world_count, model.scalar(1.0), dtype=model.scalar, device=model.device)
+        if int(newton_iterations) != newton_iterations or newton_iterations < 1:
+            raise ValueError(f"newton_iterations must be an integer >= 1 (got {newton_iterations!r})")
+        if not (math.isfinite(cg_tolerance) and 0.0 < cg_tolerance < 1.0):
+            raise ValueError(f"cg_tolerance must be > 0 and < 1 (got {cg_tolerance!r})")
+        if int(cg_max_iterations) != cg_max_iterations or cg_max_iterations < 1:
+            raise ValueError(f"cg_max_iterations must be an integer >= 1 (got {cg_max_iterations!r})")
+        if linearization not in LINEARIZATIONS:
+            raise ValueError(f"linearization must be one of {', '.join(LINEARIZATIONS)} (got {linearization!r})")
+        if preconditioner not in PRECONDITIONERS:
+            raise ValueError(f"preconditioner must be one of {', '.join(PRECONDITIONERS)} (got {preconditioner!r})")
+        if solver not in SOLVERS:
+            raise ValueError(f"solver must be one of {', '.join(SOLVERS)} (got {solver!r})")
+        self.newton_iterations = int(newton_iterations)
+        self.cg_tolerance = float(cg_tolerance)
+        self.cg_max_iterations = int(cg_max_iterations)
+        self.linearization = linearization
+        self.preconditioner = preconditioner
+        self.solver = solver
+
+        device = model.device
+        scalar, vec3 = model.scalar, model.vec3
+        self.mat33 = wp.types.matrix((3, 3), scalar)
+        n, s = model.particle_count, model.spring_count
+
+        def vectors():
+            return wp.zeros(n, dtype=vec3, device=device)
+
+        # Solver buffers, allocated once. dv_warm keeps the last step's dv as the next initial guess.
+        self.f = vectors()
+        self.rhs = vectors()
+        self.x = vectors()
+        self.dv_warm = vectors()
+        self.r = vectors()
+        self.z = vectors()
+        self.p = vectors()
+        self.ap = vectors()
+        self.diag_block = wp.zeros(n, dtype=self.mat33, device=device)
+        self.precond = wp.zeros(n, dtype=self.mat33, device=device)
+        self.spring_block = wp.zeros(s, dtype=self.mat33, device=device)
+        self.scalars = wp.zeros(ki.SCALAR_SLOTS, dtype=scalar, device=device)
+        self.ints = wp.zeros(2, dtype=wp.int32, device=device)
+        self.stats_array = wp.zeros(ki.STAT_SLOTS, dtype=wp.int32, device=device)
+        self._condition = self.ints[ki.COND : ki.COND + 1]
+        # Fixed particles (inverse mass 0) and each particle's constraint filter (see kernels/implicit.py).
+        fixed = (model.particle_inv_mass.numpy() == 0).astype(np.int32)
+        self.fixed = wp.array(fixed, dtype=wp.int32, device=device)
+        self.filters = wp.zeros(n, dtype=self.mat33, device=device)
+        self.contact_solve = bool(model.plane_count or getattr(model, "contact_hooks", ())) and solver != "warp_cg"
+        if self.contact_solve:
+            # The step's result before the contact response, and the iterate of the last solve.
+            self.q_free = vectors()
+            self.qd_free = vectors()
+            self.qd_k = vectors()
+            self.any_contact = wp.zeros(1, dtype=wp.int32, device=device)
+        self._solve_graph = None
+        self._loop_ran = False
+        # On CUDA outside a capture, the PCG loop is captured once and replayed; that needs
+        # conditional graph nodes (CUDA 12.4+), otherwise capture_while reads the condition back.
+        self._graph_ok = device.is_cuda and wp.is_conditional_graph_supported()
+        self._host_stats = np.zeros(ki.STAT_SLOTS, dtype=np.int64)
+        if solver in ("bsr", "warp_cg"):
+            self._setup_bsr()
+
+    # -- assembled block-sparse variants --------------------------------------------------------
+
+    def _setup_bsr(self):
+        model = self.model
+        device = model.device
+        n = model.particle_count
+        pairs = model.spring_indices_host.astype(np.int64)
+        diag = np.arange(n, dtype=np.int64)
+        rows = np.concatenate([diag, pairs[:, 0], pairs[:, 1]])
+        cols = np.concatenate([diag, pairs[:, 1], pairs[:, 0]])
+        self.bsr = wp.sparse.bsr_zeros(n, n, block_type=self.mat33, device=device)
+        wp.sparse.bsr_set_from_triplets(
+            self.bsr,
+            wp.array(rows.astype(np.int32), dtype=wp.int32, device=device),
+            wp.array(cols.astype(np.int32), dtype=wp.int32, device=device),
+            None,
+        )
+        # Where each block sits in the matrix's values: row r's blocks are offsets[r]:offsets[r+1],
+        # sorted by column.
+        offsets = self.bsr.offsets.numpy()[: n + 1].astype(np.int64)
+        columns = self.bsr.columns.numpy()[: offsets[-1]].astype(np.int64)
+
+        def locate(r, c):
+            out = np.empty(len(r), dtype=np.int32)
+            for k, (ri, ci) in enumerate(zip(r, c, strict=True)):
+                lo, hi = offsets[ri], offsets[ri + 1]
+                out[k] = lo + np.searchsorted(columns[lo:hi], ci)
+            return out
+
+        self.bsr_diag_index = wp.array(locate(diag, diag), dtype=wp.int32, device=device)
+        self.bsr_index_ab = wp.array(locate(pairs[:, 0], pairs[:, 1]), dtype=wp.int32, device=device)
+        self.bsr_index_ba = wp.array(locate(pairs[:, 1], pairs[:, 0]), dtype=wp.int32, device=device)
+        kernels = model.kernels
+        scalar = model.scalar
+
+        def apply_preconditioner(x, y, z, alpha, beta):
+            wp.launch(
+                kernels.precondition,
+                dim=n,
+                inputs=[self.precond, x, y, scalar(alpha), scalar(beta)],
+                outputs=[z],
+                device=device,
+            )
+
+        self.bsr_precond = wp.optim.linear.LinearOperator(self.bsr.shape, self.mat33, device, apply_preconditioner)
+        self._bsr_solvers = {}
+
+    def _bsr_solver(self, check_every: int):
+        solver = self._bsr_solvers.get(check_every)
+        if solver is None:
+            # atol = 0: stop on the relative tolerance only, as this module's loop does.
+            solver = wp.optim.linear.cg(
+                self.bsr,
+                self.rhs,
+                self.x,
+                tol=self.cg_tolerance,
+                atol=0.0,
+                maxiter=self.cg_max_iterations,
+                M=self.bsr_precond,
+                check_every=check_every,
+                run=False,
+            )
+            self._bsr_solvers[check_every] = solver
+        return solver
+
+    def _assemble_bsr(self):
+        model = self.model
+        device = model.device
+        k = model.kernels
+        self.bsr.values.zero_()
+        wp.launch(
+            k.assemble_bsr_diagonal,
+            dim=model.particle_count,
+            inputs=[self.fixed, self.diag_block, self.bsr_diag_index],
+            outputs=[self.bsr.values],
+            device=device,
+        )
+        if model.spring_count:
+            wp.launch(
+                k.assemble_bsr_offdiagonal,
+                dim=model.spring_count,
+                inputs=[model.spring_indices, self.fixed, self.spring_block, self.bsr_index_ab, self.bsr_index_ba],
+                outputs=[self.bsr.values],
+                device=device,
+            )
+
+    def _solve_warp_cg(self):
+        model = self.model
+        device = model.device
+        k = model.kernels
+        if device.is_cuda or device.is_capturing:
+            # Device-side convergence checks (a conditional graph node on CUDA).
+            iters, r2, tol2 = self._bsr_solver(0)()
+            wp.launch(k.record_solve, dim=1, inputs=[iters, r2, tol2], outputs=[self.stats_array], device=device)
+        else:
+            # On the CPU, reading the residual is a plain memory read; checking every iteration
+            # stops the loop as soon as it converges.
+            iters, err, atol = self._bsr_solver(1)()
+            self._host_stats[ki.STEP_ITERS] += iters
+            self._host_stats[ki.SOLVES] += 1
+            self._host_stats[ki.UNCONVERGED] += int(err > atol)
+
+    # -- this module's PCG loop (matrix-free or on the assembled matrix) ------------------------
+
+    def _spring_mv(self, vec):
+        """ap += (spring part of A) vec; scalars[PAP] += vec.(that)."""
+        model = self.model
+        s = model.spring_count
+        if s:
+            wp.launch(
+                model.kernels.spring_mv,
+                dim=(_blocks(s), ki.TILE),
+                block_dim=ki.TILE,
+                inputs=[s, ki.PAP, model.spring_indices, self.spring_block, vec],
+                outputs=[self.ap, self.scalars],
+                device=model.device,
+            )
+
+    def _pcg_loop(self):
+        """Solve from the initial guess in ``x``; ``ap`` must hold M x (0 in constrained rows)."""
+        model = self.model
+        device = model.device
+        k = model.kernels
+        n = model.particle_count
+        pblocks = _blocks(n)
+        matrix_free = self.solver == "matrix_free"
+
+        spring_mv = self._spring_mv
+
+        # r = b - A x0, z = P r, tolerance and condition.
+        if matrix_free:
+            spring_mv(self.x)
+        else:
+            wp.sparse.bsr_mv(self.bsr, self.x, self.ap, alpha=1.0, beta=0.0)
+        wp.launch(
+            k.init_residual,
+            dim=(pblocks, ki.TILE),
+            block_dim=ki.TILE,
+            inputs=[n, self.filters, self.rhs, self.precond, self.ap],
+            outputs=[self.r, self.z, self.p, self.scalars],
+            device=device,
+        )
+        wp.launch(
+            k.cg_begin,
+            dim=1,
+            inputs=[model.scalar(self.cg_tolerance), self.cg_max_iterations],
+            outputs=[self.scalars, self.ints],
+            device=device,
+        )
+
+        def iteration():
+            wp.launch(
+                k.cg_direction,
+                dim=(pblocks, ki.TILE),
+                block_dim=ki.TILE,
+                inputs=[n, int(matrix_free), model.particle_mass, self.z],
+                outputs=[self.p, self.ap, self.scalars],
+                device=device,
+            )
+            if matrix_free:
+                spring_mv(self.p)
+            else:
+                wp.sparse.bsr_mv(self.bsr, self.p, self.ap, alpha=1.0, beta=0.0)
+                wp.launch(
+                    k.dot_accumulate,
+                    dim=(pblocks, ki.TILE),
+                    block_dim=ki.TILE,
+                    inputs=[n, ki.PAP, self.p, self.ap],
+                    outputs=[self.scalars],
+                    device=device,
+                )
+            wp.launch(
+                k.cg_update,
+                dim=(pblocks, ki.TILE),
+                block_dim=ki.TILE,
+                inputs=[n, self.filters, self.precond, self.p, self.ap],
+                outputs=[self.x, self.r, self.z, self.scalars],
+                device=device,
+            )
+            wp.launch(
+                k.cg_end_iteration,
+                dim=1,
+                inputs=[self.cg_max_iterations],
+                outputs=[self.scalars, self.ints],
+                device=device,
+            )
+
+        wp.capture_while(self._condition, iteration)
+        wp.launch(
+            k.record_solve,
+            dim=1,
+            inputs=[
+                self.ints[ki.ITER : ki.ITER + 1],
+                self.scalars[ki.RR : ki.RR + 1],
+                self.scalars[ki.TOL2 : ki.TOL2 + 1],
+            ],
+            outputs=[self.stats_array],
+            device=device,
+        )
+
+    def _solve_pcg(self):
+        device = self.model.device
+        if self._graph_ok and not device.is_capturing and self._loop_ran:
+            # The loop only touches this integrator's buffers, so one captured graph serves every
+            # solve. (Captured from the second call on, when every kernel module is loaded.)
+            if self._solve_graph is None:
+                with wp.ScopedCapture(device=device, force_module_load=False) as capture:
+                    self._pcg_loop()
+                self._solve_graph = capture.graph
+            wp.capture_launch(self._solve_graph)
+        else:
+            self._pcg_loop()
+            self._loop_ran = True
+
+    def _solve(self):
+        if self.solver != "matrix_free":
+            self._assemble_bsr()
+        if self.solver == "warp_cg":
+            self._solve_warp_cg()
+        else:
+            self._solve_pcg()
+
+    # -- the step -------------------------------------------------------------------------------
+
+    def _update(self, h, state_in: State, qd_k: wp.array, state_out: State, save_warm: bool, dv_scale=1.0):
+        """v_out = qd_k + dv_scale x, q_out = q_n + h v_out; optionally keep x as the next warm start."""
+        model = self.model
+        wp.launch(
+            model.kernels.apply_velocity_update,
+            dim=model.particle_count,
+            inputs=[
+                h,
+                model.scalar(dv_scale),
+                int(save_warm),
+                self.fixed,
+                model.gravity,
+                state_in.particle_q,
+                qd_k,
+                self.x,
+            ],
+            outputs=[state_out.particle_q, state_out.particle_qd, self.dv_warm],
+            device=model.device,
+        )
+
+    def _newton_iteration(self, h, state_in: State, state_out: State, at_start: bool, first: bool, reset_filters: bool):
+        """Linearise, build and solve one system; write v = v_k + dv and x = x_n + h v to state_out."""
+        model = self.model
+        device = model.device
+        k = model.kernels
+        scalar = model.scalar
+        n = model.particle_count
+        # Linearisation point: (x_n, v_n) for Baraff-Witkin's solve, else the iterate (x_n + h v_k, v_k).
+        q, qd = (
+            (state_in.particle_q, state_in.particle_qd) if at_start else (state_out.particle_q, state_out.particle_qd)
+        )
+        eval_forces(model, q, qd, self.f)
+        self.diag_block.zero_()
+        self.rhs.zero_()
+        if model.spring_count:
+            wp.launch(
+                k.eval_spring_jacobians,
+                dim=model.spring_count,
+                inputs=[
+                    h,
+                    h * h if at_start else scalar(0.0),
+                    model.spring_indices,
+                    model.spring_rest_length,
+                    model.spring_stiffness,
+                    model.spring_damping,
+                    q,
+                    qd,
+                ],
+                outputs=[self.spring_block, self.diag_block, self.rhs],
+                device=device,
+            )
+        self.scalars.zero_()
+        wp.launch(
+            k.build_system,
+            dim=(_blocks(n), ki.TILE),
+            block_dim=ki.TILE,
+            inputs=[
+                n,
+                h,
+                scalar(1.0) if first else scalar(0.0),
+                int(self.preconditioner == "block_jacobi"),
+                int(reset_filters),
+                model.particle_mass,
+                model.gravity,
+                self.fixed,
+                state_in.particle_qd,
+                qd,
+                self.f,
+                self.dv_warm,
+                self.diag_block,
+                self.rhs,
+                self.filters,
+            ],
+            outputs=[self.precond, self.x, self.ap, self.scalars],
+            device=device,
+        )
+        self._solve()
+        self._update(h, state_in, qd, state_out, first)
+
+    def step(self, state_in: State, state_out: State, dt: float):
+        model = self.model
+        h = model.scalar(dt)
+        baraff_witkin = self.linearization == "baraff_witkin"
+        if not baraff_witkin:
+            # Newton's starting iterate v_0 = v_n, x_n + h v_0 (dv_scale 0: x holds no dv yet).
+            self._update(h, state_in, state_in.particle_qd, state_out, False, dv_scale=0.0)
+        for it in range(self.newton_iterations):
+            first = it == 0
+            self._newton_iteration(h, state_in, state_out, first and baraff_witkin, first, True)
+        if self.contact_solve:
+            self._contact_solve(h, state_in, state_out, dt)
+        self._record_step()
+        apply_contacts(model, state_in, state_out, dt, self.world_contact_beta)
+
+    def _contact_solve(self, h, state_in: State, state_out: State, dt: float):
+        """Newton iterations again, with the contact response's velocities as constraints."""
+        model = self.model
+        wp.copy(self.q_free, state_out.particle_q)
+        wp.copy(self.qd_free, state_out.particle_qd)
+        apply_contacts(model, state_in, state_out, dt, self.world_contact_beta)
+        self.any_contact.zero_()
+        wp.launch(
+            model.kernels.constrain_contacts,
+            dim=model.particle_count,
+            inputs=[
+                h,
+                model.particle_world,
+                self.fixed,
+                model.plane_count,
+                model.plane_world,
+                model.plane_point,
+                model.plane_normal,
+                model.plane_hole_center,
+                model.plane_hole_radius,
+                model.contact_epsilon,
+                state_in.particle_q,
+                self.q_free,
+                self.qd_free,
+                state_out.particle_q,
+                state_out.particle_qd,
+            ],
+            outputs=[self.filters, state_out.particle_q, state_out.particle_qd, self.any_contact],
+            device=model.device,
+        )
+
+        def constrained_iterations():
+            # First the last linear system again, now with the constraints: it is linearised
+            # where the free solve ended, close to the answer. Linearising at the constrained
+            # iterate instead (particles bounced by the response, their neighbours not yet)
+            # would start Newton from a distorted lattice and can diverge.
+            n = model.particle_count
+            self.scalars.zero_()
+            wp.launch(
+                model.kernels.constrain_last_system,
+                dim=(_blocks(n), ki.TILE),
+                block_dim=ki.TILE,
+                inputs=[n, model.particle_mass, self.filters, self.rhs, self.qd_free, state_out.particle_qd],
+                outputs=[self.x, self.precond, self.qd_k, self.ap, self.scalars],
+                device=model.device,
+            )
+            self._solve()
+            self._update(h, state_in, self.qd_k, state_out, False)
+            # Then Newton iterations at the result, which take the springs' nonlinearity into
+            # account (an impact can turn the jelly by ~0.1 rad in one step).
+            for _ in range(self.newton_iterations):
+                self._newton_iteration(h, state_in, state_out, False, False, False)
+
+        # Skipped on the device when nothing touched (a conditional graph node on CUDA).
+        wp.capture_if(self.any_contact, constrained_iterations)
+
+    def _record_step(self):
+        model = self.model
+        device = model.device
+        if self.solver == "warp_cg" and not (device.is_cuda or device.is_capturing):
+            self._host_stats[ki.TOTAL_ITERS] += self._host_stats[ki.STEP_ITERS]
+            self._host_stats[ki.MAX_ITERS] = max(self._host_stats[ki.MAX_ITERS], self._host_stats[ki.STEP_ITERS])
+            self._host_stats[ki.STEPS] += 1
+            self._host_stats[ki.STEP_ITERS] = 0
+        else:
+            wp.launch(model.kernels.record_step, dim=1, inputs=[], outputs=[self.stats_array], device=device)
+
+    # -- statistics -----------------------------------------------------------------------------
+
+    def reset_stats(self):
+        """Forget the CG iteration counts so far (e.g. those of a warm-up step)."""
+        self.stats_array.zero_()
+        self._host_stats[:] = 0
+
+    def stats(self) -> dict:
+        """CG iterations per step (summed over all solves of a step), for the metrics summary."""
+        a = self.stats_array.numpy().astype(np.int64) + self._host_stats
+        steps = int(a[ki.STEPS])
+        return {
+            "newton_iterations": self.newton_iterations,
+            "linearization": self.linearization,
+            "cg_tolerance": self.cg_tolerance,
+            "cg_max_iterations": self.cg_max_iterations,
+            "cg_preconditioner": self.preconditioner,
+            "cg_solver": self.solver,
+            "cg_steps": steps,
+            "cg_iterations_mean": float(a[ki.TOTAL_ITERS]) / steps if steps else 0.0,
+            "cg_iterations_max": int(a[ki.MAX_ITERS]),
+            "cg_solves": int(a[ki.SOLVES]),
+            "cg_unconverged_solves": int(a[ki.UNCONVERGED]),
+        }

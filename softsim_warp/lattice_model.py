@@ -1,0 +1,221 @@
+"""When a model's springs are regular lattices: detection and the per-jelly tables of the lattice path.
+
+A model takes the lattice path (``kernels/lattice.py``) when every particle belongs to a jelly and
+every spring is one of its jelly's standard stencil springs (``lattice.lattice_springs``), each
+present spring type complete, with one ks and kd per type and one rest length per stencil offset.
+Rest lengths are read from the springs themselves, so a jelly started rotated (rest = initial
+distance, equal for every spring of an offset) or with rest lengths scaled per offset still
+qualifies; springs with individual rest lengths, extra springs or loose particles do not, and
+the model keeps the general spring list.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import warp as wp
+
+from . import lattice
+from .kernels.lattice import REST_SLOTS, rest_slot
+
+# Rest lengths of one stencil offset count as one value when they agree to this relative
+# tolerance: float64 rounding of initial distances in a rotated lattice is ~1e-16.
+REST_TOLERANCE = 1e-9
+
+
+@dataclass
+class LatticeLayout:
+    """Host tables of the lattice path, one row per jelly."""
+
+    start: np.ndarray
+    """First particle of each jelly, shape [J], int32."""
+    shape: np.ndarray
+    """Particles per axis (nx, ny, nz), shape [J, 3], int32."""
+    types: np.ndarray
+    """Bit t set when spring type t (lattice.STRUCTURAL, SHEAR, BENDING) is present, shape [J], int32."""
+    rest: np.ndarray
+    """Rest length per stencil offset [m], shape [J, REST_SLOTS], float64 (see kernels.lattice.rest_slot)."""
+    ks: np.ndarray
+    """Stiffness per spring type [N/m], shape [J, 3], float64."""
+    kd: np.ndarray
+    """Damping per spring type [N s/m], shape [J, 3], float64."""
+    world: np.ndarray
+    """World of each jelly, shape [J], int32."""
+
+
+def detect_lattice(builder) -> tuple[LatticeLayout | None, str]:
+    """The lattice tables of ``builder``'s springs, or ``(None, reason)`` when the lattice path does not apply."""
+    jellies = builder.jellies
+    if not jellies:
+        return None, "no jellies"
+    n_particles = builder._particle_count
+    if sum(j.particle_count for j in jellies) != n_particles:
+        return None, "some particles belong to no jelly"
+    if sum(j.spring_count for j in jellies) != builder._spring_count:
+        return None, "some springs belong to no jelly"
+    pairs = np.concatenate(builder._pairs) if builder._pairs else np.zeros((0, 2), dtype=np.int32)
+    types = np.concatenate(builder._type) if builder._type else np.zeros(0, dtype=np.int32)
+    rest = np.concatenate(builder._rest) if builder._rest else np.zeros(0)
+    ks = np.concatenate(builder._ks) if builder._ks else np.zeros(0)
+    kd = np.concatenate(builder._kd) if builder._kd else np.zeros(0)
+
+    count = len(jellies)
+    layout = LatticeLayout(
+        start=np.zeros(count, dtype=np.int32),
+        shape=np.zeros((count, 3), dtype=np.int32),
+        types=np.zeros(count, dtype=np.int32),
+        rest=np.zeros((count, REST_SLOTS)),
+        ks=np.zeros((count, 3)),
+        kd=np.zeros((count, 3)),
+        world=np.array([info.world for info in jellies], dtype=np.int32),
+    )
+    for j, info in enumerate(jellies):
+        name = info.name or f"jelly {j}"
+        if int(np.prod(info.shape)) != info.particle_count:
+            return None, f"{name}: particle count is not the lattice's"
+        layout.start[j] = info.particle_start
+        layout.shape[j] = info.shape
+        sl = slice(info.spring_start, info.spring_start + info.spring_count)
+        j_pairs, j_types = pairs[sl] - info.particle_start, types[sl]
+        std_pairs, std_types = lattice.lattice_springs(info.shape)
+        present = [t for t in range(3) if np.any(j_types == t)]
+        keep = np.isin(std_types, present)
+        # The builder adds a jelly's springs type by type in stencil order; anything else is custom.
+        if not (np.array_equal(j_pairs, std_pairs[keep]) and np.array_equal(j_types, std_types[keep])):
+            return None, f"{name}: springs are not the standard lattice stencil"
+        for t in present:
+            sel = j_types == t
+            for name_k, values, table in (("ks", ks[sl][sel], layout.ks), ("kd", kd[sl][sel], layout.kd)):
+                if values.min() != values.max():
+                    return None, f"{name}: {lattice.SPRING_TYPE_NAMES[t]} {name_k} varies per spring"
+                table[j, t] = values[0]
+            layout.types[j] |= 1 << t
+        # One rest length per stencil offset. The standard list holds each offset's springs as one
+        # block, in stencil order, so the blocks are found from counts alone.
+        j_rest = rest[sl]
+        at = 0
+        for t in present:
+            for off in lattice.STENCILS[t]:
+                size = int(np.prod([max(n - abs(o), 0) for n, o in zip(info.shape, off)]))
+                r = j_rest[at : at + size]
+                at += size
+                if size == 0:
+                    continue  # the lattice is too thin along this offset
+                if r.max() - r.min() > REST_TOLERANCE * max(abs(r.max()), 1e-30):
+                    return None, f"{name}: rest lengths of offset {off} vary per spring"
+                value = float(np.median(r))
+                layout.rest[j, rest_slot(*off)] = value
+                layout.rest[j, rest_slot(*(-o for o in off))] = value
+    return layout, "lattice"
+
+
+class LatticeData:
+    """Device tables of the lattice path (see :class:`LatticeLayout` for the host side).
+
+    Attributes:
+        jelly_start: first particle per jelly, shape [J], int32.
+        jelly_shape: particles per axis, shape [J], vec3i.
+        jelly_types: bit mask of present spring types, shape [J], int32.
+        jelly_rest: rest length per stencil offset [m], shape [J, REST_SLOTS], scalar.
+        jelly_ks: stiffness per spring type [N/m], shape [J, 3], scalar.
+        jelly_kd: damping per spring type [N s/m], shape [J, 3], scalar.
+        jelly_world: world of each jelly, shape [J], int32.
+        particle_coord_k: third lattice coordinate k of each particle, shape [particle_count],
+            int32; allocated only for the CPU row kernel, which reads it.
+        scratch: workspace of the row kernel, shape [particle_count], vec3; allocated with
+            ``particle_coord_k``.
+        kernel: "rows" (CPU: one vectorised native loop per jelly) or "gather" (one thread per
+            particle); chosen by device, overridable for tests and benchmarks.
+        layout: the host :class:`LatticeLayout`.
+    """
+
+    def __init__(self, layout: LatticeLayout, device, scalar, np_scalar, particle_count: int, kernel=None):
+        self.layout = layout
+        self.device = device
+        self.jelly_count = len(layout.start)
+        self.jelly_start = wp.array(layout.start, dtype=wp.int32, device=device)
+        self.jelly_shape = wp.array(layout.shape, dtype=wp.vec3i, device=device)
+        self.jelly_types = wp.array(layout.types, dtype=wp.int32, device=device)
+        self.jelly_rest = wp.array2d(layout.rest.astype(np_scalar), dtype=scalar, device=device)
+        self.jelly_ks = wp.array2d(layout.ks.astype(np_scalar), dtype=scalar, device=device)
+        self.jelly_kd = wp.array2d(layout.kd.astype(np_scalar), dtype=scalar, device=device)
+        self.jelly_world = wp.array(layout.world, dtype=wp.int32, device=device)
+        self._particle_count = particle_count
+        self.layout_vec3 = wp.types.vector(3, scalar)
+        self.particle_coord_k = None
+        self.scratch = None
+        self.kernel = None
+        self.set_kernel(kernel or ("rows" if device.is_cpu else "gather"))
+
+    def set_kernel(self, kernel: str):
+        """Choose the force kernel: "rows" (native CPU loop) or "gather" (thread per particle).
+
+        Choose before making integrators: they size their buffers for the kernel in use.
+        """
+        if kernel not in ("rows", "gather"):
+            raise ValueError(f"lattice kernel must be 'rows' or 'gather' (got {kernel!r})")
+        if kernel == "rows" and self.particle_coord_k is None:
+            coord_k = np.zeros(self._particle_count, dtype=np.int32)
+            for start, shape in zip(self.layout.start, self.layout.shape):
+                n = int(np.prod(shape))
+                coord_k[start : start + n] = np.arange(n) % shape[2]
+            self.particle_coord_k = wp.array(coord_k, dtype=wp.int32, device=self.device)
+            self.scratch = wp.empty(self._particle_count, dtype=self.layout_vec3, device=self.device)
+        self.kernel = kernel
+
+    def nbytes(self) -> int:
+        """Bytes of the device arrays held here."""
+        arrays = [
+            self.jelly_start,
+            self.jelly_shape,
+            self.jelly_types,
+            self.jelly_rest,
+            self.jelly_ks,
+            self.jelly_kd,
+            self.jelly_world,
+        ]
+        arrays += [a for a in (self.particle_coord_k, self.scratch) if a is not None]
+        return sum(a.capacity for a in arrays)
+
+
+def eval_lattice_forces(model, q: wp.array, qd: wp.array, f_out: wp.array):
+    """Spring forces of a lattice model into ``f_out`` (every element written), with its chosen kernel."""
+    lat = model.lattice
+    if lat.kernel == "rows":
+        wp.launch(
+            model.kernels.eval_lattice_rows,
+            dim=lat.jelly_count,
+            inputs=[
+                lat.jelly_start,
+                lat.jelly_shape,
+                lat.jelly_types,
+                lat.jelly_rest,
+                lat.jelly_ks,
+                lat.jelly_kd,
+                lat.particle_coord_k,
+                q,
+                qd,
+                lat.scratch,
+            ],
+            outputs=[f_out],
+            device=model.device,
+        )
+    else:
+        wp.launch(
+            model.kernels.eval_lattice_springs,
+            dim=model.particle_count,
+            inputs=[
+                model.particle_jelly,
+                lat.jelly_start,
+                lat.jelly_shape,
+                lat.jelly_types,
+                lat.jelly_rest,
+                lat.jelly_ks,
+                lat.jelly_kd,
+                q,
+                qd,
+            ],
+            outputs=[f_out],
+            device=model.device,
+        )

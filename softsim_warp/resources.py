@@ -1,0 +1,234 @@
+"""Memory a scene needs, estimated from its counts before anything is allocated.
+
+A scene's size is known from its resolutions alone: particle and spring counts follow from the
+lattice stencils (:func:`scene_counts`, pure Python integers, so a resolution of 10^6 per axis costs
+nothing to count). :func:`estimate` turns the counts into bytes, split into host memory (the NumPy
+builder and the USD time samples, which a USD layer keeps in memory until the run ends) and device
+memory (model, states, integrator stage buffers); on the CPU device both live in host RAM.
+:func:`check_fits` compares that with what is available and raises a one-line
+:class:`~softsim_warp.errors.SceneError` naming the estimate and the space available.
+
+The per-item byte counts below follow the arrays that ``model.py``, ``integrators.py``,
+``simulate.py`` and ``usd_io.py`` allocate; the builder's peak was measured with ``tracemalloc``
+(about 87 bytes per spring while the lattice stencils are expanded in int64 and the builder's
+float64 copies exist side by side) and is rounded up here.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+from dataclasses import dataclass, field
+
+# Bytes per item. S: scalar size (4 for float32, 8 for float64).
+HOST_BUILD_PER_SPRING = 192  # the above plus the lattice-path detection in finalize (per-spring offsets and checks; measured ~179)
+HOST_BUILD_PER_PARTICLE = 96  # float64 q, qd, mass, int32 jelly/world, lattice meshgrids
+HOST_MODEL_PER_SPRING = 44  # host copies kept in the Model: pairs, type, rest/ks/kd (float64)
+HOST_MODEL_PER_PARTICLE = 32  # q and mass (float64) kept in the Model
+USD_POINT_BYTES = 12  # one float32 point of one time sample
+STAGES = {"euler": 1, "symplectic": 1, "midpoint": 2, "rk4": 4}
+
+
+def _device_per_particle(s: int, integrator: str) -> int:
+    # Model: q, qd (vec3), mass, inv_mass (scalar), jelly, world (int32).
+    model = 6 * s + 2 * s + 8
+    # Two states plus the spare state of Simulator.warm_up, each q and qd.
+    states = 3 * 6 * s
+    if integrator in STAGES:
+        # f, and for multi-stage methods the stage state and the RK accumulators (4 vec3).
+        stage = 3 * s + (12 * s if STAGES[integrator] > 1 else 0)
+    else:
+        # Implicit: forces, a Newton/CG working set of about eight vec3 vectors (x, r, p, Ap, z,
+        # diagonal, rhs, dv) and the diagonal 3x3 blocks of the system matrix.
+        stage = 3 * s + 8 * 3 * s + 9 * s
+    return model + states + stage
+
+
+def _device_per_spring(s: int, integrator: str, deterministic: bool) -> int:
+    # Model: pair (vec2i), rest length, stiffness, damping.
+    per = 8 + 3 * s
+    if integrator not in STAGES:
+        per += 2 * 9 * s  # implicit: off-diagonal 3x3 blocks of df/dx and df/dv per spring
+    if deterministic:
+        per += 3 * s + 2 * 4  # per-spring force (vec3) + two CSR entries (signed spring id)
+    return per
+
+
+@dataclass
+class Counts:
+    """Particle, spring and surface-point counts of a scene (Python ints, never overflow)."""
+
+    particles: int = 0
+    springs: int = 0
+    surface: int = 0
+    jellies: list = field(default_factory=list)
+    """Per jelly: (particles, springs)."""
+
+
+def lattice_spring_count(shape, types=("structural", "shear", "bending")) -> int:
+    """Springs of a lattice of ``shape`` for the given types, counted from the stencils alone."""
+    from . import lattice  # noqa: PLC0415
+
+    total = 0
+    for t, stencil in lattice.STENCILS.items():
+        if lattice.SPRING_TYPE_NAMES[t] not in types:
+            continue
+        for off in stencil:
+            total += math.prod(max(n - abs(o), 0) for n, o in zip(shape, off))
+    return total
+
+
+def scene_counts(data: dict) -> Counts:
+    """Counts of a validated scene dictionary (``Scene.data``), without building anything."""
+    c = Counts()
+    for j in data["jelly"]:
+        shape = [int(n) for n in j["resolution"]]
+        n = math.prod(shape)
+        s = lattice_spring_count(shape, tuple(j.get("springs", {})))
+        interior = math.prod(max(k - 2, 0) for k in shape)
+        c.particles += n
+        c.springs += s
+        c.surface += n - interior
+        c.jellies.append((n, s))
+    return c
+
+
+@dataclass
+class Estimate:
+    """Bytes a run needs; ``host`` and ``device`` are what must fit where."""
+
+    counts: Counts
+    host_build: int
+    host_model: int
+    usd: int
+    device: int
+
+    def on(self, is_cuda: bool) -> tuple[int, int]:
+        """Peak (host bytes, device bytes) of a run on a CUDA device, or (peak of all of it, 0) on the CPU.
+
+        The builder is freed once the model exists, so the host peak is the larger of building
+        (with, on the CPU, the device arrays that ``finalize`` creates meanwhile) and running
+        (the model's host copies, the device arrays on the CPU, and every USD frame).
+        """
+        if is_cuda:
+            return max(self.host_build, self.host_model + self.usd), self.device
+        return max(self.host_build + self.device, self.host_model + self.device + self.usd), 0
+
+
+def estimate(data: dict, integrator=None, frames=0, usd_springs=False, deterministic=False, precision=None) -> Estimate:
+    """Estimated memory of a run of the validated scene ``data``.
+
+    Args:
+        data: ``Scene.data``.
+        integrator: method name; defaults to the scene's.
+        frames: output frames after frame 0 written to USD (0: the model alone).
+        usd_springs: springs written as curves too (two points per spring per frame).
+        deterministic: the atomic-free force path (per-spring forces and a CSR gather list).
+        precision: "float32" or "float64"; defaults to the scene's.
+    """
+    sim = data["simulation"]
+    integrator = integrator or sim["integrator"]
+    s = 8 if (precision or sim["precision"]) == "float64" else 4
+    c = scene_counts(data)
+    host_build = HOST_BUILD_PER_SPRING * c.springs + HOST_BUILD_PER_PARTICLE * c.particles
+    host_model = HOST_MODEL_PER_SPRING * c.springs + HOST_MODEL_PER_PARTICLE * c.particles
+    per_frame = c.particles + c.surface + (2 * c.springs if usd_springs else 0)
+    usd = (frames + 1) * per_frame * USD_POINT_BYTES if frames else 0
+    device = (
+        _device_per_particle(s, integrator) * c.particles + _device_per_spring(s, integrator, deterministic) * c.springs
+    )
+    return Estimate(c, host_build, host_model, usd, device)
+
+
+def available_host_bytes() -> int | None:
+    """Memory the kernel says can be allocated without swapping (MemAvailable), else free pages."""
+    try:
+        with open("/proc/meminfo") as f:
+            for line in f:
+                if line.startswith("MemAvailable:"):
+                    return int(line.split()[1]) * 1024
+    except (OSError, ValueError, IndexError):
+        pass
+    try:
+        return os.sysconf("SC_AVPHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
+    except (ValueError, OSError, AttributeError):
+        return None
+
+
+def format_bytes(n: float) -> str:
+    for unit in ("B", "KiB", "MiB", "GiB", "TiB", "PiB"):
+        if abs(n) < 1024 or unit == "PiB":
+            return f"{n:.0f} {unit}" if unit == "B" else f"{n:.3g} {unit}"
+        n /= 1024
+    return f"{n:.3g} PiB"  # pragma: no cover
+
+
+def _count(n: int) -> str:
+    return f"{n:,}" if n < 10**15 else f"{float(n):.3g}"
+
+
+def _largest_jelly_key(c: Counts) -> tuple[str, list]:
+    k = max(range(len(c.jellies)), key=lambda i: c.jellies[i][0] + c.jellies[i][1])
+    return f"jelly.{k}.resolution", k
+
+
+def check_host_build(data: dict, source: str, available=None):
+    """Refuse a scene whose builder alone would not fit in host memory (called by validation)."""
+    from .errors import SceneError  # noqa: PLC0415
+
+    est = estimate(data)
+    need = est.host_build
+    available = available_host_bytes() if available is None else available
+    if available is not None and need > available:
+        key, k = _largest_jelly_key(est.counts)
+        raise SceneError(
+            source,
+            key,
+            f"scene too large: building {_count(est.counts.particles)} particles and {_count(est.counts.springs)} springs needs "
+            f"about {format_bytes(need)} of host memory, {format_bytes(available)} available",
+            data["jelly"][k]["resolution"],
+        )
+
+
+def check_fits(
+    scene,
+    device,
+    integrator=None,
+    frames=0,
+    usd_springs=False,
+    deterministic=False,
+    host_available=None,
+    device_free=None,
+):
+    """Refuse a run that would not fit on ``device`` (a ``wp.Device`` or anything with ``is_cuda``).
+
+    ``host_available`` and ``device_free`` override what is measured (for tests).
+    """
+    from .errors import SceneError  # noqa: PLC0415
+
+    est = estimate(scene.data, integrator, frames, usd_springs, deterministic)
+    host_need, device_need = est.on(device.is_cuda)
+    key, k = _largest_jelly_key(est.counts)
+    value = scene.data["jelly"][k]["resolution"]
+    what = f"{_count(est.counts.particles)} particles, {_count(est.counts.springs)} springs and {_count(frames + 1)} USD frames"
+    host_available = available_host_bytes() if host_available is None else host_available
+    if host_available is not None and host_need > host_available:
+        where = "host memory" if device.is_cuda else f"memory on {device}"
+        raise SceneError(
+            scene.source,
+            key,
+            f"scene too large: {what} need about {format_bytes(host_need)} of {where}, "
+            f"{format_bytes(host_available)} available",
+            value,
+        )
+    if device.is_cuda:
+        free = device.free_memory if device_free is None else device_free
+        if device_need > free:
+            raise SceneError(
+                scene.source,
+                key,
+                f"scene too large: {what} need about {format_bytes(device_need)} on {device}, "
+                f"{format_bytes(free)} free of {format_bytes(device.total_memory)}",
+                value,
+            )
+    return est

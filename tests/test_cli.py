@@ -1,0 +1,79 @@
+"""The command line end to end on tiny scenes."""
+
+import json
+import subprocess
+import sys
+
+from pxr import Usd, UsdGeom
+
+TINY = """
+name = "tiny"
+[simulation]
+integrator = "midpoint"
+dt = 0.001
+frames = 4
+fps = 50
+[[jelly]]
+resolution = 3
+size = 0.2
+center = [0, 0.3, 0]
+particle_mass = 0.01
+springs.structural = { ks = 20.0, kd = 0.02 }
+springs.shear = { ks = 20.0, kd = 0.02 }
+[[plane]]
+"""
+
+
+def softsim(*args, cwd=None):
+    return subprocess.run([sys.executable, "-m", "softsim_warp", *args], capture_output=True, text=True, cwd=cwd, timeout=600)
+
+
+def test_run_end_to_end(tmp_path):
+    scene = tmp_path / "tiny.toml"
+    scene.write_text(TINY)
+    out, metrics = tmp_path / "tiny.usda", tmp_path / "m.json"
+    r = softsim("run", str(scene), "--out", str(out), "--metrics", str(metrics), "--quiet")
+    assert r.returncode == 0, r.stderr
+    data = json.loads(metrics.read_text())
+    s = data["summary"]
+    for key in ("scene", "integrator", "dt", "device", "particles", "springs", "steps", "frames", "sim_time",
+                "wall_seconds", "compile_seconds", "particle_steps_per_second", "exploded"):
+        assert key in s
+    # 27 particles; no bending springs were asked for: 54 structural + 72 face + 32 body shear.
+    assert (s["particles"], s["springs"], s["integrator"], s["exploded"]) == (27, 158, "midpoint", False)
+    # 4 frames after frame 0 at 50 fps with dt 1 ms: 20 steps per frame.
+    assert (s["frames"], s["steps"]) == (5, 80)
+    assert len(data["frames"]) == 5
+    f = data["frames"][2]
+    assert f["time"] == 0.04
+    # Free fall until contact: the centre of mass drops g t^2 / 2 (midpoint is exact for constant g).
+    assert abs(f["com"][1] - (0.3 - 0.5 * 9.8 * 0.04**2)) < 1e-6
+    assert abs(f["total_energy"] - data["frames"][0]["total_energy"]) < 1e-6
+    stage = Usd.Stage.Open(str(out))
+    assert len(UsdGeom.Points(stage.GetPrimAtPath("/World/Jelly_0/Particles")).GetPointsAttr().GetTimeSamples()) == 5
+    assert "tiny: 5 frames, 80 steps of midpoint" in r.stderr
+
+
+def test_flags_override_scene_and_builtin_by_name(tmp_path):
+    r = softsim("run", "jelly_drop", "--integrator", "rk4", "--frames", "2", "--dt", "0.001",
+                "--set", "jelly.0.resolution=3", "--metrics", "m.json", "--out", "o.usdc", "--quiet", cwd=tmp_path)
+    assert r.returncode == 0, r.stderr
+    s = json.loads((tmp_path / "m.json").read_text())["summary"]
+    assert (s["integrator"], s["dt"], s["particles"], s["frames"]) == ("rk4", 0.001, 27, 3)
+
+
+def test_user_errors_are_one_line(tmp_path):
+    r = softsim("run", "jelly_drop", "--set", "simulation.dt=-1", "--out", str(tmp_path / "x.usdc"))
+    assert r.returncode == 2
+    assert r.stderr.strip().splitlines() == [
+        "error: jelly_drop.toml: simulation.dt: must be a finite number > 0 (got -1)"
+    ]
+    r = softsim("run", "jelly_drop", "--set", "jelly.0.springs.shear.kss=3")
+    assert r.returncode == 2 and "did you mean 'ks'?" in r.stderr and "Traceback" not in r.stderr
+    r = softsim("run", "no_such_scene")
+    assert r.returncode == 2 and r.stderr.startswith("error: no_such_scene: scene: no such scene file or built-in scene")
+
+
+def test_scenes_lists_builtins():
+    r = softsim("scenes")
+    assert r.returncode == 0 and r.stdout.startswith("jelly_drop") or "jelly_drop " in r.stdout

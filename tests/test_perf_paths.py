@@ -1,0 +1,326 @@
+"""Fast paths agree with the general ones: lattice vs spring list, fused vs plain, graph vs plain, batch vs single.
+
+References: a float64 NumPy evaluation of the spring forces, float64 runs of the spring-list path,
+and the plain paths themselves where the arithmetic is the same (bitwise).
+"""
+
+import json
+
+import numpy as np
+import pytest
+import warp as wp
+
+from softsim_warp.integrators import EXPLICIT, ExplicitIntegrator, eval_forces
+from softsim_warp.lattice import spring_counts
+from softsim_warp.model import ModelBuilder
+from softsim_warp.simulate import MetricsProbe, Simulator
+
+EPS32 = float(np.finfo(np.float32).eps)
+EPS64 = float(np.finfo(np.float64).eps)
+SPRINGS = {
+    "structural": {"ks": 1000.0, "kd": 1.0},
+    "shear": {"ks": 700.0, "kd": 0.5},
+    "bending": {"ks": 300.0, "kd": 0.2},
+}
+
+
+def _builder(shape=(4, 5, 6), springs=SPRINGS, degrees=30.0, second=True, world=0, builder=None):
+    b = builder or ModelBuilder((0.0, -9.8, 0.0))
+    b.add_jelly(
+        shape,
+        (0.3, 0.4, 0.5),
+        0.01,
+        springs,
+        center=(0.0, 0.3, 0.0),
+        axis=(1.0, 0.0, 1.0),
+        degrees=degrees,
+        world=world,
+    )
+    if second:
+        # A second jelly with another shape and without shear springs: per-jelly tables and type masks.
+        b.add_jelly(
+            (3, 2, 4),
+            0.2,
+            0.02,
+            {"structural": {"ks": 100.0, "kd": 1.0}, "bending": {"ks": 30.0, "kd": 0.2}},
+            center=(1.0, 0.5, 0.0),
+            world=world,
+        )
+    return b
+
+
+def _reference_forces(model, q, qd):
+    """Float64 spring forces and, per particle, the scale of their rounding error.
+
+    f_a = -sum_s (ks (l - r) + kd (v_a - v_b).d^) d^ over the springs s = (a, b), f_b = -f_a.
+    A float32 evaluation rounds l (and r) to ~eps l, which ks turns into ~eps ks (l + r); the
+    damper and the final products add ~eps kd |v_a - v_b|; a sum of up to 32 terms adds at most
+    32 eps sum |term|. ``scale`` is sum over springs of ks (l + r) + kd |dv| + 32 |term|.
+    """
+    pairs = model.spring_indices_host
+    x = q.astype(np.float64)
+    v = qd.astype(np.float64)
+    d = x[pairs[:, 0]] - x[pairs[:, 1]]
+    length = np.linalg.norm(d, axis=1)
+    dhat = d / length[:, None]
+    dv = v[pairs[:, 0]] - v[pairs[:, 1]]
+    ks, kd, rest = model.spring_stiffness_host, model.spring_damping_host, model.spring_rest_host
+    term = -(ks * (length - rest) + kd * np.einsum("ij,ij->i", dv, dhat))[:, None] * dhat
+    f = np.zeros_like(x)
+    np.add.at(f, pairs[:, 0], term)
+    np.add.at(f, pairs[:, 1], -term)
+    per_spring = ks * (length + rest) + kd * np.linalg.norm(dv, axis=1) + 32.0 * np.linalg.norm(term, axis=1)
+    scale = np.zeros(len(x))
+    np.add.at(scale, pairs[:, 0], per_spring)
+    np.add.at(scale, pairs[:, 1], per_spring)
+    return f, scale
+
+
+def _perturbed_state(model, device, seed=0, precision=np.float32):
+    rng = np.random.default_rng(seed)
+    spacing = min(s for info in model.jellies for s in info.spacing if s > 0)
+    q = (model.particle_q_host + rng.normal(scale=0.1 * spacing, size=(model.particle_count, 3))).astype(precision)
+    qd = rng.normal(scale=1.0, size=(model.particle_count, 3)).astype(precision)
+    return q, qd
+
+
+@pytest.mark.parametrize("shape", [(4, 5, 6), (1, 6, 5), (2, 2, 2), (5, 1, 1)])
+@pytest.mark.parametrize("kernel", ["gather", "rows"])
+def test_lattice_forces_match_float64_reference(device, shape, kernel):
+    lattice = _builder(shape).finalize(device, force_path="lattice")
+    springs = _builder(shape).finalize(device, force_path="springs")
+    lattice.lattice.set_kernel(kernel)
+    q, qd = _perturbed_state(springs, device)
+    f_ref, scale = _reference_forces(springs, q, qd)
+    qa = wp.array(q, dtype=wp.vec3, device=device)
+    qda = wp.array(qd, dtype=wp.vec3, device=device)
+    for model in (lattice, springs):
+        f = wp.full(model.particle_count, wp.vec3(np.inf, np.inf, np.inf), dtype=wp.vec3, device=device)  # poisoned
+        eval_forces(model, qa, qda, f)
+        err = np.linalg.norm(f.numpy() - f_ref, axis=1)
+        # |f32 - f64| <= eps32 * scale (see _reference_forces), per particle.
+        assert np.all(err <= EPS32 * scale + 1e-30), (model.lattice_reason, float((err / (scale + 1e-30)).max()))
+    assert "spring_indices" not in lattice.__dict__  # the lattice path never made the spring arrays
+
+
+def test_lattice_forces_float64(device):
+    """In float64 both paths agree with the reference to float64 rounding (same bound, eps64)."""
+    lattice = _builder().finalize(device, "float64", force_path="lattice")
+    springs = _builder().finalize(device, "float64", force_path="springs")
+    q, qd = _perturbed_state(springs, device, seed=3, precision=np.float64)
+    f_ref, scale = _reference_forces(springs, q, qd)
+    qa = wp.array(q, dtype=wp.vec3d, device=device)
+    qda = wp.array(qd, dtype=wp.vec3d, device=device)
+    for kernel in ("gather", "rows"):
+        lattice.lattice.set_kernel(kernel)
+        f = wp.zeros(lattice.particle_count, dtype=wp.vec3d, device=device)
+        eval_forces(lattice, qa, qda, f)
+        assert np.all(np.linalg.norm(f.numpy() - f_ref, axis=1) <= EPS64 * scale)
+
+
+def _run(model, method, steps, dt, fused=None, use_graph=False):
+    integrator = ExplicitIntegrator(model, method, fused=fused)
+    sim = Simulator(model, integrator, dt, 1.0 / (steps * dt), 1, use_graph=use_graph)
+    sim.advance(steps)
+    return sim.state.particle_q.numpy().astype(np.float64), sim.state.particle_qd.numpy().astype(np.float64)
+
+
+def _dropping(builder):
+    """The jelly starts 1 mm above a plane falling at 1 m/s, so it hits and bounces within the run."""
+    b = builder
+    lowest = min(np.concatenate(b._q)[:, 1])
+    b._qd[0][:, 1] = -1.0
+    b.add_plane((0.0, lowest - 1.0e-3, 0.0), (0.0, 1.0, 0.0), restitution=0.5, friction=0.3)
+    return b
+
+
+@pytest.mark.parametrize("method", EXPLICIT)
+def test_lattice_trajectories_match(device, method):
+    """Short runs with an impact: float32 lattice (fused) and spring-list runs stay within rounding of float64.
+
+    Each step rounds every position to ~eps32 |x| and the velocity update adds the force
+    rounding times h/m; over a stable run of N steps these add up to at most ~N eps32 |x|max per
+    coordinate (a few ulps per step). The bound below allows 4 ulps of |x|max per step.
+    """
+    steps, dt = 200, 1.0e-4
+    b = _dropping(_builder(second=False))
+    plane_y = b.planes[0]["point"][1]
+    ref_q, _ = _run(b.finalize(device, "float64", force_path="springs"), method, steps, dt)
+    # Contact acted: falling freely the lowest particle would end 1 m/s * 0.02 s + g t^2 / 2 below its start.
+    assert ref_q[:, 1].min() > plane_y - 1.0e-3
+    bound = steps * 4.0 * EPS32 * np.abs(ref_q).max()
+    results = {}
+    for path in ("lattice", "springs"):
+        model = _dropping(_builder(second=False)).finalize(device, force_path=path)
+        results[path], _ = _run(model, method, steps, dt)
+        assert np.abs(results[path] - ref_q).max() <= bound, path
+    assert np.abs(results["lattice"] - results["springs"]).max() <= 2 * bound
+    # In float64 the fused lattice path follows the float64 spring list to float64 rounding.
+    lattice64, _ = _run(
+        _dropping(_builder(second=False)).finalize(device, "float64", force_path="lattice"), method, steps, dt
+    )
+    assert np.abs(lattice64 - ref_q).max() <= steps * 4.0 * EPS64 * np.abs(ref_q).max()
+
+
+@pytest.mark.parametrize("method", ["symplectic", "rk4"])
+@pytest.mark.parametrize("kernel", ["gather", "rows"])
+def test_fused_matches_unfused(device, method, kernel):
+    """The fused stage kernels do the same arithmetic as eval_forces + integrate_stage + collide_planes."""
+    steps, dt = 100, 1.0e-4
+    runs = {}
+    for fused in (False, True):
+        model = _dropping(_builder()).finalize(device, force_path="lattice")
+        model.lattice.set_kernel(kernel)
+        runs[fused], _ = _run(model, method, steps, dt, fused=fused)
+    # Contraction of a*b+c into FMA may differ between the kernels: a few ulps per step.
+    assert np.abs(runs[True] - runs[False]).max() <= steps * 4.0 * EPS32 * np.abs(runs[False]).max()
+
+
+@pytest.mark.parametrize("path", ["lattice", "springs"])
+def test_graph_capture_matches_plain_stepping(path):
+    """On the CPU a captured frame replays the same kernels in the same order: bitwise equal."""
+    out = {}
+    for use_graph in (False, True):
+        model = _dropping(_builder()).finalize("cpu", force_path=path)
+        out[use_graph] = _run(model, "rk4", 60, 1.0e-4, use_graph=use_graph)
+    assert np.array_equal(out[False][0], out[True][0]) and np.array_equal(out[False][1], out[True][1])
+
+
+def test_batch_matches_single_runs(device):
+    """Copies in worlds, each with its own method, advance in shared launches exactly as alone."""
+    methods = ["euler", "rk4", "symplectic"]
+    b = ModelBuilder((0.0, -9.8, 0.0))
+    for w in range(len(methods)):
+        _builder(second=False, world=w, builder=b)
+    batch = b.finalize(device)
+    assert batch.lattice is not None
+    integrator = ExplicitIntegrator(batch, methods)
+    sim = Simulator(batch, integrator, 1.0e-4, 100.0, 1, use_graph=False)
+    sim.advance(50)
+    q_batch = sim.state.particle_q.numpy()
+    n = q_batch.shape[0] // len(methods)
+    for w, method in enumerate(methods):
+        q_single, _ = _run(_builder(second=False).finalize(device), method, 50, 1.0e-4)
+        assert np.array_equal(q_batch[w * n : (w + 1) * n], q_single.astype(np.float32)), method
+
+
+def test_lattice_detection():
+    assert _builder().finalize("cpu").lattice is not None
+    # Rest lengths scaled per offset (a jelly started crushed) still fit the tables.
+    b = _builder(second=False)
+    b._q[0] = 0.5 * b._q[0]
+    crushed = b.finalize("cpu")
+    assert crushed.lattice is not None
+    # Individual rest lengths, an extra spring, or a loose particle: the general spring list.
+    b = _builder(second=False)
+    b._rest[0] = b._rest[0] * np.linspace(0.9, 1.1, len(b._rest[0]))
+    assert b.finalize("cpu").lattice is None
+    b = _builder()
+    b.add_spring([0], [70], 10.0, 0.0)
+    m = b.finalize("cpu")
+    assert m.lattice is None and "belong to no jelly" in m.lattice_reason
+    b = _builder()
+    b.add_particles([[0.0, 2.0, 0.0]], [0.0, 0.0, 0.0], 0.1)
+    assert b.finalize("cpu").lattice is None
+    with pytest.raises(ValueError, match="lattice path does not apply"):
+        b.finalize("cpu", force_path="lattice")
+
+
+def test_crushed_jelly_forces_match(device):
+    """A jelly started at half size pushes back with the forces of its true rest lengths."""
+    models = {}
+    for path in ("lattice", "springs"):
+        b = _builder(second=False)
+        b._q[0] = 0.5 * b._q[0] + np.array([0.0, 0.3, 0.0])
+        models[path] = b.finalize(device, force_path=path)
+    q, qd = _perturbed_state(models["springs"], device, seed=5)
+    f_ref, scale = _reference_forces(models["springs"], q, qd)
+    f = wp.zeros(len(q), dtype=wp.vec3, device=device)
+    eval_forces(
+        models["lattice"], wp.array(q, dtype=wp.vec3, device=device), wp.array(qd, dtype=wp.vec3, device=device), f
+    )
+    assert np.all(np.linalg.norm(f.numpy() - f_ref, axis=1) <= EPS32 * scale)
+
+
+def test_lazy_spring_arrays_and_spring_energy(device):
+    """Metrics on the lattice path: spring energy sum 1/2 ks (l - r)^2, without making spring arrays."""
+    model = _builder().finalize(device)
+    q, qd = _perturbed_state(model, device, seed=7)
+    state = model.state()
+    state.particle_q.assign(q)
+    state.particle_qd.assign(qd)
+    metrics = MetricsProbe(model).measure(state, 0, 0.0)
+    assert "spring_indices" not in model.__dict__
+    pairs = model.spring_indices_host
+    stretch = np.linalg.norm(q[pairs[:, 0]].astype(np.float64) - q[pairs[:, 1]], axis=1) - model.spring_rest_host
+    energy = 0.5 * model.spring_stiffness_host * stretch**2
+    scale = model.spring_stiffness_host * (np.abs(stretch) * 2.0 * model.spring_rest_host + stretch**2)
+    # float32 l carries ~eps l error, so each term is good to ~eps ks |l - r| l, plus the sum's rounding.
+    assert metrics.spring_energy == pytest.approx(
+        energy.sum(), abs=4 * EPS32 * (scale.sum() + energy.sum() * len(energy))
+    )
+    # The spring arrays appear on first use, with the builder's values.
+    assert np.array_equal(model.spring_indices.numpy(), pairs)
+    assert np.allclose(model.spring_rest_length.numpy(), model.spring_rest_host, rtol=EPS32)
+
+
+def test_bench_cli_writes_json(tmp_path, capsys):
+    from softsim_warp.cli import main
+
+    out = tmp_path / "bench.json"
+    assert (
+        main(
+            [
+                "bench",
+                "--sizes",
+                "3",
+                "--steps",
+                "5",
+                "--integrators",
+                "euler,rk4",
+                "--out",
+                str(out),
+                "--repeats",
+                "2",
+                "--paths",
+                "lattice,springs",
+            ]
+        )
+        == 0
+    )
+    data = json.loads(out.read_text())
+    assert {"device", "versions", "bandwidth_gbs", "results"} <= set(data)
+    rows = data["results"]
+    assert {(r["integrator"], r["path"]) for r in rows} == {
+        (i, p) for i in ("euler", "rk4") for p in ("lattice", "springs")
+    }
+    for r in rows:
+        assert r["particles"] == 27 and r["springs"] == sum(spring_counts((3, 3, 3)).values())
+        for key in (
+            "ms_per_step",
+            "particle_steps_per_s",
+            "spring_evals_per_s",
+            "compile_s",
+            "memory_bytes",
+            "bytes_per_step",
+            "bandwidth_fraction",
+        ):
+            assert r[key] > 0, key
+    assert "particle-steps/s" in capsys.readouterr().out
+
+
+@pytest.mark.parametrize(
+    "argv, message",
+    [
+        (["--sizes", "1"], "error: command line: --sizes: each size must be at least 2 (got '1')"),
+        (["--sizes", "ten"], "error: command line: --sizes: not a comma-separated list of integers (got 'ten')"),
+        (["--integrators", "verlet"], "error: command line: --integrators: unknown value 'verlet'"),
+        (["--steps", "0"], "error: command line: --steps: must be at least 1 (got 0)"),
+    ],
+)
+def test_bench_cli_rejects_bad_input(argv, message, capsys):
+    from softsim_warp.cli import main
+
+    assert main(["bench", *argv]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith(message) and err.count("\n") == 1, err

@@ -1,0 +1,214 @@
+"""Property-based tests (hypothesis).
+
+Scene loader: any mutation of a valid scene (keys deleted, values replaced by anything TOML can
+hold: nan, inf, huge, negative, wrong types; unknown keys added; text edits of the file; random
+``--set``) either loads or raises SceneError whose message is one line of the documented form.
+
+Spring forces: on random lattices with random states, coincident particles, and coordinates from
+1e-6 to 1e6 m, the total internal force is zero to float32 rounding (momentum conservation: each
+spring adds f to one particle and -f to the other) and no force is NaN or inf.
+"""
+
+import copy
+import math
+import os
+import sys
+import tomllib
+from pathlib import Path
+
+import numpy as np
+import pytest
+import warp as wp
+from hypothesis import HealthCheck, event, given, settings
+from hypothesis import strategies as st
+
+from softsim_warp import eval_forces, scene
+from softsim_warp.deterministic import attach
+from softsim_warp.errors import SceneError
+from softsim_warp.model import ModelBuilder
+
+sys.path.insert(0, str(Path(__file__).parent))
+import robustness_cases as rc  # noqa: E402
+
+# 50 examples keep the suite fast; SOFTSIM_HYPOTHESIS_EXAMPLES=5000 hunts harder.
+SETTINGS = settings(
+    max_examples=int(os.environ.get("SOFTSIM_HYPOTHESIS_EXAMPLES", "50")),
+    deadline=None,
+    suppress_health_check=[HealthCheck.function_scoped_fixture],
+)
+BASE = tomllib.loads(rc.BASE)
+
+# --- scene loader -----------------------------------------------------------------------------
+
+scalars = st.one_of(
+    st.floats(allow_nan=True, allow_infinity=True),
+    st.integers(-3, 12),
+    st.sampled_from([0, -1, 2**31 - 1, 2**53, 10**12, -(2**63), 10**30]),
+    st.booleans(),
+    st.text(max_size=8),
+    st.sampled_from(["symplectic", "rk4", "implicit", "float64", "float32", "nan"]),
+)
+values = st.recursive(
+    scalars,
+    lambda inner: st.one_of(st.lists(inner, max_size=4), st.dictionaries(st.text(max_size=6), inner, max_size=3)),
+    max_leaves=8,
+)
+
+
+def _paths(node, prefix=()):
+    """Every (container path, key) in a parsed TOML tree."""
+    out = []
+    items = node.items() if isinstance(node, dict) else enumerate(node) if isinstance(node, list) else ()
+    for k, v in items:
+        out.append((prefix, k))
+        out += _paths(v, prefix + (k,))
+    return out
+
+
+def _at(node, path):
+    for k in path:
+        node = node[k]
+    return node
+
+
+def _assert_one_line(err: SceneError):
+    line = "error: " + err.line()
+    assert "\n" not in line and "\r" not in line
+    assert rc.LINE.match(line), line
+
+
+def _load(data):
+    try:
+        loaded = scene.scene_from_dict(data, source="mutant.toml")
+    except SceneError as e:
+        _assert_one_line(e)
+        event("refused: " + e.message.split(";")[0][:40])
+        return None
+    event("loaded")
+    return loaded
+
+
+@SETTINGS
+@given(st.data())
+def test_mutated_scene_loads_or_gives_one_line(data):
+    doc = copy.deepcopy(BASE)
+    for _ in range(data.draw(st.integers(1, 4), label="mutations")):
+        paths = _paths(doc)
+        op = data.draw(st.sampled_from(["delete", "replace", "add"]), label="op")
+        if op == "add" or not paths:
+            tables = [()] + [p + (k,) for p, k in paths if isinstance(_at(doc, p + (k,)), dict)]
+            where = data.draw(st.sampled_from(tables), label="table")
+            _at(doc, where)[data.draw(st.text(min_size=1, max_size=8), label="key")] = data.draw(values, label="value")
+            continue
+        parent, key = data.draw(st.sampled_from(paths), label="path")
+        container = _at(doc, parent)
+        if op == "delete":
+            del container[key]
+        else:
+            container[key] = data.draw(values, label="value")
+    _load(doc)
+
+
+@SETTINGS
+@given(st.data())
+def test_edited_scene_text_loads_or_gives_one_line(data):
+    """Character-level edits of the TOML file: deletions, insertions and replacements anywhere."""
+    text = rc.BASE
+    for _ in range(data.draw(st.integers(1, 3), label="edits")):
+        i = data.draw(st.integers(0, len(text)), label="at")
+        j = data.draw(st.integers(i, min(len(text), i + 12)), label="to")
+        text = text[:i] + data.draw(st.text(max_size=6), label="insert") + text[j:]
+    try:
+        scene.validate(scene.parse_toml(text, "edited.toml"), "edited.toml")
+    except SceneError as e:
+        _assert_one_line(e)
+
+
+override_keys = st.one_of(
+    st.sampled_from([".".join(map(str, p + (k,))) for p, k in _paths(BASE)]),
+    st.text(alphabet="abcdefgjklmnoprstuvxyz0123456789._", min_size=0, max_size=20),
+)
+
+
+@SETTINGS
+@given(st.lists(st.tuples(override_keys, st.sampled_from(["=", "", "=="]), st.text(max_size=12)), max_size=3))
+def test_random_overrides_load_or_give_one_line(items):
+    doc = copy.deepcopy(BASE)
+    try:
+        for key, sep, raw in items:
+            k, v = scene.parse_override(f"{key}{sep}{raw}")
+            scene.apply_override(doc, k, v)
+        scene.validate(doc, "scene.toml")
+    except SceneError as e:
+        _assert_one_line(e)
+
+
+# --- spring forces ----------------------------------------------------------------------------
+
+EPS32 = float(np.finfo(np.float32).eps)
+
+
+def _reference_spring_forces(q, qd, pairs, rest, ks, kd):
+    """Per-spring force on the first particle, float64 NumPy, from the same float32 inputs."""
+    d = q[pairs[:, 0]] - q[pairs[:, 1]]
+    length = np.linalg.norm(d, axis=1)
+    safe = np.where(length > 0, length, 1.0)
+    dhat = d / safe[:, None]
+    mag = ks * (length - rest) + kd * np.einsum("ij,ij->i", qd[pairs[:, 0]] - qd[pairs[:, 1]], dhat)
+    return np.where(length[:, None] > 0, -mag[:, None] * dhat, 0.0)
+
+
+@SETTINGS
+@given(
+    res=st.tuples(st.integers(1, 4), st.integers(1, 4), st.integers(1, 4)).filter(lambda r: math.prod(r) >= 2),
+    scale=st.sampled_from([1e-6, 1e-3, 1.0, 1e3]),
+    offset=st.sampled_from([0.0, 1e6, -1e6]),
+    ks=st.lists(st.floats(0.0, 1e4), min_size=3, max_size=3),
+    kd=st.lists(st.floats(0.0, 1e2), min_size=3, max_size=3),
+    seed=st.integers(0, 2**32 - 1),
+    coincide=st.floats(0.0, 0.5),
+    deterministic=st.booleans(),
+)
+def test_spring_forces_conserve_momentum(device, res, scale, offset, ks, kd, seed, coincide, deterministic):
+    rng = np.random.default_rng(seed)
+    b = ModelBuilder(gravity=(0.0, 0.0, 0.0))
+    springs = {name: {"ks": ks[t], "kd": kd[t]} for t, name in enumerate(("structural", "shear", "bending"))}
+    b.add_jelly(res, [scale * (n - 1) for n in res], 1.0, springs, center=(offset, offset, -offset))
+    model = b.finalize(device)
+    if deterministic:
+        attach(model)
+    n = model.particle_count
+    # State: rest lattice, displaced by up to the spacing, some particles moved onto others.
+    q = model.particle_q_host + rng.uniform(-scale, scale, size=(n, 3))
+    hit = rng.random(n) < coincide
+    q[hit] = q[rng.integers(0, n, size=int(hit.sum()))]
+    qd = rng.normal(scale=10.0 * scale, size=(n, 3))
+    q32, qd32 = q.astype(np.float32), qd.astype(np.float32)
+    f = wp.empty(n, dtype=model.vec3, device=device)
+    f.fill_(wp.nan)  # poisoned: every particle must be written
+    eval_forces(
+        model, wp.array(q32, dtype=model.vec3, device=device), wp.array(qd32, dtype=model.vec3, device=device), f
+    )
+    f = f.numpy().astype(np.float64)
+    assert np.isfinite(f).all()
+
+    pairs = model.spring_indices_host
+    if len(pairs) == 0:
+        assert (f == 0).all()
+        return
+    fs = _reference_spring_forces(
+        q32.astype(np.float64),
+        qd32.astype(np.float64),
+        pairs,
+        model.spring_rest_length.numpy().astype(np.float64),
+        model.spring_stiffness.numpy().astype(np.float64),
+        model.spring_damping.numpy().astype(np.float64),
+    )
+    k_max = np.bincount(pairs.ravel(), minlength=n).max()
+    # Exactly, sum_i f_i = sum_s (f_s - f_s) = 0. In float32 each particle's sum of k terms errs by at
+    # most (k - 1) eps sum |terms|, and each term by a few eps of |f_s|; every spring is in two particles'
+    # sums: |sum_i f_i| <= 2 (k_max + 2) eps sum_s |f_s|, per component. The float64 host sum adds nothing
+    # of that order.
+    bound = 2 * (k_max + 2) * EPS32 * np.abs(fs).sum(axis=0)
+    total = f.sum(axis=0)
+    assert (np.abs(total) <= bound + 1e-300).all(), (total, bound)
