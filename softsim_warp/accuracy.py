@@ -578,39 +578,39 @@ def add_parser(subparsers, add_common):
 
 
 def _parse_methods(text, flag="--integrators"):
-    from .errors import UserError  # noqa: PLC0415
+    from .errors import CommandLineError  # noqa: PLC0415
 
     names = [n.strip() for n in text.split(",") if n.strip()]
     for n in names:
         if n not in ALL_INTEGRATORS:
-            raise UserError(flag, None, f"unknown integrator; choose from {', '.join(ALL_INTEGRATORS)}", n, has_value=True)
+            raise CommandLineError(flag, f"unknown integrator; choose from {', '.join(ALL_INTEGRATORS)}", n)
     if not names:
-        raise UserError(flag, None, "needs at least one integrator", text, has_value=True)
+        raise CommandLineError(flag, "needs at least one integrator", text)
     return names
 
 
 def _parse_positive_list(text, flag):
-    from .errors import UserError  # noqa: PLC0415
+    from .errors import CommandLineError  # noqa: PLC0415
 
     try:
         values = _float_list(text)
     except ValueError:
-        raise UserError(flag, None, "must be a comma-separated list of numbers", text, has_value=True) from None
+        raise CommandLineError(flag, "must be a comma-separated list of numbers", text) from None
     if not values or any(not math.isfinite(v) or v <= 0 for v in values):
-        raise UserError(flag, None, "values must be finite and > 0", text, has_value=True)
+        raise CommandLineError(flag, "values must be finite and > 0", text)
     return values
 
 
 def _check_positive(value, flag):
-    from .errors import UserError  # noqa: PLC0415
+    from .errors import CommandLineError  # noqa: PLC0415
 
     if value is not None and (not math.isfinite(value) or value <= 0):
-        raise UserError(flag, None, "must be finite and > 0", value, has_value=True)
+        raise CommandLineError(flag, "must be finite and > 0", value)
 
 
 def run(args) -> int:
     from .cli import load_for_cli, resolve_device  # noqa: PLC0415
-    from .errors import UserError  # noqa: PLC0415
+    from .errors import CommandLineError  # noqa: PLC0415
     from .outputs import check_writable, write_json_atomic  # noqa: PLC0415
 
     methods = _parse_methods(args.integrators)
@@ -625,7 +625,7 @@ def run(args) -> int:
     fps = args.fps or scene.sim["fps"]
     for d in dts or ():
         if d > 1.0 / fps:
-            raise UserError("--dts", None, f"steps must not exceed the frame interval 1/fps = {1.0 / fps:g} s", d, has_value=True)
+            raise CommandLineError("--dts", f"steps must not exceed the frame interval 1/fps = {1.0 / fps:g} s", d)
     device = resolve_device(args.device)
     log = None if args.quiet else (lambda line: print(line, file=sys.stderr, flush=True))
     try:
@@ -633,7 +633,8 @@ def run(args) -> int:
                          reference_dt=args.reference_dt, fps=args.fps, use_graph=not args.no_graph, log=log)
     except RuntimeError as e:
         if "reference run" in str(e):
-            raise UserError(scene.source, None, str(e)) from None
+            given = (args.reference_dt,) if args.reference_dt else ()
+            raise CommandLineError("--reference-dt", str(e), *given) from None
         raise
     print(format_table(report))
     if args.out:

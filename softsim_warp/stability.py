@@ -553,26 +553,26 @@ def add_parser(subparsers, add_common):
 def run(args) -> int:
     from .accuracy import _check_positive, _parse_methods, _parse_positive_list  # noqa: PLC0415
     from .cli import load_for_cli, resolve_device  # noqa: PLC0415
-    from .errors import UserError  # noqa: PLC0415
+    from .errors import CommandLineError  # noqa: PLC0415
     from .outputs import check_writable, write_json_atomic  # noqa: PLC0415
 
     methods = _parse_methods(args.integrators)
     ks = () if args.ks and args.ks.strip().lower() == "none" else (
         _parse_positive_list(args.ks, "--ks") if args.ks else DEFAULT_KS)
     if args.steps < 10:
-        raise UserError("--steps", None, "must be an integer >= 10", args.steps, has_value=True)
+        raise CommandLineError("--steps", "must be an integer >= 10", args.steps)
     _check_positive(args.duration, "--duration")
     if not 2 <= args.lattice <= 8:
-        raise UserError("--lattice", None, "must be an integer from 2 to 8", args.lattice, has_value=True)
+        raise CommandLineError("--lattice", "must be an integer from 2 to 8", args.lattice)
     if not (0 < args.rtol < 1):
-        raise UserError("--rtol", None, "must be > 0 and < 1", args.rtol, has_value=True)
+        raise CommandLineError("--rtol", "must be > 0 and < 1", args.rtol)
     if args.out:
         check_writable(args.out, "--out")
     if args.plot:
         check_writable(args.plot, "--plot", suffixes=(".png", ".pdf", ".svg"))
     scene = load_for_cli(args)
     if not 0 <= args.jelly < len(scene.jellies):
-        raise UserError("--jelly", None, f"this scene has jellies 0 to {len(scene.jellies) - 1}", args.jelly, has_value=True)
+        raise CommandLineError("--jelly", f"this scene has jellies 0 to {len(scene.jellies) - 1}", args.jelly)
     device = resolve_device(args.device)
     log = None if args.quiet else (lambda line: print(line, file=sys.stderr, flush=True))
     report = analyse(scene, methods, ks_values=ks, device=device, precision=args.precision, steps=args.steps,

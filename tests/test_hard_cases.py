@@ -259,7 +259,9 @@ def test_mass_ratio_default_dt_explodes_on_the_light_jelly(tmp_path, capsys):
     for s in sets:
         argv += ["--set", s]
     assert main(argv) == 3
-    assert f"largest dt predicted stable for these jellies: {light:.3g} s" in capsys.readouterr().err
+    err = capsys.readouterr().err
+    # The message names the jelly that blew up (the light one, jelly.1) and its predicted limit.
+    assert "(jelly.1)" in err and f"largest dt predicted stable for this jelly: {light:.3g} s" in err
 
 
 @pytest.mark.parametrize("method", ["symplectic", "rk4"])
