@@ -14,8 +14,8 @@ frame, with a reference trajectory:
   jelly size ``L`` (the longest edge of the largest jelly), so 1e-3 means "a thousandth of the
   jelly". Also the same RMS at the end time alone.
 * **Cost.** Wall seconds per simulated second of the stepping alone: kernels are compiled, and
-  graphs captured, before the clock starts; copying frames to the host for the comparison is not
-  counted.
+  graphs captured (as ``softsim run`` replays them, on CUDA and on the CPU), before the clock
+  starts; copying frames to the host for the comparison is not counted.
 * **Steps.** Frames are compared at the same times, so each ``dt`` is rounded to the nearest value
   that divides the frame interval ``1/fps`` (``n = round(1 / (fps dt))`` steps per frame); the report
   gives the step actually used.
@@ -112,18 +112,6 @@ def jelly_size(scene) -> float:
     return max(max(j["size"]) for j in scene.jellies)
 
 
-def _graph_ok(model, integrator) -> bool:
-    """Replay captured graphs on CUDA, and on the CPU for the explicit methods.
-
-    A CPU capture records launches only; an integrator that reads values back on the host while it
-    steps (an iterative solver checking convergence) would replay wrongly, so only the explicit
-    methods, whose step is launches alone, are captured there.
-    """
-    from .integrators import ExplicitIntegrator  # noqa: PLC0415
-
-    return bool(model.device.is_cuda or isinstance(integrator, ExplicitIntegrator))
-
-
 def run_trajectory(scene, integrator, dt, *, device=None, precision=None, fps=None, frames=None,
                    use_graph=True, max_speed=None) -> Trajectory:
     """Run ``scene`` with ``integrator`` at (frame-rounded) ``dt`` and keep every frame's positions.
@@ -136,7 +124,7 @@ def run_trajectory(scene, integrator, dt, *, device=None, precision=None, fps=No
         precision: "float32"/"float64"; default the scene's.
         fps: frames per second of the comparison; default the scene's.
         frames: frames after frame 0; default the scene's.
-        use_graph: allow graph replay (see :func:`_graph_ok`).
+        use_graph: replay each frame's steps from a captured graph, as ``softsim run`` does.
         max_speed: explosion speed bound [m/s]; default the scene's or the derived bound.
 
     Returns:
@@ -158,7 +146,7 @@ def run_trajectory(scene, integrator, dt, *, device=None, precision=None, fps=No
     precision = precision or scene.sim["precision"]
     model = build_model(scene, device=device, precision=precision)
     integ = make_integrator(integrator, model, scene.data.get("implicit"))
-    graph = bool(use_graph) and _graph_ok(model, integ)
+    graph = bool(use_graph)
     sim = Simulator(model, integ, h, fps, frames, use_graph=graph,
                     max_speed=max_speed if max_speed is not None else scene.sim.get("max_speed"))
     compile_seconds = sim.warm_up()

@@ -153,13 +153,12 @@ def probe(model, integrator, dt, steps, *, displacement=None, samples=SAMPLES, u
     """
     import warp as wp  # noqa: PLC0415
 
-    from .accuracy import _graph_ok  # noqa: PLC0415
     from .simulate import Simulator  # noqa: PLC0415
 
     t_start = time.perf_counter()
     chunk = max(1, math.ceil(steps / samples))
     n_chunks = math.ceil(steps / chunk)
-    sim = Simulator(model, integrator, dt, fps=1.0, frames=1, use_graph=use_graph and _graph_ok(model, integrator),
+    sim = Simulator(model, integrator, dt, fps=1.0, frames=1, use_graph=use_graph,
                     max_speed=math.inf)
     if displacement is not None:
         q0 = model.particle_q_host + displacement

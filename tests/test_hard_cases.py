@@ -12,7 +12,7 @@ import pytest
 
 from softsim_warp import stability
 from softsim_warp.cli import main
-from softsim_warp.integrators import ExplicitIntegrator, make_integrator
+from softsim_warp.integrators import make_integrator
 from softsim_warp.model import build_model
 from softsim_warp.scene import load_scene
 from softsim_warp.simulate import Simulator
@@ -53,9 +53,8 @@ def run_scene(name, method, sets=(), precision=None, dt=None):
     scene = load_scene(name, list(sets))
     model = build_model(scene, "cpu", precision)
     integ = make_integrator(method, model, scene.data.get("implicit"))
-    # Graph replay makes the explicit runs ~10x faster on the CPU; it replays the same launches.
     sim = Simulator(model, integ, dt or scene.sim["dt"], scene.sim["fps"], scene.frame_count(),
-                    use_graph=isinstance(integ, ExplicitIntegrator), max_speed=scene.sim.get("max_speed"))
+                    max_speed=scene.sim.get("max_speed"))
     frames = _Frames()
     result = sim.run([frames])
     return scene, model, sim, result, frames
