@@ -88,7 +88,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 # Further subcommands live in their own modules, each with ``add_parser(subparsers, add_common)``
 # and ``run(args) -> int``; the subcommand's name is the module's ``COMMAND``.
-PLUGINS = ("compare", "preview_cmd", "bench")
+PLUGINS = ("compare", "preview_cmd", "bench", "accuracy", "stability")
 
 
 def _plugin_modules():

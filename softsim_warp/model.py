@@ -108,6 +108,7 @@ class ModelBuilder:
         angular_velocity=(0.0, 0.0, 0.0),
         world=0,
         name="",
+        initial_scale=None,
     ) -> JellyInfo:
         """Add a lattice jelly.
 
@@ -120,25 +121,37 @@ class ModelBuilder:
             center, axis, degrees: placement: the lattice is centred on ``center`` and rotated about
                 ``axis`` by ``degrees``.
             velocity, angular_velocity: initial rigid motion, v = velocity + omega x (x - center).
+            initial_scale: per-axis factor (or one for all axes) applied to the lattice in its own
+                frame before the rotation, for the start only: rest lengths stay those of the
+                unscaled lattice, so the jelly starts stretched (> 1), crushed (< 1) or mirrored
+                (negative on one axis). Components must be nonzero.
         """
         shape = tuple(int(n) for n in resolution)
         size = np.broadcast_to(np.asarray(size, dtype=np.float64), (3,))
         local = lattice.lattice_points(shape, size)
         rot = rotation_matrix(axis, degrees)
         center = np.asarray(center, dtype=np.float64)
-        q = local @ rot.T + center
+        scale = np.ones(3) if initial_scale is None else np.broadcast_to(np.asarray(initial_scale, dtype=np.float64), (3,))
+        if np.any(scale == 0.0):
+            raise ValueError(f"initial_scale components must be nonzero (got {scale.tolist()})")
+        rest_pose = local @ rot.T + center
+        q = (local * scale) @ rot.T + center
         qd = np.asarray(velocity, dtype=np.float64) + np.cross(np.asarray(angular_velocity, dtype=np.float64), q - center)
         start = self._particle_count
         spring_start = self._spring_count
         self.add_particles(q, qd, particle_mass, world=world)
         self._jelly_of[-1][:] = len(self.jellies)
         pairs, types = lattice.lattice_springs(shape)
+        # Rest lengths come from the unscaled lattice, so an initial_scale starts the springs out of rest.
+        rest = np.linalg.norm(rest_pose[pairs[:, 0]] - rest_pose[pairs[:, 1]], axis=1)
         for t, type_name in enumerate(lattice.SPRING_TYPE_NAMES):
             params = springs.get(type_name)
             sel = types == t
             if params is None or not sel.any():
                 continue
-            self.add_spring(pairs[sel, 0] + start, pairs[sel, 1] + start, params["ks"], params.get("kd", 0.0), t)
+            self.add_spring(
+                pairs[sel, 0] + start, pairs[sel, 1] + start, params["ks"], params.get("kd", 0.0), t, rest=rest[sel]
+            )
         spacing = tuple(float(s / (n - 1)) if n > 1 else 0.0 for s, n in zip(size, shape))
         info = JellyInfo(
             shape=shape,
@@ -469,6 +482,7 @@ def populate(builder: ModelBuilder, data: dict, world=0):
             angular_velocity=j["angular_velocity"],
             world=world,
             name=f"Jelly_{i}",
+            initial_scale=j.get("initial_scale"),
         )
     for p in data.get("plane", []):
         hole = p.get("hole")

@@ -235,6 +235,11 @@ SCHEMA = Table(
                     ),
                     "velocity": Vec3([0.0, 0.0, 0.0], doc="[m/s]"),
                     "angular_velocity": Vec3([0.0, 0.0, 0.0], doc="about the centre [rad/s]"),
+                    "initial_scale": Vec3(
+                        scalar_ok=True,
+                        doc="per-axis scale of the lattice at the start (rest lengths unscaled): "
+                        "> 1 stretched, < 1 crushed, negative mirrored; nonzero",
+                    ),
                     "particle_mass": Float(lo=0, lo_open=True, doc="[kg]"),
                     "total_mass": Float(lo=0, lo_open=True, doc="[kg]"),
                     "springs": Table(
@@ -502,6 +507,10 @@ def validate(data: dict, source: str) -> dict:
             ctx.fail(f"{key}.particle_mass", "is required (or give total_mass)")
         if "total_mass" in jelly:
             jelly["particle_mass"] = jelly.pop("total_mass") / count
+        if "initial_scale" in jelly and any(c == 0.0 for c in jelly["initial_scale"]):
+            # A zero axis would put particles on top of each other: springs without a direction.
+            ctx.fail(f"{key}.initial_scale", "components must be nonzero (negative mirrors the lattice)",
+                     jelly["initial_scale"])
     for plane in out.get("plane", []):
         plane["normal"] = _unit(plane["normal"])
     for jelly in out["jelly"]:

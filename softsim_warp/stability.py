@@ -1,0 +1,585 @@
+"""``softsim stability SCENE``: the largest stable step of each integrator, measured and predicted.
+
+**Stable**, for one run, means all of:
+
+1. every position and velocity stays finite (the speed bound of ``softsim run`` is not used: it is a
+   heuristic for scenes, and a stiff lattice's own vibration can exceed it; condition 2 bounds the
+   speed through the energy instead);
+2. the energy ratio ``r(t) = (K + S) / (K0 + S0 + G0 - G(t))`` stays below ``R_MAX = 100``, where
+   ``K`` is the kinetic and ``S`` the spring energy and ``G`` the gravity energy. The denominator is
+   what energy conservation allows: the start's kinetic and spring energy plus the work gravity has
+   done since. Damping, contact and friction only remove energy, so an exact solution keeps
+   ``r <= 1``;
+3. the energy does not keep growing: ``max r`` over the second half of the run is at most
+   ``GROWTH = 2`` times ``max r`` over the first half. A bounded oscillation of the energy (the
+   symplectic method's modified energy near its limit, or a stable method's transient) passes; an
+   unstable mode, which multiplies its energy every step, fails.
+
+Every run starts from the scene's initial state plus a seeded random displacement of every particle
+(``PERTURBATION = 1e-3`` of the smallest rest spacing, no mean), so each mode, and an unstable one
+in particular, starts from a known amplitude rather than from round-off (which would make the
+result depend on the precision).
+
+The largest stable step is bracketed (halving or doubling from the linear prediction, or from the
+scene's dt) and bisected in log(dt) to a relative width of ``rtol``. It is measured on two systems:
+
+* the **lattice**: a jelly of at most 4 particles per axis (``--lattice``) with the spacing, particle
+  mass and springs of the scene's first jelly (``--jelly``),
+  free (no gravity, no terrain), at rest, for ``steps`` steps. This is
+  the system the linear analysis of :mod:`~softsim_warp.stability_analysis` describes, so the two
+  columns should agree; a finite run cannot see a growth slower than about ``ln(GROWTH)/steps``
+  per step, so an instability that weak (euler on a nearly undamped mode) is reported as stable
+  by the run.
+* the **scene**: the scene as given (gravity, terrain, contact) for ``duration`` seconds.
+
+Each is measured with the scene's damping and again with every ``kd = 0``. The map over ``ks`` sets
+every spring type's ``ks`` to each value (``kd`` as in the scene) on the lattice.
+"""
+
+from __future__ import annotations
+
+import copy
+import math
+import sys
+import time
+from dataclasses import dataclass
+
+import numpy as np
+
+COMMAND = "stability"
+ALL_INTEGRATORS = ("euler", "symplectic", "midpoint", "rk4", "implicit")
+R_MAX = 100.0
+GROWTH = 2.0
+PERTURBATION = 1.0e-3
+SEED = 0
+SAMPLES = 40
+LATTICE_MAX = 4
+DEFAULT_STEPS = 1000
+DEFAULT_KS = (1.0e2, 1.0e3, 1.0e4, 1.0e5, 1.0e6)
+DEFAULT_RTOL = 0.02
+MIN_DT = 1.0e-7
+
+
+# ---------------------------------------------------------------------------------------------
+# Systems
+
+
+def small_lattice(jelly: dict, ks=None, undamped=False, max_n=LATTICE_MAX) -> dict:
+    """A validated-jelly dict for the small lattice with ``jelly``'s spacing, particle mass and springs.
+
+    Args:
+        jelly: a validated scene jelly (``particle_mass`` filled in).
+        ks: when given, every spring type's stiffness [N/m].
+        undamped: set every ``kd`` to 0.
+        max_n: particles per axis at most.
+    """
+    res = jelly["resolution"]
+    small = [min(n, max_n) for n in res]
+    spacing = [s / (n - 1) if n > 1 else 0.0 for s, n in zip(jelly["size"], res)]
+    size = [sp * (n - 1) if n > 1 else 0.0 for sp, n in zip(spacing, small)]
+    springs = {}
+    for name, p in jelly["springs"].items():
+        springs[name] = {"ks": float(ks) if ks is not None else p["ks"], "kd": 0.0 if undamped else p.get("kd", 0.0)}
+    return {"resolution": small, "size": size, "particle_mass": jelly["particle_mass"], "springs": springs}
+
+
+def predict(jelly_small: dict, methods) -> dict:
+    """Linear prediction ``{method: dt}`` for a small-lattice jelly dict (see :func:`small_lattice`)."""
+    from .stability_analysis import predict_lattice_dt  # noqa: PLC0415
+
+    springs = jelly_small["springs"]
+    return predict_lattice_dt(
+        jelly_small["resolution"], jelly_small["size"], jelly_small["particle_mass"],
+        {k: v["ks"] for k, v in springs.items()}, {k: v["kd"] for k, v in springs.items()}, methods=tuple(methods),
+    )
+
+
+def lattice_model(jelly_small: dict, device, precision):
+    """Model of the free small lattice: no gravity, no terrain."""
+    from .model import ModelBuilder  # noqa: PLC0415
+
+    b = ModelBuilder(gravity=(0.0, 0.0, 0.0))
+    size = [s if s > 0 else 1.0 for s in jelly_small["size"]]  # an axis of one particle has no extent
+    b.add_jelly(jelly_small["resolution"], size, jelly_small["particle_mass"], jelly_small["springs"])
+    return b.finalize(device, precision)
+
+
+def scene_model(scene, device, precision, undamped=False):
+    """Model of the scene as given (with every kd set to 0 when ``undamped``)."""
+    from .model import build_model  # noqa: PLC0415
+
+    if undamped:
+        scene = copy.copy(scene)
+        scene.data = copy.deepcopy(scene.data)
+        for j in scene.data["jelly"]:
+            for p in j["springs"].values():
+                p["kd"] = 0.0
+    return build_model(scene, device=device, precision=precision)
+
+
+def perturbation(model, amplitude=PERTURBATION, seed=SEED) -> np.ndarray:
+    """Seeded random displacement ``(N, 3)`` [m]: ``amplitude`` times the smallest rest spacing, mean removed per jelly."""
+    rng = np.random.default_rng(seed)
+    out = np.zeros((model.particle_count, 3))
+    for info in model.jellies:
+        spacing = min((s for s in info.spacing if s > 0), default=1.0)
+        d = rng.standard_normal((info.particle_count, 3)) * amplitude * spacing
+        d -= d.mean(axis=0)
+        out[info.particle_start : info.particle_start + info.particle_count] = d
+    return out
+
+
+# ---------------------------------------------------------------------------------------------
+# One run
+
+
+@dataclass
+class Probe:
+    """Outcome of one stability run."""
+
+    dt: float
+    steps: int
+    stable: bool
+    reason: str
+    r_first: float
+    r_second: float
+    seconds: float
+
+
+def probe(model, integrator, dt, steps, *, displacement=None, samples=SAMPLES, use_graph=True) -> Probe:
+    """Run ``steps`` steps of ``integrator`` at ``dt`` from the model's start plus ``displacement`` and judge stability.
+
+    See the module docstring for the criterion.
+    """
+    import warp as wp  # noqa: PLC0415
+
+    from .simulate import Simulator  # noqa: PLC0415
+
+    t_start = time.perf_counter()
+    chunk = max(1, math.ceil(steps / samples))
+    n_chunks = math.ceil(steps / chunk)
+    sim = Simulator(model, integrator, dt, fps=1.0, frames=1, use_graph=use_graph,
+                    max_speed=math.inf)
+    if displacement is not None:
+        q0 = model.particle_q_host + displacement
+        from .model import NUMPY_SCALARS  # noqa: PLC0415
+
+        sim.states[0].particle_q.assign(q0.astype(NUMPY_SCALARS[model.precision]))
+    m0 = sim.probe.measure(sim.state, 0, 0.0)
+    base = m0.kinetic_energy + m0.spring_energy
+    ratios = [1.0]
+    reason = ""
+    for c in range(1, n_chunks + 1):
+        sim.advance(chunk)
+        m = sim.probe.measure(sim.state, c, c * chunk * dt)
+        if m.nonfinite:
+            reason = f"non-finite state after {c * chunk} steps"
+            break
+        budget = base + (m0.gravity_energy - m.gravity_energy)
+        r = (m.kinetic_energy + m.spring_energy) / max(budget, 1e-300)
+        ratios.append(r)
+        if r > R_MAX:
+            reason = f"energy {r:.3g} times the budget after {c * chunk} steps"
+            break
+    wp.synchronize_device(model.device)
+    half = max(1, len(ratios) // 2)
+    r_first = max(ratios[:half])
+    r_second = max(ratios[half:]) if len(ratios) > half else r_first
+    if not reason and r_second > GROWTH * r_first:
+        reason = f"energy grew {r_second / r_first:.3g}x from the first half of the run to the second"
+    return Probe(dt, chunk * n_chunks, not reason, reason or "stable", r_first, r_second, time.perf_counter() - t_start)
+
+
+def find_limit(is_stable, guess, min_dt=MIN_DT, max_dt=1.0, rtol=DEFAULT_RTOL) -> dict:
+    """Bracket and bisect (in log dt) the largest ``dt`` for which ``is_stable(dt)`` holds.
+
+    Returns:
+        ``{"dt": largest stable dt found (0 if none above min_dt), "unstable_dt": smallest unstable dt
+        found (inf if none up to max_dt), "bound": "" | ">=" | "<", "probes": [...]}``.
+    """
+    probes = []
+
+    def check(h):
+        ok = is_stable(h)
+        probes.append((h, ok))
+        return ok
+
+    h = min(max(guess, min_dt), max_dt)
+    lo, hi = None, None
+    if check(h):
+        lo = h
+        while hi is None:
+            if lo >= max_dt:
+                return {"dt": lo, "unstable_dt": math.inf, "bound": ">=", "probes": probes}
+            h = min(lo * 2.0, max_dt)
+            if check(h):
+                lo = h
+            else:
+                hi = h
+    else:
+        hi = h
+        while lo is None:
+            if hi <= min_dt:
+                return {"dt": 0.0, "unstable_dt": hi, "bound": "<", "probes": probes}
+            h = max(hi / 2.0, min_dt)
+            if check(h):
+                lo = h
+            else:
+                hi = h
+    while hi / lo > 1.0 + rtol:
+        mid = math.sqrt(lo * hi)
+        if check(mid):
+            lo = mid
+        else:
+            hi = mid
+    return {"dt": lo, "unstable_dt": hi, "bound": "", "probes": probes}
+
+
+def measure_limit(model, method, *, guess, steps=None, duration=None, max_dt, min_dt=MIN_DT, rtol=DEFAULT_RTOL,
+                  max_steps=200_000, options=None, use_graph=True) -> dict:
+    """Largest stable dt of ``method`` on ``model``, by :func:`find_limit` over :func:`probe` runs.
+
+    The run is ``steps`` steps, or ``duration`` seconds (``ceil(duration / dt)`` steps, at most
+    ``max_steps``: a step that would need more is reported unstable-unresolved).
+
+    Raises:
+        ImportError: when the integrator is not available.
+    """
+    from .integrators import make_integrator  # noqa: PLC0415
+
+    integ = make_integrator(method, model, options)
+    disp = perturbation(model)
+    # Compile once outside the timed probes.
+    from .simulate import Simulator  # noqa: PLC0415
+
+    Simulator(model, integ, guess, 1.0, 1, use_graph=False).warm_up()
+    notes = []
+
+    def is_stable(h):
+        n = steps if steps is not None else math.ceil(duration / h)
+        if n > max_steps:
+            notes.append(f"dt={h:.3g} s needs {n} steps > max_steps={max_steps}; counted unstable")
+            return False
+        return probe(model, integ, h, n, displacement=disp, use_graph=use_graph).stable
+
+    out = find_limit(is_stable, guess, min_dt=min_dt, max_dt=max_dt, rtol=rtol)
+    out["notes"] = notes
+    return out
+
+
+# ---------------------------------------------------------------------------------------------
+# The whole report
+
+
+def _guess(pred, fallback):
+    return pred if (math.isfinite(pred) and pred > 0) else fallback
+
+
+def analyse(scene, integrators=ALL_INTEGRATORS, *, ks_values=DEFAULT_KS, device=None, precision=None, steps=DEFAULT_STEPS,
+            duration=None, rtol=DEFAULT_RTOL, scene_runs=True, max_dt=None, use_graph=True, lattice_max=LATTICE_MAX,
+            jelly_index=0, log=None) -> dict:
+    """Measured and predicted stability limits of every integrator; returns the JSON-ready report.
+
+    Args:
+        scene: validated scene.
+        integrators: method names (a missing one is skipped with a note).
+        ks_values: stiffnesses of the map [N/m] (empty: no map).
+        device: Warp device.
+        precision: precision of the runs (default the scene's).
+        steps: run length on the lattice [steps].
+        duration: run length in the scene [s] (default min(scene duration, 1 s)).
+        rtol: relative width of the final bracket.
+        scene_runs: also measure in the full scene (costlier).
+        max_dt: largest step tried (default the frame interval 1/fps).
+        use_graph: allow captured-graph replay.
+        lattice_max: particles per axis of the small lattice, at most (a larger one predicts a big
+            jelly's limit more closely; its dense eigenproblem costs (6 n^3)^3).
+        jelly_index: which jelly of the scene the lattice copies.
+        log: callable taking a progress line.
+    """
+    import warp as wp  # noqa: PLC0415
+
+    say = log or (lambda line: None)
+    dev = wp.get_device(device)
+    precision = precision or scene.sim["precision"]
+    fps = scene.sim["fps"]
+    max_dt = max_dt or 1.0 / fps
+    duration = duration or min(scene.frame_count() / fps, 1.0)
+    jelly = scene.jellies[jelly_index]
+    options = scene.data.get("implicit")
+    fallback = scene.sim["dt"]
+    rows, skipped = [], {}
+    available = []
+    for method in integrators:
+        try:
+            from .integrators import make_integrator  # noqa: PLC0415
+
+            make_integrator(method, lattice_model(small_lattice(jelly, max_n=lattice_max), dev, precision), options)
+            available.append(method)
+        except ImportError as e:
+            skipped[method] = f"not available ({e})"
+            say(f"{method}: skipped, not available ({e})")
+
+    for undamped in (False, True):
+        js = small_lattice(jelly, undamped=undamped, max_n=lattice_max)
+        pred = predict(js, available)
+        lat = lattice_model(js, dev, precision)
+        sc = scene_model(scene, dev, precision, undamped=undamped) if scene_runs else None
+        for method in available:
+            p = float(pred[method])
+            row = {"integrator": method, "damping": "none" if undamped else "scene", "predicted": p}
+            t0 = time.perf_counter()
+            row["lattice"] = _clean(measure_limit(lat, method, guess=_guess(p, fallback), steps=steps, max_dt=max_dt,
+                                                  rtol=rtol, options=options, use_graph=use_graph))
+            if sc is not None and p == 0.0:
+                # Unstable at every dt (euler or midpoint without damping): a finite run only finds
+                # how small a step hides the growth for `duration`, at up to max_steps per probe.
+                row["scene_note"] = "not measured: the linear analysis finds no stable dt"
+            elif sc is not None:
+                row["scene"] = _clean(measure_limit(sc, method, guess=_guess(p, fallback), duration=duration,
+                                                    max_dt=max_dt, rtol=rtol, options=options, use_graph=use_graph))
+            rows.append(row)
+            say(f"{method:>10} {'undamped' if undamped else 'damped':>8}: predicted {_fmt_dt(p)}, lattice "
+                f"{_fmt_limit(row['lattice'])}" + (f", scene {_fmt_limit(row['scene'])}" if "scene" in row else "")
+                + f"  ({time.perf_counter() - t0:.1f} s)")
+
+    ks_map = []
+    for ks in ks_values:
+        js = small_lattice(jelly, ks=ks, max_n=lattice_max)
+        pred = predict(js, available)
+        lat = lattice_model(js, dev, precision)
+        for method in available:
+            p = float(pred[method])
+            m = _clean(measure_limit(lat, method, guess=_guess(p, fallback), steps=steps, max_dt=max_dt, rtol=rtol,
+                                     options=options, use_graph=use_graph))
+            ks_map.append({"ks": ks, "integrator": method, "predicted": p, "measured": m})
+            say(f"ks={ks:g} {method:>10}: predicted {_fmt_dt(p)}, measured {_fmt_limit(m)}")
+
+    js = small_lattice(jelly, max_n=lattice_max)
+    return {
+        "scene": scene.name,
+        "source": scene.source,
+        "device": str(dev),
+        "precision": precision,
+        "lattice": {"jelly": jelly_index, "resolution": js["resolution"], "size": js["size"], "particle_mass": js["particle_mass"],
+                    "springs": js["springs"], "steps": steps},
+        "scene_duration": duration if scene_runs else None,
+        "max_dt": max_dt,
+        "rtol": rtol,
+        "definition": (
+            f"stable: finite, r = (K + S) / (K0 + S0 + G0 - G) <= {R_MAX:g} "
+            f"throughout and max r over the run's second half <= {GROWTH:g} x max r over its first half; "
+            f"start = initial state + seeded random displacement of {PERTURBATION:g} x rest spacing; "
+            f"lattice runs: {steps} steps of the free small lattice at rest; scene runs: {duration:g} s of the scene "
+            f"as given; 'none' damping: every kd = 0"
+        ),
+        "prediction": "linear stability analysis of the small lattice at rest (softsim_warp.stability_analysis)",
+        "limits": rows,
+        "ks_map": ks_map,
+        "skipped": skipped,
+    }
+
+
+def _clean(limit: dict) -> dict:
+    return {"dt": limit["dt"], "unstable_dt": limit["unstable_dt"], "bound": limit["bound"],
+            "probes": len(limit["probes"]), "notes": limit.get("notes", [])}
+
+
+def _fmt_dt(x):
+    if math.isinf(x):
+        return "inf"
+    if x == 0:
+        return "0 (always)"
+    return f"{x:.3g}"
+
+
+def _fmt_limit(m):
+    if m["bound"] == ">=":
+        return f">= {m['dt']:.3g}"
+    if m["bound"] == "<":
+        return f"< {m['unstable_dt']:.3g}"
+    return f"{m['dt']:.3g}"
+
+
+def format_table(report: dict) -> str:
+    import textwrap  # noqa: PLC0415
+
+    lat = report["lattice"]
+    lines = [
+        f"{report['scene']}: largest stable dt [s], {report['precision']} on {report['device']}",
+        f"lattice {'x'.join(str(n) for n in lat['resolution'])} (copy of jelly {lat.get('jelly', 0)}), particle mass "
+        f"{lat['particle_mass']:.4g} kg, {lat['steps']} steps; "
+        + (f"scene runs {report['scene_duration']:g} s" if report["scene_duration"] else "no scene runs"),
+        *textwrap.wrap("stable = " + report["definition"].split("stable: ", 1)[1], 110),
+        "lattice: largest stable dt found - smallest unstable dt found (bisection from the prediction); "
+        "ratio: their geometric mean / predicted",
+        "",
+        f"{'integrator':<11}{'damping':<9}{'predicted':>12}{'lattice':>22}{'ratio':>7}{'scene':>12}",
+    ]
+    for r in report["limits"]:
+        m = r["lattice"]
+        ratio = math.nan
+        if 0 < r["predicted"] < math.inf and not m["bound"]:
+            ratio = math.sqrt(m["dt"] * m["unstable_dt"]) / r["predicted"]
+        lat_text = _fmt_limit(m) if m["bound"] else f"{m['dt']:.3g} - {m['unstable_dt']:.3g}"
+        scene_text = _fmt_limit(r["scene"]) if "scene" in r else "-"
+        lines.append(
+            f"{r['integrator']:<11}{r['damping']:<9}{_fmt_dt(r['predicted']):>12}{lat_text:>22}"
+            f"{'' if math.isnan(ratio) else f'{ratio:.2f}':>7}{scene_text:>12}"
+        )
+    if report["ks_map"]:
+        methods = list(dict.fromkeys(m["integrator"] for m in report["ks_map"]))
+        lines += ["", "map over ks (every spring type; lattice runs): predicted / measured"]
+        lines.append(f"{'ks [N/m]':>10}" + "".join(f"{m:>24}" for m in methods))
+        for ks in dict.fromkeys(m["ks"] for m in report["ks_map"]):
+            cells = []
+            for meth in methods:
+                e = next(m for m in report["ks_map"] if m["ks"] == ks and m["integrator"] == meth)
+                cells.append(f"{_fmt_dt(e['predicted'])} / {_fmt_limit(e['measured'])}")
+            lines.append(f"{ks:>10.3g}" + "".join(f"{c:>24}" for c in cells))
+    for name, why in report["skipped"].items():
+        lines.append(f"{name}: skipped: {why}")
+    return "\n".join(lines)
+
+
+COLORS = {"euler": "tab:red", "symplectic": "tab:orange", "midpoint": "tab:green", "rk4": "tab:blue",
+          "implicit": "tab:purple"}
+
+
+def plot_report(report: dict, path):
+    """Left: predicted vs measured limits per integrator; right: stable dt over ks per integrator."""
+    import matplotlib  # noqa: PLC0415
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt  # noqa: PLC0415
+
+    fig, (ax_l, ax_m) = plt.subplots(1, 2, figsize=(13, 5.5))
+    methods = list(dict.fromkeys(r["integrator"] for r in report["limits"]))
+    max_dt = report["max_dt"]
+    finite = [v for r in report["limits"] for v in (r["predicted"], r["lattice"]["dt"], r.get("scene", {}).get("dt", 0))
+              if 0 < v < math.inf]
+    floor = min(finite) / 10 if finite else max_dt * 1e-4
+    # One column per integrator: x offsets for (damping) x (predicted, lattice, scene); a value of 0
+    # (no stable dt) sits on the floor as a downward triangle, "stable up to max_dt" as an upward one.
+    styles = {"predicted": ("_", 16, "predicted (linear)"), "lattice": ("o", 7, "measured, lattice"),
+              "scene": ("s", 7, "measured, scene")}
+    for d_i, damping in enumerate(("scene", "none")):
+        for k_i, key in enumerate(styles):
+            marker, size, label = styles[key]
+            for i, m in enumerate(methods):
+                r = next((r for r in report["limits"] if r["integrator"] == m and r["damping"] == damping), None)
+                if r is None or key not in r:
+                    continue
+                v = r[key] if key == "predicted" else r[key]["dt"]
+                bound = "" if key == "predicted" else r[key]["bound"]
+                mk = marker
+                if v <= 0 or bound == "<":
+                    v, mk = floor, "v"
+                elif v >= max_dt or v == math.inf or bound == ">=":
+                    v, mk = max_dt, "^"
+                x = i + (d_i - 0.5) * 0.4 + (k_i - 1) * 0.1
+                c = "k" if key == "predicted" else f"C{k_i}"
+                ax_l.plot([x], [v], mk, color=c, ms=size if mk == marker else 9, mfc=c if damping == "scene" else "none",
+                          mew=2)
+    for k_i, key in enumerate(styles):
+        marker, size, label = styles[key]
+        c = "k" if key == "predicted" else f"C{k_i}"
+        ax_l.plot([], [], marker, color=c, ms=size, mew=2, label=label)
+    ax_l.plot([], [], "o", color="gray", label="filled: kd as in the scene (left)")
+    ax_l.plot([], [], "o", color="gray", mfc="none", mew=2, label="open: kd = 0 (right)")
+    ax_l.set_yscale("log")
+    ax_l.set_xticks(range(len(methods)))
+    ax_l.set_xticklabels(methods)
+    ax_l.set_xlim(-0.6, len(methods) - 0.4)
+    ax_l.set_ylim(floor / 2, max_dt * 3)
+    ax_l.set_ylabel("largest stable dt [s]")
+    ax_l.axhline(max_dt, color="gray", ls=":", lw=1)
+    ax_l.set_title("largest stable dt (^: stable up to 1/fps; v: no stable dt)", fontsize=10)
+    ax_l.legend(fontsize=7, loc="lower right")
+    ax_l.grid(True, axis="y", which="both", alpha=0.3)
+
+    for m in methods:
+        pts = [e for e in report["ks_map"] if e["integrator"] == m]
+        if not pts:
+            continue
+        c = COLORS.get(m)
+        ks = [e["ks"] for e in pts]
+        pred = [min(e["predicted"], max_dt) for e in pts]
+        ax_m.loglog(ks, pred, "-", color=c, alpha=0.6, label=f"{m} predicted")
+        ok = [e for e in pts if not e["measured"]["bound"]]
+        ax_m.loglog([e["ks"] for e in ok], [e["measured"]["dt"] for e in ok], "o", color=c, label=f"{m} measured")
+        up = [e for e in pts if e["measured"]["bound"] == ">="]
+        if up:
+            ax_m.loglog([e["ks"] for e in up], [e["measured"]["dt"] for e in up], "^", color=c, mfc="none")
+    ax_m.axhline(max_dt, color="gray", ls=":", lw=1)
+    ax_m.set_xlabel("ks of every spring type [N/m]")
+    ax_m.set_ylabel("largest stable dt [s]")
+    ax_m.set_title("stable dt over ks (lattice; open triangle: stable up to 1/fps)")
+    ax_m.grid(True, which="both", alpha=0.3)
+    ax_m.legend(fontsize=7, ncol=2)
+    lat = report["lattice"]
+    fig.suptitle(f"{report['scene']}: lattice {'x'.join(map(str, lat['resolution']))}, {report['precision']}, {report['device']}")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+# ---------------------------------------------------------------------------------------------
+# CLI
+
+
+def add_parser(subparsers, add_common):
+    p = subparsers.add_parser("stability", help="largest stable dt per integrator: measured by bisection and predicted")
+    p.add_argument("scene", help="scene file (.toml) or built-in scene name")
+    p.add_argument("--integrators", default=",".join(ALL_INTEGRATORS),
+                   help="comma-separated methods (default: all; implicit is skipped if unavailable)")
+    p.add_argument("--ks", help=f"comma-separated stiffnesses of the map [N/m] (default {','.join(f'{k:g}' for k in DEFAULT_KS)}; "
+                                "'none' for no map)")
+    p.add_argument("--steps", type=int, default=DEFAULT_STEPS, help=f"lattice run length [steps] (default {DEFAULT_STEPS})")
+    p.add_argument("--duration", type=float, help="scene run length [s] (default min(scene duration, 1 s))")
+    p.add_argument("--lattice", type=int, default=LATTICE_MAX,
+                   help=f"particles per axis of the small lattice, at most (default {LATTICE_MAX})")
+    p.add_argument("--jelly", type=int, default=0, help="which jelly of the scene the lattice copies (default 0)")
+    p.add_argument("--no-scene", action="store_true", help="measure on the small lattice only (skip the full-scene runs)")
+    p.add_argument("--rtol", type=float, default=DEFAULT_RTOL, help=f"relative width of the final bracket (default {DEFAULT_RTOL})")
+    p.add_argument("--precision", choices=["float32", "float64"], help="precision of the runs")
+    p.add_argument("--out", help="write the report as JSON")
+    p.add_argument("--plot", help="write the plots (.png/.pdf/.svg)")
+    p.add_argument("--no-graph", action="store_true", help="launch kernels one by one instead of replaying graphs")
+    add_common(p)
+
+
+def run(args) -> int:
+    from .accuracy import _check_positive, _parse_methods, _parse_positive_list  # noqa: PLC0415
+    from .cli import load_for_cli, resolve_device  # noqa: PLC0415
+    from .errors import CommandLineError  # noqa: PLC0415
+    from .outputs import check_writable, write_json_atomic  # noqa: PLC0415
+
+    methods = _parse_methods(args.integrators)
+    ks = () if args.ks and args.ks.strip().lower() == "none" else (
+        _parse_positive_list(args.ks, "--ks") if args.ks else DEFAULT_KS)
+    if args.steps < 10:
+        raise CommandLineError("--steps", "must be an integer >= 10", args.steps)
+    _check_positive(args.duration, "--duration")
+    if not 2 <= args.lattice <= 8:
+        raise CommandLineError("--lattice", "must be an integer from 2 to 8", args.lattice)
+    if not (0 < args.rtol < 1):
+        raise CommandLineError("--rtol", "must be > 0 and < 1", args.rtol)
+    if args.out:
+        check_writable(args.out, "--out")
+    if args.plot:
+        check_writable(args.plot, "--plot", suffixes=(".png", ".pdf", ".svg"))
+    scene = load_for_cli(args)
+    if not 0 <= args.jelly < len(scene.jellies):
+        raise CommandLineError("--jelly", f"this scene has jellies 0 to {len(scene.jellies) - 1}", args.jelly)
+    device = resolve_device(args.device)
+    log = None if args.quiet else (lambda line: print(line, file=sys.stderr, flush=True))
+    report = analyse(scene, methods, ks_values=ks, device=device, precision=args.precision, steps=args.steps,
+                     duration=args.duration, rtol=args.rtol, scene_runs=not args.no_scene,
+                     use_graph=not args.no_graph, lattice_max=args.lattice, jelly_index=args.jelly, log=log)
+    print(format_table(report))
+    if args.out:
+        write_json_atomic(args.out, report)
+    if args.plot:
+        plot_report(report, args.plot)
+    return 0
