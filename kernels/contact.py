@@ -84,6 +84,42 @@ def build(scalar):
                 return scalar(1.0e30)
         return phi
 
+    @wp.func
+    def contact_planes(
+        x: vec3,
+        v: vec3,
+        x_prev: vec3,
+        v_prev: vec3,
+        w: int,
+        plane_count: int,
+        plane_world: wp.array(dtype=wp.int32),
+        plane_point: wp.array(dtype=vec3),
+        plane_normal: wp.array(dtype=vec3),
+        plane_hole_center: wp.array(dtype=vec3),
+        plane_hole_radius: wp.array(dtype=scalar),
+        plane_restitution: wp.array(dtype=scalar),
+        plane_friction: wp.array(dtype=scalar),
+        eps: scalar,
+        eps_v: scalar,
+        beta_h: scalar,
+    ):
+        """One particle of world ``w`` against every plane of that world; returns the new (x, v).
+
+        Shared by ``collide_planes`` and the fused last stage of the lattice path.
+        """
+        for p in range(plane_count):
+            if plane_world[p] == w:
+                n = plane_normal[p]
+                point = plane_point[p]
+                hc = plane_hole_center[p]
+                hr = plane_hole_radius[p]
+                phi = plane_distance(x, point, n, hc, hr)
+                phi_prev = plane_distance(x_prev, point, n, hc, hr)
+                x, v = resolve_contact(
+                    x, v, v_prev, phi, phi_prev, n, plane_restitution[p], plane_friction[p], eps, eps_v, beta_h
+                )
+        return x, v
+
     @wp.kernel(module="unique")
     def collide_planes(
         # Model:
@@ -112,32 +148,24 @@ def build(scalar):
         if particle_inv_mass[i] == scalar(0.0):
             return
         w = particle_world[i]
-        x = q_out[i]
-        v = qd_out[i]
-        x_prev = q_prev[i]
-        v_prev = qd_prev[i]
-        for p in range(plane_count):
-            if plane_world[p] != w:
-                continue
-            n = plane_normal[p]
-            point = plane_point[p]
-            hc = plane_hole_center[p]
-            hr = plane_hole_radius[p]
-            phi = plane_distance(x, point, n, hc, hr)
-            phi_prev = plane_distance(x_prev, point, n, hc, hr)
-            x, v = resolve_contact(
-                x,
-                v,
-                v_prev,
-                phi,
-                phi_prev,
-                n,
-                plane_restitution[p],
-                plane_friction[p],
-                eps,
-                eps_v,
-                h * world_contact_beta[w],
-            )
+        x, v = contact_planes(
+            q_out[i],
+            qd_out[i],
+            q_prev[i],
+            qd_prev[i],
+            w,
+            plane_count,
+            plane_world,
+            plane_point,
+            plane_normal,
+            plane_hole_center,
+            plane_hole_radius,
+            plane_restitution,
+            plane_friction,
+            eps,
+            eps_v,
+            h * world_contact_beta[w],
+        )
         q_out[i] = x
         qd_out[i] = v
 
@@ -288,6 +316,7 @@ def build(scalar):
     return {
         "resolve_contact": resolve_contact,
         "plane_distance": plane_distance,
+        "contact_planes": contact_planes,
         "collide_planes": collide_planes,
         "bowl_distance": bowl_distance,
         "sphere_distance": sphere_distance,

@@ -184,8 +184,7 @@ _ROWS_FORCES = """
 def build(scalar):
     vec3 = wp.types.vector(3, scalar)
     contact_funcs = contact.build(scalar)
-    resolve_contact = contact_funcs["resolve_contact"]
-    plane_distance = contact_funcs["plane_distance"]
+    contact_planes = contact_funcs["contact_planes"]
     advance_stage = integration.build(scalar)["advance_stage"]
 
     if scalar == wp.float32:
@@ -306,39 +305,6 @@ return 1.0f / wp::sqrt(x);
         f_out[i] = gather_lattice_force(
             i, j, jelly_start, jelly_shape, jelly_types, jelly_rest, jelly_ks, jelly_kd, q, qd
         )
-
-    @wp.func
-    def contact_planes(
-        x: vec3,
-        v: vec3,
-        x_prev: vec3,
-        v_prev: vec3,
-        w: int,
-        plane_count: int,
-        plane_world: wp.array(dtype=wp.int32),
-        plane_point: wp.array(dtype=vec3),
-        plane_normal: wp.array(dtype=vec3),
-        plane_hole_center: wp.array(dtype=vec3),
-        plane_hole_radius: wp.array(dtype=scalar),
-        plane_restitution: wp.array(dtype=scalar),
-        plane_friction: wp.array(dtype=scalar),
-        eps: scalar,
-        eps_v: scalar,
-        beta_h: scalar,
-    ):
-        """The per-particle loop of ``collide_planes`` (kernels/contact.py), for the fused last stage."""
-        for p in range(plane_count):
-            if plane_world[p] == w:
-                n = plane_normal[p]
-                point = plane_point[p]
-                hc = plane_hole_center[p]
-                hr = plane_hole_radius[p]
-                phi = plane_distance(x, point, n, hc, hr)
-                phi_prev = plane_distance(x_prev, point, n, hc, hr)
-                x, v = resolve_contact(
-                    x, v, v_prev, phi, phi_prev, n, plane_restitution[p], plane_friction[p], eps, eps_v, beta_h
-                )
-        return x, v
 
     @wp.kernel(module="unique")
     def integrate_lattice_stage(
@@ -641,7 +607,6 @@ return 1.0f / wp::sqrt(x);
         "gather_lattice_force": gather_lattice_force,
         "eval_lattice_springs": eval_lattice_springs,
         "integrate_lattice_stage": integrate_lattice_stage,
-        "contact_planes": contact_planes,
         "eval_lattice_rows": eval_lattice_rows,
         "integrate_lattice_rows_stage": integrate_lattice_rows_stage,
         "reduce_lattice_springs": reduce_lattice_springs,
