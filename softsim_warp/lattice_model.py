@@ -149,12 +149,15 @@ class LatticeData:
         self.set_kernel(kernel or ("rows" if device.is_cpu else "gather"))
 
     def set_kernel(self, kernel: str):
-        """Choose the force kernel: "rows" (native CPU loop) or "gather" (thread per particle).
+        """Choose the force kernel: "rows" (native CPU loop), "gather" (thread per particle) or "tile".
+
+        "tile" is the gather from shared memory, one thread block per brick of particles; it exists
+        for fused stages only (unfused force evaluation uses the gather kernel).
 
         Choose before making integrators: they size their buffers for the kernel in use.
         """
-        if kernel not in ("rows", "gather"):
-            raise ValueError(f"lattice kernel must be 'rows' or 'gather' (got {kernel!r})")
+        if kernel not in ("rows", "gather", "tile"):
+            raise ValueError(f"lattice kernel must be 'rows', 'gather' or 'tile' (got {kernel!r})")
         if kernel == "rows" and self.particle_coord_k is None:
             coord_k = np.zeros(self._particle_count, dtype=np.int32)
             for start, shape in zip(self.layout.start, self.layout.shape):
