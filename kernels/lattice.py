@@ -264,6 +264,30 @@ return 1.0f / wp::sqrt(x);
         x = q[i]
         v = qd[i]
         f = vec3(scalar(0.0))
+        row = shape[1] * shape[2]
+        if types == 7 and wp.min(wp.min(a, b), c) >= 2 and a < shape[0] - 2 and b < shape[1] - 2 and c < shape[2] - 2:
+            # Interior particle of a jelly with all three spring types (most particles of a large
+            # jelly): every neighbour exists, so the loops below run without per-neighbour tests.
+            ks_bending = jelly_ks[j, 2]
+            kd_bending = jelly_kd[j, 2]
+            for di in range(-1, 2):
+                for dj in range(-1, 2):
+                    for dk in range(-1, 2):
+                        m = wp.abs(di) + wp.abs(dj) + wp.abs(dk)
+                        if m > 0:
+                            p = i + di * row + dj * shape[2] + dk
+                            rest = jelly_rest[j, (di + 1) * 9 + (dj + 1) * 3 + dk + 1]
+                            if m == 1:
+                                f += stencil_spring_force(x, q[p], v, qd[p], rest, ks_structural, kd_structural)
+                            else:
+                                f += stencil_spring_force(x, q[p], v, qd[p], rest, ks_shear, kd_shear)
+            for axis in range(3):
+                for side in range(2):
+                    o = wp.vec3i(0, 0, 0)
+                    o[axis] = 4 * side - 2
+                    p = i + o[0] * row + o[1] * shape[2] + o[2]
+                    f += stencil_spring_force(x, q[p], v, qd[p], jelly_rest[j, 27 + axis], ks_bending, kd_bending)
+            return f
         # Structural and shear: the 26 neighbours in the 3x3x3 block. These loops have constant
         # bounds, so Warp unrolls them and every offset below is a compile-time constant.
         for di in range(-1, 2):
@@ -319,6 +343,7 @@ return 1.0f / wp::sqrt(x);
         h: scalar,
         with_contact: int,
         # Model:
+        particle_order: wp.array(dtype=wp.int32),
         particle_inv_mass: wp.array(dtype=scalar),
         particle_world: wp.array(dtype=wp.int32),
         particle_jelly: wp.array(dtype=wp.int32),
@@ -360,8 +385,12 @@ return 1.0f / wp::sqrt(x);
     ):
         # Forces, gravity and the stage update in one pass. A thread reads neighbours only from
         # the stage state y_s and writes only its own particle into other buffers, so no thread
-        # depends on another's output within the launch.
+        # depends on another's output within the launch. With a particle order (LatticeData.order)
+        # thread t takes particle order[t]: a block then covers a compact brick of the lattice,
+        # whose neighbours stay in the SM's L1 cache, instead of a run of a few rows.
         i = wp.tid()
+        if particle_order.shape[0] > 0:
+            i = particle_order[i]
         j = particle_jelly[i]
         f = gather_lattice_force(i, j, jelly_start, jelly_shape, jelly_types, jelly_rest, jelly_ks, jelly_kd, q_s, qd_s)
         last = advance_stage(

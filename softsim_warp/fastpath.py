@@ -115,6 +115,7 @@ def step_fused(integrator, state_in, state_out, dt):
                     stage,
                     h,
                     int(integrator.fuse_contact),
+                    lat.order,
                     model.particle_inv_mass,
                     model.particle_world,
                     model.particle_jelly,
