@@ -1,12 +1,15 @@
-"""Cost of ``--deterministic``: step time of the atomic-free force path against the atomic one.
+"""Cost of ``--deterministic``: step time of the atomic-free force paths against the atomic one.
 
 Run::
 
     python -m softsim_warp.bench_deterministic --device cpu --json bench_det_cpu.json
     python -m softsim_warp.bench_deterministic --device cuda:0 --res 10 40 100 --json bench_det_cuda.json
 
-For each lattice resolution and integrator it builds the jelly_drop scene twice (atomic and
-deterministic), compiles and warms up, then times ``--steps`` steps ``--repeats`` times, the two
+For each lattice resolution and integrator it builds the jelly_drop scene three times: the spring
+list with atomic adds (``atomic``), the spring list with the fixed-order CSR gather
+(``deterministic``: what ``--deterministic`` does for arbitrary spring sets), and the lattice path
+(``lattice``: the default for lattice jellies, atomic-free by construction, so ``--deterministic``
+keeps it at no cost). It compiles and warms up each, then times ``--steps`` steps ``--repeats`` times, the two
 variants alternately (on CUDA one captured graph, wall time; on the CPU launch by launch, the
 calling thread's CPU time, since Warp runs CPU kernels on that thread and other processes on the
 machine then do not skew the numbers). It reports the median time per step and the median ratio
@@ -25,7 +28,7 @@ import time
 class Case:
     """One model and integrator, warmed up, that times ``steps`` steps (a captured graph on CUDA)."""
 
-    def __init__(self, device, res, integrator, deterministic, steps, dt=1e-4):
+    def __init__(self, device, res, integrator, deterministic, steps, dt=1e-4, force_path="springs"):
         import warp as wp  # noqa: PLC0415
 
         from .integrators import make_integrator  # noqa: PLC0415
@@ -34,7 +37,7 @@ class Case:
 
         self.wp, self.device, self.steps, self.dt = wp, device, steps, dt
         scene = load_scene("jelly_drop", [f"jelly.0.resolution=[{res},{res},{res}]"])
-        self.model = build_model(scene, device=device, deterministic=deterministic)
+        self.model = build_model(scene, device=device, deterministic=deterministic, force_path=force_path)
         self.integ = make_integrator(integrator, self.model)
         self.states = [self.model.state(), self.model.state()]
         t0 = time.perf_counter()
@@ -65,10 +68,11 @@ class Case:
 
 
 def compare(device, res, integrator, steps, repeats) -> dict:
-    """Atomic against deterministic, timed alternately so that a busy machine slows both alike."""
+    """Atomic spring list against the deterministic one and the lattice path, timed in turn so a busy machine slows all alike."""
     cases = {
         "atomic": Case(device, res, integrator, False, steps),
         "deterministic": Case(device, res, integrator, True, steps),
+        "lattice": Case(device, res, integrator, True, steps, force_path="auto"),
     }
     samples = {name: [] for name in cases}
     for _ in range(repeats):
@@ -90,12 +94,11 @@ def compare(device, res, integrator, steps, repeats) -> dict:
             "cpu_seconds_per_step": statistics.median(c for _, c in samples[name]),
         }
     key = "cpu_seconds_per_step" if use_cpu_time else "wall_seconds_per_step"
-    ratios = [
-        d[1 if use_cpu_time else 0] / a[1 if use_cpu_time else 0]
-        for a, d in zip(samples["atomic"], samples["deterministic"])
-    ]
+    col = 1 if use_cpu_time else 0
     out["timed"] = key
-    out["ratio"] = statistics.median(ratios)
+    for name in ("deterministic", "lattice"):
+        ratios = [d[col] / a[col] for a, d in zip(samples["atomic"], samples[name])]
+        out["ratio" if name == "deterministic" else "lattice_ratio"] = statistics.median(ratios)
     return out
 
 
@@ -119,7 +122,7 @@ def main(argv=None) -> int:
     print(f"device {device} ({device.name}), warp {wp.config.version}, {a.steps} steps x {a.repeats}, {timed} time")
     print(
         f"{'res':>5} {'particles':>10} {'springs':>10} {'integrator':>10} {'atomic ms/step':>15} "
-        f"{'determ. ms/step':>16} {'ratio':>6}"
+        f"{'determ. ms/step':>16} {'ratio':>6} {'lattice ms/step':>16} {'ratio':>6}"
     )
     for res in a.res:
         for integrator in a.integrators:
@@ -129,7 +132,8 @@ def main(argv=None) -> int:
             k = row["timed"]
             print(
                 f"{res:>5} {row['particles']:>10} {row['springs']:>10} {integrator:>10} "
-                f"{1e3 * row['atomic'][k]:>15.4f} {1e3 * row['deterministic'][k]:>16.4f} {row['ratio']:>6.2f}"
+                f"{1e3 * row['atomic'][k]:>15.4f} {1e3 * row['deterministic'][k]:>16.4f} {row['ratio']:>6.2f} "
+                f"{1e3 * row['lattice'][k]:>16.4f} {row['lattice_ratio']:>6.2f}"
             )
             sys.stdout.flush()
     if a.json:

@@ -1,7 +1,8 @@
 """Deterministic runs (``softsim run --deterministic``): bitwise-identical results from run to run on CUDA.
 
 Two parts of a step and a frame sum floats from many threads into one place with atomics: the
-spring forces on each particle and the per-jelly metrics. :func:`attach` gives a model a CSR list
+spring forces on each particle (on the spring-list path; the lattice path gathers without atomics)
+and the per-jelly metrics. :func:`attach` gives a spring-list model a CSR list
 of each particle's incident springs, after which :func:`softsim_warp.integrators.eval_forces`
 evaluates forces with the atomic-free kernels of ``kernels/deterministic.py``, and
 :class:`~softsim_warp.deterministic_metrics.DeterministicMetricsProbe` sums metrics in a fixed order. Integration and contact are
@@ -47,12 +48,18 @@ def incident_springs_csr(pairs: np.ndarray, particle_count: int) -> tuple[np.nda
 def attach(model) -> None:
     """Switch ``model`` to deterministic force evaluation (call before making an integrator).
 
-    Adds to the model:
+    A model on the lattice path needs nothing more (its kernels use no atomics). A model on the
+    spring list gets, in addition:
         deterministic: True.
         spring_csr_offsets: start of each particle's incident-spring list, shape [particle_count + 1], int32.
         spring_csr_springs: signed incident spring ids (see :func:`incident_springs_csr`), shape [2 spring_count], int32.
         spring_force_work: workspace, each spring's force on its first particle [N], shape [spring_count], vec3.
     """
+    model.deterministic = True
+    if model.lattice is not None:
+        # The lattice kernels are atomic-free already: the CUDA gather writes each particle's force
+        # once, summed in a fixed stencil order; the CPU row kernel runs each jelly serially.
+        return
     offsets, entries = incident_springs_csr(model.spring_indices_host, model.particle_count)
     dev = model.device
     model.spring_csr_offsets = wp.array(offsets, dtype=wp.int32, device=dev)

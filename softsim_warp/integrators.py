@@ -35,10 +35,11 @@ MAX_STAGES = 4
 
 def eval_forces(model: Model, q: wp.array, qd: wp.array, f_out: wp.array):
     """Internal forces (springs and dampers) of the state (q, qd) into ``f_out``; gravity is added as an acceleration."""
-    if getattr(model, "deterministic", False):
+    if getattr(model, "deterministic", False) and model.lattice is None:
         # Atomic-free: per-spring forces, then a fixed-order gather per particle (deterministic.py).
         deterministic.eval_spring_forces(model, q, qd, f_out)
-    elif model.lattice is not None:
+        return
+    if model.lattice is not None:
         from .lattice_model import eval_lattice_forces  # noqa: PLC0415
 
         eval_lattice_forces(model, q, qd, f_out)

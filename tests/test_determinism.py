@@ -92,7 +92,7 @@ def _forces(model, q, qd):
 def test_gather_agrees_with_atomics(device, res):
     scene = load_scene("jelly_drop", [f"jelly.0.resolution={res}"])
     atomic = build_model(scene, device=device, force_path="springs")  # the atomic spring list, not the lattice rows
-    det = build_model(scene, device=device, deterministic=True)
+    det = build_model(scene, device=device, deterministic=True, force_path="springs")
     q, qd = _perturbed_state(atomic)
     fa = _forces(atomic, q, qd)
     fd = _forces(det, q, qd)
@@ -115,16 +115,16 @@ def test_gather_agrees_with_atomics(device, res):
 
 def test_gather_is_bitwise_reproducible(device):
     scene = load_scene("jelly_drop")
-    det = build_model(scene, device=device, deterministic=True)
+    det = build_model(scene, device=device, deterministic=True, force_path="springs")
     q, qd = _perturbed_state(det, seed=1)
     first = _forces(det, q, qd)
     for _ in range(5):
         assert np.array_equal(first, _forces(det, q, qd))
 
 
-def _run(device, deterministic, integrator="rk4", frames=6):
+def _run(device, deterministic, integrator="rk4", frames=6, force_path="auto"):
     scene = load_scene("jelly_drop")
-    model = build_model(scene, device=device, deterministic=deterministic)
+    model = build_model(scene, device=device, deterministic=deterministic, force_path=force_path)
     sim = Simulator(model, make_integrator(integrator, model), 4e-4, 60.0, frames)
     positions = []
 
@@ -136,10 +136,15 @@ def _run(device, deterministic, integrator="rk4", frames=6):
     return np.stack(positions), [m.as_dict() for m in result.metrics]
 
 
-def test_deterministic_run_is_bitwise_reproducible(device):
-    """Whole runs with --deterministic: same positions and metrics, bit for bit, on CPU and CUDA."""
-    p1, m1 = _run(device, True)
-    p2, m2 = _run(device, True)
+@pytest.mark.parametrize("force_path", ["auto", "springs"])
+def test_deterministic_run_is_bitwise_reproducible(device, force_path):
+    """Whole runs with --deterministic: same positions and metrics, bit for bit, on CPU and CUDA.
+
+    ``auto`` takes the lattice path (atomic-free by construction), ``springs`` the spring list
+    with the CSR gather in place of the atomic force kernel.
+    """
+    p1, m1 = _run(device, True, force_path=force_path)
+    p2, m2 = _run(device, True, force_path=force_path)
     assert np.array_equal(p1, p2)
     assert m1 == m2
 
