@@ -40,13 +40,6 @@ wp.set_module_options({"enable_backward": False})
 HALF_OFFSETS = [(off, t) for t, stencil in STENCILS.items() for off in stencil]
 REST_SLOTS = 32
 
-# Tile kernel (integrate_lattice_tile_stage): bricks of BRICK^3 particles per thread block, with a
-# halo of HALO particles (the bending springs' reach) on each side in shared memory.
-BRICK = wp.constant(8)
-HALO = wp.constant(2)
-TILE_EDGE = wp.constant(12)
-TILE_THREADS = 256
-
 
 def rest_slot(di, dj, dk):
     """Column of ``jelly_rest`` for a stencil offset; symmetric offsets share a value.
@@ -264,30 +257,6 @@ return 1.0f / wp::sqrt(x);
         x = q[i]
         v = qd[i]
         f = vec3(scalar(0.0))
-        row = shape[1] * shape[2]
-        if types == 7 and wp.min(wp.min(a, b), c) >= 2 and a < shape[0] - 2 and b < shape[1] - 2 and c < shape[2] - 2:
-            # Interior particle of a jelly with all three spring types (most particles of a large
-            # jelly): every neighbour exists, so the loops below run without per-neighbour tests.
-            ks_bending = jelly_ks[j, 2]
-            kd_bending = jelly_kd[j, 2]
-            for di in range(-1, 2):
-                for dj in range(-1, 2):
-                    for dk in range(-1, 2):
-                        m = wp.abs(di) + wp.abs(dj) + wp.abs(dk)
-                        if m > 0:
-                            p = i + di * row + dj * shape[2] + dk
-                            rest = jelly_rest[j, (di + 1) * 9 + (dj + 1) * 3 + dk + 1]
-                            if m == 1:
-                                f += stencil_spring_force(x, q[p], v, qd[p], rest, ks_structural, kd_structural)
-                            else:
-                                f += stencil_spring_force(x, q[p], v, qd[p], rest, ks_shear, kd_shear)
-            for axis in range(3):
-                for side in range(2):
-                    o = wp.vec3i(0, 0, 0)
-                    o[axis] = 4 * side - 2
-                    p = i + o[0] * row + o[1] * shape[2] + o[2]
-                    f += stencil_spring_force(x, q[p], v, qd[p], jelly_rest[j, 27 + axis], ks_bending, kd_bending)
-            return f
         # Structural and shear: the 26 neighbours in the 3x3x3 block. These loops have constant
         # bounds, so Warp unrolls them and every offset below is a compile-time constant.
         for di in range(-1, 2):
@@ -343,7 +312,6 @@ return 1.0f / wp::sqrt(x);
         h: scalar,
         with_contact: int,
         # Model:
-        particle_order: wp.array(dtype=wp.int32),
         particle_inv_mass: wp.array(dtype=scalar),
         particle_world: wp.array(dtype=wp.int32),
         particle_jelly: wp.array(dtype=wp.int32),
@@ -385,12 +353,8 @@ return 1.0f / wp::sqrt(x);
     ):
         # Forces, gravity and the stage update in one pass. A thread reads neighbours only from
         # the stage state y_s and writes only its own particle into other buffers, so no thread
-        # depends on another's output within the launch. With a particle order (LatticeData.order)
-        # thread t takes particle order[t]: a block then covers a compact brick of the lattice,
-        # whose neighbours stay in the SM's L1 cache, instead of a run of a few rows.
+        # depends on another's output within the launch.
         i = wp.tid()
-        if particle_order.shape[0] > 0:
-            i = particle_order[i]
         j = particle_jelly[i]
         f = gather_lattice_force(i, j, jelly_start, jelly_shape, jelly_types, jelly_rest, jelly_ks, jelly_kd, q_s, qd_s)
         last = advance_stage(
@@ -437,132 +401,6 @@ return 1.0f / wp::sqrt(x);
             )
             q_out[i] = x
             qd_out[i] = v
-
-    @wp.kernel(module="unique")
-    def integrate_lattice_tile_stage(
-        stage: int,
-        h: scalar,
-        j: int,
-        bricks: wp.vec3i,
-        # Model:
-        particle_inv_mass: wp.array(dtype=scalar),
-        particle_world: wp.array(dtype=wp.int32),
-        gravity: vec3,
-        jelly_start: wp.array(dtype=wp.int32),
-        jelly_shape: wp.array(dtype=wp.vec3i),
-        jelly_types: wp.array(dtype=wp.int32),
-        jelly_rest: wp.array2d(dtype=scalar),
-        jelly_ks: wp.array2d(dtype=scalar),
-        jelly_kd: wp.array2d(dtype=scalar),
-        world_stage_count: wp.array(dtype=wp.int32),
-        world_symplectic: wp.array(dtype=wp.int32),
-        world_stage_c: wp.array2d(dtype=scalar),
-        world_stage_b: wp.array2d(dtype=scalar),
-        # Stage state of jelly j as (nx, ny, nz) views, and the whole state arrays:
-        q_s3: wp.array3d(dtype=vec3),
-        qd_s3: wp.array3d(dtype=vec3),
-        q_n: wp.array(dtype=vec3),
-        qd_n: wp.array(dtype=vec3),
-        qd_s: wp.array(dtype=vec3),
-        # Out, as integrate_lattice_stage:
-        acc_q_out: wp.array(dtype=vec3),
-        acc_qd_out: wp.array(dtype=vec3),
-        q_next_out: wp.array(dtype=vec3),
-        qd_next_out: wp.array(dtype=vec3),
-        q_out: wp.array(dtype=vec3),
-        qd_out: wp.array(dtype=vec3),
-    ):
-        """``integrate_lattice_stage`` for one jelly, one thread block per BRICK^3 brick of particles.
-
-        The block first copies its brick and a halo of two particles (the bending reach) of the
-        stage state into shared memory (``wp.tile_load``, coalesced), then each thread gathers its
-        particles' 32 neighbours from there instead of from global memory. The tile starts at the
-        brick minus the halo, clamped at 0 (``tile_load`` zero-fills past the upper end only);
-        neighbours outside the lattice are skipped as in the gather kernel, so the clamped and
-        zero-filled cells are never read.
-        """
-        blk, lane = wp.tid()
-        shape = jelly_shape[j]
-        start = jelly_start[j]
-        bc = blk % bricks[2]
-        t = blk // bricks[2]
-        a0 = (t // bricks[1]) * BRICK
-        b0 = (t % bricks[1]) * BRICK
-        c0 = bc * BRICK
-        sa = wp.max(a0 - HALO, 0)
-        sb = wp.max(b0 - HALO, 0)
-        sc = wp.max(c0 - HALO, 0)
-        xt = wp.tile_load(q_s3, shape=(TILE_EDGE, TILE_EDGE, TILE_EDGE), offset=(sa, sb, sc), storage="shared")
-        vt = wp.tile_load(qd_s3, shape=(TILE_EDGE, TILE_EDGE, TILE_EDGE), offset=(sa, sb, sc), storage="shared")
-        types = jelly_types[j]
-        ks_structural = jelly_ks[j, 0]
-        ks_shear = jelly_ks[j, 1]
-        ks_bending = jelly_ks[j, 2]
-        kd_structural = jelly_kd[j, 0]
-        kd_shear = jelly_kd[j, 1]
-        kd_bending = jelly_kd[j, 2]
-        for local in range(lane, BRICK * BRICK * BRICK, wp.block_dim()):
-            a = a0 + local // (BRICK * BRICK)
-            b = b0 + (local // BRICK) % BRICK
-            c = c0 + local % BRICK
-            if a < shape[0] and b < shape[1] and c < shape[2]:
-                ta = a - sa
-                tb = b - sb
-                tc = c - sc
-                x = xt[ta, tb, tc]
-                v = vt[ta, tb, tc]
-                f = vec3(scalar(0.0))
-                for di in range(-1, 2):
-                    for dj in range(-1, 2):
-                        for dk in range(-1, 2):
-                            m = wp.abs(di) + wp.abs(dj) + wp.abs(dk)
-                            if m > 0:
-                                ty = wp.min(m - 1, 1)
-                                if ((types >> ty) & 1) != 0 and inside(a + di, b + dj, c + dk, shape):
-                                    rest = jelly_rest[j, (di + 1) * 9 + (dj + 1) * 3 + dk + 1]
-                                    ks = wp.where(ty == 0, ks_structural, ks_shear)
-                                    kd = wp.where(ty == 0, kd_structural, kd_shear)
-                                    f += stencil_spring_force(
-                                        x, xt[ta + di, tb + dj, tc + dk], v, vt[ta + di, tb + dj, tc + dk], rest, ks, kd
-                                    )
-                if ((types >> 2) & 1) != 0:
-                    for axis in range(3):
-                        for side in range(2):
-                            o = wp.vec3i(0, 0, 0)
-                            o[axis] = 4 * side - 2
-                            if inside(a + o[0], b + o[1], c + o[2], shape):
-                                f += stencil_spring_force(
-                                    x,
-                                    xt[ta + o[0], tb + o[1], tc + o[2]],
-                                    v,
-                                    vt[ta + o[0], tb + o[1], tc + o[2]],
-                                    jelly_rest[j, 27 + axis],
-                                    ks_bending,
-                                    kd_bending,
-                                )
-                i = start + (a * shape[1] + b) * shape[2] + c
-                advance_stage(
-                    i,
-                    stage,
-                    h,
-                    f,
-                    particle_inv_mass,
-                    particle_world,
-                    gravity,
-                    world_stage_count,
-                    world_symplectic,
-                    world_stage_c,
-                    world_stage_b,
-                    q_n,
-                    qd_n,
-                    qd_s,
-                    acc_q_out,
-                    acc_qd_out,
-                    q_next_out,
-                    qd_next_out,
-                    q_out,
-                    qd_out,
-                )
 
     @wp.func_native(_rows_snippet("float" if scalar == wp.float32 else "double"))
     def lattice_rows_native(
@@ -769,7 +607,6 @@ return 1.0f / wp::sqrt(x);
         "gather_lattice_force": gather_lattice_force,
         "eval_lattice_springs": eval_lattice_springs,
         "integrate_lattice_stage": integrate_lattice_stage,
-        "integrate_lattice_tile_stage": integrate_lattice_tile_stage,
         "eval_lattice_rows": eval_lattice_rows,
         "integrate_lattice_rows_stage": integrate_lattice_rows_stage,
         "reduce_lattice_springs": reduce_lattice_springs,

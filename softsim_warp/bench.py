@@ -531,7 +531,6 @@ def fast_path_variants(device):
             ("lattice rows, fused, graph", "lattice", "rows", {"fused": True}, True),
         ]
     else:
-        variants.append(("lattice tile, fused, graph", "lattice", "tile", {"fused": True}, True))
         variants.append(
             (
                 "lattice gather, fused+contact, plain launches",

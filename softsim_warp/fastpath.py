@@ -74,9 +74,7 @@ def step_fused(integrator, state_in, state_out, dt):
     for stage in range(integrator.stage_count):
         q_next, qd_next = bufs[stage % 2]
         outputs = [integrator.acc_q, integrator.acc_qd, q_next, qd_next, state_out.particle_q, state_out.particle_qd]
-        if lat.kernel == "tile":
-            _launch_tile_stage(integrator, stage, h, state_in, q, qd, outputs)
-        elif rows:
+        if rows:
             wp.launch(
                 model.kernels.integrate_lattice_rows_stage,
                 dim=lat.jelly_count,
@@ -115,7 +113,6 @@ def step_fused(integrator, state_in, state_out, dt):
                     stage,
                     h,
                     int(integrator.fuse_contact),
-                    lat.order,
                     model.particle_inv_mass,
                     model.particle_world,
                     model.particle_jelly,
@@ -151,50 +148,3 @@ def step_fused(integrator, state_in, state_out, dt):
             )
         q, qd = q_next, qd_next
     apply_contacts(model, state_in, state_out, dt, integrator.world_contact_beta, planes=not integrator.fuse_contact)
-
-
-def _jelly_view(array: wp.array, start: int, shape) -> wp.array:
-    """The particles of one jelly as an (nx, ny, nz) view of a state array (no copy)."""
-    n = int(shape[0]) * int(shape[1]) * int(shape[2])
-    return array[start : start + n].reshape(tuple(int(s) for s in shape))
-
-
-def _launch_tile_stage(integrator, stage, h, state_in, q, qd, outputs):
-    """One fused stage with the shared-memory tile kernel: a launch per jelly, a block per brick."""
-    from .kernels.lattice import BRICK, TILE_THREADS  # noqa: PLC0415
-
-    model = integrator.model
-    lat = model.lattice
-    for j, (start, shape) in enumerate(zip(lat.layout.start, lat.layout.shape)):
-        bricks = [(int(n) + BRICK - 1) // BRICK for n in shape]
-        wp.launch_tiled(
-            model.kernels.integrate_lattice_tile_stage,
-            dim=[bricks[0] * bricks[1] * bricks[2]],
-            inputs=[
-                stage,
-                h,
-                j,
-                wp.vec3i(*bricks),
-                model.particle_inv_mass,
-                model.particle_world,
-                model.gravity,
-                lat.jelly_start,
-                lat.jelly_shape,
-                lat.jelly_types,
-                lat.jelly_rest,
-                lat.jelly_ks,
-                lat.jelly_kd,
-                integrator.world_stage_count,
-                integrator.world_symplectic,
-                integrator.world_stage_c,
-                integrator.world_stage_b,
-                _jelly_view(q, int(start), shape),
-                _jelly_view(qd, int(start), shape),
-                state_in.particle_q,
-                state_in.particle_qd,
-                qd,
-            ],
-            outputs=outputs,
-            block_dim=TILE_THREADS,
-            device=model.device,
-        )

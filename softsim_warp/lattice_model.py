@@ -146,37 +146,15 @@ class LatticeData:
         self.particle_coord_k = None
         self.scratch = None
         self.kernel = None
-        self.brick = None
-        self.order = wp.empty(0, dtype=wp.int32, device=device)
         self.set_kernel(kernel or ("rows" if device.is_cpu else "gather"))
 
-    def set_brick(self, brick):
-        """Order the fused gather's threads by bricks of ``brick`` = (ba, bb, bc) particles, or None for index order.
-
-        Consecutive threads (one thread block) then take a compact ba x bb x bc brick of a jelly
-        (c fastest), so the neighbours they read overlap and stay in the L1 cache; in index order
-        a block spans a few lattice rows and reads five planes' worth of rows from L2. Only the
-        thread order changes, not the arithmetic: results are bitwise the same.
-        """
-        self.brick = None if brick is None else tuple(int(b) for b in brick)
-        if self.brick is None:
-            self.order = wp.empty(0, dtype=wp.int32, device=self.device)
-            return
-        order = []  # the lattice path has no loose particles: the jellies cover every index
-        for start, shape in zip(self.layout.start, self.layout.shape):
-            order.append(int(start) + brick_order(tuple(int(s) for s in shape), self.brick))
-        self.order = wp.array(np.concatenate(order).astype(np.int32), dtype=wp.int32, device=self.device)
-
     def set_kernel(self, kernel: str):
-        """Choose the force kernel: "rows" (native CPU loop), "gather" (thread per particle) or "tile".
-
-        "tile" is the gather from shared memory, one thread block per brick of particles; it exists
-        for fused stages only (unfused force evaluation uses the gather kernel).
+        """Choose the force kernel: "rows" (native CPU loop) or "gather" (thread per particle).
 
         Choose before making integrators: they size their buffers for the kernel in use.
         """
-        if kernel not in ("rows", "gather", "tile"):
-            raise ValueError(f"lattice kernel must be 'rows', 'gather' or 'tile' (got {kernel!r})")
+        if kernel not in ("rows", "gather"):
+            raise ValueError(f"lattice kernel must be 'rows' or 'gather' (got {kernel!r})")
         if kernel == "rows" and self.particle_coord_k is None:
             coord_k = np.zeros(self._particle_count, dtype=np.int32)
             for start, shape in zip(self.layout.start, self.layout.shape):
@@ -197,16 +175,8 @@ class LatticeData:
             self.jelly_kd,
             self.jelly_world,
         ]
-        arrays += [a for a in (self.particle_coord_k, self.scratch, self.order) if a is not None]
+        arrays += [a for a in (self.particle_coord_k, self.scratch) if a is not None]
         return sum(a.capacity for a in arrays)
-
-
-def brick_order(shape, brick) -> np.ndarray:
-    """Jelly-local particle indices (a*ny + b)*nz + c visited brick by brick, c fastest within a brick."""
-    a, b, c = np.meshgrid(*(np.arange(n) for n in shape), indexing="ij")
-    keys = [a // brick[0], b // brick[1], c // brick[2], a % brick[0], b % brick[1], c % brick[2]]
-    index = (a * shape[1] + b) * shape[2] + c
-    return index.ravel()[np.lexsort([k.ravel() for k in reversed(keys)])].astype(np.int32)
 
 
 def eval_lattice_forces(model, q: wp.array, qd: wp.array, f_out: wp.array):

@@ -163,7 +163,7 @@ def test_lattice_trajectories_match(device, method):
 
 
 @pytest.mark.parametrize("method", ["symplectic", "rk4"])
-@pytest.mark.parametrize("kernel", ["gather", "rows", "tile"])
+@pytest.mark.parametrize("kernel", ["gather", "rows"])
 def test_fused_matches_unfused(device, method, kernel):
     """The fused stage kernels do the same arithmetic as eval_forces + integrate_stage + collide_planes."""
     steps, dt = 100, 1.0e-4
@@ -174,49 +174,6 @@ def test_fused_matches_unfused(device, method, kernel):
         runs[fused], _ = _run(model, method, steps, dt, fused=fused)
     # Contraction of a*b+c into FMA may differ between the kernels: a few ulps per step.
     assert np.abs(runs[True] - runs[False]).max() <= steps * 4.0 * EPS32 * np.abs(runs[False]).max()
-
-
-@pytest.mark.parametrize("shape", [(17, 9, 10), (8, 8, 8), (3, 20, 2)])
-@pytest.mark.parametrize("method", ["symplectic", "midpoint"])
-def test_tile_matches_gather(device, shape, method):
-    """The shared-memory tile kernel reads the same neighbours in the same order as the gather kernel.
-
-    Shapes span several 8^3 bricks with partial bricks at the upper ends, exactly one brick, and
-    thin jellies, so halo clamping at 0 and zero-filled cells past the end are both exercised.
-    The arithmetic per particle is identical, so on the CPU the runs agree bitwise; on CUDA the
-    compiler may contract differently: a few ulps per step.
-    """
-    steps, dt = 40, 1.0e-4
-    runs = {}
-    for kernel in ("gather", "tile"):
-        model = _dropping(_builder(shape=shape)).finalize(device, force_path="lattice")
-        model.lattice.set_kernel(kernel)
-        runs[kernel], _ = _run(model, method, steps, dt, fused=True)
-    bound = 0.0 if device.is_cpu else steps * 4.0 * EPS32 * np.abs(runs["gather"]).max()
-    assert np.abs(runs["tile"] - runs["gather"]).max() <= bound
-
-
-def test_brick_order_is_a_permutation_of_bricks():
-    from softsim_warp.lattice_model import brick_order
-
-    shape, brick = (5, 7, 9), (2, 4, 8)
-    order = brick_order(shape, brick)
-    assert sorted(order.tolist()) == list(range(5 * 7 * 9))
-    # The first brick's particles come first, c fastest: (0,0,0..7), (0,1,0..7), ...
-    first = [(a * 7 + b) * 9 + c for a in range(2) for b in range(4) for c in range(8)]
-    assert order[: len(first)].tolist() == first
-
-
-@pytest.mark.parametrize("brick", [(2, 4, 32), (4, 4, 16)])
-def test_brick_ordered_gather_matches_index_order(device, brick):
-    """Brick-ordered threads change only which thread computes which particle: bitwise equal results."""
-    runs = {}
-    for order in (None, brick):
-        model = _dropping(_builder(shape=(17, 9, 10))).finalize(device, force_path="lattice")
-        model.lattice.set_kernel("gather")
-        model.lattice.set_brick(order)
-        runs[order], _ = _run(model, "rk4", 30, 1.0e-4, fused=True)
-    assert np.array_equal(runs[None], runs[brick])
 
 
 @pytest.mark.parametrize("path", ["lattice", "springs"])
