@@ -1,6 +1,8 @@
 """Measure the `slide` scene: the jelly's acceleration down the slope against the rigid-block law.
 
-Usage: python docs/slide_story.py [INTEGRATOR] [DURATION] [--set KEY=VALUE ...]
+Usage: python docs/slide_story.py [INTEGRATOR] [DURATION] [--scene NAME] [--set KEY=VALUE ...]
+
+NAME is another scene with a jelly sliding on its first plane (seed_tilted); default slide.
 
 Runs the built-in scene on the CPU, records the centre of mass 100 times per simulated second and
 prints its speed along the slope over time, the acceleration fitted over the sliding phase
@@ -36,8 +38,14 @@ def main(argv):
     wp.config.quiet = True
     integrator = argv[0] if argv else "midpoint"
     duration = float(argv[1]) if len(argv) > 1 else 4.0
-    extra = [a for a in argv[2:] if a != "--set"]
-    scene = load_scene("slide", [f'simulation.integrator="{integrator}"', f"simulation.duration={duration}",
+    rest = list(argv[2:])
+    name = "slide"
+    if "--scene" in rest:
+        k = rest.index("--scene")
+        name = rest[k + 1]
+        del rest[k : k + 2]
+    extra = [a for a in rest if a != "--set"]
+    scene = load_scene(name, [f'simulation.integrator="{integrator}"', f"simulation.duration={duration}",
                                  f"simulation.fps={FPS}", *extra])
     model = build_model(scene, "cpu")
     sim = Simulator(model, make_integrator(integrator, model), scene.sim["dt"], FPS, scene.frame_count())
@@ -55,7 +63,7 @@ def main(argv):
     t, com = np.array(rec.t), np.array(rec.com)
     s = com @ downhill
     v = np.gradient(s, t)
-    print(f"slide, {integrator}, dt = {scene.sim['dt']:g} s, mu = {mu:g}, exploded: {result.exploded}")
+    print(f"{name}, {integrator}, dt = {scene.sim['dt']:g} s, mu = {mu:g}, exploded: {result.exploded}")
     for when in np.arange(0.5, duration + 1e-9, 0.5):
         i = int(np.argmin(np.abs(t - when)))
         print(f"t = {t[i]:4.2f} s   downhill speed {v[i]:7.3f} m/s   COM height above the plane {com[i] @ n:.3f}")

@@ -7,8 +7,16 @@ that the method later combines, so midpoint and RK4 lose their meaning and can i
 Splitting contact off keeps every integrator's smooth part exact in its order and treats all of
 them alike at impacts, where every method is first order anyway.
 
+The one exception is resting contact in the intermediate stages of midpoint and RK4
+(``integrators.filter_stage_contacts``): a stage state lets a particle resting on a surface move
+into it, and the springs' dampers would answer that fictitious velocity and take part of the normal
+force that friction depends on. So the stage velocities of particles that the response would hold
+get the contact branch (normal approach cancelled, friction), never an impact or a position change.
+
 ``resolve_contact`` is shared by every primitive: a primitive only supplies the signed distance
-and the outward normal at the particle.
+and the outward normal at the particle. Impact or contact is decided by a restitution threshold
+derived from the particle's own pressing impulse over the step (see its comments and
+docs/SCENES.md, "Impact or contact").
 """
 
 import warp as wp
