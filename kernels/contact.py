@@ -7,8 +7,16 @@ that the method later combines, so midpoint and RK4 lose their meaning and can i
 Splitting contact off keeps every integrator's smooth part exact in its order and treats all of
 them alike at impacts, where every method is first order anyway.
 
+The one exception is resting contact in the intermediate stages of midpoint and RK4
+(``integrators.filter_stage_contacts``): a stage state lets a particle resting on a surface move
+into it, and the springs' dampers would answer that fictitious velocity and take part of the normal
+force that friction depends on. So the stage velocities of particles that the response would hold
+get the contact branch (normal approach cancelled, friction), never an impact or a position change.
+
 ``resolve_contact`` is shared by every primitive: a primitive only supplies the signed distance
-and the outward normal at the particle.
+and the outward normal at the particle. Impact or contact is decided by a restitution threshold
+derived from the particle's own pressing impulse over the step (see its comments and
+docs/SCENES.md, "Impact or contact").
 """
 
 import warp as wp
@@ -23,52 +31,80 @@ def build(scalar):
     def resolve_contact(
         x: vec3,
         v: vec3,
-        v_prev: vec3,
+        vn_prev: scalar,
         phi: scalar,
-        phi_prev: scalar,
         normal: vec3,
         restitution: scalar,
         friction: scalar,
         eps: scalar,
         eps_v: scalar,
+        rest_steps: scalar,
         beta_h: scalar,
+        stage: int,
     ):
         """Contact response of one particle against one surface; returns the new (x, v).
 
-        phi and phi_prev are the signed distances after and before the step (positive outside),
-        v_prev the velocity before the step; v - v_prev is the step's impulse per unit mass, h f/m.
-        beta_h is h times the integrator's position gain for a constant force over the step
-        (dx = beta h dv: 0 explicit Euler, 1/2 midpoint and RK4, 1 symplectic and implicit Euler).
+        phi is the signed distance after the step (positive outside) and normal the outward unit
+        normal there; vn_prev is the normal velocity before the step, measured along the surface's
+        normal at the step's start point. beta_h is h times the integrator's position gain for a
+        constant force over the step (dx = beta h dv: 0 explicit Euler, 1/2 midpoint and RK4, 1
+        symplectic and implicit Euler).
+
+        stage != 0 filters an intermediate Runge-Kutta stage state instead (x, v = y_n + h c_s k):
+        only the contact branch acts, on the velocity (see ``filter_stage_contacts``).
         """
         if phi >= eps:
             return x, v
         vn = wp.dot(normal, v)
-        dvn = wp.dot(normal, v - v_prev)
-        resting = phi_prev < eps and wp.abs(wp.dot(normal, v_prev)) < eps_v and dvn < scalar(0.0)
-        # A resting particle that still moves away after the step (vn >= 0; on a convex surface the
-        # tangent of the last step points outward by |v| h / R) is separating: the surface pushes
-        # nothing, so neither normal cancellation nor friction applies. Cancelling it instead would
-        # glue particles to a sphere well past the point where they fly off.
-        if resting and vn < scalar(0.0):
-            # Cancel the normal velocity (the particle stays on the surface) and let Coulomb
-            # friction remove at most mu times that normal impulse per unit mass, -vn, of
-            # tangential speed, never reversing it. On a flat surface -vn = |N.f| h / m; on a
-            # curved one it also holds the centripetal part m |v|^2 h / R of the normal force.
-            vt = v - vn * normal
-            speed = wp.length(vt)
-            budget = friction * (-vn)
-            v_new = vec3(scalar(0.0))
-            if speed > budget:
-                v_new = vt * ((speed - budget) / speed)
-            # Resting contact and friction act as forces over the whole step: move the position by
-            # what the integrator would have made of them, so a stuck particle does not creep.
-            dv = v_new - v
-            x = x + beta_h * dv
-            phi = phi + beta_h * wp.dot(normal, dv)
-            v = v_new
-        elif vn < scalar(0.0):
-            # Collision: reflect the approaching normal velocity, keep the tangential part.
-            v = v - (scalar(1.0) + restitution) * vn * normal
+        if vn < scalar(0.0):
+            # Impact or contact? The approach speed after the step, -vn, is what the particle
+            # brought into the step, u0 = -vn_prev, plus what the step added, w: the forces of
+            # the step pressing it in (gravity and springs, h |f.n| / m) and, on a concave surface,
+            # the surface turning under a sliding particle (|v|^2 h / R). Only u0 is an impact
+            # speed: w is the impulse of a force acting over the step, and reflecting it bounces
+            # a particle that the force presses back within a step or two (a pressed particle
+            # settles into reflecting e w / (1 + e) every step: a resting jelly's corners read
+            # 0.38 m/s). So, as Box2D, Bullet and Guendelman et al. 2003 do with a restitution
+            # velocity threshold, an approach slower than rest_steps steps of the particle's own
+            # pressing impulse (u0 < rest_steps w), or slower than eps_v, is a contact:
+            # inelastic, with Coulomb friction. The threshold follows the force and the step
+            # (it vanishes with h), so impacts well above it keep their restitution exactly.
+            u0 = -vn_prev
+            w = -vn - u0
+            if stage != 0:
+                if u0 < eps_v or u0 < rest_steps * w:
+                    vt = v - vn * normal
+                    speed = wp.length(vt)
+                    budget = friction * (-vn)
+                    v_new = vec3(scalar(0.0))
+                    if speed > budget:
+                        v_new = vt * ((speed - budget) / speed)
+                    v = v_new
+                return x, v
+            if u0 < eps_v or u0 < rest_steps * w:
+                # Cancel the normal velocity (the particle stays on the surface) and let Coulomb
+                # friction remove at most mu times that normal impulse per unit mass, -vn, of
+                # tangential speed, never reversing it. On a flat surface resting -vn = |N.f| h / m;
+                # on a curved one it also holds the centripetal part m |v|^2 h / R of the normal force.
+                vt = v - vn * normal
+                speed = wp.length(vt)
+                budget = friction * (-vn)
+                v_new = vec3(scalar(0.0))
+                if speed > budget:
+                    v_new = vt * ((speed - budget) / speed)
+                # Contact and friction act as forces over the whole step: move the position by
+                # what the integrator would have made of them, so a stuck particle does not creep.
+                dv = v_new - v
+                x = x + beta_h * dv
+                phi = phi + beta_h * wp.dot(normal, dv)
+                v = v_new
+            else:
+                # Impact: reflect the approaching normal velocity, keep the tangential part.
+                v = v - (scalar(1.0) + restitution) * vn * normal
+        # A particle that moves away after the step (vn >= 0; on a convex surface the tangent of
+        # the last step points outward by |v| h / R) is separating: the surface pushes nothing, so
+        # neither normal cancellation nor friction applies (cancelling it would glue particles to
+        # a sphere well past the point where they fly off); it is only put back on the surface.
         if phi < scalar(0.0):
             x = x - phi * normal
         return x, v
@@ -88,7 +124,6 @@ def build(scalar):
     def contact_planes(
         x: vec3,
         v: vec3,
-        x_prev: vec3,
         v_prev: vec3,
         w: int,
         plane_count: int,
@@ -101,7 +136,9 @@ def build(scalar):
         plane_friction: wp.array(dtype=scalar),
         eps: scalar,
         eps_v: scalar,
+        rest_steps: scalar,
         beta_h: scalar,
+        stage: int,
     ):
         """One particle of world ``w`` against every plane of that world; returns the new (x, v).
 
@@ -110,64 +147,22 @@ def build(scalar):
         for p in range(plane_count):
             if plane_world[p] == w:
                 n = plane_normal[p]
-                point = plane_point[p]
-                hc = plane_hole_center[p]
-                hr = plane_hole_radius[p]
-                phi = plane_distance(x, point, n, hc, hr)
-                phi_prev = plane_distance(x_prev, point, n, hc, hr)
+                phi = plane_distance(x, plane_point[p], n, plane_hole_center[p], plane_hole_radius[p])
                 x, v = resolve_contact(
-                    x, v, v_prev, phi, phi_prev, n, plane_restitution[p], plane_friction[p], eps, eps_v, beta_h
+                    x,
+                    v,
+                    wp.dot(n, v_prev),
+                    phi,
+                    n,
+                    plane_restitution[p],
+                    plane_friction[p],
+                    eps,
+                    eps_v,
+                    rest_steps,
+                    beta_h,
+                    stage,
                 )
         return x, v
-
-    @wp.kernel(module="unique")
-    def collide_planes(
-        # Model:
-        particle_inv_mass: wp.array(dtype=scalar),
-        particle_world: wp.array(dtype=wp.int32),
-        plane_count: int,
-        plane_world: wp.array(dtype=wp.int32),
-        plane_point: wp.array(dtype=vec3),
-        plane_normal: wp.array(dtype=vec3),
-        plane_hole_center: wp.array(dtype=vec3),
-        plane_hole_radius: wp.array(dtype=scalar),
-        plane_restitution: wp.array(dtype=scalar),
-        plane_friction: wp.array(dtype=scalar),
-        eps: scalar,
-        eps_v: scalar,
-        h: scalar,
-        world_contact_beta: wp.array(dtype=scalar),
-        # State before the step:
-        q_prev: wp.array(dtype=vec3),
-        qd_prev: wp.array(dtype=vec3),
-        # State after the step, corrected in place (each thread touches only its own particle):
-        q_out: wp.array(dtype=vec3),
-        qd_out: wp.array(dtype=vec3),
-    ):
-        i = wp.tid()
-        if particle_inv_mass[i] == scalar(0.0):
-            return
-        w = particle_world[i]
-        x, v = contact_planes(
-            q_out[i],
-            qd_out[i],
-            q_prev[i],
-            qd_prev[i],
-            w,
-            plane_count,
-            plane_world,
-            plane_point,
-            plane_normal,
-            plane_hole_center,
-            plane_hole_radius,
-            plane_restitution,
-            plane_friction,
-            eps,
-            eps_v,
-            h * world_contact_beta[w],
-        )
-        q_out[i] = x
-        qd_out[i] = v
 
     # -- Bowls and spheres ----------------------------------------------------------------------
     # Curved primitives give resolve_contact the distance and normal at the particle itself; a
@@ -201,6 +196,152 @@ def build(scalar):
             n = d / r
         return r - radius, n
 
+    @wp.func
+    def contact_bowls(
+        x: vec3,
+        v: vec3,
+        x_prev: vec3,
+        v_prev: vec3,
+        w: int,
+        bowl_count: int,
+        bowl_world: wp.array(dtype=wp.int32),
+        bowl_center: wp.array(dtype=vec3),
+        bowl_radius: wp.array(dtype=scalar),
+        bowl_cut_height: wp.array(dtype=scalar),
+        bowl_restitution: wp.array(dtype=scalar),
+        bowl_friction: wp.array(dtype=scalar),
+        eps: scalar,
+        eps_v: scalar,
+        rest_steps: scalar,
+        beta_h: scalar,
+        stage: int,
+    ):
+        """One particle of world ``w`` against every bowl of that world; returns the new (x, v)."""
+        for b in range(bowl_count):
+            if bowl_world[b] == w:
+                c = bowl_center[b]
+                radius = bowl_radius[b]
+                # The bowl holds what is inside it: a particle that began the step outside the
+                # sphere (beyond the contact layer and float rounding of a corrected position) is
+                # behind the shell and passes, instead of being pulled through the wall to the inside.
+                phi_out, n_out = sphere_distance(x_prev, c, radius)
+                if phi_out <= eps + radius * scalar(1.0e-4):
+                    phi, n = bowl_distance(x, c, radius, bowl_cut_height[b])
+                    # The bowl's normal at the step's start is the sphere's, turned inward.
+                    x, v = resolve_contact(
+                        x,
+                        v,
+                        -wp.dot(n_out, v_prev),
+                        phi,
+                        n,
+                        bowl_restitution[b],
+                        bowl_friction[b],
+                        eps,
+                        eps_v,
+                        rest_steps,
+                        beta_h,
+                        stage,
+                    )
+        return x, v
+
+    @wp.func
+    def contact_spheres(
+        x: vec3,
+        v: vec3,
+        x_prev: vec3,
+        v_prev: vec3,
+        w: int,
+        sphere_count: int,
+        sphere_world: wp.array(dtype=wp.int32),
+        sphere_center: wp.array(dtype=vec3),
+        sphere_radius: wp.array(dtype=scalar),
+        sphere_restitution: wp.array(dtype=scalar),
+        sphere_friction: wp.array(dtype=scalar),
+        eps: scalar,
+        eps_v: scalar,
+        rest_steps: scalar,
+        beta_h: scalar,
+        stage: int,
+    ):
+        """One particle of world ``w`` against every solid sphere of that world; returns the new (x, v)."""
+        for s in range(sphere_count):
+            if sphere_world[s] == w:
+                c = sphere_center[s]
+                radius = sphere_radius[s]
+                phi, n = sphere_distance(x, c, radius)
+                phi_prev, n_prev = sphere_distance(x_prev, c, radius)
+                x, v = resolve_contact(
+                    x,
+                    v,
+                    wp.dot(n_prev, v_prev),
+                    phi,
+                    n,
+                    sphere_restitution[s],
+                    sphere_friction[s],
+                    eps,
+                    eps_v,
+                    rest_steps,
+                    beta_h,
+                    stage,
+                )
+        return x, v
+
+    # -- Kernels: one per primitive kind, so a scene launches only the kinds it has -------------
+    # integrators.apply_contacts launches them all alike: (particle_inv_mass, particle_world,
+    # count, the kind's arrays..., eps, eps_v, rest_steps, h, world_contact_beta, q_prev, qd_prev)
+    # in, (q_out, qd_out) corrected in place; each thread touches only its own particle.
+
+    @wp.kernel(module="unique")
+    def collide_planes(
+        # Model:
+        particle_inv_mass: wp.array(dtype=scalar),
+        particle_world: wp.array(dtype=wp.int32),
+        plane_count: int,
+        plane_world: wp.array(dtype=wp.int32),
+        plane_point: wp.array(dtype=vec3),
+        plane_normal: wp.array(dtype=vec3),
+        plane_hole_center: wp.array(dtype=vec3),
+        plane_hole_radius: wp.array(dtype=scalar),
+        plane_restitution: wp.array(dtype=scalar),
+        plane_friction: wp.array(dtype=scalar),
+        eps: scalar,
+        eps_v: scalar,
+        rest_steps: scalar,
+        h: scalar,
+        world_contact_beta: wp.array(dtype=scalar),
+        stage: int,
+        # State before the step:
+        q_prev: wp.array(dtype=vec3),
+        qd_prev: wp.array(dtype=vec3),
+        # State after the step, corrected in place:
+        q_out: wp.array(dtype=vec3),
+        qd_out: wp.array(dtype=vec3),
+    ):
+        i = wp.tid()
+        if particle_inv_mass[i] != scalar(0.0):
+            w = particle_world[i]
+            x, v = contact_planes(
+                q_out[i],
+                qd_out[i],
+                qd_prev[i],
+                w,
+                plane_count,
+                plane_world,
+                plane_point,
+                plane_normal,
+                plane_hole_center,
+                plane_hole_radius,
+                plane_restitution,
+                plane_friction,
+                eps,
+                eps_v,
+                rest_steps,
+                h * world_contact_beta[w],
+                stage,
+            )
+            q_out[i] = x
+            qd_out[i] = v
+
     @wp.kernel(module="unique")
     def collide_bowls(
         # Model:
@@ -215,50 +356,41 @@ def build(scalar):
         bowl_friction: wp.array(dtype=scalar),
         eps: scalar,
         eps_v: scalar,
+        rest_steps: scalar,
         h: scalar,
         world_contact_beta: wp.array(dtype=scalar),
+        stage: int,
         # State before the step:
         q_prev: wp.array(dtype=vec3),
         qd_prev: wp.array(dtype=vec3),
-        # State after the step, corrected in place (each thread touches only its own particle):
+        # State after the step, corrected in place:
         q_out: wp.array(dtype=vec3),
         qd_out: wp.array(dtype=vec3),
     ):
         i = wp.tid()
-        if particle_inv_mass[i] == scalar(0.0):
-            return
-        w = particle_world[i]
-        x = q_out[i]
-        v = qd_out[i]
-        x_prev = q_prev[i]
-        v_prev = qd_prev[i]
-        for b in range(bowl_count):
-            if bowl_world[b] != w:
-                continue
-            c = bowl_center[b]
-            radius = bowl_radius[b]
-            # The bowl holds what is inside it: a particle that began the step outside the sphere
-            # (beyond the contact layer and float rounding of a corrected position) is behind the
-            # shell and passes, instead of being pulled through the wall to the inside.
-            phi_prev, n_prev = sphere_distance(x_prev, c, radius)
-            if phi_prev > eps + radius * scalar(1.0e-4):
-                continue
-            phi, n = bowl_distance(x, c, radius, bowl_cut_height[b])
-            x, v = resolve_contact(
-                x,
-                v,
-                v_prev,
-                phi,
-                -phi_prev,
-                n,
-                bowl_restitution[b],
-                bowl_friction[b],
+        if particle_inv_mass[i] != scalar(0.0):
+            w = particle_world[i]
+            x, v = contact_bowls(
+                q_out[i],
+                qd_out[i],
+                q_prev[i],
+                qd_prev[i],
+                w,
+                bowl_count,
+                bowl_world,
+                bowl_center,
+                bowl_radius,
+                bowl_cut_height,
+                bowl_restitution,
+                bowl_friction,
                 eps,
                 eps_v,
+                rest_steps,
                 h * world_contact_beta[w],
+                stage,
             )
-        q_out[i] = x
-        qd_out[i] = v
+            q_out[i] = x
+            qd_out[i] = v
 
     @wp.kernel(module="unique")
     def collide_spheres(
@@ -273,45 +405,40 @@ def build(scalar):
         sphere_friction: wp.array(dtype=scalar),
         eps: scalar,
         eps_v: scalar,
+        rest_steps: scalar,
         h: scalar,
         world_contact_beta: wp.array(dtype=scalar),
+        stage: int,
         # State before the step:
         q_prev: wp.array(dtype=vec3),
         qd_prev: wp.array(dtype=vec3),
-        # State after the step, corrected in place (each thread touches only its own particle):
+        # State after the step, corrected in place:
         q_out: wp.array(dtype=vec3),
         qd_out: wp.array(dtype=vec3),
     ):
         i = wp.tid()
-        if particle_inv_mass[i] == scalar(0.0):
-            return
-        w = particle_world[i]
-        x = q_out[i]
-        v = qd_out[i]
-        x_prev = q_prev[i]
-        v_prev = qd_prev[i]
-        for s in range(sphere_count):
-            if sphere_world[s] != w:
-                continue
-            c = sphere_center[s]
-            radius = sphere_radius[s]
-            phi, n = sphere_distance(x, c, radius)
-            phi_prev, n_prev = sphere_distance(x_prev, c, radius)
-            x, v = resolve_contact(
-                x,
-                v,
-                v_prev,
-                phi,
-                phi_prev,
-                n,
-                sphere_restitution[s],
-                sphere_friction[s],
+        if particle_inv_mass[i] != scalar(0.0):
+            w = particle_world[i]
+            x, v = contact_spheres(
+                q_out[i],
+                qd_out[i],
+                q_prev[i],
+                qd_prev[i],
+                w,
+                sphere_count,
+                sphere_world,
+                sphere_center,
+                sphere_radius,
+                sphere_restitution,
+                sphere_friction,
                 eps,
                 eps_v,
+                rest_steps,
                 h * world_contact_beta[w],
+                stage,
             )
-        q_out[i] = x
-        qd_out[i] = v
+            q_out[i] = x
+            qd_out[i] = v
 
     return {
         "resolve_contact": resolve_contact,
@@ -320,6 +447,8 @@ def build(scalar):
         "collide_planes": collide_planes,
         "bowl_distance": bowl_distance,
         "sphere_distance": sphere_distance,
+        "contact_bowls": contact_bowls,
+        "contact_spheres": contact_spheres,
         "collide_bowls": collide_bowls,
         "collide_spheres": collide_spheres,
     }

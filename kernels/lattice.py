@@ -337,6 +337,7 @@ return 1.0f / wp::sqrt(x);
         plane_friction: wp.array(dtype=scalar),
         eps: scalar,
         eps_v: scalar,
+        rest_steps: scalar,
         world_contact_beta: wp.array(dtype=scalar),
         # State in (y_n) and stage state (y_s):
         q_n: wp.array(dtype=vec3),
@@ -384,7 +385,6 @@ return 1.0f / wp::sqrt(x);
             x, v = contact_planes(
                 q_out[i],
                 qd_out[i],
-                q_n[i],
                 qd_n[i],
                 particle_world[i],
                 plane_count,
@@ -397,7 +397,9 @@ return 1.0f / wp::sqrt(x);
                 plane_friction,
                 eps,
                 eps_v,
+                rest_steps,
                 h * world_contact_beta[particle_world[i]],
+                0,
             )
             q_out[i] = x
             qd_out[i] = v

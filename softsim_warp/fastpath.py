@@ -63,7 +63,7 @@ def stage_buffers(integrator):
 
 def step_fused(integrator, state_in, state_out, dt):
     """One step with one fused kernel per stage (see the module docstring)."""
-    from .integrators import apply_contacts  # noqa: PLC0415
+    from .integrators import apply_contacts, filter_stage_contacts  # noqa: PLC0415
 
     model = integrator.model
     lat = model.lattice
@@ -137,6 +137,7 @@ def step_fused(integrator, state_in, state_out, dt):
                     model.plane_friction,
                     model.contact_epsilon,
                     model.contact_velocity_epsilon,
+                    model.restitution_threshold_steps,
                     integrator.world_contact_beta,
                     state_in.particle_q,
                     state_in.particle_qd,
@@ -147,4 +148,6 @@ def step_fused(integrator, state_in, state_out, dt):
                 device=model.device,
             )
         q, qd = q_next, qd_next
+        if stage < integrator.stage_count - 1:
+            filter_stage_contacts(model, state_in, q, qd, integrator.world_contact_beta)
     apply_contacts(model, state_in, state_out, dt, integrator.world_contact_beta, planes=not integrator.fuse_contact)

@@ -54,6 +54,7 @@ class ModelBuilder:
         self.gravity = np.asarray(gravity, dtype=np.float64)
         self.contact_epsilon = 0.01
         self.contact_velocity_epsilon = 0.01
+        self.restitution_threshold_steps = 1.0
         self._q, self._qd, self._mass, self._jelly_of, self._world_of = [], [], [], [], []
         self._pairs, self._rest, self._ks, self._kd, self._type = [], [], [], [], []
         self.jellies: list[JellyInfo] = []
@@ -287,6 +288,7 @@ class ModelBuilder:
         m.gravity_host = self.gravity.copy()
         m.contact_epsilon = scalar(self.contact_epsilon)
         m.contact_velocity_epsilon = scalar(self.contact_velocity_epsilon)
+        m.restitution_threshold_steps = scalar(self.restitution_threshold_steps)
 
         m.planes = [dict(p) for p in self.planes]
         m.plane_count = len(self.planes)
@@ -359,7 +361,9 @@ class Model:
         sphere_world: world of each sphere, shape [sphere_count], int32.
         bowls, spheres: host lists of dicts with the same values (float64).
         contact_epsilon: distance within which a particle touches a surface [m].
-        contact_velocity_epsilon: normal speed below which a touching particle rests [m/s].
+        contact_velocity_epsilon: approach speed below which a touching particle rests [m/s].
+        restitution_threshold_steps: an approach slower than this many steps of a particle's own
+            pressing impulse (h |f.n| / m) is a contact, not an impact [1]; see resolve_contact.
         jellies: host list of :class:`JellyInfo`.
         deterministic: forces without atomics when True; the CSR arrays it needs are documented
             in ``softsim_warp.deterministic.attach``.
@@ -469,6 +473,7 @@ def populate(builder: ModelBuilder, data: dict, world=0):
     sim = data["simulation"]
     builder.contact_epsilon = sim["contact_epsilon"]
     builder.contact_velocity_epsilon = sim["contact_velocity_epsilon"]
+    builder.restitution_threshold_steps = sim["restitution_threshold_steps"]
     for i, j in enumerate(data["jelly"]):
         builder.add_jelly(
             j["resolution"],

@@ -218,6 +218,9 @@ SCHEMA = Table(
                 "precision": Choice(PRECISIONS, "float32"),
                 "contact_epsilon": Float(0.01, lo=0, doc="contact distance tolerance [m]"),
                 "contact_velocity_epsilon": Float(0.01, lo=0, doc="resting-contact speed tolerance [m/s]"),
+                "restitution_threshold_steps": Float(
+                    1.0, lo=0, doc="approaches slower than this many steps of pressing impulse are inelastic [1]"
+                ),
                 "max_speed": Float(lo=0, lo_open=True, doc="speed treated as an explosion [m/s]"),
             }
         ),
