@@ -4,8 +4,9 @@
 set, :func:`step_fused` from ``step``. The kernel follows the lattice kernel the model chose:
 
 * gather (CUDA): ``integrate_lattice_stage`` gathers each particle's spring force, adds gravity
-  and writes the particle's stage update; on a world's last stage it also applies plane contact,
-  so a symplectic or Euler step is a single launch.
+  and writes the particle's stage update; on a world's last stage it also applies plane contact
+  (and between stages the resting-contact filter), so a symplectic or Euler step over planes is a
+  single launch.
 * rows (CPU): ``integrate_lattice_rows_stage`` computes a jelly's forces with the vectorised row
   loops and then its particles' stage update; contact follows as its own kernel.
 
@@ -31,10 +32,12 @@ def configure_fused(integrator, fused=None, fuse_contact=None):
     if fused and lat is None:
         raise ValueError(f"fused stages need the lattice path ({model.lattice_reason})")
     integrator.fused = bool(fused)
-    # Only the gather kernel can apply contact per particle; the row kernel works per jelly.
+    # Only the gather kernel can apply contact per particle; the row kernel works per jelly. On by
+    # default: the fused stage calls the same contact_planes as collide_planes on the same values
+    # (tests/test_perf_paths.py: bitwise on the CPU), one launch fewer per stage with planes.
     gather = fused and lat.kernel == "gather"
-    # Off by default: the fused stage calls the same contact_planes as collide_planes, but this
-    # combination has not been re-measured or re-tested on CUDA since contact gained the position gain.
+    if fuse_contact is None:
+        fuse_contact = True
     integrator.fuse_contact = bool(gather and model.plane_count and bool(fuse_contact))
     integrator._stage_buffers = None
 
@@ -149,5 +152,5 @@ def step_fused(integrator, state_in, state_out, dt):
             )
         q, qd = q_next, qd_next
         if stage < integrator.stage_count - 1:
-            filter_stage_contacts(model, state_in, q, qd, integrator.world_contact_beta)
+            filter_stage_contacts(model, state_in, q, qd, integrator.world_contact_beta, planes=not integrator.fuse_contact)
     apply_contacts(model, state_in, state_out, dt, integrator.world_contact_beta, planes=not integrator.fuse_contact)

@@ -78,7 +78,9 @@ def apply_contacts(model: Model, state_in: State, state_out: State, dt: float, w
         hook(model, state_in, state_out, h, world_contact_beta)
 
 
-def filter_stage_contacts(model: Model, state_in: State, q_s: wp.array, qd_s: wp.array, world_contact_beta: wp.array):
+def filter_stage_contacts(
+    model: Model, state_in: State, q_s: wp.array, qd_s: wp.array, world_contact_beta: wp.array, planes=True
+):
     """Contact on an intermediate Runge-Kutta stage state (q_s, qd_s) = y_n + h c_s k, velocities only.
 
     Only particles that the contact response would hold (resting contact, not an impact) change:
@@ -89,9 +91,10 @@ def filter_stage_contacts(model: Model, state_in: State, q_s: wp.array, qd_s: wp
     then sees, but less off the tangential force, so friction holds less than mu and a resting
     jelly creeps (7 mm/s on a 30 degree slope with mu = 0.7 under midpoint, where symplectic Euler,
     one stage at y_n, holds). Impacts and positions are left to the post-step response, so no
-    impulse enters a stage state. Contact hooks are not applied here.
+    impulse enters a stage state. Contact hooks are not applied here. ``planes=False`` skips the
+    planes (a fused lattice stage with contact has filtered them already).
     """
-    _launch_contacts(model, state_in, q_s, qd_s, model.scalar(0.0), world_contact_beta, True, 1)
+    _launch_contacts(model, state_in, q_s, qd_s, model.scalar(0.0), world_contact_beta, planes, 1)
 
 
 def _launch_contacts(model: Model, state_in: State, q_out, qd_out, h, world_contact_beta, planes, stage):

@@ -176,6 +176,26 @@ def test_fused_matches_unfused(device, method, kernel):
     assert np.abs(runs[True] - runs[False]).max() <= steps * 4.0 * EPS32 * np.abs(runs[False]).max()
 
 
+@pytest.mark.parametrize("method", ["symplectic", "midpoint", "rk4"])
+def test_fused_contact_matches_separate_contact(device, method):
+    """Plane contact inside the fused gather stage (the last stage's response and the resting-contact
+    filter of intermediate stages) calls the same contact_planes on the same values as the separate
+    collide_planes launches: on the CPU the same bits. The jelly lands during the run, so contact acts.
+    """
+    steps, dt = 150, 1.0e-4
+    runs = {}
+    for fuse_contact in (False, True):
+        model = _dropping(_builder()).finalize(device, force_path="lattice")
+        model.lattice.set_kernel("gather")
+        integrator = ExplicitIntegrator(model, method, fused=True, fuse_contact=fuse_contact)
+        assert integrator.fuse_contact == fuse_contact
+        sim = Simulator(model, integrator, dt, 1.0 / (steps * dt), 1, use_graph=False)
+        sim.advance(steps)
+        runs[fuse_contact] = sim.state.particle_q.numpy().astype(np.float64)
+    bound = 0.0 if device.is_cpu else steps * 4.0 * EPS32 * np.abs(runs[False]).max()
+    assert np.abs(runs[True] - runs[False]).max() <= bound
+
+
 @pytest.mark.parametrize("path", ["lattice", "springs"])
 def test_graph_capture_matches_plain_stepping(path):
     """On the CPU a captured frame replays the same kernels in the same order: bitwise equal."""
