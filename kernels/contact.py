@@ -19,11 +19,14 @@ derived from the particle's own pressing impulse over the step (see its comments
 docs/SCENES.md, "Impact or contact").
 """
 
+import functools
+
 import warp as wp
 
 wp.set_module_options({"enable_backward": False})
 
 
+@functools.cache  # one set of Warp objects per precision, shared by every module that builds on it
 def build(scalar):
     vec3 = wp.types.vector(3, scalar)
 

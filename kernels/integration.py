@@ -7,11 +7,14 @@ tableau lives in arrays indexed by world, so one launch advances copies that use
 (the side-by-side comparison) and a single run is the one-world case.
 """
 
+import functools
+
 import warp as wp
 
 wp.set_module_options({"enable_backward": False})
 
 
+@functools.cache  # one set of Warp objects per precision, shared by every module that builds on it
 def build(scalar):
     vec3 = wp.types.vector(3, scalar)
 

@@ -1,10 +1,13 @@
 """Spring and damper forces: one thread per spring, accumulated with atomic adds."""
 
+import functools
+
 import warp as wp
 
 wp.set_module_options({"enable_backward": False})
 
 
+@functools.cache  # one set of Warp objects per precision, shared by every module that builds on it
 def build(scalar):
     vec3 = wp.types.vector(3, scalar)
 
