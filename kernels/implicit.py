@@ -44,6 +44,8 @@ reading anything back to the host and can be captured with ``wp.capture_while``.
 
 import warp as wp
 
+from . import contact
+
 wp.set_module_options({"enable_backward": False})
 
 # Threads per reduction block; the launcher in softsim_warp/implicit.py uses the same value.
@@ -73,10 +75,22 @@ SOLVES = 4
 UNCONVERGED = 5  # solves that stopped at the iteration cap or broke down above the tolerance
 STAT_SLOTS = 6
 
+# Columns of the per-body restitution array (one row per jelly, or per loose particle).
+BODY_BUDGET = 0  # energy the contact solve removed from the free result [J]
+BODY_MOMENTUM = 1  # 1..3: momentum after the contact solve
+BODY_IMPULSE = 4  # 4..6: sum of e_i times the contact impulse of each colliding particle
+BODY_NORMAL = 7  # 7..9: sum of m_i (-v_n) n_i of the colliding particles (approach momentum)
+BODY_KINETIC = 10  # kinetic energy of the free result [J]
+BODY_SLOTS = 11
+
 
 def build(scalar):
     vec3 = wp.types.vector(3, scalar)
     mat33 = wp.types.matrix((3, 3), scalar)
+    contact_funcs = contact.build(scalar)
+    plane_distance = contact_funcs["plane_distance"]
+    bowl_distance = contact_funcs["bowl_distance"]
+    sphere_distance = contact_funcs["sphere_distance"]
 
     @wp.func
     def spring_jacobian(d: vec3, rest: scalar, ks: scalar, kd: scalar, h: scalar):
@@ -145,6 +159,13 @@ def build(scalar):
                 out[k, k] = scalar(1.0) / m[k, k]
         return out
 
+    @wp.func
+    def invert_block(d: mat33, block_jacobi: int):
+        """The preconditioner block: d^-1 (block-Jacobi) or the inverse of d's diagonal (Jacobi)."""
+        if block_jacobi != 0:
+            return wp.inverse(d)
+        return diagonal_inverse(d)
+
     @wp.kernel(module="unique")
     def build_system(
         n: int,
@@ -156,6 +177,8 @@ def build(scalar):
         particle_mass: wp.array(dtype=scalar),
         gravity: vec3,
         fixed: wp.array(dtype=wp.int32),
+        # Mass plus contact friction's tangential damper (= particle_mass without contact)
+        mass_eff: wp.array(dtype=scalar),
         # State: v_n, the iterate v_k and the spring forces at the linearisation point
         qd_n: wp.array(dtype=vec3),
         qd_k: wp.array(dtype=vec3),
@@ -183,16 +206,16 @@ def build(scalar):
                 sf = wp.where(fixed[i] != 0, mat33(scalar(0.0)), identity)
                 filters[i] = sf
             m = particle_mass[i]
+            me = mass_eff[i]
             d = m * identity + diag_block[i]
             diag_block[i] = d
-            b = sf * (m * (qd_n[i] - qd_k[i]) + h * (f[i] + m * gravity) + rhs[i])
+            # A friction damper c (I - n n^T) (contact solve only) adds c to the diagonal and
+            # -c v_k to b; in the free directions (I - n n^T) the filter keeps, it acts as c I.
+            b = sf * (m * (qd_n[i] - qd_k[i]) + h * (f[i] + m * gravity) + rhs[i] - (me - m) * qd_k[i])
             rhs[i] = b
             pre = mat33(scalar(0.0))
             if fixed[i] == 0:
-                if block_jacobi != 0:
-                    pre = wp.inverse(d)
-                else:
-                    pre = diagonal_inverse(d)
+                pre = invert_block(d + (me - m) * identity, block_jacobi)
             precond_out[i] = sf * pre * sf
             # Initial guess: the last step's dv minus its gravity part, plus this step's h g.
             # Springs do not resist a uniform velocity change (A (h g) = M h g), so the guess is
@@ -200,7 +223,7 @@ def build(scalar):
             # of dv are 0: the iterate already satisfies the constraints.
             x0 = sf * (warm_scale * (dv_warm[i] + h * gravity))
             x_out[i] = x0
-            ax_out[i] = m * x0
+            ax_out[i] = me * x0
             bb = wp.dot(b, b)
         total = wp.tile_sum(wp.tile(bb))
         wp.tile_atomic_add(scalars_out, total, offset=BB)
@@ -209,11 +232,73 @@ def build(scalar):
     def differs(a: vec3, b: vec3):
         return a[0] != b[0] or a[1] != b[1] or a[2] != b[2]
 
+    @wp.func
+    def touch_planes(
+        w: int,
+        xf: vec3,
+        touching: int,
+        normal: vec3,
+        plane_count: int,
+        plane_world: wp.array(dtype=wp.int32),
+        plane_point: wp.array(dtype=vec3),
+        plane_normal: wp.array(dtype=vec3),
+        plane_hole_center: wp.array(dtype=vec3),
+        plane_hole_radius: wp.array(dtype=scalar),
+        eps: scalar,
+    ):
+        """(count, normal) of the planes of world w that the free result xf touches, added to the arguments."""
+        for p in range(plane_count):
+            if plane_world[p] == w:
+                nrm = plane_normal[p]
+                phi = plane_distance(xf, plane_point[p], nrm, plane_hole_center[p], plane_hole_radius[p])
+                if phi < eps:
+                    touching = touching + 1
+                    normal = nrm
+        return touching, normal
+
+    @wp.func
+    def touch_round(
+        w: int,
+        xf: vec3,
+        xp: vec3,
+        touching: int,
+        normal: vec3,
+        bowl_count: int,
+        bowl_world: wp.array(dtype=wp.int32),
+        bowl_center: wp.array(dtype=vec3),
+        bowl_radius: wp.array(dtype=scalar),
+        bowl_cut_height: wp.array(dtype=scalar),
+        sphere_count: int,
+        sphere_world: wp.array(dtype=wp.int32),
+        sphere_center: wp.array(dtype=vec3),
+        sphere_radius: wp.array(dtype=scalar),
+        eps: scalar,
+    ):
+        """The same for bowls and spheres, with collide_bowls' rule that a bowl holds only what began inside."""
+        for b in range(bowl_count):
+            if bowl_world[b] == w:
+                c = bowl_center[b]
+                radius = bowl_radius[b]
+                phi_prev, n_prev = sphere_distance(xp, c, radius)
+                if phi_prev <= eps + radius * scalar(1.0e-4):
+                    phi, nrm = bowl_distance(xf, c, radius, bowl_cut_height[b])
+                    if phi < eps:
+                        touching = touching + 1
+                        normal = nrm
+        for s in range(sphere_count):
+            if sphere_world[s] == w:
+                phi, nrm = sphere_distance(xf, sphere_center[s], sphere_radius[s])
+                if phi < eps:
+                    touching = touching + 1
+                    normal = nrm
+        return touching, normal
+
     @wp.kernel(module="unique")
     def constrain_contacts(
         h: scalar,
         # Model:
         particle_world: wp.array(dtype=wp.int32),
+        particle_mass: wp.array(dtype=scalar),
         fixed: wp.array(dtype=wp.int32),
         plane_count: int,
         plane_world: wp.array(dtype=wp.int32),
@@ -221,6 +306,15 @@ def build(scalar):
         plane_normal: wp.array(dtype=vec3),
         plane_hole_center: wp.array(dtype=vec3),
         plane_hole_radius: wp.array(dtype=scalar),
+        bowl_count: int,
+        bowl_world: wp.array(dtype=wp.int32),
+        bowl_center: wp.array(dtype=vec3),
+        bowl_radius: wp.array(dtype=scalar),
+        bowl_cut_height: wp.array(dtype=scalar),
+        sphere_count: int,
+        sphere_world: wp.array(dtype=wp.int32),
+        sphere_center: wp.array(dtype=vec3),
+        sphere_radius: wp.array(dtype=scalar),
         contact_epsilon: scalar,
         # The step's start, and its result before and after the contact response:
         q_n: wp.array(dtype=vec3),
@@ -228,72 +322,241 @@ def build(scalar):
         qd_free: wp.array(dtype=vec3),
         q_contact: wp.array(dtype=vec3),
         qd_contact: wp.array(dtype=vec3),
-        # Out: filters, the constrained iterate (x_n + h v, v), and whether anything touched
+        # Out: filters, the constrained iterate (x_n + h v, v), whether anything touched, and per
+        # colliding particle its restitution and approach momentum along the normal, m (-v_n) n
         filters_out: wp.array(dtype=mat33),
         q_out: wp.array(dtype=vec3),
         qd_out: wp.array(dtype=vec3),
         any_contact_out: wp.array(dtype=wp.int32),
+        restitution_out: wp.array(dtype=scalar),
+        approach_out: wp.array(dtype=vec3),
+        mass_eff_out: wp.array(dtype=scalar),
     ):
         i = wp.tid()
         identity = wp.identity(n=3, dtype=scalar)
         v = qd_free[i]
         sf = identity
+        e = scalar(0.0)
+        approach = vec3(scalar(0.0))
+        m = particle_mass[i]
+        damper = scalar(0.0)
         if fixed[i] != 0:
             sf = mat33(scalar(0.0))
         elif differs(q_contact[i], q_free[i]) or differs(qd_contact[i], v):
             any_contact_out[0] = 1
             v_c = qd_contact[i]
-            # The plane the particle touches (as the response saw it); more than one, or a contact
-            # primitive other than a plane (a contact hook), gives no single normal.
-            touching = int(0)
-            plane = int(-1)
+            # The surface the particle touches (as the response saw it); more than one, or a contact
+            # hook's primitive, gives no single normal.
             w = particle_world[i]
             xf = q_free[i]
-            for p in range(plane_count):
-                if plane_world[p] == w:
-                    nrm = plane_normal[p]
-                    phi = wp.dot(xf - plane_point[p], nrm)
-                    hr = plane_hole_radius[p]
-                    if hr > scalar(0.0):
-                        off = xf - plane_hole_center[p]
-                        off = off - wp.dot(off, nrm) * nrm
-                        if wp.length_sq(off) < hr * hr:
-                            phi = scalar(1.0e30)
-                    if phi < contact_epsilon:
-                        touching = touching + 1
-                        plane = p
-            # Otherwise (friction acted, or no single normal) the whole velocity is prescribed.
-            sf = mat33(scalar(0.0))
-            target = v_c
+            touching, nrm = touch_planes(
+                w,
+                xf,
+                0,
+                vec3(scalar(0.0)),
+                plane_count,
+                plane_world,
+                plane_point,
+                plane_normal,
+                plane_hole_center,
+                plane_hole_radius,
+                contact_epsilon,
+            )
+            touching, nrm = touch_round(
+                w,
+                xf,
+                q_n[i],
+                touching,
+                nrm,
+                bowl_count,
+                bowl_world,
+                bowl_center,
+                bowl_radius,
+                bowl_cut_height,
+                sphere_count,
+                sphere_world,
+                sphere_center,
+                sphere_radius,
+                contact_epsilon,
+            )
+            if touching != 1:
+                # No single surface (several, or a contact hook's primitive): the direction in
+                # which the response pushed the particle serves as the normal. Prescribing the
+                # response's whole velocity instead (a reflected one included) made a single
+                # particle a velocity source for the stiff lattice: +89 J in one step of seed_bowl.
+                dvr = v_c - v
+                nrm = vec3(scalar(0.0))
+                if wp.length_sq(dvr) > scalar(0.0):
+                    nrm = wp.normalize(dvr)
+                    touching = 1
+            # A position correction alone leaves the particle free.
+            target = v
             if touching == 1:
-                nrm = plane_normal[plane]
+                # One surface: only the normal velocity is prescribed, the tangential one is left
+                # to the solve. An approaching particle is stopped (the compression phase of an
+                # impact); a normal velocity of 0 takes no work from the constraint impulse, so
+                # the step stays dissipative (docs/IMPLICIT.md). Prescribing whole velocities
+                # instead (the response's tangential ones) forces the springs between particles
+                # whose normals differ (a bowl) to follow incompatible velocities: up to 1e4 J
+                # per step at ks = 1e5 in seed_bowl.
                 vn = wp.dot(v, nrm)
                 vt = v - vn * nrm
-                if not differs(vt, v_c - wp.dot(v_c, nrm) * nrm):
-                    # The response changed only the normal velocity (a collision keeps the
-                    # tangential one): prescribe the normal part, leave the tangential part to
-                    # the solve; prescribing it too would act like an impact with unlimited
-                    # friction, which can add energy. An approaching particle is stopped: the
-                    # impact is inelastic (see softsim_warp/implicit.py on restitution).
-                    sf = identity - wp.outer(nrm, nrm)
-                    target = wp.where(vn < scalar(0.0), vt, v)
+                vt_c = v_c - wp.dot(v_c, nrm) * nrm
+                sf = identity - wp.outer(nrm, nrm)
+                target = wp.where(vn < scalar(0.0), vt, v)
+                if differs(vt, vt_c):
+                    # Friction acted (resting contact). It enters the solve as a tangential
+                    # damper on the particle, c (I - n n^T) with c = m (1 - r) / r, r = |vt_c| / |vt|:
+                    # alone it would scale vt by r, as the response did; in the solve it is a
+                    # positive semi-definite term, so it only removes energy. r = 0 (sticking) is
+                    # taken as 1e-3.
+                    speed = wp.length(vt)
+                    ratio = wp.max(wp.length(vt_c) / wp.max(speed, scalar(1.0e-30)), scalar(1.0e-3))
+                    damper = m * (scalar(1.0) - ratio) / ratio
+                elif vn < scalar(0.0):
+                    # A collision. Its restitution is applied to the whole body after the solve
+                    # (apply_restitution), not as a reflected velocity of this one particle. The
+                    # coefficient the response used (v_c.n = -e v.n), so that whatever rule
+                    # resolve_contact applies (resting contact, thresholds) carries over.
+                    e = wp.clamp(wp.dot(v_c, nrm) / (-vn), scalar(0.0), scalar(1.0))
+                    approach = (m * (-vn)) * nrm
             v = sf * v + (identity - sf) * target
         filters_out[i] = sf
         qd_out[i] = v
         q_out[i] = q_n[i] + h * v
+        restitution_out[i] = e
+        approach_out[i] = approach
+        mass_eff_out[i] = m + damper
+
+    @wp.kernel(module="unique")
+    def measure_particle_restitution(
+        h: scalar,
+        # Model:
+        particle_body: wp.array(dtype=wp.int32),
+        particle_mass: wp.array(dtype=scalar),
+        fixed: wp.array(dtype=wp.int32),
+        gravity: vec3,
+        # State: start of the step, the free result, and the constrained result with its forces
+        qd_n: wp.array(dtype=vec3),
+        q_free: wp.array(dtype=vec3),
+        qd_free: wp.array(dtype=vec3),
+        q: wp.array(dtype=vec3),
+        qd: wp.array(dtype=vec3),
+        f: wp.array(dtype=vec3),
+        # Colliding particles (constrain_contacts):
+        restitution: wp.array(dtype=scalar),
+        approach: wp.array(dtype=vec3),
+        # Out, per body (zeroed by the caller): energy budget, momentum, restitution impulse, normal
+        body_out: wp.array2d(dtype=scalar),
+    ):
+        i = wp.tid()
+        if fixed[i] != 0:
+            return
+        b = particle_body[i]
+        m = particle_mass[i]
+        v = qd[i]
+        vf = qd_free[i]
+        # Kinetic and gravity energy the contact solve removed from the free result.
+        de = scalar(0.5) * m * (wp.dot(vf, vf) - wp.dot(v, v)) - m * wp.dot(gravity, q_free[i] - q[i])
+        wp.atomic_add(body_out, b, BODY_BUDGET, de)
+        wp.atomic_add(body_out, b, BODY_KINETIC, scalar(0.5) * m * wp.dot(vf, vf))
+        for k in range(3):
+            wp.atomic_add(body_out, b, BODY_MOMENTUM + k, m * v[k])
+        a = approach[i]
+        if wp.length_sq(a) > scalar(0.0):
+            # The contact impulse on the particle over the step: what backward Euler's equation
+            # m (v - v_n) = h (f(x, v) + m g) leaves unexplained.
+            impulse = m * (v - qd_n[i]) - h * (f[i] + m * gravity)
+            rj = restitution[i] * impulse
+            for k in range(3):
+                wp.atomic_add(body_out, b, BODY_IMPULSE + k, rj[k])
+                wp.atomic_add(body_out, b, BODY_NORMAL + k, a[k])
+
+    @wp.kernel(module="unique")
+    def measure_spring_restitution(
+        # Model:
+        particle_body: wp.array(dtype=wp.int32),
+        spring_indices: wp.array(dtype=wp.vec2i),
+        spring_rest_length: wp.array(dtype=scalar),
+        spring_stiffness: wp.array(dtype=scalar),
+        # The free and the constrained result:
+        q_free: wp.array(dtype=vec3),
+        q: wp.array(dtype=vec3),
+        # Out, per body: the spring energy the contact solve removed, added to the budget
+        body_out: wp.array2d(dtype=scalar),
+    ):
+        tid = wp.tid()
+        pair = spring_indices[tid]
+        a = pair[0]
+        b = pair[1]
+        rest = spring_rest_length[tid]
+        stretch_free = wp.length(q_free[a] - q_free[b]) - rest
+        stretch = wp.length(q[a] - q[b]) - rest
+        de = scalar(0.5) * spring_stiffness[tid] * (stretch_free * stretch_free - stretch * stretch)
+        wp.atomic_add(body_out, particle_body[a], BODY_BUDGET, de)
+
+    @wp.kernel(module="unique")
+    def check_energy_budget(
+        tol: scalar,
+        body: wp.array2d(dtype=scalar),
+        gained_out: wp.array(dtype=wp.int32),
+    ):
+        # One thread per body: flag a contact solve that ended above the free result's energy by more
+        # than the CG tolerance's share of the kinetic energy (CG's error is relative to |b| ~ M v).
+        b = wp.tid()
+        if body[b, BODY_BUDGET] < -tol * body[b, BODY_KINETIC]:
+            gained_out[0] = 1
+
+    @wp.kernel(module="unique")
+    def apply_restitution(
+        particle_body: wp.array(dtype=wp.int32),
+        fixed: wp.array(dtype=wp.int32),
+        body_mass: wp.array(dtype=scalar),
+        body: wp.array2d(dtype=scalar),
+        # In/out: the body's velocities gain one common change along the contact normal
+        qd: wp.array(dtype=vec3),
+    ):
+        i = wp.tid()
+        if fixed[i] != 0:
+            return
+        b = particle_body[i]
+        nrm = vec3(body[b, BODY_NORMAL], body[b, BODY_NORMAL + 1], body[b, BODY_NORMAL + 2])
+        length = wp.length(nrm)
+        if length == scalar(0.0):
+            return
+        nrm = nrm / length
+        mass = body_mass[b]
+        # Poisson's restitution for the body as a whole: e times the normal contact impulse.
+        jn = vec3(body[b, BODY_IMPULSE], body[b, BODY_IMPULSE + 1], body[b, BODY_IMPULSE + 2])
+        dv = wp.max(wp.dot(jn, nrm), scalar(0.0)) / mass
+        # A common velocity change changes only the kinetic energy of the centre of mass:
+        # M vc dv + M dv^2 / 2 with vc = P.n / M. Capped so that it returns at most the energy
+        # that the contact solve removed from the free result (the budget): E_{n+1} <= E_free.
+        vc = (
+            body[b, BODY_MOMENTUM] * nrm[0] + body[b, BODY_MOMENTUM + 1] * nrm[1] + body[b, BODY_MOMENTUM + 2] * nrm[2]
+        ) / mass
+        budget = wp.max(body[b, BODY_BUDGET], scalar(0.0))
+        cap = wp.sqrt(vc * vc + scalar(2.0) * budget / mass) - vc
+        dv = wp.min(dv, cap)
+        if dv > scalar(0.0):
+            qd[i] = qd[i] + dv * nrm
 
     @wp.kernel(module="unique")
     def constrain_last_system(
         n: int,
+        block_jacobi: int,
         particle_mass: wp.array(dtype=scalar),
+        mass_eff: wp.array(dtype=scalar),
+        fixed: wp.array(dtype=wp.int32),
         filters: wp.array(dtype=mat33),
-        rhs: wp.array(dtype=vec3),
+        diag_block: wp.array(dtype=mat33),
         # The last solve's result and the constrained iterate (constrain_contacts):
         qd_free: wp.array(dtype=vec3),
         qd_iter: wp.array(dtype=vec3),
         # In/out: the last solve's dv becomes the initial guess holding the prescribed parts;
-        # the preconditioner gets filtered
+        # b gains the friction dampers' -c v_k, and the preconditioner their c (filtered)
         x: wp.array(dtype=vec3),
+        rhs: wp.array(dtype=vec3),
         precond: wp.array(dtype=mat33),
         # Out: the iterate the last system is relative to, M x0, b.b of the free part
         qd_k_out: wp.array(dtype=vec3),
@@ -307,13 +570,19 @@ def build(scalar):
             sf = filters[i]
             dv = x[i]
             v_free = qd_free[i]
-            qd_k_out[i] = v_free - dv
+            v_k = v_free - dv
+            qd_k_out[i] = v_k
             # The prescribed velocity differs from the solve's only in constrained directions.
             x0 = dv + (qd_iter[i] - v_free)
             x[i] = x0
-            precond[i] = sf * precond[i] * sf
-            ax_out[i] = particle_mass[i] * x0
-            b = sf * rhs[i]
+            damper = mass_eff[i] - particle_mass[i]
+            pre = mat33(scalar(0.0))
+            if fixed[i] == 0:
+                pre = invert_block(diag_block[i] + damper * wp.identity(n=3, dtype=scalar), block_jacobi)
+            precond[i] = sf * pre * sf
+            ax_out[i] = mass_eff[i] * x0
+            b = sf * (rhs[i] - damper * v_k)
+            rhs[i] = b
             bb = wp.dot(b, b)
         total = wp.tile_sum(wp.tile(bb))
         wp.tile_atomic_add(scalars_out, total, offset=BB)
@@ -547,14 +816,19 @@ def build(scalar):
     @wp.kernel(module="unique")
     def assemble_bsr_diagonal(
         fixed: wp.array(dtype=wp.int32),
+        particle_mass: wp.array(dtype=scalar),
+        mass_eff: wp.array(dtype=scalar),
         diag_block: wp.array(dtype=mat33),
         diag_index: wp.array(dtype=wp.int32),
         values_out: wp.array(dtype=mat33),
     ):
         i = wp.tid()
+        identity = wp.identity(n=3, dtype=scalar)
         # A fixed particle's row and column are eliminated: an identity block (and rhs 0) keeps
-        # the assembled matrix nonsingular for solvers that do not filter.
-        values_out[diag_index[i]] = wp.where(fixed[i] != 0, wp.identity(n=3, dtype=scalar), diag_block[i])
+        # the assembled matrix nonsingular for solvers that do not filter. The friction damper
+        # enters as c I: the filter keeps only its tangential part, as in the matrix-free product.
+        d = diag_block[i] + (mass_eff[i] - particle_mass[i]) * identity
+        values_out[diag_index[i]] = wp.where(fixed[i] != 0, identity, d)
 
     @wp.kernel(module="unique")
     def assemble_bsr_offdiagonal(
@@ -580,6 +854,10 @@ def build(scalar):
         "build_system": build_system,
         "constrain_contacts": constrain_contacts,
         "constrain_last_system": constrain_last_system,
+        "measure_particle_restitution": measure_particle_restitution,
+        "measure_spring_restitution": measure_spring_restitution,
+        "check_energy_budget": check_energy_budget,
+        "apply_restitution": apply_restitution,
         "spring_mv": spring_mv,
         "init_residual": init_residual,
         "cg_begin": cg_begin,
