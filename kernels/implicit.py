@@ -75,13 +75,18 @@ SOLVES = 4
 UNCONVERGED = 5  # solves that stopped at the iteration cap or broke down above the tolerance
 STAT_SLOTS = 6
 
-# Columns of the per-body restitution array (one row per jelly, or per loose particle).
+# Columns of the per-body restitution array (one row per jelly, or per loose particle). Positions
+# r are taken relative to a reference particle of the body (its first), which keeps float32 sums of
+# m r r^T accurate far from the origin.
 BODY_BUDGET = 0  # energy the contact solve removed from the free result [J]
-BODY_MOMENTUM = 1  # 1..3: momentum after the contact solve
-BODY_IMPULSE = 4  # 4..6: sum of e_i times the contact impulse of each colliding particle
-BODY_NORMAL = 7  # 7..9: sum of m_i (-v_n) n_i of the colliding particles (approach momentum)
-BODY_KINETIC = 10  # kinetic energy of the free result [J]
-BODY_SLOTS = 11
+BODY_KINETIC = 1  # kinetic energy of the free result [J]
+BODY_MOMENTUM = 2  # 2..4: sum m v after the contact solve
+BODY_MOMENT = 5  # 5..7: sum m r
+BODY_SECOND = 8  # 8..13: sum m r r^T (xx, yy, zz, xy, xz, yz)
+BODY_ANGULAR = 14  # 14..16: sum m r x v
+BODY_IMPULSE = 17  # 17..19: sum of e_i (J_i.n_i) n_i, the restitution impulses of the colliding particles
+BODY_TORQUE = 20  # 20..22: sum of r_i x (that)
+BODY_SLOTS = 23
 
 
 def build(scalar):
@@ -428,11 +433,21 @@ def build(scalar):
         approach_out[i] = approach
         mass_eff_out[i] = m + damper
 
+    @wp.func
+    def add_vec(body_out: wp.array2d(dtype=scalar), b: int, slot: int, v: vec3):
+        for k in range(3):
+            wp.atomic_add(body_out, b, slot + k, v[k])
+
+    @wp.func
+    def get_vec(body: wp.array2d(dtype=scalar), b: int, slot: int):
+        return vec3(body[b, slot], body[b, slot + 1], body[b, slot + 2])
+
     @wp.kernel(module="unique")
     def measure_particle_restitution(
         h: scalar,
         # Model:
         particle_body: wp.array(dtype=wp.int32),
+        body_reference: wp.array(dtype=wp.int32),
         particle_mass: wp.array(dtype=scalar),
         fixed: wp.array(dtype=wp.int32),
         gravity: vec3,
@@ -446,7 +461,7 @@ def build(scalar):
         # Colliding particles (constrain_contacts):
         restitution: wp.array(dtype=scalar),
         approach: wp.array(dtype=vec3),
-        # Out, per body (zeroed by the caller): energy budget, momentum, restitution impulse, normal
+        # Out, per body (zeroed by the caller): the BODY_* sums
         body_out: wp.array2d(dtype=scalar),
     ):
         i = wp.tid()
@@ -454,23 +469,28 @@ def build(scalar):
             return
         b = particle_body[i]
         m = particle_mass[i]
+        x = q[i]
         v = qd[i]
         vf = qd_free[i]
         # Kinetic and gravity energy the contact solve removed from the free result.
-        de = scalar(0.5) * m * (wp.dot(vf, vf) - wp.dot(v, v)) - m * wp.dot(gravity, q_free[i] - q[i])
+        de = scalar(0.5) * m * (wp.dot(vf, vf) - wp.dot(v, v)) - m * wp.dot(gravity, q_free[i] - x)
         wp.atomic_add(body_out, b, BODY_BUDGET, de)
         wp.atomic_add(body_out, b, BODY_KINETIC, scalar(0.5) * m * wp.dot(vf, vf))
-        for k in range(3):
-            wp.atomic_add(body_out, b, BODY_MOMENTUM + k, m * v[k])
+        r = x - q[body_reference[b]]
+        add_vec(body_out, b, BODY_MOMENTUM, m * v)
+        add_vec(body_out, b, BODY_MOMENT, m * r)
+        add_vec(body_out, b, BODY_SECOND, vec3(m * r[0] * r[0], m * r[1] * r[1], m * r[2] * r[2]))
+        add_vec(body_out, b, BODY_SECOND + 3, vec3(m * r[0] * r[1], m * r[0] * r[2], m * r[1] * r[2]))
+        add_vec(body_out, b, BODY_ANGULAR, m * wp.cross(r, v))
         a = approach[i]
         if wp.length_sq(a) > scalar(0.0):
             # The contact impulse on the particle over the step: what backward Euler's equation
-            # m (v - v_n) = h (f(x, v) + m g) leaves unexplained.
+            # m (v - v_n) = h (f(x, v) + m g) leaves unexplained; its normal part, times e.
+            nrm = wp.normalize(a)
             impulse = m * (v - qd_n[i]) - h * (f[i] + m * gravity)
-            rj = restitution[i] * impulse
-            for k in range(3):
-                wp.atomic_add(body_out, b, BODY_IMPULSE + k, rj[k])
-                wp.atomic_add(body_out, b, BODY_NORMAL + k, a[k])
+            rj = (restitution[i] * wp.max(wp.dot(impulse, nrm), scalar(0.0))) * nrm
+            add_vec(body_out, b, BODY_IMPULSE, rj)
+            add_vec(body_out, b, BODY_TORQUE, wp.cross(r, rj))
 
     @wp.kernel(module="unique")
     def measure_spring_restitution(
@@ -510,36 +530,56 @@ def build(scalar):
     @wp.kernel(module="unique")
     def apply_restitution(
         particle_body: wp.array(dtype=wp.int32),
+        body_reference: wp.array(dtype=wp.int32),
         fixed: wp.array(dtype=wp.int32),
         body_mass: wp.array(dtype=scalar),
         body: wp.array2d(dtype=scalar),
-        # In/out: the body's velocities gain one common change along the contact normal
+        q: wp.array(dtype=vec3),
+        # In/out: the body's velocities gain one rigid velocity field
         qd: wp.array(dtype=vec3),
     ):
         i = wp.tid()
         if fixed[i] != 0:
             return
         b = particle_body[i]
-        nrm = vec3(body[b, BODY_NORMAL], body[b, BODY_NORMAL + 1], body[b, BODY_NORMAL + 2])
-        length = wp.length(nrm)
-        if length == scalar(0.0):
+        jr = get_vec(body, b, BODY_IMPULSE)
+        if wp.length_sq(jr) == scalar(0.0):
             return
-        nrm = nrm / length
         mass = body_mass[b]
-        # Poisson's restitution for the body as a whole: e times the normal contact impulse.
-        jn = vec3(body[b, BODY_IMPULSE], body[b, BODY_IMPULSE + 1], body[b, BODY_IMPULSE + 2])
-        dv = wp.max(wp.dot(jn, nrm), scalar(0.0)) / mass
-        # A common velocity change changes only the kinetic energy of the centre of mass:
-        # M vc dv + M dv^2 / 2 with vc = P.n / M. Capped so that it returns at most the energy
-        # that the contact solve removed from the free result (the budget): E_{n+1} <= E_free.
-        vc = (
-            body[b, BODY_MOMENTUM] * nrm[0] + body[b, BODY_MOMENTUM + 1] * nrm[1] + body[b, BODY_MOMENTUM + 2] * nrm[2]
-        ) / mass
+        if mass == scalar(0.0):
+            return
+        identity = wp.identity(n=3, dtype=scalar)
+        c = get_vec(body, b, BODY_MOMENT) / mass  # centre of mass, relative to the reference
+        sq = get_vec(body, b, BODY_SECOND)
+        off = get_vec(body, b, BODY_SECOND + 3)
+        second = mat33(sq[0], off[0], off[1], off[0], sq[1], off[2], off[1], off[2], sq[2])
+        second = second - mass * wp.outer(c, c)  # about the centre of mass
+        inertia = wp.trace(second) * identity - second
+        momentum = get_vec(body, b, BODY_MOMENTUM)
+        angular = get_vec(body, b, BODY_ANGULAR) - wp.cross(c, momentum)
+        torque = get_vec(body, b, BODY_TORQUE) - wp.cross(c, jr)
+        # Poisson's restitution for the body as a rigid whole: the impulses e_i J_i at the contact
+        # points change its velocity by dV = sum / M and its angular velocity by I^-1 torque. A rigid
+        # field strains no spring. (A body with a singular inertia, a single particle or a line of
+        # them, gets the linear part only.)
+        dv = jr / mass
+        dw = vec3(scalar(0.0))
+        tr = wp.trace(inertia)
+        if wp.determinant(inertia) > scalar(1.0e-9) * tr * tr * tr:
+            dw = wp.inverse(inertia) * torque
+        # The field s (dV + dw x r) changes the kinetic energy by exactly s lin + s^2 quad, with
+        # lin = P.dV + L.dw and quad = (M |dV|^2 + dw.I dw) / 2. s <= 1 is capped so that this is at
+        # most the energy the contact solve removed from the free result (the budget), so the step
+        # never ends above the free result's energy, which backward Euler keeps below E_n.
+        lin = wp.dot(momentum, dv) + wp.dot(angular, dw)
+        quad = scalar(0.5) * (mass * wp.dot(dv, dv) + wp.dot(dw, inertia * dw))
         budget = wp.max(body[b, BODY_BUDGET], scalar(0.0))
-        cap = wp.sqrt(vc * vc + scalar(2.0) * budget / mass) - vc
-        dv = wp.min(dv, cap)
-        if dv > scalar(0.0):
-            qd[i] = qd[i] + dv * nrm
+        s = scalar(1.0)
+        if quad > scalar(0.0):
+            s_max = (wp.sqrt(lin * lin + scalar(4.0) * quad * budget) - lin) / (scalar(2.0) * quad)
+            s = wp.clamp(s_max, scalar(0.0), scalar(1.0))
+        r = q[i] - q[body_reference[b]] - c
+        qd[i] = qd[i] + s * (dv + wp.cross(dw, r))
 
     @wp.kernel(module="unique")
     def constrain_last_system(

@@ -202,7 +202,11 @@ class ImplicitIntegrator(Integrator):
             body = _particle_bodies(model)
             body_count = int(body.max()) + 1 if n else 0
             body_mass = np.bincount(body, weights=model.particle_mass_host, minlength=body_count)
+            # A body held by a fixed particle cannot move rigidly: no restitution impulse (mass 0).
+            body_mass[np.unique(body[fixed != 0])] = 0.0
             self.particle_body = wp.array(body, dtype=wp.int32, device=device)
+            _, first = np.unique(body, return_index=True)  # each body's first particle
+            self.body_reference = wp.array(first.astype(np.int32), dtype=wp.int32, device=device)
             self.body_mass = wp.array(body_mass, dtype=scalar, device=device)
             self.body_data = wp.zeros((body_count, ki.BODY_SLOTS), dtype=scalar, device=device)
             self.contact_restitution = wp.zeros(n, dtype=scalar, device=device)
@@ -655,6 +659,7 @@ class ImplicitIntegrator(Integrator):
             inputs=[
                 h,
                 self.particle_body,
+                self.body_reference,
                 model.particle_mass,
                 self.fixed,
                 model.gravity,
@@ -707,7 +712,14 @@ class ImplicitIntegrator(Integrator):
         wp.launch(
             model.kernels.apply_restitution,
             dim=model.particle_count,
-            inputs=[self.particle_body, self.fixed, self.body_mass, self.body_data],
+            inputs=[
+                self.particle_body,
+                self.body_reference,
+                self.fixed,
+                self.body_mass,
+                self.body_data,
+                state_out.particle_q,
+            ],
             outputs=[state_out.particle_qd],
             device=model.device,
         )
