@@ -160,9 +160,9 @@ def measure_explicit(
     }
 
 
-def euler_survives(ks: float, dt: float, steps: int, device="cpu") -> bool:
-    """Whether ``steps`` steps of euler on the stiff jelly_drop scene stay finite and below the explosion speed."""
-    scene = load_scene("jelly_drop", [f"jelly.0.springs.{t}.ks={ks}" for t in SPRING_TYPES])
+def euler_survives(ks: float, dt: float, steps: int, device="cpu", scene_name="jelly_drop") -> bool:
+    """Whether ``steps`` steps of euler on the stiff scene stay finite and below the explosion speed."""
+    scene = load_scene(scene_name, [f"jelly.0.springs.{t}.ks={ks}" for t in SPRING_TYPES])
     model = build_model(scene, device)
     integ = ExplicitIntegrator(model, "euler")
     s0, s1 = model.state(), model.state()
@@ -173,17 +173,18 @@ def euler_survives(ks: float, dt: float, steps: int, device="cpu") -> bool:
     return bool(np.isfinite(v).all() and np.linalg.norm(v, axis=1).max() <= speed_bound(model))
 
 
-def euler_limit(ks: float, steps: int, device="cpu", iterations: int = 8) -> dict:
-    """Bisect (in log dt) the largest step at which euler survives ``steps`` steps of the stiff jelly_drop."""
-    scene = load_scene("jelly_drop", [f"jelly.0.springs.{t}.ks={ks}" for t in SPRING_TYPES])
+def euler_limit(ks: float, steps: int, device="cpu", iterations: int = 8, scene_name="jelly_drop") -> dict:
+    """Bisect (in log dt) the largest step at which euler survives ``steps`` steps of the stiff scene."""
+    scene = load_scene(scene_name, [f"jelly.0.springs.{t}.ks={ks}" for t in SPRING_TYPES])
     j = scene.jellies[0]
     spacing = j["size"][0] / (j["resolution"][0] - 1)
     kd = {t: j["springs"][t]["kd"] for t in SPRING_TYPES}
     pred = predict_lattice_dt((4, 4, 4), 3 * spacing, j["particle_mass"], ks, kd, methods=("euler",))["euler"]
     lo, hi = pred / 4.0, pred * 16.0
-    assert euler_survives(ks, lo, steps, device), "euler fails even at a quarter of the predicted limit"
-    if euler_survives(ks, hi, steps, device):
+    assert euler_survives(ks, lo, steps, device, scene_name), "euler fails even at a quarter of the predicted limit"
+    if euler_survives(ks, hi, steps, device, scene_name):
         return {
+            "scene": scene_name,
             "ks": ks,
             "predicted_dt": pred,
             "survives_up_to_dt": hi,
@@ -192,11 +193,12 @@ def euler_limit(ks: float, steps: int, device="cpu", iterations: int = 8) -> dic
         }
     for _ in range(iterations):
         mid = math.sqrt(lo * hi)
-        if euler_survives(ks, mid, steps, device):
+        if euler_survives(ks, mid, steps, device, scene_name):
             lo = mid
         else:
             hi = mid
     return {
+        "scene": scene_name,
         "ks": ks,
         "predicted_dt": pred,
         "survives_up_to_dt": lo,
@@ -218,6 +220,7 @@ def main(argv=None) -> int:
     p.add_argument("--solvers", nargs="+", default=["matrix_free", "bsr", "warp_cg"])
     p.add_argument("--euler-limit", action="store_true", help="also bisect euler's survival step on jelly_drop")
     p.add_argument("--euler-steps", type=int, default=20000)
+    p.add_argument("--euler-scene", default="jelly_drop", help="scene for --euler-limit (e.g. seed_bowl)")
     p.add_argument("--out", default="bench_implicit.json")
     args = p.parse_args(argv)
     wp.config.quiet = True
@@ -245,10 +248,10 @@ def main(argv=None) -> int:
                 )
                 rows.append(r)
         if args.euler_limit:
-            lim = euler_limit(ks, args.euler_steps, device)
+            lim = euler_limit(ks, args.euler_steps, device, scene_name=args.euler_scene)
             limits.append(lim)
             print(
-                f"euler on jelly_drop, ks={ks:.0e}: predicted limit {lim['predicted_dt']:.3e} s, survives "
+                f"euler on {args.euler_scene}, ks={ks:.0e}: predicted limit {lim['predicted_dt']:.3e} s, survives "
                 f"{lim['steps']} steps up to dt = {lim['survives_up_to_dt']:.3e} s",
                 flush=True,
             )
