@@ -132,6 +132,7 @@ def measure_implicit(size: int, dt: float = 0.01, device="cpu", steps: int = 10,
         "cg_iterations_mean": stats["cg_iterations_mean"],
         "cg_iterations_max": stats["cg_iterations_max"],
         "cg_unconverged_solves": stats["cg_unconverged_solves"],
+        "warm_start": integ.warm_start,
         "compile_seconds": compile_s,
         "finite": finite,
     }
@@ -218,6 +219,8 @@ def main(argv=None) -> int:
     p.add_argument("--steps", type=int, default=10, help="timed implicit steps per case")
     p.add_argument("--explicit-steps", type=int, default=200, help="timed explicit steps per case")
     p.add_argument("--solvers", nargs="+", default=["matrix_free", "bsr", "warp_cg"])
+    p.add_argument("--no-warm-start", action="store_true", help="start every CG solve from 0 (for comparison)")
+    p.add_argument("--no-explicit", action="store_true", help="skip the explicit integrators")
     p.add_argument("--euler-limit", action="store_true", help="also bisect euler's survival step on jelly_drop")
     p.add_argument("--euler-steps", type=int, default=20000)
     p.add_argument("--euler-scene", default="jelly_drop", help="scene for --euler-limit (e.g. seed_bowl)")
@@ -235,8 +238,12 @@ def main(argv=None) -> int:
     print("-" * len(header))
     for ks in args.ks:
         for size in args.sizes:
-            cases = [measure_implicit(size, args.dt, device, args.steps, ks, solver=s) for s in args.solvers]
-            cases += [measure_explicit(size, m, device, args.explicit_steps, ks) for m in ("rk4", "symplectic")]
+            cases = [
+                measure_implicit(size, args.dt, device, args.steps, ks, solver=s, warm_start=not args.no_warm_start)
+                for s in args.solvers
+            ]
+            if not args.no_explicit:
+                cases += [measure_explicit(size, m, device, args.explicit_steps, ks) for m in ("rk4", "symplectic")]
             for r in cases:
                 r["ks"] = ks
                 name = r["integrator"] + (f"/{r['solver']}" if "solver" in r else "")
