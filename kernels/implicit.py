@@ -696,11 +696,15 @@ def build(scalar):
     def cg_begin(
         tol: scalar,
         max_iterations: int,
+        step_bb: wp.array(dtype=scalar),
         scalars: wp.array(dtype=scalar),
         ints: wp.array(dtype=wp.int32),
     ):
-        # One thread: tolerance from |b|, first r.z and r.r, and the loop condition.
-        tol2 = tol * tol * scalars[BB]
+        # One thread: tolerance, first r.z and r.r, and the loop condition. The tolerance is
+        # relative to the larger of |b| and the step's first |b| (set_step_scale): a later solve of
+        # the step (a Newton correction, the contact solve) only refines the first one's dv, and
+        # needs its absolute accuracy, not a relative one on its own, smaller right-hand side.
+        tol2 = tol * tol * wp.max(scalars[BB], step_bb[0])
         scalars[TOL2] = tol2
         scalars[RZ] = scalars[RZ_NEW]
         scalars[RR] = scalars[RR_NEW]
@@ -710,6 +714,11 @@ def build(scalar):
         scalars[BETA] = scalar(0.0)
         ints[ITER] = 0
         ints[COND] = wp.where(scalars[RR] > tol2 and max_iterations > 0, 1, 0)
+
+    @wp.kernel(module="unique")
+    def set_step_scale(scalars: wp.array(dtype=scalar), step_bb: wp.array(dtype=scalar)):
+        # One thread: the first solve's b.b sets the step's scale for the tolerance.
+        step_bb[0] = scalars[BB]
 
     @wp.kernel(module="unique")
     def cg_direction(
@@ -915,6 +924,7 @@ def build(scalar):
         "spring_mv": spring_mv,
         "init_residual": init_residual,
         "cg_begin": cg_begin,
+        "set_step_scale": set_step_scale,
         "cg_direction": cg_direction,
         "dot_accumulate": dot_accumulate,
         "cg_update": cg_update,

@@ -114,7 +114,8 @@ class ImplicitIntegrator(Integrator):
         model: the model to advance.
         newton_iterations: linear solves per step (before the contact solve); more iterate
             Newton's method towards the exact backward Euler step.
-        cg_tolerance: CG stops when ``|b - A dv| <= cg_tolerance |b|`` (2-norms over free rows).
+        cg_tolerance: CG stops when ``|b - A dv| <= cg_tolerance max(|b|, |b_1|)`` (2-norms over free
+            rows; b_1 is the right-hand side of the step's first solve).
         cg_max_iterations: iteration cap of each CG solve.
         linearization: ``"predictor"`` (Newton from v_n, forces linearised about x_n + h v_n) or
             ``"baraff_witkin"`` (the first solve linearises about x_n); see the module docstring.
@@ -181,6 +182,7 @@ class ImplicitIntegrator(Integrator):
         self.dv_warm = vectors()
         self.dv_warm_prev = vectors()
         self.warm_history = wp.zeros(1, dtype=wp.int32, device=device)
+        self.step_bb = wp.zeros(1, dtype=scalar, device=device)  # b.b of the step's first solve
         self.r = vectors()
         self.z = vectors()
         self.p = vectors()
@@ -375,7 +377,7 @@ class ImplicitIntegrator(Integrator):
         wp.launch(
             k.cg_begin,
             dim=1,
-            inputs=[model.scalar(self.cg_tolerance), self.cg_max_iterations],
+            inputs=[model.scalar(self.cg_tolerance), self.cg_max_iterations, self.step_bb],
             outputs=[self.scalars, self.ints],
             device=device,
         )
@@ -533,6 +535,8 @@ class ImplicitIntegrator(Integrator):
             outputs=[self.precond, self.x, self.ap, self.scalars],
             device=device,
         )
+        if first:
+            wp.launch(k.set_step_scale, dim=1, inputs=[self.scalars], outputs=[self.step_bb], device=device)
         self._solve()
         self._update(h, state_in, qd, state_out, first)
         if first:
