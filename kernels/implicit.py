@@ -118,6 +118,20 @@ def build(scalar):
         b = (h * kd) * along + (h * h) * s
         return b, s
 
+    @wp.func
+    def add_spring_product(block: mat33, p: wp.array(dtype=vec3), a: int, b: int, y: wp.array(dtype=vec3)):
+        """y_a += block (p_a - p_b), y_b -= the same: one spring's share of a block product.
+
+        Shared by the matrix-vector product (block B_s) and the df/dx v term of the right-hand side
+        (block -c S). Taking p_a - p_b first keeps float32 accurate (module docstring). Returns
+        (p_a - p_b).block (p_a - p_b), the spring's share of p.A p.
+        """
+        delta = p[a] - p[b]
+        t = block * delta
+        wp.atomic_add(y, a, t)
+        wp.atomic_sub(y, b, t)
+        return wp.dot(delta, t)
+
     @wp.kernel(module="unique")
     def eval_spring_jacobians(
         h: scalar,
@@ -151,9 +165,7 @@ def build(scalar):
         wp.atomic_add(diag_block_out, b, blk)
         if kv_scale != scalar(0.0):
             # kv_scale df/dx v: df_a/dx v = -S (v_a - v_b), and b gets the opposite.
-            t = kv_scale * (s * (particle_qd_k[a] - particle_qd_k[b]))
-            wp.atomic_sub(rhs_out, a, t)
-            wp.atomic_add(rhs_out, b, t)
+            add_spring_product(-kv_scale * s, particle_qd_k, a, b, rhs_out)
 
     @wp.func
     def diagonal_inverse(m: mat33):
@@ -291,7 +303,7 @@ def build(scalar):
             if bowl_world[b] == w:
                 c = bowl_center[b]
                 radius = bowl_radius[b]
-                phi_prev, n_prev = sphere_distance(xp, c, radius)
+                phi_prev, _n_prev = sphere_distance(xp, c, radius)
                 if phi_prev <= eps + radius * scalar(1.0e-4):
                     phi, nrm = bowl_distance(xf, c, radius, bowl_cut_height[b])
                     if phi < eps:
@@ -652,14 +664,8 @@ def build(scalar):
         quad = scalar(0.0)
         if tid < count:
             pair = spring_indices[tid]
-            a = pair[0]
-            b = pair[1]
             # Rows of constrained directions get values too; the filter drops them.
-            delta = p[a] - p[b]
-            t = spring_block[tid] * delta
-            wp.atomic_add(y_out, a, t)
-            wp.atomic_sub(y_out, b, t)
-            quad = wp.dot(delta, t)
+            quad = add_spring_product(spring_block[tid], p, pair[0], pair[1], y_out)
         total = wp.tile_sum(wp.tile(quad))
         wp.tile_atomic_add(scalars_out, total, offset=slot)
 
