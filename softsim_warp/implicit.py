@@ -47,20 +47,29 @@ layer back by those 3 cm, and springs squeezed by half a lattice spacing invert 
 ks = 1e5 the jelly_drop jelly ended with 4e4 J of spring energy from 10 J). So a step with
 contact goes on after the free solve (Baraff and Witkin's constraints, section 5 of the paper):
 
-1. the response runs on the free result; every particle it changed becomes constrained. Where it
-   only changed the normal velocity of a particle touching one plane (a collision), the normal
-   velocity is prescribed and the tangential one left free; where friction acted (resting
-   contact), or the particle touches several planes or another primitive, its whole velocity is.
-   A colliding particle's normal velocity is prescribed as 0, not reflected: the impact is
-   inelastic, restitution is not reproduced. (Reflected velocities prescribed on a few particles
-   of a stiff lattice act as velocity sources and added up to 40 J to the 10 J jelly; applying
-   Poisson's restitution impulse as point forces excited local modes and added more.)
+1. the response runs on the free result; every particle it changed becomes constrained along
+   the normal of the surface it touches (or, with several surfaces or a contact hook, the
+   direction the response pushed it): its normal velocity is prescribed (0 for an approaching
+   particle: the compression phase of an impact), its tangential velocity is left to the solve.
+   Where the response applied friction, the particle gets a tangential damper in the solve
+   instead (kernels/implicit.py: constrain_contacts). Prescribed normal velocities of 0 take no
+   work from the constraint impulses, so the step stays dissipative. (Prescribing whole
+   velocities, as before, made a curved contact patch a velocity source: +1e4 J in a frame of
+   seed_bowl at ks = 1e5; reflected velocities on a few particles of a stiff lattice added up to
+   40 J to the 10 J jelly_drop jelly.)
 2. The last linear system is solved again with these constraints: it is linearised where the
    free solve ended, close to the answer.
 3. ``newton_iterations`` Newton iterations re-linearise at the result: an impact can turn the jelly
-   by ~0.1 rad in one step, which a single linearisation turns into spring stretch.
+   by ~0.1 rad in one step, which a single linearisation turns into spring stretch. Up to
+   ``EXTRA_CONTACT_ITERATIONS`` more run, only when the result's energy is above the free
+   result's (measured per body on the device).
+4. Restitution (Poisson's hypothesis): each body (a jelly, or a particle outside every jelly)
+   receives e_i times the normal contact impulse of each colliding particle as a rigid-body
+   impulse (one velocity and angular velocity change for all its particles, which strains no
+   spring), scaled down if needed so that it returns at most the energy the contact solve
+   removed: E_{n+1} <= E_free <= E_n.
 
-The springs carry the impact through the whole jelly in the step it happens. Steps 2 and 3 run
+The springs carry the impact through the whole jelly in the step it happens. Steps 2 to 4 run
 under ``wp.capture_if`` on a device flag set when anything touched, so a step without contact pays
 only for the response and one small kernel. The response then runs once more on the final state,
 as the post-step impulse every integrator gets.
@@ -180,8 +189,6 @@ class ImplicitIntegrator(Integrator):
         self.rhs = vectors()
         self.x = vectors()
         self.dv_warm = vectors()
-        self.dv_warm_prev = vectors()
-        self.warm_history = wp.zeros(1, dtype=wp.int32, device=device)
         self.step_bb = wp.zeros(1, dtype=scalar, device=device)  # b.b of the step's first solve
         self.r = vectors()
         self.z = vectors()
@@ -472,7 +479,7 @@ class ImplicitIntegrator(Integrator):
                 qd_k,
                 self.x,
             ],
-            outputs=[state_out.particle_q, state_out.particle_qd, self.dv_warm, self.dv_warm_prev],
+            outputs=[state_out.particle_q, state_out.particle_qd, self.dv_warm],
             device=model.device,
         )
 
@@ -526,8 +533,6 @@ class ImplicitIntegrator(Integrator):
                 qd,
                 self.f,
                 self.dv_warm,
-                self.dv_warm_prev,
-                self.warm_history,
                 self.diag_block,
                 self.rhs,
                 self.filters,
@@ -539,8 +544,6 @@ class ImplicitIntegrator(Integrator):
             wp.launch(k.set_step_scale, dim=1, inputs=[self.scalars], outputs=[self.step_bb], device=device)
         self._solve()
         self._update(h, state_in, qd, state_out, first)
-        if first:
-            wp.launch(model.kernels.advance_warm_history, dim=1, inputs=[self.warm_history], device=device)
 
     def step(self, state_in: State, state_out: State, dt: float):
         model = self.model
