@@ -132,6 +132,7 @@ def measure_implicit(size: int, dt: float = 0.01, device="cpu", steps: int = 10,
         "cg_iterations_mean": stats["cg_iterations_mean"],
         "cg_iterations_max": stats["cg_iterations_max"],
         "cg_unconverged_solves": stats["cg_unconverged_solves"],
+        "warm_start": integ.warm_start,
         "compile_seconds": compile_s,
         "finite": finite,
     }
@@ -160,9 +161,9 @@ def measure_explicit(
     }
 
 
-def euler_survives(ks: float, dt: float, steps: int, device="cpu") -> bool:
-    """Whether ``steps`` steps of euler on the stiff jelly_drop scene stay finite and below the explosion speed."""
-    scene = load_scene("jelly_drop", [f"jelly.0.springs.{t}.ks={ks}" for t in SPRING_TYPES])
+def euler_survives(ks: float, dt: float, steps: int, device="cpu", scene_name="jelly_drop") -> bool:
+    """Whether ``steps`` steps of euler on the stiff scene stay finite and below the explosion speed."""
+    scene = load_scene(scene_name, [f"jelly.0.springs.{t}.ks={ks}" for t in SPRING_TYPES])
     model = build_model(scene, device)
     integ = ExplicitIntegrator(model, "euler")
     s0, s1 = model.state(), model.state()
@@ -173,17 +174,18 @@ def euler_survives(ks: float, dt: float, steps: int, device="cpu") -> bool:
     return bool(np.isfinite(v).all() and np.linalg.norm(v, axis=1).max() <= speed_bound(model))
 
 
-def euler_limit(ks: float, steps: int, device="cpu", iterations: int = 8) -> dict:
-    """Bisect (in log dt) the largest step at which euler survives ``steps`` steps of the stiff jelly_drop."""
-    scene = load_scene("jelly_drop", [f"jelly.0.springs.{t}.ks={ks}" for t in SPRING_TYPES])
+def euler_limit(ks: float, steps: int, device="cpu", iterations: int = 8, scene_name="jelly_drop") -> dict:
+    """Bisect (in log dt) the largest step at which euler survives ``steps`` steps of the stiff scene."""
+    scene = load_scene(scene_name, [f"jelly.0.springs.{t}.ks={ks}" for t in SPRING_TYPES])
     j = scene.jellies[0]
     spacing = j["size"][0] / (j["resolution"][0] - 1)
     kd = {t: j["springs"][t]["kd"] for t in SPRING_TYPES}
     pred = predict_lattice_dt((4, 4, 4), 3 * spacing, j["particle_mass"], ks, kd, methods=("euler",))["euler"]
     lo, hi = pred / 4.0, pred * 16.0
-    assert euler_survives(ks, lo, steps, device), "euler fails even at a quarter of the predicted limit"
-    if euler_survives(ks, hi, steps, device):
+    assert euler_survives(ks, lo, steps, device, scene_name), "euler fails even at a quarter of the predicted limit"
+    if euler_survives(ks, hi, steps, device, scene_name):
         return {
+            "scene": scene_name,
             "ks": ks,
             "predicted_dt": pred,
             "survives_up_to_dt": hi,
@@ -192,11 +194,12 @@ def euler_limit(ks: float, steps: int, device="cpu", iterations: int = 8) -> dic
         }
     for _ in range(iterations):
         mid = math.sqrt(lo * hi)
-        if euler_survives(ks, mid, steps, device):
+        if euler_survives(ks, mid, steps, device, scene_name):
             lo = mid
         else:
             hi = mid
     return {
+        "scene": scene_name,
         "ks": ks,
         "predicted_dt": pred,
         "survives_up_to_dt": lo,
@@ -216,8 +219,11 @@ def main(argv=None) -> int:
     p.add_argument("--steps", type=int, default=10, help="timed implicit steps per case")
     p.add_argument("--explicit-steps", type=int, default=200, help="timed explicit steps per case")
     p.add_argument("--solvers", nargs="+", default=["matrix_free", "bsr", "warp_cg"])
+    p.add_argument("--no-warm-start", action="store_true", help="start every CG solve from 0 (for comparison)")
+    p.add_argument("--no-explicit", action="store_true", help="skip the explicit integrators")
     p.add_argument("--euler-limit", action="store_true", help="also bisect euler's survival step on jelly_drop")
     p.add_argument("--euler-steps", type=int, default=20000)
+    p.add_argument("--euler-scene", default="jelly_drop", help="scene for --euler-limit (e.g. seed_bowl)")
     p.add_argument("--out", default="bench_implicit.json")
     args = p.parse_args(argv)
     wp.config.quiet = True
@@ -232,8 +238,12 @@ def main(argv=None) -> int:
     print("-" * len(header))
     for ks in args.ks:
         for size in args.sizes:
-            cases = [measure_implicit(size, args.dt, device, args.steps, ks, solver=s) for s in args.solvers]
-            cases += [measure_explicit(size, m, device, args.explicit_steps, ks) for m in ("rk4", "symplectic")]
+            cases = [
+                measure_implicit(size, args.dt, device, args.steps, ks, solver=s, warm_start=not args.no_warm_start)
+                for s in args.solvers
+            ]
+            if not args.no_explicit:
+                cases += [measure_explicit(size, m, device, args.explicit_steps, ks) for m in ("rk4", "symplectic")]
             for r in cases:
                 r["ks"] = ks
                 name = r["integrator"] + (f"/{r['solver']}" if "solver" in r else "")
@@ -245,10 +255,10 @@ def main(argv=None) -> int:
                 )
                 rows.append(r)
         if args.euler_limit:
-            lim = euler_limit(ks, args.euler_steps, device)
+            lim = euler_limit(ks, args.euler_steps, device, scene_name=args.euler_scene)
             limits.append(lim)
             print(
-                f"euler on jelly_drop, ks={ks:.0e}: predicted limit {lim['predicted_dt']:.3e} s, survives "
+                f"euler on {args.euler_scene}, ks={ks:.0e}: predicted limit {lim['predicted_dt']:.3e} s, survives "
                 f"{lim['steps']} steps up to dt = {lim['survives_up_to_dt']:.3e} s",
                 flush=True,
             )

@@ -30,8 +30,10 @@ D_i = m_i I + sum B_s are accumulated only for the preconditioner (and the assem
 
 Constraints (Baraff and Witkin's modified PCG): each particle has a filter S_i, a symmetric
 projector onto the directions in which its dv is free: I for a free particle, 0 for a fixed one
-(inverse mass 0) or one whose velocity the contact response decided, I - n n^T for one whose
-velocity along the contact normal n is prescribed. The initial guess holds the prescribed part,
+(inverse mass 0), I - n n^T for a touching one whose velocity along the contact normal n is
+prescribed. Contact friction enters as a tangential damper c (I - n n^T) on such a particle: c is
+added to its mass in the product (``mass_eff``; in its free directions the filter leaves, the
+damper acts as c I) and -c v_k to b. The initial guess holds the prescribed part,
 (I - S_i) dv_i; residuals, preconditioned residuals and search directions are filtered, so CG
 solves for the free part only, and the prescribed part enters the free rows through the springs.
 The preconditioner is stored already filtered, S_i P_i S_i.
@@ -43,6 +45,8 @@ reading anything back to the host and can be captured with ``wp.capture_while``.
 """
 
 import warp as wp
+
+from . import contact
 
 wp.set_module_options({"enable_backward": False})
 
@@ -73,10 +77,30 @@ SOLVES = 4
 UNCONVERGED = 5  # solves that stopped at the iteration cap or broke down above the tolerance
 STAT_SLOTS = 6
 
+# Columns of the per-body restitution array (one row per jelly, or per loose particle). Positions
+# r are taken relative to a reference particle of the body (its first), which keeps float32 sums of
+# m r r^T accurate far from the origin.
+BODY_BUDGET = 0  # energy the contact solve removed from the free result [J]
+BODY_KINETIC = 1  # kinetic energy of the free result [J]
+BODY_MOMENTUM = 2  # 2..4: sum m v after the contact solve
+BODY_MOMENT = 5  # 5..7: sum m r
+BODY_SECOND = 8  # 8..13: sum m r r^T (xx, yy, zz, xy, xz, yz)
+BODY_ANGULAR = 14  # 14..16: sum m r x v
+BODY_IMPULSE = 17  # 17..19: sum of e_i (J_i.n_i) n_i, the restitution impulses of the colliding particles
+BODY_TORQUE = 20  # 20..22: sum of r_i x (that)
+BODY_KINETIC_AFTER = 23  # kinetic energy after the contact solve [J]
+BODY_MOMENTUM_FREE = 24  # 24..26: sum m v of the free result
+BODY_ANGULAR_FREE = 27  # 27..29: sum m r x v of the free result (r after the contact solve)
+BODY_SLOTS = 30
+
 
 def build(scalar):
     vec3 = wp.types.vector(3, scalar)
     mat33 = wp.types.matrix((3, 3), scalar)
+    contact_funcs = contact.build(scalar)
+    plane_distance = contact_funcs["plane_distance"]
+    bowl_distance = contact_funcs["bowl_distance"]
+    sphere_distance = contact_funcs["sphere_distance"]
 
     @wp.func
     def spring_jacobian(d: vec3, rest: scalar, ks: scalar, kd: scalar, h: scalar):
@@ -98,6 +122,20 @@ def build(scalar):
         s = ks * (along + transverse * (identity - along))
         b = (h * kd) * along + (h * h) * s
         return b, s
+
+    @wp.func
+    def add_spring_product(block: mat33, p: wp.array(dtype=vec3), a: int, b: int, y: wp.array(dtype=vec3)):
+        """y_a += block (p_a - p_b), y_b -= the same: one spring's share of a block product.
+
+        Shared by the matrix-vector product (block B_s) and the df/dx v term of the right-hand side
+        (block -c S). Taking p_a - p_b first keeps float32 accurate (module docstring). Returns
+        (p_a - p_b).block (p_a - p_b), the spring's share of p.A p.
+        """
+        delta = p[a] - p[b]
+        t = block * delta
+        wp.atomic_add(y, a, t)
+        wp.atomic_sub(y, b, t)
+        return wp.dot(delta, t)
 
     @wp.kernel(module="unique")
     def eval_spring_jacobians(
@@ -132,9 +170,7 @@ def build(scalar):
         wp.atomic_add(diag_block_out, b, blk)
         if kv_scale != scalar(0.0):
             # kv_scale df/dx v: df_a/dx v = -S (v_a - v_b), and b gets the opposite.
-            t = kv_scale * (s * (particle_qd_k[a] - particle_qd_k[b]))
-            wp.atomic_sub(rhs_out, a, t)
-            wp.atomic_add(rhs_out, b, t)
+            add_spring_product(-kv_scale * s, particle_qd_k, a, b, rhs_out)
 
     @wp.func
     def diagonal_inverse(m: mat33):
@@ -144,6 +180,13 @@ def build(scalar):
             if m[k, k] != scalar(0.0):
                 out[k, k] = scalar(1.0) / m[k, k]
         return out
+
+    @wp.func
+    def invert_block(d: mat33, block_jacobi: int):
+        """The preconditioner block: d^-1 (block-Jacobi) or the inverse of d's diagonal (Jacobi)."""
+        if block_jacobi != 0:
+            return wp.inverse(d)
+        return diagonal_inverse(d)
 
     @wp.kernel(module="unique")
     def build_system(
@@ -156,6 +199,8 @@ def build(scalar):
         particle_mass: wp.array(dtype=scalar),
         gravity: vec3,
         fixed: wp.array(dtype=wp.int32),
+        # Mass plus contact friction's tangential damper (= particle_mass without contact)
+        mass_eff: wp.array(dtype=scalar),
         # State: v_n, the iterate v_k and the spring forces at the linearisation point
         qd_n: wp.array(dtype=vec3),
         qd_k: wp.array(dtype=vec3),
@@ -183,16 +228,16 @@ def build(scalar):
                 sf = wp.where(fixed[i] != 0, mat33(scalar(0.0)), identity)
                 filters[i] = sf
             m = particle_mass[i]
+            me = mass_eff[i]
             d = m * identity + diag_block[i]
             diag_block[i] = d
-            b = sf * (m * (qd_n[i] - qd_k[i]) + h * (f[i] + m * gravity) + rhs[i])
+            # A friction damper c (I - n n^T) (contact solve only) adds c to the diagonal and
+            # -c v_k to b; in the free directions (I - n n^T) the filter keeps, it acts as c I.
+            b = sf * (m * (qd_n[i] - qd_k[i]) + h * (f[i] + m * gravity) + rhs[i] - (me - m) * qd_k[i])
             rhs[i] = b
             pre = mat33(scalar(0.0))
             if fixed[i] == 0:
-                if block_jacobi != 0:
-                    pre = wp.inverse(d)
-                else:
-                    pre = diagonal_inverse(d)
+                pre = invert_block(d + (me - m) * identity, block_jacobi)
             precond_out[i] = sf * pre * sf
             # Initial guess: the last step's dv minus its gravity part, plus this step's h g.
             # Springs do not resist a uniform velocity change (A (h g) = M h g), so the guess is
@@ -200,7 +245,7 @@ def build(scalar):
             # of dv are 0: the iterate already satisfies the constraints.
             x0 = sf * (warm_scale * (dv_warm[i] + h * gravity))
             x_out[i] = x0
-            ax_out[i] = m * x0
+            ax_out[i] = me * x0
             bb = wp.dot(b, b)
         total = wp.tile_sum(wp.tile(bb))
         wp.tile_atomic_add(scalars_out, total, offset=BB)
@@ -209,11 +254,73 @@ def build(scalar):
     def differs(a: vec3, b: vec3):
         return a[0] != b[0] or a[1] != b[1] or a[2] != b[2]
 
+    @wp.func
+    def touch_planes(
+        w: int,
+        xf: vec3,
+        touching: int,
+        normal: vec3,
+        plane_count: int,
+        plane_world: wp.array(dtype=wp.int32),
+        plane_point: wp.array(dtype=vec3),
+        plane_normal: wp.array(dtype=vec3),
+        plane_hole_center: wp.array(dtype=vec3),
+        plane_hole_radius: wp.array(dtype=scalar),
+        eps: scalar,
+    ):
+        """(count, normal) of the planes of world w that the free result xf touches, added to the arguments."""
+        for p in range(plane_count):
+            if plane_world[p] == w:
+                nrm = plane_normal[p]
+                phi = plane_distance(xf, plane_point[p], nrm, plane_hole_center[p], plane_hole_radius[p])
+                if phi < eps:
+                    touching = touching + 1
+                    normal = nrm
+        return touching, normal
+
+    @wp.func
+    def touch_round(
+        w: int,
+        xf: vec3,
+        xp: vec3,
+        touching: int,
+        normal: vec3,
+        bowl_count: int,
+        bowl_world: wp.array(dtype=wp.int32),
+        bowl_center: wp.array(dtype=vec3),
+        bowl_radius: wp.array(dtype=scalar),
+        bowl_cut_height: wp.array(dtype=scalar),
+        sphere_count: int,
+        sphere_world: wp.array(dtype=wp.int32),
+        sphere_center: wp.array(dtype=vec3),
+        sphere_radius: wp.array(dtype=scalar),
+        eps: scalar,
+    ):
+        """The same for bowls and spheres, with collide_bowls' rule that a bowl holds only what began inside."""
+        for b in range(bowl_count):
+            if bowl_world[b] == w:
+                c = bowl_center[b]
+                radius = bowl_radius[b]
+                phi_prev, _n_prev = sphere_distance(xp, c, radius)
+                if phi_prev <= eps + radius * scalar(1.0e-4):
+                    phi, nrm = bowl_distance(xf, c, radius, bowl_cut_height[b])
+                    if phi < eps:
+                        touching = touching + 1
+                        normal = nrm
+        for s in range(sphere_count):
+            if sphere_world[s] == w:
+                phi, nrm = sphere_distance(xf, sphere_center[s], sphere_radius[s])
+                if phi < eps:
+                    touching = touching + 1
+                    normal = nrm
+        return touching, normal
+
     @wp.kernel(module="unique")
     def constrain_contacts(
         h: scalar,
         # Model:
         particle_world: wp.array(dtype=wp.int32),
+        particle_mass: wp.array(dtype=scalar),
         fixed: wp.array(dtype=wp.int32),
         plane_count: int,
         plane_world: wp.array(dtype=wp.int32),
@@ -221,6 +328,15 @@ def build(scalar):
         plane_normal: wp.array(dtype=vec3),
         plane_hole_center: wp.array(dtype=vec3),
         plane_hole_radius: wp.array(dtype=scalar),
+        bowl_count: int,
+        bowl_world: wp.array(dtype=wp.int32),
+        bowl_center: wp.array(dtype=vec3),
+        bowl_radius: wp.array(dtype=scalar),
+        bowl_cut_height: wp.array(dtype=scalar),
+        sphere_count: int,
+        sphere_world: wp.array(dtype=wp.int32),
+        sphere_center: wp.array(dtype=vec3),
+        sphere_radius: wp.array(dtype=scalar),
         contact_epsilon: scalar,
         # The step's start, and its result before and after the contact response:
         q_n: wp.array(dtype=vec3),
@@ -228,72 +344,302 @@ def build(scalar):
         qd_free: wp.array(dtype=vec3),
         q_contact: wp.array(dtype=vec3),
         qd_contact: wp.array(dtype=vec3),
-        # Out: filters, the constrained iterate (x_n + h v, v), and whether anything touched
+        # Out: filters, the constrained iterate (x_n + h v, v), whether anything touched, and per
+        # colliding particle its restitution and approach momentum along the normal, m (-v_n) n
         filters_out: wp.array(dtype=mat33),
         q_out: wp.array(dtype=vec3),
         qd_out: wp.array(dtype=vec3),
         any_contact_out: wp.array(dtype=wp.int32),
+        restitution_out: wp.array(dtype=scalar),
+        approach_out: wp.array(dtype=vec3),
+        mass_eff_out: wp.array(dtype=scalar),
     ):
         i = wp.tid()
         identity = wp.identity(n=3, dtype=scalar)
         v = qd_free[i]
         sf = identity
+        e = scalar(0.0)
+        approach = vec3(scalar(0.0))
+        m = particle_mass[i]
+        damper = scalar(0.0)
         if fixed[i] != 0:
             sf = mat33(scalar(0.0))
         elif differs(q_contact[i], q_free[i]) or differs(qd_contact[i], v):
             any_contact_out[0] = 1
             v_c = qd_contact[i]
-            # The plane the particle touches (as the response saw it); more than one, or a contact
-            # primitive other than a plane (a contact hook), gives no single normal.
-            touching = int(0)
-            plane = int(-1)
+            # The surface the particle touches (as the response saw it); more than one, or a contact
+            # hook's primitive, gives no single normal.
             w = particle_world[i]
             xf = q_free[i]
-            for p in range(plane_count):
-                if plane_world[p] == w:
-                    nrm = plane_normal[p]
-                    phi = wp.dot(xf - plane_point[p], nrm)
-                    hr = plane_hole_radius[p]
-                    if hr > scalar(0.0):
-                        off = xf - plane_hole_center[p]
-                        off = off - wp.dot(off, nrm) * nrm
-                        if wp.length_sq(off) < hr * hr:
-                            phi = scalar(1.0e30)
-                    if phi < contact_epsilon:
-                        touching = touching + 1
-                        plane = p
-            # Otherwise (friction acted, or no single normal) the whole velocity is prescribed.
-            sf = mat33(scalar(0.0))
-            target = v_c
+            touching, nrm = touch_planes(
+                w,
+                xf,
+                0,
+                vec3(scalar(0.0)),
+                plane_count,
+                plane_world,
+                plane_point,
+                plane_normal,
+                plane_hole_center,
+                plane_hole_radius,
+                contact_epsilon,
+            )
+            touching, nrm = touch_round(
+                w,
+                xf,
+                q_n[i],
+                touching,
+                nrm,
+                bowl_count,
+                bowl_world,
+                bowl_center,
+                bowl_radius,
+                bowl_cut_height,
+                sphere_count,
+                sphere_world,
+                sphere_center,
+                sphere_radius,
+                contact_epsilon,
+            )
+            if touching != 1:
+                # No single surface (several, or a contact hook's primitive): the direction in
+                # which the response pushed the particle serves as the normal. Prescribing the
+                # response's whole velocity instead (a reflected one included) made a single
+                # particle a velocity source for the stiff lattice: +89 J in one step of seed_bowl.
+                dvr = v_c - v
+                nrm = vec3(scalar(0.0))
+                if wp.length_sq(dvr) > scalar(0.0):
+                    nrm = wp.normalize(dvr)
+                    touching = 1
+            # A position correction alone leaves the particle free.
+            target = v
             if touching == 1:
-                nrm = plane_normal[plane]
+                # One surface: only the normal velocity is prescribed, the tangential one is left
+                # to the solve. An approaching particle is stopped (the compression phase of an
+                # impact); a normal velocity of 0 takes no work from the constraint impulse, so
+                # the step stays dissipative (docs/IMPLICIT.md). Prescribing whole velocities
+                # instead (the response's tangential ones) forces the springs between particles
+                # whose normals differ (a bowl) to follow incompatible velocities: up to 1e4 J
+                # per step at ks = 1e5 in seed_bowl.
                 vn = wp.dot(v, nrm)
                 vt = v - vn * nrm
-                if not differs(vt, v_c - wp.dot(v_c, nrm) * nrm):
-                    # The response changed only the normal velocity (a collision keeps the
-                    # tangential one): prescribe the normal part, leave the tangential part to
-                    # the solve; prescribing it too would act like an impact with unlimited
-                    # friction, which can add energy. An approaching particle is stopped: the
-                    # impact is inelastic (see softsim_warp/implicit.py on restitution).
-                    sf = identity - wp.outer(nrm, nrm)
-                    target = wp.where(vn < scalar(0.0), vt, v)
+                vt_c = v_c - wp.dot(v_c, nrm) * nrm
+                sf = identity - wp.outer(nrm, nrm)
+                target = wp.where(vn < scalar(0.0), vt, v)
+                if differs(vt, vt_c):
+                    # Friction acted (resting contact). It enters the solve as a tangential
+                    # damper on the particle, c (I - n n^T) with c = m (1 - r) / r, r = |vt_c| / |vt|:
+                    # alone it would scale vt by r, as the response did; in the solve it is a
+                    # positive semi-definite term, so it only removes energy. r = 0 (sticking) is
+                    # taken as 1e-3.
+                    speed = wp.length(vt)
+                    ratio = wp.max(wp.length(vt_c) / wp.max(speed, scalar(1.0e-30)), scalar(1.0e-3))
+                    damper = m * (scalar(1.0) - ratio) / ratio
+                elif vn < scalar(0.0):
+                    # A collision. Its restitution is applied to the whole body after the solve
+                    # (apply_restitution), not as a reflected velocity of this one particle. The
+                    # coefficient the response used (v_c.n = -e v.n), so that whatever rule
+                    # resolve_contact applies (resting contact, thresholds) carries over.
+                    e = wp.clamp(wp.dot(v_c, nrm) / (-vn), scalar(0.0), scalar(1.0))
+                    approach = (m * (-vn)) * nrm
             v = sf * v + (identity - sf) * target
         filters_out[i] = sf
         qd_out[i] = v
         q_out[i] = q_n[i] + h * v
+        restitution_out[i] = e
+        approach_out[i] = approach
+        mass_eff_out[i] = m + damper
+
+    @wp.func
+    def add_vec(body_out: wp.array2d(dtype=scalar), b: int, slot: int, v: vec3):
+        for k in range(3):
+            wp.atomic_add(body_out, b, slot + k, v[k])
+
+    @wp.func
+    def get_vec(body: wp.array2d(dtype=scalar), b: int, slot: int):
+        return vec3(body[b, slot], body[b, slot + 1], body[b, slot + 2])
+
+    @wp.kernel(module="unique")
+    def measure_particle_restitution(
+        h: scalar,
+        # Model:
+        particle_body: wp.array(dtype=wp.int32),
+        body_reference: wp.array(dtype=wp.int32),
+        particle_mass: wp.array(dtype=scalar),
+        fixed: wp.array(dtype=wp.int32),
+        gravity: vec3,
+        # State: start of the step, the free result, and the constrained result with its forces
+        qd_n: wp.array(dtype=vec3),
+        q_free: wp.array(dtype=vec3),
+        qd_free: wp.array(dtype=vec3),
+        q: wp.array(dtype=vec3),
+        qd: wp.array(dtype=vec3),
+        f: wp.array(dtype=vec3),
+        # Colliding particles (constrain_contacts):
+        restitution: wp.array(dtype=scalar),
+        approach: wp.array(dtype=vec3),
+        # Out, per body (zeroed by the caller): the BODY_* sums
+        body_out: wp.array2d(dtype=scalar),
+    ):
+        i = wp.tid()
+        if fixed[i] != 0:
+            return
+        b = particle_body[i]
+        m = particle_mass[i]
+        x = q[i]
+        v = qd[i]
+        vf = qd_free[i]
+        # Kinetic and gravity energy the contact solve removed from the free result.
+        de = scalar(0.5) * m * (wp.dot(vf, vf) - wp.dot(v, v)) - m * wp.dot(gravity, q_free[i] - x)
+        wp.atomic_add(body_out, b, BODY_BUDGET, de)
+        wp.atomic_add(body_out, b, BODY_KINETIC, scalar(0.5) * m * wp.dot(vf, vf))
+        r = x - q[body_reference[b]]
+        add_vec(body_out, b, BODY_MOMENTUM, m * v)
+        add_vec(body_out, b, BODY_MOMENT, m * r)
+        add_vec(body_out, b, BODY_SECOND, vec3(m * r[0] * r[0], m * r[1] * r[1], m * r[2] * r[2]))
+        add_vec(body_out, b, BODY_SECOND + 3, vec3(m * r[0] * r[1], m * r[0] * r[2], m * r[1] * r[2]))
+        add_vec(body_out, b, BODY_ANGULAR, m * wp.cross(r, v))
+        wp.atomic_add(body_out, b, BODY_KINETIC_AFTER, scalar(0.5) * m * wp.dot(v, v))
+        add_vec(body_out, b, BODY_MOMENTUM_FREE, m * vf)
+        add_vec(body_out, b, BODY_ANGULAR_FREE, m * wp.cross(r, vf))
+        a = approach[i]
+        if wp.length_sq(a) > scalar(0.0):
+            # The contact impulse on the particle over the step: what backward Euler's equation
+            # m (v - v_n) = h (f(x, v) + m g) leaves unexplained; its normal part, times e.
+            nrm = wp.normalize(a)
+            impulse = m * (v - qd_n[i]) - h * (f[i] + m * gravity)
+            rj = (restitution[i] * wp.max(wp.dot(impulse, nrm), scalar(0.0))) * nrm
+            add_vec(body_out, b, BODY_IMPULSE, rj)
+            add_vec(body_out, b, BODY_TORQUE, wp.cross(r, rj))
+
+    @wp.kernel(module="unique")
+    def measure_spring_restitution(
+        # Model:
+        particle_body: wp.array(dtype=wp.int32),
+        spring_indices: wp.array(dtype=wp.vec2i),
+        spring_rest_length: wp.array(dtype=scalar),
+        spring_stiffness: wp.array(dtype=scalar),
+        # The free and the constrained result:
+        q_free: wp.array(dtype=vec3),
+        q: wp.array(dtype=vec3),
+        # Out, per body: the spring energy the contact solve removed, added to the budget
+        body_out: wp.array2d(dtype=scalar),
+    ):
+        tid = wp.tid()
+        pair = spring_indices[tid]
+        a = pair[0]
+        b = pair[1]
+        rest = spring_rest_length[tid]
+        stretch_free = wp.length(q_free[a] - q_free[b]) - rest
+        stretch = wp.length(q[a] - q[b]) - rest
+        de = scalar(0.5) * spring_stiffness[tid] * (stretch_free * stretch_free - stretch * stretch)
+        wp.atomic_add(body_out, particle_body[a], BODY_BUDGET, de)
+
+    @wp.kernel(module="unique")
+    def check_energy_budget(
+        tol: scalar,
+        body: wp.array2d(dtype=scalar),
+        gained_out: wp.array(dtype=wp.int32),
+    ):
+        # One thread per body: flag a contact solve that ended above the free result's energy by more
+        # than the CG tolerance's share of the kinetic energy (CG's error is relative to |b| ~ M v).
+        b = wp.tid()
+        if body[b, BODY_BUDGET] < -tol * body[b, BODY_KINETIC]:
+            gained_out[0] = 1
+
+    @wp.kernel(module="unique")
+    def apply_restitution(
+        particle_body: wp.array(dtype=wp.int32),
+        body_reference: wp.array(dtype=wp.int32),
+        fixed: wp.array(dtype=wp.int32),
+        body_mass: wp.array(dtype=scalar),
+        body: wp.array2d(dtype=scalar),
+        q: wp.array(dtype=vec3),
+        # In/out: the body's velocities gain one rigid velocity field
+        qd: wp.array(dtype=vec3),
+    ):
+        i = wp.tid()
+        if fixed[i] != 0:
+            return
+        b = particle_body[i]
+        jr = get_vec(body, b, BODY_IMPULSE)
+        if wp.length_sq(jr) == scalar(0.0):
+            return
+        mass = body_mass[b]
+        if mass == scalar(0.0):
+            return
+        identity = wp.identity(n=3, dtype=scalar)
+        c = get_vec(body, b, BODY_MOMENT) / mass  # centre of mass, relative to the reference
+        sq = get_vec(body, b, BODY_SECOND)
+        off = get_vec(body, b, BODY_SECOND + 3)
+        second = mat33(sq[0], off[0], off[1], off[0], sq[1], off[2], off[1], off[2], sq[2])
+        second = second - mass * wp.outer(c, c)  # about the centre of mass
+        inertia = wp.trace(second) * identity - second
+        momentum = get_vec(body, b, BODY_MOMENTUM)
+        angular = get_vec(body, b, BODY_ANGULAR) - wp.cross(c, momentum)
+        torque = get_vec(body, b, BODY_TORQUE) - wp.cross(c, jr)
+        # Poisson's restitution for the body as a rigid whole: the impulses e_i J_i at the contact
+        # points change its velocity by dV = sum / M and its angular velocity by I^-1 torque. A rigid
+        # field strains no spring. (A body with a singular inertia, a single particle or a line of
+        # them, gets the linear part only.)
+        dv = jr / mass
+        dw = vec3(scalar(0.0))
+        inv_inertia = mat33(scalar(0.0))
+        tr = wp.trace(inertia)
+        if wp.determinant(inertia) > scalar(1.0e-9) * tr * tr * tr:
+            inv_inertia = wp.inverse(inertia)
+            dw = inv_inertia * torque
+        # Poisson's law is a rigid-body law: it applies to the part of the impact the body took
+        # as a rigid body. The part it took by deforming (the deformation kinetic energy the
+        # contact solve created, against the kinetic energy it removed) comes back, or not,
+        # through its springs; a restitution kick on top of that makes the contact chatter: the
+        # kicked particles are pushed back into the ground by the springs and collide again
+        # (a soft jelly lost 45 % of its rebound speed that way at dt = 4e-4).
+        momentum_free = get_vec(body, b, BODY_MOMENTUM_FREE)
+        angular_free = get_vec(body, b, BODY_ANGULAR_FREE) - wp.cross(c, momentum_free)
+        kinetic_free = body[b, BODY_KINETIC]
+        kinetic_after = body[b, BODY_KINETIC_AFTER]
+        rigid_free = scalar(0.5) * (
+            wp.dot(momentum_free, momentum_free) / mass + wp.dot(angular_free, inv_inertia * angular_free)
+        )
+        rigid_after = scalar(0.5) * (wp.dot(momentum, momentum) / mass + wp.dot(angular, inv_inertia * angular))
+        deformation = (kinetic_after - rigid_after) - (kinetic_free - rigid_free)
+        removed = kinetic_free - kinetic_after
+        rigid_share = scalar(0.0)
+        if removed > scalar(0.0):
+            rigid_share = wp.clamp(scalar(1.0) - deformation / removed, scalar(0.0), scalar(1.0))
+        dv = rigid_share * dv
+        dw = rigid_share * dw
+        # The field s (dV + dw x r) changes the kinetic energy by exactly s lin + s^2 quad, with
+        # lin = P.dV + L.dw and quad = (M |dV|^2 + dw.I dw) / 2. s <= 1 is capped so that this is at
+        # most the energy the contact solve removed from the free result (the budget), so the step
+        # never ends above the free result's energy, which backward Euler keeps below E_n.
+        lin = wp.dot(momentum, dv) + wp.dot(angular, dw)
+        quad = scalar(0.5) * (mass * wp.dot(dv, dv) + wp.dot(dw, inertia * dw))
+        budget = wp.max(body[b, BODY_BUDGET], scalar(0.0))
+        s = scalar(1.0)
+        if quad > scalar(0.0):
+            s_max = (wp.sqrt(lin * lin + scalar(4.0) * quad * budget) - lin) / (scalar(2.0) * quad)
+            s = wp.clamp(s_max, scalar(0.0), scalar(1.0))
+        r = q[i] - q[body_reference[b]] - c
+        qd[i] = qd[i] + s * (dv + wp.cross(dw, r))
 
     @wp.kernel(module="unique")
     def constrain_last_system(
         n: int,
+        block_jacobi: int,
         particle_mass: wp.array(dtype=scalar),
+        mass_eff: wp.array(dtype=scalar),
+        fixed: wp.array(dtype=wp.int32),
         filters: wp.array(dtype=mat33),
-        rhs: wp.array(dtype=vec3),
+        diag_block: wp.array(dtype=mat33),
         # The last solve's result and the constrained iterate (constrain_contacts):
         qd_free: wp.array(dtype=vec3),
         qd_iter: wp.array(dtype=vec3),
         # In/out: the last solve's dv becomes the initial guess holding the prescribed parts;
-        # the preconditioner gets filtered
+        # b gains the friction dampers' -c v_k, and the preconditioner their c (filtered)
         x: wp.array(dtype=vec3),
+        rhs: wp.array(dtype=vec3),
         precond: wp.array(dtype=mat33),
         # Out: the iterate the last system is relative to, M x0, b.b of the free part
         qd_k_out: wp.array(dtype=vec3),
@@ -307,13 +653,19 @@ def build(scalar):
             sf = filters[i]
             dv = x[i]
             v_free = qd_free[i]
-            qd_k_out[i] = v_free - dv
+            v_k = v_free - dv
+            qd_k_out[i] = v_k
             # The prescribed velocity differs from the solve's only in constrained directions.
             x0 = dv + (qd_iter[i] - v_free)
             x[i] = x0
-            precond[i] = sf * precond[i] * sf
-            ax_out[i] = particle_mass[i] * x0
-            b = sf * rhs[i]
+            damper = mass_eff[i] - particle_mass[i]
+            pre = mat33(scalar(0.0))
+            if fixed[i] == 0:
+                pre = invert_block(diag_block[i] + damper * wp.identity(n=3, dtype=scalar), block_jacobi)
+            precond[i] = sf * pre * sf
+            ax_out[i] = mass_eff[i] * x0
+            b = sf * (rhs[i] - damper * v_k)
+            rhs[i] = b
             bb = wp.dot(b, b)
         total = wp.tile_sum(wp.tile(bb))
         wp.tile_atomic_add(scalars_out, total, offset=BB)
@@ -336,14 +688,8 @@ def build(scalar):
         quad = scalar(0.0)
         if tid < count:
             pair = spring_indices[tid]
-            a = pair[0]
-            b = pair[1]
             # Rows of constrained directions get values too; the filter drops them.
-            delta = p[a] - p[b]
-            t = spring_block[tid] * delta
-            wp.atomic_add(y_out, a, t)
-            wp.atomic_sub(y_out, b, t)
-            quad = wp.dot(delta, t)
+            quad = add_spring_product(spring_block[tid], p, pair[0], pair[1], y_out)
         total = wp.tile_sum(wp.tile(quad))
         wp.tile_atomic_add(scalars_out, total, offset=slot)
 
@@ -380,11 +726,15 @@ def build(scalar):
     def cg_begin(
         tol: scalar,
         max_iterations: int,
+        step_bb: wp.array(dtype=scalar),
         scalars: wp.array(dtype=scalar),
         ints: wp.array(dtype=wp.int32),
     ):
-        # One thread: tolerance from |b|, first r.z and r.r, and the loop condition.
-        tol2 = tol * tol * scalars[BB]
+        # One thread: tolerance, first r.z and r.r, and the loop condition. The tolerance is
+        # relative to the larger of |b| and the step's first |b| (set_step_scale): a later solve of
+        # the step (a Newton correction, the contact solve) only refines the first one's dv, and
+        # needs its absolute accuracy, not a relative one on its own, smaller right-hand side.
+        tol2 = tol * tol * wp.max(scalars[BB], step_bb[0])
         scalars[TOL2] = tol2
         scalars[RZ] = scalars[RZ_NEW]
         scalars[RR] = scalars[RR_NEW]
@@ -394,6 +744,11 @@ def build(scalar):
         scalars[BETA] = scalar(0.0)
         ints[ITER] = 0
         ints[COND] = wp.where(scalars[RR] > tol2 and max_iterations > 0, 1, 0)
+
+    @wp.kernel(module="unique")
+    def set_step_scale(scalars: wp.array(dtype=scalar), step_bb: wp.array(dtype=scalar)):
+        # One thread: the first solve's b.b sets the step's scale for the tolerance.
+        step_bb[0] = scalars[BB]
 
     @wp.kernel(module="unique")
     def cg_direction(
@@ -547,14 +902,19 @@ def build(scalar):
     @wp.kernel(module="unique")
     def assemble_bsr_diagonal(
         fixed: wp.array(dtype=wp.int32),
+        particle_mass: wp.array(dtype=scalar),
+        mass_eff: wp.array(dtype=scalar),
         diag_block: wp.array(dtype=mat33),
         diag_index: wp.array(dtype=wp.int32),
         values_out: wp.array(dtype=mat33),
     ):
         i = wp.tid()
+        identity = wp.identity(n=3, dtype=scalar)
         # A fixed particle's row and column are eliminated: an identity block (and rhs 0) keeps
-        # the assembled matrix nonsingular for solvers that do not filter.
-        values_out[diag_index[i]] = wp.where(fixed[i] != 0, wp.identity(n=3, dtype=scalar), diag_block[i])
+        # the assembled matrix nonsingular for solvers that do not filter. The friction damper
+        # enters as c I: the filter keeps only its tangential part, as in the matrix-free product.
+        d = diag_block[i] + (mass_eff[i] - particle_mass[i]) * identity
+        values_out[diag_index[i]] = wp.where(fixed[i] != 0, identity, d)
 
     @wp.kernel(module="unique")
     def assemble_bsr_offdiagonal(
@@ -580,9 +940,14 @@ def build(scalar):
         "build_system": build_system,
         "constrain_contacts": constrain_contacts,
         "constrain_last_system": constrain_last_system,
+        "measure_particle_restitution": measure_particle_restitution,
+        "measure_spring_restitution": measure_spring_restitution,
+        "check_energy_budget": check_energy_budget,
+        "apply_restitution": apply_restitution,
         "spring_mv": spring_mv,
         "init_residual": init_residual,
         "cg_begin": cg_begin,
+        "set_step_scale": set_step_scale,
         "cg_direction": cg_direction,
         "dot_accumulate": dot_accumulate,
         "cg_update": cg_update,

@@ -47,20 +47,29 @@ layer back by those 3 cm, and springs squeezed by half a lattice spacing invert 
 ks = 1e5 the jelly_drop jelly ended with 4e4 J of spring energy from 10 J). So a step with
 contact goes on after the free solve (Baraff and Witkin's constraints, section 5 of the paper):
 
-1. the response runs on the free result; every particle it changed becomes constrained. Where it
-   only changed the normal velocity of a particle touching one plane (a collision), the normal
-   velocity is prescribed and the tangential one left free; where friction acted (resting
-   contact), or the particle touches several planes or another primitive, its whole velocity is.
-   A colliding particle's normal velocity is prescribed as 0, not reflected: the impact is
-   inelastic, restitution is not reproduced. (Reflected velocities prescribed on a few particles
-   of a stiff lattice act as velocity sources and added up to 40 J to the 10 J jelly; applying
-   Poisson's restitution impulse as point forces excited local modes and added more.)
+1. the response runs on the free result; every particle it changed becomes constrained along
+   the normal of the surface it touches (or, with several surfaces or a contact hook, the
+   direction the response pushed it): its normal velocity is prescribed (0 for an approaching
+   particle: the compression phase of an impact), its tangential velocity is left to the solve.
+   Where the response applied friction, the particle gets a tangential damper in the solve
+   instead (kernels/implicit.py: constrain_contacts). Prescribed normal velocities of 0 take no
+   work from the constraint impulses, so the step stays dissipative. (Prescribing whole
+   velocities, as before, made a curved contact patch a velocity source: +1e4 J in a frame of
+   seed_bowl at ks = 1e5; reflected velocities on a few particles of a stiff lattice added up to
+   40 J to the 10 J jelly_drop jelly.)
 2. The last linear system is solved again with these constraints: it is linearised where the
    free solve ended, close to the answer.
 3. ``newton_iterations`` Newton iterations re-linearise at the result: an impact can turn the jelly
-   by ~0.1 rad in one step, which a single linearisation turns into spring stretch.
+   by ~0.1 rad in one step, which a single linearisation turns into spring stretch. Up to
+   ``EXTRA_CONTACT_ITERATIONS`` more run, only when the result's energy is above the free
+   result's (measured per body on the device).
+4. Restitution (Poisson's hypothesis): each body (a jelly, or a particle outside every jelly)
+   receives e_i times the normal contact impulse of each colliding particle as a rigid-body
+   impulse (one velocity and angular velocity change for all its particles, which strains no
+   spring), scaled down if needed so that it returns at most the energy the contact solve
+   removed: E_{n+1} <= E_free <= E_n.
 
-The springs carry the impact through the whole jelly in the step it happens. Steps 2 and 3 run
+The springs carry the impact through the whole jelly in the step it happens. Steps 2 to 4 run
 under ``wp.capture_if`` on a device flag set when anything touched, so a step without contact pays
 only for the response and one small kernel. The response then runs once more on the final state,
 as the post-step impulse every integrator gets.
@@ -88,10 +97,23 @@ DEFAULT_NEWTON_ITERATIONS = 1
 DEFAULT_CG_TOLERANCE = 1.0e-4
 DEFAULT_CG_MAX_ITERATIONS = 200
 DEFAULT_LINEARIZATION = "predictor"
+# Newton iterations a contact solve may add when it ended above the free result's energy.
+EXTRA_CONTACT_ITERATIONS = 2
 
 
 def _blocks(count: int) -> int:
     return (count + ki.TILE - 1) // ki.TILE
+
+
+def _particle_bodies(model: Model) -> np.ndarray:
+    """Body index of each particle: its jelly's index, or a body of its own outside every jelly."""
+    n = model.particle_count
+    body = np.full(n, -1, dtype=np.int64)
+    for j, info in enumerate(model.jellies):
+        body[info.particle_start : info.particle_start + info.particle_count] = j
+    loose = body < 0
+    body[loose] = len(model.jellies) + np.arange(int(loose.sum()))
+    return body.astype(np.int32)
 
 
 class ImplicitIntegrator(Integrator):
@@ -101,7 +123,8 @@ class ImplicitIntegrator(Integrator):
         model: the model to advance.
         newton_iterations: linear solves per step (before the contact solve); more iterate
             Newton's method towards the exact backward Euler step.
-        cg_tolerance: CG stops when ``|b - A dv| <= cg_tolerance |b|`` (2-norms over free rows).
+        cg_tolerance: CG stops when ``|b - A dv| <= cg_tolerance max(|b|, |b_1|)`` (2-norms over free
+            rows; b_1 is the right-hand side of the step's first solve).
         cg_max_iterations: iteration cap of each CG solve.
         linearization: ``"predictor"`` (Newton from v_n, forces linearised about x_n + h v_n) or
             ``"baraff_witkin"`` (the first solve linearises about x_n); see the module docstring.
@@ -113,6 +136,8 @@ class ImplicitIntegrator(Integrator):
             are kept for the benchmark comparison: matrix-free is the fastest. ``"warp_cg"`` has no
             constraint filter, so it skips the contact solve (contact is the post-step response
             only).
+        warm_start: start each step's first solve from the last step's dv (gravity part
+            updated to this step) instead of 0; off only to measure what it saves.
     """
 
     name = "implicit"
@@ -126,6 +151,7 @@ class ImplicitIntegrator(Integrator):
         linearization: str = DEFAULT_LINEARIZATION,
         preconditioner: str = "block_jacobi",
         solver: str = "matrix_free",
+        warm_start: bool = True,
     ):
         super().__init__(model)
         # x_{n+1} = x_n + h v_{n+1}: a force held over the step moves x by h^2 a (contact gain 1).
@@ -148,6 +174,7 @@ class ImplicitIntegrator(Integrator):
         self.linearization = linearization
         self.preconditioner = preconditioner
         self.solver = solver
+        self.warm_start = bool(warm_start)
 
         device = model.device
         scalar, vec3 = model.scalar, model.vec3
@@ -162,6 +189,7 @@ class ImplicitIntegrator(Integrator):
         self.rhs = vectors()
         self.x = vectors()
         self.dv_warm = vectors()
+        self.step_bb = wp.zeros(1, dtype=scalar, device=device)  # b.b of the step's first solve
         self.r = vectors()
         self.z = vectors()
         self.p = vectors()
@@ -177,13 +205,31 @@ class ImplicitIntegrator(Integrator):
         fixed = (model.particle_inv_mass.numpy() == 0).astype(np.int32)
         self.fixed = wp.array(fixed, dtype=wp.int32, device=device)
         self.filters = wp.zeros(n, dtype=self.mat33, device=device)
-        self.contact_solve = bool(model.plane_count or getattr(model, "contact_hooks", ())) and solver != "warp_cg"
+        terrain = model.plane_count or model.bowl_count or model.sphere_count or getattr(model, "contact_hooks", ())
+        self.contact_solve = bool(terrain) and solver != "warp_cg"
         if self.contact_solve:
             # The step's result before the contact response, and the iterate of the last solve.
             self.q_free = vectors()
             self.qd_free = vectors()
             self.qd_k = vectors()
             self.any_contact = wp.zeros(1, dtype=wp.int32, device=device)
+            # Restitution acts on bodies: each jelly, and each particle outside a jelly.
+            body = _particle_bodies(model)
+            body_count = int(body.max()) + 1 if n else 0
+            body_mass = np.bincount(body, weights=model.particle_mass_host, minlength=body_count)
+            # A body held by a fixed particle cannot move rigidly: no restitution impulse (mass 0).
+            body_mass[np.unique(body[fixed != 0])] = 0.0
+            self.particle_body = wp.array(body, dtype=wp.int32, device=device)
+            _, first = np.unique(body, return_index=True)  # each body's first particle
+            self.body_reference = wp.array(first.astype(np.int32), dtype=wp.int32, device=device)
+            self.body_mass = wp.array(body_mass, dtype=scalar, device=device)
+            self.body_data = wp.zeros((body_count, ki.BODY_SLOTS), dtype=scalar, device=device)
+            self.contact_restitution = wp.zeros(n, dtype=scalar, device=device)
+            self.contact_approach = vectors()
+            self.energy_gained = wp.zeros(1, dtype=wp.int32, device=device)
+        # Mass plus the contact friction damper per particle (kernels/implicit.py: constrain_contacts);
+        # the plain mass outside the contact solve.
+        self.mass_eff = wp.clone(model.particle_mass) if self.contact_solve else model.particle_mass
         self._solve_graph = None
         self._loop_ran = False
         # On CUDA outside a capture, the PCG loop is captured once and replayed; that needs
@@ -266,7 +312,7 @@ class ImplicitIntegrator(Integrator):
         wp.launch(
             k.assemble_bsr_diagonal,
             dim=model.particle_count,
-            inputs=[self.fixed, self.diag_block, self.bsr_diag_index],
+            inputs=[self.fixed, model.particle_mass, self.mass_eff, self.diag_block, self.bsr_diag_index],
             outputs=[self.bsr.values],
             device=device,
         )
@@ -338,7 +384,7 @@ class ImplicitIntegrator(Integrator):
         wp.launch(
             k.cg_begin,
             dim=1,
-            inputs=[model.scalar(self.cg_tolerance), self.cg_max_iterations],
+            inputs=[model.scalar(self.cg_tolerance), self.cg_max_iterations, self.step_bb],
             outputs=[self.scalars, self.ints],
             device=device,
         )
@@ -348,7 +394,7 @@ class ImplicitIntegrator(Integrator):
                 k.cg_direction,
                 dim=(pblocks, ki.TILE),
                 block_dim=ki.TILE,
-                inputs=[n, int(matrix_free), model.particle_mass, self.z],
+                inputs=[n, int(matrix_free), self.mass_eff, self.z],
                 outputs=[self.p, self.ap, self.scalars],
                 device=device,
             )
@@ -476,12 +522,13 @@ class ImplicitIntegrator(Integrator):
             inputs=[
                 n,
                 h,
-                scalar(1.0) if first else scalar(0.0),
+                scalar(1.0) if first and self.warm_start else scalar(0.0),
                 int(self.preconditioner == "block_jacobi"),
                 int(reset_filters),
                 model.particle_mass,
                 model.gravity,
                 self.fixed,
+                self.mass_eff,
                 state_in.particle_qd,
                 qd,
                 self.f,
@@ -493,6 +540,8 @@ class ImplicitIntegrator(Integrator):
             outputs=[self.precond, self.x, self.ap, self.scalars],
             device=device,
         )
+        if first:
+            wp.launch(k.set_step_scale, dim=1, inputs=[self.scalars], outputs=[self.step_bb], device=device)
         self._solve()
         self._update(h, state_in, qd, state_out, first)
 
@@ -500,6 +549,8 @@ class ImplicitIntegrator(Integrator):
         model = self.model
         h = model.scalar(dt)
         baraff_witkin = self.linearization == "baraff_witkin"
+        if self.contact_solve:
+            wp.copy(self.mass_eff, model.particle_mass)
         if not baraff_witkin:
             # Newton's starting iterate v_0 = v_n, x_n + h v_0 (dv_scale 0: x holds no dv yet).
             self._update(h, state_in, state_in.particle_qd, state_out, False, dv_scale=0.0)
@@ -524,6 +575,7 @@ class ImplicitIntegrator(Integrator):
             inputs=[
                 h,
                 model.particle_world,
+                model.particle_mass,
                 self.fixed,
                 model.plane_count,
                 model.plane_world,
@@ -531,6 +583,15 @@ class ImplicitIntegrator(Integrator):
                 model.plane_normal,
                 model.plane_hole_center,
                 model.plane_hole_radius,
+                model.bowl_count,
+                model.bowl_world,
+                model.bowl_center,
+                model.bowl_radius,
+                model.bowl_cut_height,
+                model.sphere_count,
+                model.sphere_world,
+                model.sphere_center,
+                model.sphere_radius,
                 model.contact_epsilon,
                 state_in.particle_q,
                 self.q_free,
@@ -538,7 +599,15 @@ class ImplicitIntegrator(Integrator):
                 state_out.particle_q,
                 state_out.particle_qd,
             ],
-            outputs=[self.filters, state_out.particle_q, state_out.particle_qd, self.any_contact],
+            outputs=[
+                self.filters,
+                state_out.particle_q,
+                state_out.particle_qd,
+                self.any_contact,
+                self.contact_restitution,
+                self.contact_approach,
+                self.mass_eff,
+            ],
             device=model.device,
         )
 
@@ -553,8 +622,18 @@ class ImplicitIntegrator(Integrator):
                 model.kernels.constrain_last_system,
                 dim=(_blocks(n), ki.TILE),
                 block_dim=ki.TILE,
-                inputs=[n, model.particle_mass, self.filters, self.rhs, self.qd_free, state_out.particle_qd],
-                outputs=[self.x, self.precond, self.qd_k, self.ap, self.scalars],
+                inputs=[
+                    n,
+                    int(self.preconditioner == "block_jacobi"),
+                    model.particle_mass,
+                    self.mass_eff,
+                    self.fixed,
+                    self.filters,
+                    self.diag_block,
+                    self.qd_free,
+                    state_out.particle_qd,
+                ],
+                outputs=[self.x, self.rhs, self.precond, self.qd_k, self.ap, self.scalars],
                 device=model.device,
             )
             self._solve()
@@ -563,9 +642,104 @@ class ImplicitIntegrator(Integrator):
             # account (an impact can turn the jelly by ~0.1 rad in one step).
             for _ in range(self.newton_iterations):
                 self._newton_iteration(h, state_in, state_out, False, False, False)
+            self._measure_bodies(h, state_in, state_out)
+
+            # A contact solve should only remove energy from the free result. One linearisation
+            # can miss that when an impact turns a stiff jelly quickly (jelly_drop at ks = 1e5 gained
+            # 2.6 J in one step after a corner bounce); another Newton iteration, only then, fixes it.
+            def extra_iteration():
+                self._newton_iteration(h, state_in, state_out, False, False, False)
+                self._measure_bodies(h, state_in, state_out)
+
+            for _ in range(EXTRA_CONTACT_ITERATIONS):
+                wp.capture_if(self.energy_gained, extra_iteration)
+            self._apply_restitution(state_out)
 
         # Skipped on the device when nothing touched (a conditional graph node on CUDA).
         wp.capture_if(self.any_contact, constrained_iterations)
+
+    def _measure_bodies(self, h, state_in: State, state_out: State):
+        """Per body: the energy the contact solve removed from the free result, momentum, restitution impulse.
+
+        Sets ``energy_gained`` when some body ended the contact solve with more energy than the
+        free result, beyond the CG tolerance's share of its kinetic energy.
+        """
+        model = self.model
+        device = model.device
+        k = model.kernels
+        eval_forces(model, state_out.particle_q, state_out.particle_qd, self.f)
+        self.body_data.zero_()
+        self.energy_gained.zero_()
+        wp.launch(
+            k.measure_particle_restitution,
+            dim=model.particle_count,
+            inputs=[
+                h,
+                self.particle_body,
+                self.body_reference,
+                model.particle_mass,
+                self.fixed,
+                model.gravity,
+                state_in.particle_qd,
+                self.q_free,
+                self.qd_free,
+                state_out.particle_q,
+                state_out.particle_qd,
+                self.f,
+                self.contact_restitution,
+                self.contact_approach,
+            ],
+            outputs=[self.body_data],
+            device=device,
+        )
+        if model.spring_count:
+            wp.launch(
+                k.measure_spring_restitution,
+                dim=model.spring_count,
+                inputs=[
+                    self.particle_body,
+                    model.spring_indices,
+                    model.spring_rest_length,
+                    model.spring_stiffness,
+                    self.q_free,
+                    state_out.particle_q,
+                ],
+                outputs=[self.body_data],
+                device=device,
+            )
+        wp.launch(
+            k.check_energy_budget,
+            dim=self.body_data.shape[0],
+            inputs=[model.scalar(self.cg_tolerance), self.body_data],
+            outputs=[self.energy_gained],
+            device=device,
+        )
+
+    def _apply_restitution(self, state_out: State):
+        """Poisson's restitution for each body that collided in this step, as one common velocity change.
+
+        The contact solve stopped the colliding particles (the compression phase of the impact).
+        Per body, the restitution impulse is the sum of e_i times each colliding particle's contact
+        impulse (the residual of the backward Euler equation on it), along the approach-weighted
+        contact normal; it is given to every particle of the body alike, which strains no spring.
+        It is capped by the energy the contact solve removed from the free result, so the step
+        never ends above the free step's energy (see kernels/implicit.py: apply_restitution).
+        """
+        model = self.model
+        wp.launch(
+            model.kernels.apply_restitution,
+            dim=model.particle_count,
+            inputs=[
+                self.particle_body,
+                self.body_reference,
+                self.fixed,
+                self.body_mass,
+                self.body_data,
+                state_out.particle_q,
+            ],
+            outputs=[state_out.particle_qd],
+            device=model.device,
+        )
 
     def _record_step(self):
         model = self.model

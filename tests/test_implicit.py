@@ -185,12 +185,14 @@ def test_stiff_jelly_drop_is_stable_at_dt_0_01(device, ks):
     assert not result.exploded and result.frames_written == 51
     final = sim.state.particle_q.numpy()
     assert np.isfinite(final).all()
-    e0 = result.metrics[0].total_energy
-    for m in result.metrics:
-        # Nothing supplies energy: the contact is inelastic in the implicit step and friction only
-        # removes energy, so the total stays below the start. (The post-step response alone let
-        # springs squeezed by the impact invert the lattice: 4e4 J from 10 J at ks = 1e5.)
-        assert m.total_energy <= e0, (m.frame, m.total_energy, e0)
+    tol = integ.cg_tolerance
+    for prev, m in zip(result.metrics, result.metrics[1:], strict=False):
+        # Nothing supplies energy, so it never rises between frames: the contact solve's normal
+        # constraints do no work, friction is a damper, and the restitution impulse returns at
+        # most what the contact solve removed. Allowed: the CG tolerance's share of the energy
+        # (CG stops at |r| <= tol |b|). (The post-step response alone let springs squeezed by the
+        # impact invert the lattice: 4e4 J from 10 J at ks = 1e5.)
+        assert m.total_energy <= prev.total_energy + tol * abs(prev.total_energy), (m.frame, m.total_energy, prev)
         assert m.com[1] > 0.0
     # The jelly keeps its shape: no particle farther from the centre of mass than the half-diagonal
     # of the 0.5 m cube, plus a 5 % strain margin.
@@ -484,3 +486,89 @@ def test_bad_implicit_settings_are_one_line_errors(tmp_path, capsys, item, messa
     )
     err = capsys.readouterr().err.strip().splitlines()
     assert rc == 2 and len(err) == 1 and message in err[0], err
+
+
+def _falling_particle_rebound(restitution, h=0.01):
+    """(approach speed, rebound speed, tangential speed after) of one particle bouncing on a plane, implicit."""
+    b = ModelBuilder(gravity=(0.0, -9.8, 0.0))
+    b.add_particles([[0.0, 0.5, 0.0]], [[0.3, 0.0, 0.0]], 0.01)
+    b.add_plane((0.0, 0.0, 0.0), (0.0, 1.0, 0.0), restitution=restitution, friction=0.0)
+    model = b.finalize("cpu", "float64")
+    integ = ImplicitIntegrator(model)
+    s0, s1 = model.state(), model.state()
+    for _ in range(100):
+        integ.step(s0, s1, h)
+        v0, v1 = s0.particle_qd.numpy()[0], s1.particle_qd.numpy()[0]
+        if v1[1] > 0.0 > v0[1]:
+            # The approach velocity is the free step's, v_n + h g, as the response sees it.
+            return -(v0[1] - 9.8 * h), v1[1], v1[0]
+        s0, s1 = s1, s0
+    raise AssertionError("no bounce")
+
+
+@pytest.mark.parametrize("restitution", [0.3, 0.5, 0.8, 1.0])
+def test_free_particle_rebounds_with_restitution(restitution):
+    # One particle, no springs: the contact solve stops it (v_n = 0 at x_c = x_n + h v_c) and the
+    # restitution impulse gives it back e v_in, capped by the energy the contact solve removed:
+    # 1/2 m v_in^2 minus the gravity energy m g h v_in that stopping it above x_free costs. So
+    # v_out = min(e, sqrt(1 - 2 g h / v_in)) v_in; e = 1 hits the cap.
+    h = 0.01
+    v_in, v_out, v_t = _falling_particle_rebound(restitution, h)
+    expected = min(restitution, np.sqrt(1.0 - 2.0 * 9.8 * h / v_in)) * v_in
+    assert v_out == pytest.approx(expected, rel=1e-10)
+    assert v_t == pytest.approx(0.3, rel=1e-12)  # frictionless: the tangential velocity is kept
+
+
+def test_stiff_cube_flat_impact_converges_to_rigid_restitution():
+    # A 4x4x4 cube falling flat on a frictionless plane: as a rigid body it leaves with e v_in.
+    # Its springs yield within the step by a relative amount ~ m / (h^2 ks), so the error of the
+    # rebound falls as 1/ks: a tenth per decade of stiffness (measured 2.2e-2, 2.2e-3, 2.2e-4).
+    h, e, m = 0.01, 0.5, 0.01
+    errors = []
+    for ks in (1.0e4, 1.0e5, 1.0e6):
+        b = ModelBuilder(gravity=(0.0, -9.8, 0.0))
+        b.add_jelly((4, 4, 4), 0.3, m, {t: {"ks": ks, "kd": 0.1} for t in SPRING_TYPES}, center=(0.0, 0.3, 0.0))
+        b.add_plane((0.0, 0.0, 0.0), (0.0, 1.0, 0.0), restitution=e, friction=0.0)
+        model = b.finalize("cpu", "float64")
+        integ = ImplicitIntegrator(model, cg_tolerance=1.0e-10, cg_max_iterations=1000)
+        s0, s1 = model.state(), model.state()
+        for _ in range(40):
+            integ.step(s0, s1, h)
+            v0, v1 = s0.particle_qd.numpy()[:, 1].mean(), s1.particle_qd.numpy()[:, 1].mean()
+            if v1 > 0.0 > v0:
+                break
+            s0, s1 = s1, s0
+        v_in = -(v0 - 9.8 * h)
+        errors.append(abs(v1 / (e * v_in) - 1.0))
+        assert errors[-1] <= 5.0 * m / (h * h * ks), (ks, errors)
+    orders = np.log10(np.array(errors[:-1]) / np.array(errors[1:]))
+    assert np.all(np.abs(orders - 1.0) <= 0.2), (errors, orders)
+
+
+def test_stiff_seed_bowl_is_stable_at_dt_0_01():
+    # seed_bowl (a 1000 kg, 4 m jelly onto a plane with a hole, then into the bowl below;
+    # restitution 0.8, friction 0.2) with every spring at ks = 1e5, 5 s at dt = 0.01 (euler fails
+    # above 6.1e-4 s here, docs/IMPLICIT.md). Whole-velocity contact constraints used to make the bowl's
+    # curved contact patch a velocity source: +1e4 J in a frame.
+    scene = load_scene("seed_bowl", _stiff_overrides(1.0e5))
+    model = build_model(scene, "cpu")
+    integ = make_integrator("implicit", model)
+    sim = Simulator(model, integ, dt=0.01, fps=10.0, frames=50)
+    result = sim.run()
+    assert not result.exploded
+    q = sim.state.particle_q.numpy()
+    assert np.isfinite(q).all()
+    tol = integ.cg_tolerance
+    for prev, m in zip(result.metrics, result.metrics[1:], strict=False):
+        # No work is done on the jelly (see test_stiff_jelly_drop_is_stable_at_dt_0_01).
+        assert m.total_energy <= prev.total_energy + tol * abs(prev.total_energy), (m.frame, m.total_energy, prev)
+    bowl = scene.data["bowl"][0]
+    hole = scene.data["plane"][0]["hole"]
+    # It ends in the bowl: its centre of mass over the hole, no particle through the bowl's shell.
+    com = result.metrics[-1].com
+    offset = np.array(com) - np.array(hole["center"])
+    assert np.hypot(offset[0], offset[2]) < hole["radius"]
+    below = q[:, 1] < 0.0
+    assert below.any()
+    dist = np.linalg.norm(q[below] - np.array(bowl["center"]), axis=1)
+    assert dist.max() <= bowl["radius"] + model.contact_epsilon
