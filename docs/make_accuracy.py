@@ -34,11 +34,11 @@ CASES = {
                                "--dts 4e-3,2e-3,1e-3,5e-4,2.5e-4,1.25e-4,6.25e-5 --reference-dt 1.5e-5"),
     "free_flight_f32": ("cpu", "accuracy free_flight --precision float32 --duration 1 "
                                "--dts 4e-3,2e-3,1e-3,5e-4,2.5e-4,1.25e-4,6.25e-5 --reference-dt 1.5e-5"),
-    "jelly_drop": ("cpu", "accuracy jelly_drop --duration 0.5 --dts 1.6e-3,8e-4,4e-4,2e-4,1e-4 --reference-dt 1e-5"),
-    "jelly_drop_1s": ("cpu", "accuracy jelly_drop --duration 1 --dts 8e-4,4e-4,2e-4,1e-4 --reference-dt 2e-5"),
+    "jelly_drop": ("cpu", "accuracy jelly_drop --duration 0.5 --dts 1.6e-3,8e-4,4e-4,2e-4,1e-4 --reference-dt 5e-6"),
+    "jelly_drop_1s": ("cpu", "accuracy jelly_drop --duration 1 --dts 8e-4,4e-4,2e-4,1e-4 --reference-dt 1e-5"),
     "jelly_drop_cuda": ("cuda", "accuracy jelly_drop --duration 0.5 --dts 1.6e-3,8e-4,4e-4,2e-4,1e-4 "
-                                "--reference-dt 1e-5"),
-    "seed_bowl": ("cpu", "accuracy seed_bowl --duration 3 --dts 2e-3,1e-3,5e-4,2.5e-4 --reference-dt 5e-5"),
+                                "--reference-dt 5e-6"),
+    "seed_bowl": ("cpu", "accuracy seed_bowl --duration 3 --dts 2e-3,1e-3,5e-4,2.5e-4 --reference-dt 2.5e-5"),
     "stability_free_flight": ("cpu", "stability free_flight"),
     "stability_jelly_drop": ("cpu", "stability jelly_drop --duration 0.5"),
 }
