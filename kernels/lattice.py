@@ -388,25 +388,11 @@ return 1.0f / wp::sqrt(x);
         )
         if with_contact != 0 and particle_inv_mass[i] != scalar(0.0):
             w = particle_world[i]
-            # On the last stage, plane contact on the step's result, as collide_planes does after
-            # the step; before it, the next stage state's resting contacts, as
-            # integrators.filter_stage_contacts does between stages (velocities only, no gain).
-            if last or stage < world_stage_count[w] - 1:
-                x = vec3(scalar(0.0))
-                v = vec3(scalar(0.0))
-                beta_h = scalar(0.0)
-                mode = 1
-                if last:
-                    x = q_out[i]
-                    v = qd_out[i]
-                    beta_h = h * world_contact_beta[w]
-                    mode = 0
-                else:
-                    x = q_next_out[i]
-                    v = qd_next_out[i]
+            if last:
+                # Plane contact on the step's result, as collide_planes does after the step.
                 x, v = contact_planes(
-                    x,
-                    v,
+                    q_out[i],
+                    qd_out[i],
                     qd_n[i],
                     w,
                     plane_count,
@@ -420,15 +406,36 @@ return 1.0f / wp::sqrt(x);
                     eps,
                     eps_v,
                     rest_steps,
-                    beta_h,
-                    mode,
+                    h * world_contact_beta[w],
+                    0,
                 )
-                if last:
-                    q_out[i] = x
-                    qd_out[i] = v
-                else:
-                    q_next_out[i] = x
-                    qd_next_out[i] = v
+                q_out[i] = x
+                qd_out[i] = v
+            elif stage < world_stage_count[w] - 1:
+                # The next stage state's resting contacts, as integrators.filter_stage_contacts
+                # does between stages (velocities only; h = 0: no position gain). Two calls rather
+                # than one on selected inputs: the single call measured 4 % slower on an H200.
+                x, v = contact_planes(
+                    q_next_out[i],
+                    qd_next_out[i],
+                    qd_n[i],
+                    w,
+                    plane_count,
+                    plane_world,
+                    plane_point,
+                    plane_normal,
+                    plane_hole_center,
+                    plane_hole_radius,
+                    plane_restitution,
+                    plane_friction,
+                    eps,
+                    eps_v,
+                    rest_steps,
+                    scalar(0.0),
+                    1,
+                )
+                q_next_out[i] = x
+                qd_next_out[i] = v
 
     @wp.func_native(_rows_snippet("float" if scalar == wp.float32 else "double"))
     def lattice_rows_native(
