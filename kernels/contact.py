@@ -129,8 +129,7 @@ def build(scalar):
         v: vec3,
         v_prev: vec3,
         w: int,
-        plane_count: int,
-        plane_world: wp.array(dtype=wp.int32),
+        plane_first: wp.array(dtype=wp.int32),
         plane_point: wp.array(dtype=vec3),
         plane_normal: wp.array(dtype=vec3),
         plane_hole_center: wp.array(dtype=vec3),
@@ -147,24 +146,24 @@ def build(scalar):
 
         Shared by ``collide_planes`` and the fused last stage of the lattice path.
         """
-        for p in range(plane_count):
-            if plane_world[p] == w:
-                n = plane_normal[p]
-                phi = plane_distance(x, plane_point[p], n, plane_hole_center[p], plane_hole_radius[p])
-                x, v = resolve_contact(
-                    x,
-                    v,
-                    wp.dot(n, v_prev),
-                    phi,
-                    n,
-                    plane_restitution[p],
-                    plane_friction[p],
-                    eps,
-                    eps_v,
-                    rest_steps,
-                    beta_h,
-                    stage,
-                )
+        # The planes of world w are plane_first[w] .. plane_first[w + 1] - 1 (sorted by world).
+        for p in range(plane_first[w], plane_first[w + 1]):
+            n = plane_normal[p]
+            phi = plane_distance(x, plane_point[p], n, plane_hole_center[p], plane_hole_radius[p])
+            x, v = resolve_contact(
+                x,
+                v,
+                wp.dot(n, v_prev),
+                phi,
+                n,
+                plane_restitution[p],
+                plane_friction[p],
+                eps,
+                eps_v,
+                rest_steps,
+                beta_h,
+                stage,
+            )
         return x, v
 
     # -- Bowls and spheres ----------------------------------------------------------------------
@@ -206,8 +205,7 @@ def build(scalar):
         x_prev: vec3,
         v_prev: vec3,
         w: int,
-        bowl_count: int,
-        bowl_world: wp.array(dtype=wp.int32),
+        bowl_first: wp.array(dtype=wp.int32),
         bowl_center: wp.array(dtype=vec3),
         bowl_radius: wp.array(dtype=scalar),
         bowl_cut_height: wp.array(dtype=scalar),
@@ -220,31 +218,31 @@ def build(scalar):
         stage: int,
     ):
         """One particle of world ``w`` against every bowl of that world; returns the new (x, v)."""
-        for b in range(bowl_count):
-            if bowl_world[b] == w:
-                c = bowl_center[b]
-                radius = bowl_radius[b]
-                # The bowl holds what is inside it: a particle that began the step outside the
-                # sphere (beyond the contact layer and float rounding of a corrected position) is
-                # behind the shell and passes, instead of being pulled through the wall to the inside.
-                phi_out, n_out = sphere_distance(x_prev, c, radius)
-                if phi_out <= eps + radius * scalar(1.0e-4):
-                    phi, n = bowl_distance(x, c, radius, bowl_cut_height[b])
-                    # The bowl's normal at the step's start is the sphere's, turned inward.
-                    x, v = resolve_contact(
-                        x,
-                        v,
-                        -wp.dot(n_out, v_prev),
-                        phi,
-                        n,
-                        bowl_restitution[b],
-                        bowl_friction[b],
-                        eps,
-                        eps_v,
-                        rest_steps,
-                        beta_h,
-                        stage,
-                    )
+        # The bowls of world w are bowl_first[w] .. bowl_first[w + 1] - 1 (sorted by world).
+        for b in range(bowl_first[w], bowl_first[w + 1]):
+            c = bowl_center[b]
+            radius = bowl_radius[b]
+            # The bowl holds what is inside it: a particle that began the step outside the
+            # sphere (beyond the contact layer and float rounding of a corrected position) is
+            # behind the shell and passes, instead of being pulled through the wall to the inside.
+            phi_out, n_out = sphere_distance(x_prev, c, radius)
+            if phi_out <= eps + radius * scalar(1.0e-4):
+                phi, n = bowl_distance(x, c, radius, bowl_cut_height[b])
+                # The bowl's normal at the step's start is the sphere's, turned inward.
+                x, v = resolve_contact(
+                    x,
+                    v,
+                    -wp.dot(n_out, v_prev),
+                    phi,
+                    n,
+                    bowl_restitution[b],
+                    bowl_friction[b],
+                    eps,
+                    eps_v,
+                    rest_steps,
+                    beta_h,
+                    stage,
+                )
         return x, v
 
     @wp.func
@@ -254,8 +252,7 @@ def build(scalar):
         x_prev: vec3,
         v_prev: vec3,
         w: int,
-        sphere_count: int,
-        sphere_world: wp.array(dtype=wp.int32),
+        sphere_first: wp.array(dtype=wp.int32),
         sphere_center: wp.array(dtype=vec3),
         sphere_radius: wp.array(dtype=scalar),
         sphere_restitution: wp.array(dtype=scalar),
@@ -267,31 +264,31 @@ def build(scalar):
         stage: int,
     ):
         """One particle of world ``w`` against every solid sphere of that world; returns the new (x, v)."""
-        for s in range(sphere_count):
-            if sphere_world[s] == w:
-                c = sphere_center[s]
-                radius = sphere_radius[s]
-                phi, n = sphere_distance(x, c, radius)
-                phi_prev, n_prev = sphere_distance(x_prev, c, radius)
-                x, v = resolve_contact(
-                    x,
-                    v,
-                    wp.dot(n_prev, v_prev),
-                    phi,
-                    n,
-                    sphere_restitution[s],
-                    sphere_friction[s],
-                    eps,
-                    eps_v,
-                    rest_steps,
-                    beta_h,
-                    stage,
-                )
+        # The spheres of world w are sphere_first[w] .. sphere_first[w + 1] - 1 (sorted by world).
+        for s in range(sphere_first[w], sphere_first[w + 1]):
+            c = sphere_center[s]
+            radius = sphere_radius[s]
+            phi, n = sphere_distance(x, c, radius)
+            phi_prev, n_prev = sphere_distance(x_prev, c, radius)
+            x, v = resolve_contact(
+                x,
+                v,
+                wp.dot(n_prev, v_prev),
+                phi,
+                n,
+                sphere_restitution[s],
+                sphere_friction[s],
+                eps,
+                eps_v,
+                rest_steps,
+                beta_h,
+                stage,
+            )
         return x, v
 
     # -- Kernels: one per primitive kind, so a scene launches only the kinds it has -------------
     # integrators.apply_contacts launches them all alike: (particle_inv_mass, particle_world,
-    # count, the kind's arrays..., eps, eps_v, rest_steps, h, world_contact_beta, q_prev, qd_prev)
+    # the kind's arrays (first per world, then its parameters)..., eps, eps_v, rest_steps, h, world_contact_beta, q_prev, qd_prev)
     # in, (q_out, qd_out) corrected in place; each thread touches only its own particle.
 
     @wp.kernel(module="unique")
@@ -299,8 +296,7 @@ def build(scalar):
         # Model:
         particle_inv_mass: wp.array(dtype=scalar),
         particle_world: wp.array(dtype=wp.int32),
-        plane_count: int,
-        plane_world: wp.array(dtype=wp.int32),
+        plane_first: wp.array(dtype=wp.int32),
         plane_point: wp.array(dtype=vec3),
         plane_normal: wp.array(dtype=vec3),
         plane_hole_center: wp.array(dtype=vec3),
@@ -328,8 +324,7 @@ def build(scalar):
                 qd_out[i],
                 qd_prev[i],
                 w,
-                plane_count,
-                plane_world,
+                plane_first,
                 plane_point,
                 plane_normal,
                 plane_hole_center,
@@ -350,8 +345,7 @@ def build(scalar):
         # Model:
         particle_inv_mass: wp.array(dtype=scalar),
         particle_world: wp.array(dtype=wp.int32),
-        bowl_count: int,
-        bowl_world: wp.array(dtype=wp.int32),
+        bowl_first: wp.array(dtype=wp.int32),
         bowl_center: wp.array(dtype=vec3),
         bowl_radius: wp.array(dtype=scalar),
         bowl_cut_height: wp.array(dtype=scalar),
@@ -379,8 +373,7 @@ def build(scalar):
                 q_prev[i],
                 qd_prev[i],
                 w,
-                bowl_count,
-                bowl_world,
+                bowl_first,
                 bowl_center,
                 bowl_radius,
                 bowl_cut_height,
@@ -400,8 +393,7 @@ def build(scalar):
         # Model:
         particle_inv_mass: wp.array(dtype=scalar),
         particle_world: wp.array(dtype=wp.int32),
-        sphere_count: int,
-        sphere_world: wp.array(dtype=wp.int32),
+        sphere_first: wp.array(dtype=wp.int32),
         sphere_center: wp.array(dtype=vec3),
         sphere_radius: wp.array(dtype=scalar),
         sphere_restitution: wp.array(dtype=scalar),
@@ -428,8 +420,7 @@ def build(scalar):
                 q_prev[i],
                 qd_prev[i],
                 w,
-                sphere_count,
-                sphere_world,
+                sphere_first,
                 sphere_center,
                 sphere_radius,
                 sphere_restitution,

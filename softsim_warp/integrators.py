@@ -104,7 +104,7 @@ def _launch_contacts(model: Model, state_in: State, q_out, qd_out, h, world_cont
             model.plane_count if planes else 0,
             model.kernels.collide_planes,
             (
-                model.plane_world,
+                model.plane_first,
                 model.plane_point,
                 model.plane_normal,
                 model.plane_hole_center,
@@ -117,7 +117,7 @@ def _launch_contacts(model: Model, state_in: State, q_out, qd_out, h, world_cont
             model.bowl_count,
             model.kernels.collide_bowls,
             (
-                model.bowl_world,
+                model.bowl_first,
                 model.bowl_center,
                 model.bowl_radius,
                 model.bowl_cut_height,
@@ -129,7 +129,7 @@ def _launch_contacts(model: Model, state_in: State, q_out, qd_out, h, world_cont
             model.sphere_count,
             model.kernels.collide_spheres,
             (
-                model.sphere_world,
+                model.sphere_first,
                 model.sphere_center,
                 model.sphere_radius,
                 model.sphere_restitution,
@@ -145,7 +145,6 @@ def _launch_contacts(model: Model, state_in: State, q_out, qd_out, h, world_cont
                 inputs=[
                     model.particle_inv_mass,
                     model.particle_world,
-                    count,
                     *arrays,
                     model.contact_epsilon,
                     model.contact_velocity_epsilon,

@@ -290,11 +290,23 @@ class ModelBuilder:
         m.contact_velocity_epsilon = scalar(self.contact_velocity_epsilon)
         m.restitution_threshold_steps = scalar(self.restitution_threshold_steps)
 
-        m.planes = [dict(p) for p in self.planes]
-        m.plane_count = len(self.planes)
+        # Terrain sorted by world (stable: a world's own order is kept), with the index of each
+        # world's first primitive per kind, so a particle's contact loop visits only its world's
+        # primitives (a batch of K copies would otherwise test K times as many).
+        planes = sorted(self.planes, key=lambda p: p["world"])
+        bowls = sorted(self.bowls, key=lambda b: b["world"])
+        spheres = sorted(self.spheres, key=lambda q: q["world"])
+
+        def first(items):
+            worlds = np.array([it["world"] for it in items], dtype=np.int64)
+            return arr(np.searchsorted(worlds, np.arange(m.world_count + 1)).astype(np.int32), wp.int32, np.int32)
+
+        m.planes = [dict(p) for p in planes]
+        m.plane_count = len(planes)
+        m.plane_first = first(planes)
 
         def col(name, shape):
-            return np.array([p[name] for p in self.planes]).reshape(shape)
+            return np.array([p[name] for p in planes]).reshape(shape)
 
         n = m.plane_count
         m.plane_point = arr(col("point", (n, 3)), vec3, np_scalar)
@@ -306,26 +318,28 @@ class ModelBuilder:
         m.plane_world = arr(col("world", (n,)), wp.int32, np.int32)
 
         # Bowls and spheres; float32 cannot hold an infinite cut, so "no cut" is stored as 1e30.
-        m.bowls = [dict(b) for b in self.bowls]
-        m.bowl_count = len(self.bowls)
-        m.spheres = [dict(s) for s in self.spheres]
-        m.sphere_count = len(self.spheres)
+        m.bowls = [dict(b) for b in bowls]
+        m.bowl_count = len(bowls)
+        m.bowl_first = first(bowls)
+        m.spheres = [dict(s) for s in spheres]
+        m.sphere_count = len(spheres)
+        m.sphere_first = first(spheres)
 
         def cols(items, name, shape):
             return np.array([it[name] for it in items], dtype=np.float64).reshape(shape)
 
         nb, ns = m.bowl_count, m.sphere_count
-        m.bowl_center = arr(cols(self.bowls, "center", (nb, 3)), vec3, np_scalar)
-        m.bowl_radius = arr(cols(self.bowls, "radius", (nb,)), scalar, np_scalar)
-        m.bowl_cut_height = arr(np.minimum(cols(self.bowls, "cut_height", (nb,)), 1.0e30), scalar, np_scalar)
-        m.bowl_restitution = arr(cols(self.bowls, "restitution", (nb,)), scalar, np_scalar)
-        m.bowl_friction = arr(cols(self.bowls, "friction", (nb,)), scalar, np_scalar)
-        m.bowl_world = arr(cols(self.bowls, "world", (nb,)), wp.int32, np.int32)
-        m.sphere_center = arr(cols(self.spheres, "center", (ns, 3)), vec3, np_scalar)
-        m.sphere_radius = arr(cols(self.spheres, "radius", (ns,)), scalar, np_scalar)
-        m.sphere_restitution = arr(cols(self.spheres, "restitution", (ns,)), scalar, np_scalar)
-        m.sphere_friction = arr(cols(self.spheres, "friction", (ns,)), scalar, np_scalar)
-        m.sphere_world = arr(cols(self.spheres, "world", (ns,)), wp.int32, np.int32)
+        m.bowl_center = arr(cols(bowls, "center", (nb, 3)), vec3, np_scalar)
+        m.bowl_radius = arr(cols(bowls, "radius", (nb,)), scalar, np_scalar)
+        m.bowl_cut_height = arr(np.minimum(cols(bowls, "cut_height", (nb,)), 1.0e30), scalar, np_scalar)
+        m.bowl_restitution = arr(cols(bowls, "restitution", (nb,)), scalar, np_scalar)
+        m.bowl_friction = arr(cols(bowls, "friction", (nb,)), scalar, np_scalar)
+        m.bowl_world = arr(cols(bowls, "world", (nb,)), wp.int32, np.int32)
+        m.sphere_center = arr(cols(spheres, "center", (ns, 3)), vec3, np_scalar)
+        m.sphere_radius = arr(cols(spheres, "radius", (ns,)), scalar, np_scalar)
+        m.sphere_restitution = arr(cols(spheres, "restitution", (ns,)), scalar, np_scalar)
+        m.sphere_friction = arr(cols(spheres, "friction", (ns,)), scalar, np_scalar)
+        m.sphere_world = arr(cols(spheres, "world", (ns,)), wp.int32, np.int32)
         return m
 
 
@@ -349,7 +363,10 @@ class Model:
         lattice_reason: host string, why the lattice path does or does not apply.
         gravity: acceleration [m/s^2], vec3 value.
         plane_*: per plane point [m], unit normal, hole centre [m] and radius [m] (0 = none),
-            restitution, friction coefficient and world, shape [plane_count].
+            restitution, friction coefficient and world, shape [plane_count]; planes, bowls and
+            spheres are sorted by world.
+        plane_first, bowl_first, sphere_first: index of each world's first primitive of the kind,
+            shape [world_count + 1], int32; world w has first[w] .. first[w + 1] - 1.
         bowl_center: sphere centre of each bowl [m], shape [bowl_count], vec3.
         bowl_radius: sphere radius [m], shape [bowl_count], scalar.
         bowl_cut_height: the bowl exists where y < cut height [m] (1e30: whole sphere), shape [bowl_count], scalar.
