@@ -16,8 +16,6 @@ already adds each particle's spring forces in ascending spring order, starting f
 gather reproduces it bit for bit there.
 """
 
-import functools
-
 import warp as wp
 
 from . import springs
@@ -25,14 +23,9 @@ from . import springs
 wp.set_module_options({"enable_backward": False})
 
 
-@functools.lru_cache(maxsize=None)
-def _spring_force(scalar):
-    return springs.build(scalar)["spring_force"]
-
-
 def build(scalar):
     vec3 = wp.types.vector(3, scalar)
-    spring_force = _spring_force(scalar)
+    spring_force = springs.build(scalar)["spring_force"]  # cached per precision: the same function
 
     @wp.kernel(module="unique")
     def eval_spring_forces(

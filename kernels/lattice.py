@@ -262,8 +262,8 @@ return 1.0f / wp::sqrt(x);
         # Branch-free: a neighbour outside the lattice (or of an absent spring type) is replaced by
         # the particle itself, whose zero distance gives exactly zero force (stencil_spring_force).
         # Every load is then unconditional, so the compiler can issue the 64 neighbour loads
-        # together instead of one guarded load after another: 1.x faster on an H200 (see
-        # docs/PERFORMANCE.md), same sums in the same order (x + 0 = x), so the same bits.
+        # together instead of one guarded load after another: 1.27x faster at 100^3 on an H200
+        # (docs/PERFORMANCE.md), same sums in the same order (x + 0 = x), so the same bits.
         row = shape[1] * shape[2]
         for di in range(-1, 2):
             for dj in range(-1, 2):
