@@ -1,0 +1,34 @@
+"""The GPU measurement scripts in benchmarks/ compute what they claim: every variant's forces agree.
+
+They time kernels on the GPU machine (docs/PERFORMANCE.md); here each runs once on a small lattice
+on the CPU, and the forces of its variants must agree with its reference variant to float32
+rounding (the scripts record the largest relative difference in their JSON).
+"""
+
+import json
+import runpy
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+@pytest.mark.parametrize(
+    "script, args, key",
+    [
+        ("benchmarks/column_probe.py", ["--columns", "2,4"], "rows"),
+        ("benchmarks/layout_probe.py", [], "rows"),
+    ],
+)
+def test_probe_variants_agree(tmp_path, monkeypatch, script, args, key):
+    out = tmp_path / "probe.json"
+    script = str(ROOT / script)
+    argv = [script, "--device", "cpu", "--size", "12", "--evals", "1", "--repeats", "1", "--out", str(out), *args]
+    monkeypatch.setattr(sys, "argv", argv)
+    runpy.run_path(script, run_name="__main__")
+    rows = json.loads(out.read_text())[key]
+    assert len(rows) >= 3
+    for row in rows:
+        assert row["max_rel_diff"] < 1.0e-5, row
