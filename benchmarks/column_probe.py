@@ -20,17 +20,12 @@ variant's ratio to ``gather``; the forces agree (checked before timing). Results
 of the idea: docs/PERFORMANCE.md, "Tried on the H200 and not kept".
 """
 
-import argparse
-import json
-import time
-
 import numpy as np
 import warp as wp
+from layout_probe import make_kernel
+from probe_common import parser, perturbed_lattice, run_cases
 
 wp.set_module_options({"enable_backward": False})
-
-OFFSETS = [(di, dj, dk) for di in (-1, 0, 1) for dj in (-1, 0, 1) for dk in (-1, 0, 1) if (di, dj, dk) != (0, 0, 0)]
-OFFSETS += [(2 * s, 0, 0) for s in (-1, 1)] + [(0, 2 * s, 0) for s in (-1, 1)] + [(0, 0, 2 * s) for s in (-1, 1)]
 
 
 @wp.func_native(
@@ -54,29 +49,8 @@ def spring(d: wp.vec3, u: wp.vec3, rest: float):
 
 
 def make_gather(n, spacing):
-    rests = [spacing * float(np.sqrt(di * di + dj * dj + dk * dk)) for di, dj, dk in OFFSETS]
-    offs = [(di * n + dj) * n + dk for di, dj, dk in OFFSETS]
-    off_c = wp.constant(wp.types.vector(len(offs), wp.int32)(*offs))
-    rest_c = wp.constant(wp.types.vector(len(rests), wp.float32)(*rests))
-    count = len(offs)
-
-    @wp.kernel(module="unique")
-    def k(x: wp.array(dtype=wp.vec3), v: wp.array(dtype=wp.vec3), f: wp.array(dtype=wp.vec3)):
-        i = wp.tid()
-        a = i // (n * n)
-        b = (i // n) % n
-        c = i % n
-        if a < 2 or b < 2 or c < 2 or a >= n - 2 or b >= n - 2 or c >= n - 2:
-            return
-        xi = x[i]
-        vi = v[i]
-        acc = wp.vec3()
-        for s in range(count):
-            p = i + off_c[s]
-            acc += spring(xi - x[p], vi - v[p], rest_c[s])
-        f[i] = acc
-
-    return k
+    """layout_probe's vec3 gather with this probe's spring (rsqrtf, as the product kernel)."""
+    return make_kernel("vec3", n, spacing, spring=spring)
 
 
 def column_snippet(n, K, spacing, runtime=False, masks=False, tables=False):
@@ -196,65 +170,29 @@ def make_column(n, K, spacing, **flags):
 
 
 def main():
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--device", default="cuda:0")
-    p.add_argument("--size", type=int, default=100)
+    p = parser(__doc__)
     p.add_argument("--columns", default="2,4,8")
-    p.add_argument("--evals", type=int, default=200)
-    p.add_argument("--repeats", type=int, default=9)
-    p.add_argument("--out")
     a = p.parse_args()
     wp.config.quiet = True
     dev = wp.get_device(a.device)
     n, spacing = a.size, 0.05
-    rng = np.random.default_rng(0)
-    grid = np.stack(np.meshgrid(*(np.arange(n),) * 3, indexing="ij"), -1).reshape(-1, 3) * spacing
-    x = wp.array((grid + rng.normal(0, 0.002, grid.shape)).astype(np.float32), dtype=wp.vec3, device=dev)
-    v = wp.array(rng.normal(0, 0.1, grid.shape).astype(np.float32), dtype=wp.vec3, device=dev)
-    variants = {"gather": (make_gather(n, spacing), n**3)}
-    for K in (int(s) for s in a.columns.split(",")):
-        assert (n - 4) % K == 0, f"--size minus 4 must be a multiple of {K}"
-        variants[f"column {K}"] = make_column(n, K, spacing)
-        variants[f"column {K} runtime"] = make_column(n, K, spacing, runtime=True)
-        variants[f"column {K} runtime masks"] = make_column(n, K, spacing, runtime=True, masks=True)
-        variants[f"column {K} runtime masks tables"] = make_column(n, K, spacing, runtime=True, masks=True, tables=True)
+    x, v = (wp.array(u, dtype=wp.vec3, device=dev) for u in perturbed_lattice(n, spacing))
     dims = wp.array([n], dtype=wp.int32, device=dev)
     rest = wp.array([spacing * float(np.sqrt(m)) for m in (1, 2, 3)] + [2.0 * spacing], dtype=float, device=dev)
     coef = wp.array([1000.0, 1.0], dtype=float, device=dev)
-    cases = {}
-    for name, (kernel, dim) in variants.items():
+
+    def case(kernel, dim, extra):
         f = wp.zeros(n**3, dtype=wp.vec3, device=dev)
-        t0 = time.perf_counter()
-        args = [x, v, f] if name == "gather" else [x, v, f, dims, rest, coef]
-        wp.launch(kernel, dim=dim, inputs=args, device=dev)
-        wp.synchronize_device(dev)
-        compile_s = time.perf_counter() - t0
-        with wp.ScopedCapture(device=dev) as cap:
-            for _ in range(a.evals):
-                wp.launch(kernel, dim=dim, inputs=args, device=dev)
-        cases[name] = {"graph": cap.graph, "f": f, "times": [], "compile_s": compile_s}
-    ref = cases["gather"]["f"].numpy()
-    for c in cases.values():
-        c["max_rel_diff"] = float(np.abs(c["f"].numpy() - ref).max() / np.abs(ref).max())
-    for _ in range(a.repeats):
-        for c in cases.values():
-            wp.synchronize_device(dev)
-            t0 = time.perf_counter()
-            wp.capture_launch(c["graph"])
-            wp.synchronize_device(dev)
-            c["times"].append((time.perf_counter() - t0) / a.evals)
-    base = float(np.median(cases["gather"]["times"]))
-    rows = []
-    print(f"{dev} ({dev.name}), {n}^3 particles, {a.evals} evaluations x {a.repeats} repeats")
-    for name, c in cases.items():
-        ms = 1e3 * float(np.median(c["times"]))
-        rows.append({"variant": name, "ms_per_eval": ms, "speedup_vs_gather": 1e3 * base / ms,
-                     "max_rel_diff": c["max_rel_diff"], "compile_s": c["compile_s"]})
-        print(f"{name:32s} {ms:8.4f} ms/eval  x{1e3 * base / ms:5.2f}  max rel diff {c['max_rel_diff']:.1e}"
-              f"  first launch {c['compile_s']:.1f} s")
-    if a.out:
-        with open(a.out, "w") as fh:
-            json.dump({"device": dev.name, "size": n, "rows": rows}, fh, indent=1)
+        return kernel, dim, [x, v, f, *extra], f
+
+    variants = {"gather": case(make_gather(n, spacing), n**3, [])}
+    flags = {"": {}, " runtime": {"runtime": True}, " runtime masks": {"runtime": True, "masks": True}}
+    flags[" runtime masks tables"] = {"runtime": True, "masks": True, "tables": True}
+    for K in (int(s) for s in a.columns.split(",")):
+        assert (n - 4) % K == 0, f"--size minus 4 must be a multiple of {K}"
+        for suffix, fl in flags.items():
+            variants[f"column {K}{suffix}"] = case(*make_column(n, K, spacing, **fl), [dims, rest, coef])
+    run_cases(variants, dev, a.evals, a.repeats, n, a.out)
 
 
 if __name__ == "__main__":

@@ -14,17 +14,11 @@ It prints ms per force evaluation (graph replay, median of repeats, layouts time
 each layout's ratio to ``vec3``. The forces of the three agree (checked before timing).
 """
 
-import argparse
-import json
-import time
-
 import numpy as np
 import warp as wp
+from probe_common import OFFSETS, parser, perturbed_lattice, run_cases
 
 wp.set_module_options({"enable_backward": False})
-
-OFFSETS = [(di, dj, dk) for di in (-1, 0, 1) for dj in (-1, 0, 1) for dk in (-1, 0, 1) if (di, dj, dk) != (0, 0, 0)]
-OFFSETS += [(2 * s, 0, 0) for s in (-1, 1)] + [(0, 2 * s, 0) for s in (-1, 1)] + [(0, 0, 2 * s) for s in (-1, 1)]
 
 
 @wp.func
@@ -35,7 +29,8 @@ def spring(d: wp.vec3, u: wp.vec3, rest: float):
     return (-m * inv) * d
 
 
-def make_kernel(layout, n, spacing):
+def make_kernel(layout, n, spacing, spring=spring):
+    """The gather over ``layout``; ``spring`` is the per-spring force function (column_probe passes an rsqrtf one)."""
     rests = [spacing * float(np.sqrt(di * di + dj * dj + dk * dk)) for di, dj, dk in OFFSETS]
     offs = [(di * n + dj) * n + dk for di, dj, dk in OFFSETS]
     off_c = wp.constant(wp.types.vector(len(offs), wp.int32)(*offs))
@@ -104,56 +99,22 @@ def make_kernel(layout, n, spacing):
 
 
 def main():
-    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    p.add_argument("--device", default="cuda:0")
-    p.add_argument("--size", type=int, default=100)
-    p.add_argument("--evals", type=int, default=200)
-    p.add_argument("--repeats", type=int, default=9)
-    p.add_argument("--out")
-    a = p.parse_args()
+    a = parser(__doc__).parse_args()
     wp.config.quiet = True
     dev = wp.get_device(a.device)
     n, spacing = a.size, 0.05
-    rng = np.random.default_rng(0)
-    grid = np.stack(np.meshgrid(*(np.arange(n),) * 3, indexing="ij"), -1).reshape(-1, 3) * spacing
-    x = (grid + rng.normal(0, 0.002, grid.shape)).astype(np.float32)
-    v = rng.normal(0, 0.1, grid.shape).astype(np.float32)
+    x, v = perturbed_lattice(n, spacing)
     pad = lambda u: np.concatenate([u, np.zeros((len(u), 1), np.float32)], 1)  # noqa: E731
     inputs = {
         "vec3": (wp.array(x, dtype=wp.vec3, device=dev), wp.array(v, dtype=wp.vec3, device=dev)),
         "vec4": (wp.array(pad(x), dtype=wp.vec4, device=dev), wp.array(pad(v), dtype=wp.vec4, device=dev)),
         "soa": (wp.array(x.T.copy(), dtype=float, device=dev), wp.array(v.T.copy(), dtype=float, device=dev)),
     }
-    cases = {}
+    variants = {}
     for layout, (xa, va) in inputs.items():
         f = wp.zeros(n**3, dtype=wp.vec3, device=dev)
-        kernel = make_kernel(layout, n, spacing)
-        wp.launch(kernel, dim=n**3, inputs=[xa, va], outputs=[f], device=dev)
-        with wp.ScopedCapture(device=dev) as cap:
-            for _ in range(a.evals):
-                wp.launch(kernel, dim=n**3, inputs=[xa, va], outputs=[f], device=dev)
-        cases[layout] = {"graph": cap.graph, "f": f, "times": []}
-    ref = cases["vec3"]["f"].numpy()
-    for layout, c in cases.items():
-        err = float(np.abs(c["f"].numpy() - ref).max() / np.abs(ref).max())
-        c["max_rel_diff"] = err
-    for _ in range(a.repeats):
-        for c in cases.values():
-            wp.synchronize_device(dev)
-            t0 = time.perf_counter()
-            wp.capture_launch(c["graph"])
-            wp.synchronize_device(dev)
-            c["times"].append((time.perf_counter() - t0) / a.evals)
-    base = float(np.median(cases["vec3"]["times"]))
-    rows = []
-    print(f"{dev} ({dev.name}), {n}^3 particles, {a.evals} evaluations x {a.repeats} repeats")
-    for layout, c in cases.items():
-        ms = 1e3 * float(np.median(c["times"]))
-        rows.append({"layout": layout, "ms_per_eval": ms, "speedup_vs_vec3": 1e3 * base / ms, "max_rel_diff": c["max_rel_diff"]})
-        print(f"{layout:5s} {ms:8.4f} ms/eval  x{1e3 * base / ms:5.2f}  max rel diff to vec3 {c['max_rel_diff']:.1e}")
-    if a.out:
-        with open(a.out, "w") as fh:
-            json.dump({"device": dev.name, "size": n, "rows": rows}, fh, indent=1)
+        variants[layout] = (make_kernel(layout, n, spacing), n**3, [xa, va, f], f)
+    run_cases(variants, dev, a.evals, a.repeats, n, a.out, key="layout")
 
 
 if __name__ == "__main__":

@@ -6,7 +6,7 @@ rounding (the scripts record the largest relative difference in their JSON).
 """
 
 import json
-import runpy
+import subprocess
 import sys
 from pathlib import Path
 
@@ -22,12 +22,10 @@ ROOT = Path(__file__).resolve().parents[1]
         ("benchmarks/layout_probe.py", [], "rows"),
     ],
 )
-def test_probe_variants_agree(tmp_path, monkeypatch, script, args, key):
+def test_probe_variants_agree(tmp_path, script, args, key):
     out = tmp_path / "probe.json"
-    script = str(ROOT / script)
-    argv = [script, "--device", "cpu", "--size", "12", "--evals", "1", "--repeats", "1", "--out", str(out), *args]
-    monkeypatch.setattr(sys, "argv", argv)
-    runpy.run_path(script, run_name="__main__")
+    argv = [str(ROOT / script), "--device", "cpu", "--size", "12", "--evals", "1", "--repeats", "1", "--out", str(out)]
+    subprocess.run([sys.executable, *argv, *args], check=True, capture_output=True, timeout=600)
     rows = json.loads(out.read_text())[key]
     assert len(rows) >= 3
     for row in rows:
