@@ -13,7 +13,10 @@ The same 32-neighbour spring forces on the interior particles, computed several 
   over a K x 3 matrix took minutes to compile);
 * ``column K runtime``: the lattice size read from memory instead of compiled in;
 * ``... masks``: every neighbour load bounds-tested and masked, as a kernel for any column must;
-* ``... tables``: rest lengths and coefficients read from arrays, as per-jelly tables are.
+* ``... tables``: rest lengths and coefficients read from arrays, as per-jelly tables are;
+* ``gather runtime``: the per-particle gather with the lattice size read at run time;
+* ``product gather``: softsim's own lattice force kernel (``eval_forces`` on a 100^3 jelly model,
+  the gather kernel), over all particles, boundary included.
 
 Prints ms per force evaluation (graph replay, median of repeats, variants timed in turn) and each
 variant's ratio to ``gather``; the forces agree (checked before timing). Results and what became
@@ -23,7 +26,7 @@ of the idea: docs/PERFORMANCE.md, "Tried on the H200 and not kept".
 import numpy as np
 import warp as wp
 from layout_probe import make_kernel
-from probe_common import parser, perturbed_lattice, run_cases
+from probe_common import OFFSETS, parser, perturbed_lattice, run_cases
 
 wp.set_module_options({"enable_backward": False})
 
@@ -51,6 +54,55 @@ def spring(d: wp.vec3, u: wp.vec3, rest: float):
 def make_gather(n, spacing):
     """layout_probe's vec3 gather with this probe's spring (rsqrtf, as the product kernel)."""
     return make_kernel("vec3", n, spacing, spring=spring)
+
+
+def make_gather_runtime(n, spacing):
+    """The gather with the lattice size read at run time (neighbour offsets computed, not compiled in)."""
+    rests = [spacing * float(np.sqrt(di * di + dj * dj + dk * dk)) for di, dj, dk in OFFSETS]
+    off_i = wp.constant(wp.types.vector(len(OFFSETS), wp.int32)(*[o[0] for o in OFFSETS]))
+    off_j = wp.constant(wp.types.vector(len(OFFSETS), wp.int32)(*[o[1] for o in OFFSETS]))
+    off_k = wp.constant(wp.types.vector(len(OFFSETS), wp.int32)(*[o[2] for o in OFFSETS]))
+    rest_c = wp.constant(wp.types.vector(len(rests), wp.float32)(*rests))
+    count = len(OFFSETS)
+
+    @wp.kernel(module="unique")
+    def k(
+        x: wp.array(dtype=wp.vec3),
+        v: wp.array(dtype=wp.vec3),
+        f: wp.array(dtype=wp.vec3),
+        dims: wp.array(dtype=wp.int32),
+        rest: wp.array(dtype=float),
+        coef: wp.array(dtype=float),
+    ):
+        i = wp.tid()
+        m = dims[0]
+        a = i // (m * m)
+        b = (i // m) % m
+        c = i % m
+        if a < 2 or b < 2 or c < 2 or a >= m - 2 or b >= m - 2 or c >= m - 2:
+            return
+        xi = x[i]
+        vi = v[i]
+        acc = wp.vec3()
+        for s in range(count):
+            p = i + (off_i[s] * m + off_j[s]) * m + off_k[s]
+            acc += spring(xi - x[p], vi - v[p], rest_c[s])
+        f[i] = acc
+
+    return k
+
+
+def make_product(n, spacing, dev):
+    """softsim's lattice force kernel (gather) on an n^3 jelly with the probe's springs: (model, f)."""
+    from softsim_warp.integrators import eval_forces  # noqa: PLC0415
+    from softsim_warp.model import ModelBuilder  # noqa: PLC0415
+
+    b = ModelBuilder((0.0, 0.0, 0.0))
+    springs = {t: {"ks": 1000.0, "kd": 1.0} for t in ("structural", "shear", "bending")}
+    b.add_jelly((n, n, n), (n - 1) * spacing, 0.01, springs)
+    model = b.finalize(dev, force_path="lattice")
+    model.lattice.set_kernel("gather")
+    return model, eval_forces
 
 
 def column_snippet(n, K, spacing, runtime=False, masks=False, tables=False):
@@ -172,6 +224,7 @@ def make_column(n, K, spacing, **flags):
 def main():
     p = parser(__doc__)
     p.add_argument("--columns", default="2,4,8")
+    p.add_argument("--no-product", action="store_true", help="leave out softsim's own gather kernel")
     a = p.parse_args()
     wp.config.quiet = True
     dev = wp.get_device(a.device)
@@ -186,12 +239,23 @@ def main():
         return kernel, dim, [x, v, f, *extra], f
 
     variants = {"gather": case(make_gather(n, spacing), n**3, [])}
+    variants["gather runtime"] = case(make_gather_runtime(n, spacing), n**3, [dims, rest, coef])
     flags = {"": {}, " runtime": {"runtime": True}, " runtime masks": {"runtime": True, "masks": True}}
     flags[" runtime masks tables"] = {"runtime": True, "masks": True, "tables": True}
     for K in (int(s) for s in a.columns.split(",")):
         assert (n - 4) % K == 0, f"--size minus 4 must be a multiple of {K}"
         for suffix, fl in flags.items():
             variants[f"column {K}{suffix}"] = case(*make_column(n, K, spacing, **fl), [dims, rest, coef])
+    if not a.no_product:
+        # The product kernel: forces of every particle, launched by eval_forces into f. Its rest lengths
+        # come from the model's lattice, which is the probe's (positions differ only by the jitter).
+        model, eval_forces = make_product(n, spacing, dev)
+        f = wp.zeros(n**3, dtype=wp.vec3, device=dev)
+        eval_forces(model, x, v, f)
+        lat = model.lattice
+        inputs = [model.particle_jelly, lat.jelly_start, lat.jelly_shape, lat.jelly_types, lat.jelly_rest]
+        inputs += [lat.jelly_ks, lat.jelly_kd, x, v, f]
+        variants["product gather (all particles)"] = (model.kernels.eval_lattice_springs, n**3, inputs, f)
     run_cases(variants, dev, a.evals, a.repeats, n, a.out)
 
 

@@ -18,7 +18,7 @@ ROOT = Path(__file__).resolve().parents[1]
 @pytest.mark.parametrize(
     "script, args, key",
     [
-        ("benchmarks/column_probe.py", ["--columns", "2,4"], "rows"),
+        ("benchmarks/column_probe.py", ["--columns", "2,4"], "rows"),  # product gather included
         ("benchmarks/layout_probe.py", [], "rows"),
     ],
 )
