@@ -7,7 +7,7 @@ differ in the last bits from run to run, and so do the trajectories. These kerne
 * ``eval_spring_forces`` writes each spring's force on its first particle to its own slot (no
   sharing, no atomics); ``gather_spring_forces`` then sums, per particle, the forces of its
   incident springs in ascending spring order, read from a CSR list built once on the host. The
-  spring force itself is ``springs.spring_force``, the same function as the atomic path.
+  spring force itself is ``springs.spring_of``, the same function as the atomic path.
 * Metrics are summed per chunk of consecutive particles (springs) by one thread each, then per
   jelly over its chunks in order. ``max`` and integer counts need no fixed order.
 
@@ -25,7 +25,9 @@ wp.set_module_options({"enable_backward": False})
 
 def build(scalar):
     vec3 = wp.types.vector(3, scalar)
-    spring_force = springs.build(scalar)["spring_force"]  # cached per precision: the same function
+    spring_funcs = springs.build(scalar)  # cached per precision: the same functions as the atomic path
+    spring_of = spring_funcs["spring_of"]
+    spring_energy = spring_funcs["spring_energy"]
 
     @wp.kernel(module="unique")
     def eval_spring_forces(
@@ -41,18 +43,10 @@ def build(scalar):
         spring_f_out: wp.array(dtype=vec3),
     ):
         tid = wp.tid()
-        pair = spring_indices[tid]
-        a = pair[0]
-        b = pair[1]
-        spring_f_out[tid] = spring_force(
-            particle_q[a],
-            particle_q[b],
-            particle_qd[a],
-            particle_qd[b],
-            spring_rest_length[tid],
-            spring_stiffness[tid],
-            spring_damping[tid],
+        _a, _b, f = spring_of(
+            tid, spring_indices, spring_rest_length, spring_stiffness, spring_damping, particle_q, particle_qd
         )
+        spring_f_out[tid] = f
 
     @wp.kernel(module="unique")
     def gather_spring_forces(
@@ -135,8 +129,7 @@ def build(scalar):
         total = scalar(0.0)
         for s in range(chunk_start[c], chunk_end[c]):
             pair = spring_indices[s]
-            stretch = wp.length(particle_q[pair[0]] - particle_q[pair[1]]) - spring_rest_length[s]
-            e = scalar(0.5) * spring_stiffness[s] * stretch * stretch
+            e = spring_energy(particle_q[pair[0]], particle_q[pair[1]], spring_rest_length[s], spring_stiffness[s])
             if wp.isfinite(e):
                 total += e
         spring_energy_out[c] = total

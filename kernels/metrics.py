@@ -2,11 +2,14 @@
 
 import warp as wp
 
+from . import springs
+
 wp.set_module_options({"enable_backward": False})
 
 
 def build(scalar):
     vec3 = wp.types.vector(3, scalar)
+    spring_energy = springs.build(scalar)["spring_energy"]
 
     @wp.kernel(module="unique")
     def reduce_particles(
@@ -52,8 +55,7 @@ def build(scalar):
     ):
         tid = wp.tid()
         pair = spring_indices[tid]
-        stretch = wp.length(particle_q[pair[0]] - particle_q[pair[1]]) - spring_rest_length[tid]
-        e = scalar(0.5) * spring_stiffness[tid] * stretch * stretch
+        e = spring_energy(particle_q[pair[0]], particle_q[pair[1]], spring_rest_length[tid], spring_stiffness[tid])
         if wp.isfinite(e):
             wp.atomic_add(spring_energy_out, particle_jelly[pair[0]], e)
 

@@ -23,6 +23,41 @@ def build(scalar):
         magnitude = ks * (length - rest) + kd * wp.dot(va - vb, dhat)
         return -magnitude * dhat
 
+    @wp.func
+    def spring_of(
+        s: int,
+        spring_indices: wp.array(dtype=wp.vec2i),
+        spring_rest_length: wp.array(dtype=scalar),
+        spring_stiffness: wp.array(dtype=scalar),
+        spring_damping: wp.array(dtype=scalar),
+        particle_q: wp.array(dtype=vec3),
+        particle_qd: wp.array(dtype=vec3),
+    ):
+        """(a, b, force on a) of spring s of the spring list; b gets the negative.
+
+        Shared by the atomic kernel here and the deterministic per-spring kernel, so both paths
+        evaluate each spring with the same arithmetic (the same bits).
+        """
+        pair = spring_indices[s]
+        a = pair[0]
+        b = pair[1]
+        f = spring_force(
+            particle_q[a],
+            particle_q[b],
+            particle_qd[a],
+            particle_qd[b],
+            spring_rest_length[s],
+            spring_stiffness[s],
+            spring_damping[s],
+        )
+        return a, b, f
+
+    @wp.func
+    def spring_energy(xa: vec3, xb: vec3, rest: scalar, ks: scalar):
+        """Potential energy 1/2 ks (|xa - xb| - rest)^2 of one spring."""
+        stretch = wp.length(xa - xb) - rest
+        return scalar(0.5) * ks * stretch * stretch
+
     @wp.kernel(module="unique")
     def eval_springs(
         # Model:
@@ -36,20 +71,21 @@ def build(scalar):
         # Out:
         particle_f_out: wp.array(dtype=vec3),
     ):
-        tid = wp.tid()
-        pair = spring_indices[tid]
-        a = pair[0]
-        b = pair[1]
-        f = spring_force(
-            particle_q[a],
-            particle_q[b],
-            particle_qd[a],
-            particle_qd[b],
-            spring_rest_length[tid],
-            spring_stiffness[tid],
-            spring_damping[tid],
+        a, b, f = spring_of(
+            wp.tid(),
+            spring_indices,
+            spring_rest_length,
+            spring_stiffness,
+            spring_damping,
+            particle_q,
+            particle_qd,
         )
         wp.atomic_add(particle_f_out, a, f)
         wp.atomic_sub(particle_f_out, b, f)
 
-    return {"spring_force": spring_force, "eval_springs": eval_springs}
+    return {
+        "spring_force": spring_force,
+        "spring_of": spring_of,
+        "spring_energy": spring_energy,
+        "eval_springs": eval_springs,
+    }
