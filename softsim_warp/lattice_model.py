@@ -164,6 +164,14 @@ class LatticeData:
             self.scratch = wp.empty(self._particle_count, dtype=self.layout_vec3, device=self.device)
         self.kernel = kernel
 
+    @property
+    def stencil_tables(self) -> list:
+        """The per-jelly stencil tables in the order the lattice kernels take them.
+
+        jelly_start, jelly_shape, jelly_types, jelly_rest, jelly_ks, jelly_kd.
+        """
+        return [self.jelly_start, self.jelly_shape, self.jelly_types, self.jelly_rest, self.jelly_ks, self.jelly_kd]
+
     def nbytes(self) -> int:
         """Bytes of the device arrays held here."""
         arrays = [
@@ -187,12 +195,7 @@ def eval_lattice_forces(model, q: wp.array, qd: wp.array, f_out: wp.array):
             model.kernels.eval_lattice_rows,
             dim=lat.jelly_count,
             inputs=[
-                lat.jelly_start,
-                lat.jelly_shape,
-                lat.jelly_types,
-                lat.jelly_rest,
-                lat.jelly_ks,
-                lat.jelly_kd,
+                *lat.stencil_tables,
                 lat.particle_coord_k,
                 q,
                 qd,
@@ -207,12 +210,7 @@ def eval_lattice_forces(model, q: wp.array, qd: wp.array, f_out: wp.array):
             dim=model.particle_count,
             inputs=[
                 model.particle_jelly,
-                lat.jelly_start,
-                lat.jelly_shape,
-                lat.jelly_types,
-                lat.jelly_rest,
-                lat.jelly_ks,
-                lat.jelly_kd,
+                *lat.stencil_tables,
                 q,
                 qd,
             ],
