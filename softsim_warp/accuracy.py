@@ -599,7 +599,7 @@ def _check_positive(value, flag):
 def run(args) -> int:
     from .cli import load_for_cli, resolve_device  # noqa: PLC0415
     from .errors import CommandLineError  # noqa: PLC0415
-    from .outputs import check_writable, write_json_atomic  # noqa: PLC0415
+    from .outputs import check_writable, save_report  # noqa: PLC0415
 
     methods = _parse_methods(args.integrators)
     dts = _parse_positive_list(args.dts, "--dts") if args.dts else None
@@ -625,8 +625,5 @@ def run(args) -> int:
             raise CommandLineError("--reference-dt", str(e), *given) from None
         raise
     print(format_table(report))
-    if args.out:
-        write_json_atomic(args.out, report)
-    if args.plot:
-        plot_report(report, args.plot)
+    save_report(report, args.out, args.plot, plot_report)
     return 0

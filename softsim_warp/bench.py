@@ -367,7 +367,7 @@ def _device_name(device) -> str:
 
 def run(args) -> int:
     from .cli import resolve_device  # noqa: PLC0415
-    from .outputs import check_writable, write_json_atomic  # noqa: PLC0415
+    from .outputs import check_writable, save_report  # noqa: PLC0415
 
     sizes = _parse_list(args.sizes, "--sizes", convert=int)
     if any(n < 2 for n in sizes):
@@ -482,10 +482,7 @@ def run(args) -> int:
         "results": results,
         "peer": peers,
     }
-    if args.out:
-        write_json_atomic(args.out, data)
-    if args.plot:
-        plot(data, args.plot)
+    save_report(data, args.out, args.plot, plot)
     return 0
 
 

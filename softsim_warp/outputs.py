@@ -75,3 +75,11 @@ def write_json_atomic(path, data):
         json.dump(data, f, indent=1, allow_nan=True)
         f.write("\n")
     os.replace(tmp, p)
+
+
+def save_report(data, out=None, plot_path=None, plot=None):
+    """A command's report: JSON to ``out`` (atomically) and ``plot(data, plot_path)``, each when asked."""
+    if out:
+        write_json_atomic(out, data)
+    if plot_path:
+        plot(data, plot_path)

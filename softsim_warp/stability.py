@@ -553,7 +553,7 @@ def run(args) -> int:
     from .accuracy import _check_positive, _parse_methods, _parse_positive_list  # noqa: PLC0415
     from .cli import load_for_cli, resolve_device  # noqa: PLC0415
     from .errors import CommandLineError  # noqa: PLC0415
-    from .outputs import check_writable, write_json_atomic  # noqa: PLC0415
+    from .outputs import check_writable, save_report  # noqa: PLC0415
 
     methods = _parse_methods(args.integrators)
     ks = () if args.ks and args.ks.strip().lower() == "none" else (
@@ -578,8 +578,5 @@ def run(args) -> int:
                      duration=args.duration, rtol=args.rtol, scene_runs=not args.no_scene,
                      use_graph=not args.no_graph, lattice_max=args.lattice, jelly_index=args.jelly, log=log)
     print(format_table(report))
-    if args.out:
-        write_json_atomic(args.out, report)
-    if args.plot:
-        plot_report(report, args.plot)
+    save_report(report, args.out, args.plot, plot_report)
     return 0
