@@ -129,6 +129,7 @@ def step_fused(integrator, state_in, state_out, dt):
                 q,
                 qd,
             ]
+            lat.check_contiguous(q, qd)
             head = [stage, h, int(integrator.fuse_contact), model.particle_inv_mass, model.particle_world]
             if lat.kernel == "split":
                 for kernel, count in (

@@ -172,6 +172,13 @@ class LatticeData:
             self.scratch = wp.empty(self._particle_count, dtype=self.layout_vec3, device=self.device)
         self.kernel = kernel
 
+    @staticmethod
+    def check_contiguous(*arrays):
+        """The gather kernels address state arrays from their data pointer: refuse strided views."""
+        for a in arrays:
+            if not a.is_contiguous:
+                raise ValueError(f"the lattice kernels need contiguous state arrays (got strides {a.strides})")
+
     @property
     def stencil_tables(self) -> list:
         """The per-jelly stencil tables in the order the lattice kernels take them.
@@ -213,6 +220,7 @@ def eval_lattice_forces(model, q: wp.array, qd: wp.array, f_out: wp.array):
             device=model.device,
         )
     else:
+        lat.check_contiguous(q, qd)
         wp.launch(
             model.kernels.eval_lattice_springs,
             dim=model.particle_count,

@@ -397,3 +397,14 @@ def test_bench_cli_rejects_bad_input(argv, message, capsys):
     assert main(["bench", *argv]) == 2
     err = capsys.readouterr().err
     assert err.startswith(message) and err.count("\n") == 1, err
+
+
+def test_lattice_kernels_refuse_strided_state(device):
+    """The gather addresses state arrays from their data pointer, so a strided view is refused, not misread."""
+    model = _builder().finalize(device, force_path="lattice")
+    model.lattice.set_kernel("gather")
+    n = model.particle_count
+    wide = wp.zeros(2 * n, dtype=wp.vec3, device=device)
+    f = wp.zeros(n, dtype=wp.vec3, device=device)
+    with pytest.raises(ValueError, match="contiguous"):
+        eval_forces(model, wide[::2], wide[::2], f)
