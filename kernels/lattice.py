@@ -261,24 +261,9 @@ return 1.0f / wp::sqrt(x);
         """Spring force on particle i of lattice jelly j: the sum over its stencil neighbours."""
         shape = jelly_shape[j]
         lc = lattice_coord(i - jelly_start[j], shape)
-        return gather_checked(i, j, lc[0], lc[1], lc[2], shape, jelly_types, jelly_rest, jelly_ks, jelly_kd, q, qd)
-
-    @wp.func
-    def gather_checked(
-        i: int,
-        j: int,
-        a: int,
-        b: int,
-        c: int,
-        shape: wp.vec3i,
-        jelly_types: wp.array(dtype=wp.int32),
-        jelly_rest: wp.array2d(dtype=scalar),
-        jelly_ks: wp.array2d(dtype=scalar),
-        jelly_kd: wp.array2d(dtype=scalar),
-        q: wp.array(dtype=vec3),
-        qd: wp.array(dtype=vec3),
-    ):
-        """Spring force on particle i at lattice coordinate (a, b, c) of jelly j, any particle."""
+        a = lc[0]
+        b = lc[1]
+        c = lc[2]
         types = jelly_types[j]
         # Per-type coefficients read once (the unrolled loop would otherwise load them per neighbour).
         ks_structural = jelly_ks[j, 0]
@@ -321,105 +306,6 @@ return 1.0f / wp::sqrt(x);
                 f += stencil_spring_force(x, load_vec(q, p), v, load_vec(qd, p), table_entry(jelly_rest, j, 27 + axis), ks_bending, kd_bending)
         return f
 
-    @wp.func
-    def gather_interior(
-        i: int,
-        j: int,
-        shape: wp.vec3i,
-        jelly_types: wp.array(dtype=wp.int32),
-        jelly_rest: wp.array2d(dtype=scalar),
-        jelly_ks: wp.array2d(dtype=scalar),
-        jelly_kd: wp.array2d(dtype=scalar),
-        q: wp.array(dtype=vec3),
-        qd: wp.array(dtype=vec3),
-    ):
-        """``gather_checked`` for a particle whose whole stencil lies inside the lattice (2 or more
-        from every face): no bounds tests, so every neighbour is loaded at a fixed offset from i.
-
-        An absent spring type's terms are selected to zero after they are computed (the checked
-        gather adds the exact zero of a self-spring instead); both leave the sum's bits unchanged,
-        so the two give the same forces bit for bit.
-        """
-        types = jelly_types[j]
-        ks_structural = jelly_ks[j, 0]
-        ks_shear = jelly_ks[j, 1]
-        kd_structural = jelly_kd[j, 0]
-        kd_shear = jelly_kd[j, 1]
-        has_structural = (types & 1) != 0
-        has_shear = ((types >> 1) & 1) != 0
-        x = load_vec(q, i)
-        v = load_vec(qd, i)
-        f = vec3(scalar(0.0))
-        row = shape[1] * shape[2]
-        for di in range(-1, 2):
-            for dj in range(-1, 2):
-                for dk in range(-1, 2):
-                    m = wp.abs(di) + wp.abs(dj) + wp.abs(dk)
-                    if m > 0:
-                        ty = wp.min(m - 1, 1)
-                        p = i + di * row + dj * shape[2] + dk
-                        rest = table_entry(jelly_rest, j, (di + 1) * 9 + (dj + 1) * 3 + dk + 1)
-                        ks = wp.where(ty == 0, ks_structural, ks_shear)
-                        kd = wp.where(ty == 0, kd_structural, kd_shear)
-                        term = stencil_spring_force(x, load_vec(q, p), v, load_vec(qd, p), rest, ks, kd)
-                        f += wp.where(wp.where(ty == 0, has_structural, has_shear), term, vec3(scalar(0.0)))
-        has_bending = ((types >> 2) & 1) != 0
-        ks_bending = jelly_ks[j, 2]
-        kd_bending = jelly_kd[j, 2]
-        for axis in range(3):
-            for side in range(2):
-                o = wp.vec3i(0, 0, 0)
-                o[axis] = 4 * side - 2
-                p = i + o[0] * row + o[1] * shape[2] + o[2]
-                term = stencil_spring_force(x, load_vec(q, p), v, load_vec(qd, p), table_entry(jelly_rest, j, 27 + axis), ks_bending, kd_bending)
-                f += wp.where(has_bending, term, vec3(scalar(0.0)))
-        return f
-
-    @wp.func
-    def interior_extent(shape: wp.vec3i):
-        """Particles per axis of the lattice's interior box (2 or more from every face)."""
-        return wp.vec3i(wp.max(shape[0] - 4, 0), wp.max(shape[1] - 4, 0), wp.max(shape[2] - 4, 0))
-
-    @wp.func
-    def interior_coord(t: int, shape: wp.vec3i):
-        """Lattice coordinate of the t-th interior particle (index order), or (-1, 0, 0) past the end."""
-        e = interior_extent(shape)
-        if t >= e[0] * e[1] * e[2]:
-            return wp.vec3i(-1, 0, 0)
-        return wp.vec3i(2 + t // (e[1] * e[2]), 2 + (t // e[2]) % e[1], 2 + t % e[2])
-
-    @wp.func
-    def shell_index(t: int, inner: int):
-        """Coordinate of the t-th of an axis's ``outer`` boundary values: 0, 1, then past the ``inner`` interior ones."""
-        return wp.where(t < 2, t, t + inner)
-
-    @wp.func
-    def boundary_coord(t: int, shape: wp.vec3i):
-        """Lattice coordinate of the t-th boundary particle (within 2 of a face), or (-1, 0, 0) past the end.
-
-        In index order within three parts: the two outer slabs along the first axis (whole
-        planes), then the outer slabs along the second axis of the interior planes, then the
-        outer ends along the third axis of the interior rows.
-        """
-        e = interior_extent(shape)
-        outer_a = shape[0] - e[0]
-        outer_b = shape[1] - e[1]
-        outer_c = shape[2] - e[2]
-        part_a = outer_a * shape[1] * shape[2]
-        if t < part_a:
-            plane = shape[1] * shape[2]
-            return wp.vec3i(shell_index(t // plane, e[0]), (t % plane) // shape[2], t % shape[2])
-        t -= part_a
-        part_b = e[0] * outer_b * shape[2]
-        if t < part_b:
-            plane = outer_b * shape[2]
-            return wp.vec3i(2 + t // plane, shell_index((t % plane) // shape[2], e[1]), t % shape[2])
-        t -= part_b
-        if t < e[0] * e[1] * outer_c:
-            plane = e[1] * outer_c
-            return wp.vec3i(2 + t // plane, 2 + (t % plane) // outer_c, shell_index(t % outer_c, e[2]))
-        return wp.vec3i(-1, 0, 0)
-
     @wp.kernel(module="unique")
     def eval_lattice_springs(
         # Model:
@@ -442,20 +328,27 @@ return 1.0f / wp::sqrt(x);
             i, j, jelly_start, jelly_shape, jelly_types, jelly_rest, jelly_ks, jelly_kd, q, qd
         )
 
-    @wp.func
-    def finish_lattice_stage(
-        i: int,
+    @wp.kernel(module="unique")
+    def integrate_lattice_stage(
         stage: int,
         h: scalar,
         with_contact: int,
-        f: vec3,
+        # Model:
         particle_inv_mass: wp.array(dtype=scalar),
         particle_world: wp.array(dtype=wp.int32),
+        particle_jelly: wp.array(dtype=wp.int32),
         gravity: vec3,
+        jelly_start: wp.array(dtype=wp.int32),
+        jelly_shape: wp.array(dtype=wp.vec3i),
+        jelly_types: wp.array(dtype=wp.int32),
+        jelly_rest: wp.array2d(dtype=scalar),
+        jelly_ks: wp.array2d(dtype=scalar),
+        jelly_kd: wp.array2d(dtype=scalar),
         world_stage_count: wp.array(dtype=wp.int32),
         world_symplectic: wp.array(dtype=wp.int32),
         world_stage_c: wp.array2d(dtype=scalar),
         world_stage_b: wp.array2d(dtype=scalar),
+        # Model, planes (read when with_contact != 0):
         plane_first: wp.array(dtype=wp.int32),
         plane_point: wp.array(dtype=vec3),
         plane_normal: wp.array(dtype=vec3),
@@ -467,9 +360,10 @@ return 1.0f / wp::sqrt(x);
         eps_v: scalar,
         rest_steps: scalar,
         world_contact_beta: wp.array(dtype=scalar),
-        # State in (y_n) and the stage state's velocity:
+        # State in (y_n) and stage state (y_s):
         q_n: wp.array(dtype=vec3),
         qd_n: wp.array(dtype=vec3),
+        q_s: wp.array(dtype=vec3),
         qd_s: wp.array(dtype=vec3),
         # Out: accumulators, next stage state, and the step's result
         acc_q_out: wp.array(dtype=vec3),
@@ -479,8 +373,12 @@ return 1.0f / wp::sqrt(x);
         q_out: wp.array(dtype=vec3),
         qd_out: wp.array(dtype=vec3),
     ):
-        """The fused stage after the force: particle i's stage update and, with ``with_contact``,
-        plane contact (on a world's last stage the response, before it the resting-contact filter)."""
+        # Forces, gravity and the stage update in one pass. A thread reads neighbours only from
+        # the stage state y_s and writes only its own particle into other buffers, so no thread
+        # depends on another's output within the launch.
+        i = wp.tid()
+        j = particle_jelly[i]
+        f = gather_lattice_force(i, j, jelly_start, jelly_shape, jelly_types, jelly_rest, jelly_ks, jelly_kd, q_s, qd_s)
         last = advance_stage(
             i,
             stage,
@@ -551,268 +449,6 @@ return 1.0f / wp::sqrt(x);
                 )
                 q_next_out[i] = x
                 qd_next_out[i] = v
-
-    @wp.kernel(module="unique")
-    def integrate_lattice_stage(
-        stage: int,
-        h: scalar,
-        with_contact: int,
-        # Model:
-        particle_inv_mass: wp.array(dtype=scalar),
-        particle_world: wp.array(dtype=wp.int32),
-        particle_jelly: wp.array(dtype=wp.int32),
-        gravity: vec3,
-        jelly_start: wp.array(dtype=wp.int32),
-        jelly_shape: wp.array(dtype=wp.vec3i),
-        jelly_types: wp.array(dtype=wp.int32),
-        jelly_rest: wp.array2d(dtype=scalar),
-        jelly_ks: wp.array2d(dtype=scalar),
-        jelly_kd: wp.array2d(dtype=scalar),
-        world_stage_count: wp.array(dtype=wp.int32),
-        world_symplectic: wp.array(dtype=wp.int32),
-        world_stage_c: wp.array2d(dtype=scalar),
-        world_stage_b: wp.array2d(dtype=scalar),
-        # Model, planes (read when with_contact != 0):
-        plane_first: wp.array(dtype=wp.int32),
-        plane_point: wp.array(dtype=vec3),
-        plane_normal: wp.array(dtype=vec3),
-        plane_hole_center: wp.array(dtype=vec3),
-        plane_hole_radius: wp.array(dtype=scalar),
-        plane_restitution: wp.array(dtype=scalar),
-        plane_friction: wp.array(dtype=scalar),
-        eps: scalar,
-        eps_v: scalar,
-        rest_steps: scalar,
-        world_contact_beta: wp.array(dtype=scalar),
-        # State in (y_n) and stage state (y_s):
-        q_n: wp.array(dtype=vec3),
-        qd_n: wp.array(dtype=vec3),
-        q_s: wp.array(dtype=vec3),
-        qd_s: wp.array(dtype=vec3),
-        # Out: accumulators, next stage state, and the step's result
-        acc_q_out: wp.array(dtype=vec3),
-        acc_qd_out: wp.array(dtype=vec3),
-        q_next_out: wp.array(dtype=vec3),
-        qd_next_out: wp.array(dtype=vec3),
-        q_out: wp.array(dtype=vec3),
-        qd_out: wp.array(dtype=vec3),
-    ):
-        # Forces, gravity and the stage update in one pass. A thread reads neighbours only from
-        # the stage state y_s and writes only its own particle into other buffers, so no thread
-        # depends on another's output within the launch.
-        i = wp.tid()
-        j = particle_jelly[i]
-        f = gather_lattice_force(i, j, jelly_start, jelly_shape, jelly_types, jelly_rest, jelly_ks, jelly_kd, q_s, qd_s)
-        finish_lattice_stage(
-            i,
-            stage,
-            h,
-            with_contact,
-            f,
-            particle_inv_mass,
-            particle_world,
-            gravity,
-            world_stage_count,
-            world_symplectic,
-            world_stage_c,
-            world_stage_b,
-            plane_first,
-            plane_point,
-            plane_normal,
-            plane_hole_center,
-            plane_hole_radius,
-            plane_restitution,
-            plane_friction,
-            eps,
-            eps_v,
-            rest_steps,
-            world_contact_beta,
-            q_n,
-            qd_n,
-            qd_s,
-            acc_q_out,
-            acc_qd_out,
-            q_next_out,
-            qd_next_out,
-            q_out,
-            qd_out,
-        )
-
-    @wp.kernel(module="unique")
-    def integrate_lattice_interior_stage(
-        stage: int,
-        h: scalar,
-        with_contact: int,
-        # Model:
-        particle_inv_mass: wp.array(dtype=scalar),
-        particle_world: wp.array(dtype=wp.int32),
-        gravity: vec3,
-        jelly_start: wp.array(dtype=wp.int32),
-        jelly_shape: wp.array(dtype=wp.vec3i),
-        jelly_types: wp.array(dtype=wp.int32),
-        jelly_rest: wp.array2d(dtype=scalar),
-        jelly_ks: wp.array2d(dtype=scalar),
-        jelly_kd: wp.array2d(dtype=scalar),
-        world_stage_count: wp.array(dtype=wp.int32),
-        world_symplectic: wp.array(dtype=wp.int32),
-        world_stage_c: wp.array2d(dtype=scalar),
-        world_stage_b: wp.array2d(dtype=scalar),
-        # Model, planes (read when with_contact != 0):
-        plane_first: wp.array(dtype=wp.int32),
-        plane_point: wp.array(dtype=vec3),
-        plane_normal: wp.array(dtype=vec3),
-        plane_hole_center: wp.array(dtype=vec3),
-        plane_hole_radius: wp.array(dtype=scalar),
-        plane_restitution: wp.array(dtype=scalar),
-        plane_friction: wp.array(dtype=scalar),
-        eps: scalar,
-        eps_v: scalar,
-        rest_steps: scalar,
-        world_contact_beta: wp.array(dtype=scalar),
-        # State in (y_n) and stage state (y_s):
-        q_n: wp.array(dtype=vec3),
-        qd_n: wp.array(dtype=vec3),
-        q_s: wp.array(dtype=vec3),
-        qd_s: wp.array(dtype=vec3),
-        # Out: accumulators, next stage state, and the step's result
-        acc_q_out: wp.array(dtype=vec3),
-        acc_qd_out: wp.array(dtype=vec3),
-        q_next_out: wp.array(dtype=vec3),
-        qd_next_out: wp.array(dtype=vec3),
-        q_out: wp.array(dtype=vec3),
-        qd_out: wp.array(dtype=vec3),
-    ):
-        # integrate_lattice_stage for the interior particles of each jelly (thread (j, t): jelly j's
-        # t-th interior particle): no bounds tests. integrate_lattice_boundary_stage does the rest.
-        j, t = wp.tid()
-        shape = jelly_shape[j]
-        lc = interior_coord(t, shape)
-        if lc[0] < 0:
-            return
-        i = jelly_start[j] + (lc[0] * shape[1] + lc[1]) * shape[2] + lc[2]
-        f = gather_interior(i, j, shape, jelly_types, jelly_rest, jelly_ks, jelly_kd, q_s, qd_s)
-        finish_lattice_stage(
-            i,
-            stage,
-            h,
-            with_contact,
-            f,
-            particle_inv_mass,
-            particle_world,
-            gravity,
-            world_stage_count,
-            world_symplectic,
-            world_stage_c,
-            world_stage_b,
-            plane_first,
-            plane_point,
-            plane_normal,
-            plane_hole_center,
-            plane_hole_radius,
-            plane_restitution,
-            plane_friction,
-            eps,
-            eps_v,
-            rest_steps,
-            world_contact_beta,
-            q_n,
-            qd_n,
-            qd_s,
-            acc_q_out,
-            acc_qd_out,
-            q_next_out,
-            qd_next_out,
-            q_out,
-            qd_out,
-        )
-
-    @wp.kernel(module="unique")
-    def integrate_lattice_boundary_stage(
-        stage: int,
-        h: scalar,
-        with_contact: int,
-        # Model:
-        particle_inv_mass: wp.array(dtype=scalar),
-        particle_world: wp.array(dtype=wp.int32),
-        gravity: vec3,
-        jelly_start: wp.array(dtype=wp.int32),
-        jelly_shape: wp.array(dtype=wp.vec3i),
-        jelly_types: wp.array(dtype=wp.int32),
-        jelly_rest: wp.array2d(dtype=scalar),
-        jelly_ks: wp.array2d(dtype=scalar),
-        jelly_kd: wp.array2d(dtype=scalar),
-        world_stage_count: wp.array(dtype=wp.int32),
-        world_symplectic: wp.array(dtype=wp.int32),
-        world_stage_c: wp.array2d(dtype=scalar),
-        world_stage_b: wp.array2d(dtype=scalar),
-        # Model, planes (read when with_contact != 0):
-        plane_first: wp.array(dtype=wp.int32),
-        plane_point: wp.array(dtype=vec3),
-        plane_normal: wp.array(dtype=vec3),
-        plane_hole_center: wp.array(dtype=vec3),
-        plane_hole_radius: wp.array(dtype=scalar),
-        plane_restitution: wp.array(dtype=scalar),
-        plane_friction: wp.array(dtype=scalar),
-        eps: scalar,
-        eps_v: scalar,
-        rest_steps: scalar,
-        world_contact_beta: wp.array(dtype=scalar),
-        # State in (y_n) and stage state (y_s):
-        q_n: wp.array(dtype=vec3),
-        qd_n: wp.array(dtype=vec3),
-        q_s: wp.array(dtype=vec3),
-        qd_s: wp.array(dtype=vec3),
-        # Out: accumulators, next stage state, and the step's result
-        acc_q_out: wp.array(dtype=vec3),
-        acc_qd_out: wp.array(dtype=vec3),
-        q_next_out: wp.array(dtype=vec3),
-        qd_next_out: wp.array(dtype=vec3),
-        q_out: wp.array(dtype=vec3),
-        qd_out: wp.array(dtype=vec3),
-    ):
-        # integrate_lattice_stage for the particles within 2 of a face of each jelly (thread (j, t):
-        # jelly j's t-th boundary particle).
-        j, t = wp.tid()
-        shape = jelly_shape[j]
-        lc = boundary_coord(t, shape)
-        if lc[0] < 0:
-            return
-        i = jelly_start[j] + (lc[0] * shape[1] + lc[1]) * shape[2] + lc[2]
-        f = gather_checked(i, j, lc[0], lc[1], lc[2], shape, jelly_types, jelly_rest, jelly_ks, jelly_kd, q_s, qd_s)
-        finish_lattice_stage(
-            i,
-            stage,
-            h,
-            with_contact,
-            f,
-            particle_inv_mass,
-            particle_world,
-            gravity,
-            world_stage_count,
-            world_symplectic,
-            world_stage_c,
-            world_stage_b,
-            plane_first,
-            plane_point,
-            plane_normal,
-            plane_hole_center,
-            plane_hole_radius,
-            plane_restitution,
-            plane_friction,
-            eps,
-            eps_v,
-            rest_steps,
-            world_contact_beta,
-            q_n,
-            qd_n,
-            qd_s,
-            acc_q_out,
-            acc_qd_out,
-            q_next_out,
-            qd_next_out,
-            q_out,
-            qd_out,
-        )
 
     @wp.func_native(_rows_snippet("float" if scalar == wp.float32 else "double"))
     def lattice_rows_native(
@@ -1017,13 +653,9 @@ return 1.0f / wp::sqrt(x);
         "load_vec": load_vec,
         "stencil_spring_force": stencil_spring_force,
         "lattice_coord": lattice_coord,
-        "interior_coord": interior_coord,
-        "boundary_coord": boundary_coord,
         "gather_lattice_force": gather_lattice_force,
         "eval_lattice_springs": eval_lattice_springs,
         "integrate_lattice_stage": integrate_lattice_stage,
-        "integrate_lattice_interior_stage": integrate_lattice_interior_stage,
-        "integrate_lattice_boundary_stage": integrate_lattice_boundary_stage,
         "eval_lattice_rows": eval_lattice_rows,
         "integrate_lattice_rows_stage": integrate_lattice_rows_stage,
         "reduce_lattice_springs": reduce_lattice_springs,

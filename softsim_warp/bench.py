@@ -109,7 +109,6 @@ def step_bytes(model, integrator) -> int:
       the force buffer written and read 2 N v, inverse mass N s, plus the stage I/O;
     * lattice gather (CUDA), per stage: x, v of the stage state 2 N v, jelly and world 8 N,
       inverse mass N s, plus the stage I/O (contact fused into the last stage moves nothing more);
-      split into interior and boundary launches, the jelly comes from the thread index: 4 N less;
     * stage I/O: y_n read 2 N v; accumulators read on stages after the first and written before
       the last 2 N v each; next stage state written before the last 2 N v; y_{n+1} written 2 N v;
     * contact when not fused: inverse mass and world N (s + 4), y_n 2 N v, y_{n+1} read and
@@ -128,7 +127,7 @@ def step_bytes(model, integrator) -> int:
         elif lattice.kernel == "rows" and integrator.fused:
             total += 2 * n * v + 4 * n + 2 * n * v + n * s
         elif integrator.fused:
-            total += 2 * n * v + (4 * n if lattice.kernel == "split" else 8 * n) + n * s
+            total += 2 * n * v + 8 * n + n * s
         else:  # lattice forces (f written), then integrate_stage (f and stage velocity read)
             total += 2 * n * v + (4 * n if lattice.kernel == "rows" else 8 * n) + n * v + 2 * n * v + n * (s + 4)
         if symplectic:
@@ -521,7 +520,6 @@ def fast_path_variants(device):
         ("lattice gather, unfused, graph", "lattice", "gather", {"fused": False}, True),
         ("lattice gather, fused, graph", "lattice", "gather", {"fused": True, "fuse_contact": False}, True),
         ("lattice gather, fused+contact, graph", "lattice", "gather", {"fused": True, "fuse_contact": True}, True),
-        ("lattice split, fused+contact, graph", "lattice", "split", {"fused": True, "fuse_contact": True}, True),
     ]
     if device.is_cpu:
         variants += [

@@ -7,9 +7,6 @@ set, :func:`step_fused` from ``step``. The kernel follows the lattice kernel the
   and writes the particle's stage update; on a world's last stage it also applies plane contact
   (and between stages the resting-contact filter), so a symplectic or Euler step over planes is a
   single launch.
-* split (CUDA, large jellies): the same stage as two launches, ``integrate_lattice_interior_stage``
-  over the particles whose whole stencil lies inside their jelly (no bounds tests) and
-  ``integrate_lattice_boundary_stage`` over the rest; the same forces bit for bit.
 * rows (CPU): ``integrate_lattice_rows_stage`` computes a jelly's forces with the vectorised row
   loops and then its particles' stage update; contact follows as its own kernel.
 
@@ -38,7 +35,7 @@ def configure_fused(integrator, fused=None, fuse_contact=None):
     # Only the gather kernel can apply contact per particle; the row kernel works per jelly. On by
     # default: the fused stage calls the same contact_planes as collide_planes on the same values
     # (tests/test_perf_paths.py: bitwise on the CPU), one launch fewer per stage with planes.
-    gather = fused and lat.kernel != "rows"
+    gather = fused and lat.kernel == "gather"
     if fuse_contact is None:
         fuse_contact = True
     integrator.fuse_contact = bool(gather and model.plane_count and bool(fuse_contact))
@@ -107,51 +104,42 @@ def step_fused(integrator, state_in, state_out, dt):
                 device=model.device,
             )
         else:
-            model_tail = [
-                *lat.stencil_tables,
-                integrator.world_stage_count,
-                integrator.world_symplectic,
-                integrator.world_stage_c,
-                integrator.world_stage_b,
-                model.plane_first,
-                model.plane_point,
-                model.plane_normal,
-                model.plane_hole_center,
-                model.plane_hole_radius,
-                model.plane_restitution,
-                model.plane_friction,
-                model.contact_epsilon,
-                model.contact_velocity_epsilon,
-                model.restitution_threshold_steps,
-                integrator.world_contact_beta,
-                state_in.particle_q,
-                state_in.particle_qd,
-                q,
-                qd,
-            ]
             lat.check_contiguous(q, qd)
-            head = [stage, h, int(integrator.fuse_contact), model.particle_inv_mass, model.particle_world]
-            if lat.kernel == "split":
-                for kernel, count in (
-                    (model.kernels.integrate_lattice_interior_stage, lat.max_interior),
-                    (model.kernels.integrate_lattice_boundary_stage, lat.max_boundary),
-                ):
-                    if count:
-                        wp.launch(
-                            kernel,
-                            dim=(lat.jelly_count, count),
-                            inputs=[*head, model.gravity, *model_tail],
-                            outputs=outputs,
-                            device=model.device,
-                        )
-            else:
-                wp.launch(
-                    model.kernels.integrate_lattice_stage,
-                    dim=model.particle_count,
-                    inputs=[*head, model.particle_jelly, model.gravity, *model_tail],
-                    outputs=outputs,
-                    device=model.device,
-                )
+            wp.launch(
+                model.kernels.integrate_lattice_stage,
+                dim=model.particle_count,
+                inputs=[
+                    stage,
+                    h,
+                    int(integrator.fuse_contact),
+                    model.particle_inv_mass,
+                    model.particle_world,
+                    model.particle_jelly,
+                    model.gravity,
+                    *lat.stencil_tables,
+                    integrator.world_stage_count,
+                    integrator.world_symplectic,
+                    integrator.world_stage_c,
+                    integrator.world_stage_b,
+                    model.plane_first,
+                    model.plane_point,
+                    model.plane_normal,
+                    model.plane_hole_center,
+                    model.plane_hole_radius,
+                    model.plane_restitution,
+                    model.plane_friction,
+                    model.contact_epsilon,
+                    model.contact_velocity_epsilon,
+                    model.restitution_threshold_steps,
+                    integrator.world_contact_beta,
+                    state_in.particle_q,
+                    state_in.particle_qd,
+                    q,
+                    qd,
+                ],
+                outputs=outputs,
+                device=model.device,
+            )
         q, qd = q_next, qd_next
         if stage < integrator.stage_count - 1:
             filter_stage_contacts(model, state_in, q, qd, integrator.world_contact_beta, planes=not integrator.fuse_contact)

@@ -125,12 +125,8 @@ class LatticeData:
             int32; allocated only for the CPU row kernel, which reads it.
         scratch: workspace of the row kernel, shape [particle_count], vec3; allocated with
             ``particle_coord_k``.
-        kernel: "rows" (CPU: one vectorised native loop per jelly), "gather" (one thread per
-            particle) or "split" (the gather's fused stage as two launches: interior particles
-            without bounds tests, then the boundary); chosen by device, overridable for tests and
-            benchmarks.
-        max_interior, max_boundary: the largest jelly's count of interior particles (2 or more
-            from every face) and of the others: the second dimension of the split launches.
+        kernel: "rows" (CPU: one vectorised native loop per jelly) or "gather" (one thread per
+            particle); chosen by device, overridable for tests and benchmarks.
         layout: the host :class:`LatticeLayout`.
     """
 
@@ -146,10 +142,6 @@ class LatticeData:
         self.jelly_kd = wp.array2d(layout.kd.astype(np_scalar), dtype=scalar, device=device)
         self.jelly_world = wp.array(layout.world, dtype=wp.int32, device=device)
         self._particle_count = particle_count
-        shapes = np.asarray(layout.shape, dtype=np.int64).reshape(-1, 3)
-        interior = np.prod(np.maximum(shapes - 4, 0), axis=1)
-        self.max_interior = int(interior.max(initial=0))
-        self.max_boundary = int((np.prod(shapes, axis=1) - interior).max(initial=0))
         self.layout_vec3 = wp.types.vector(3, scalar)
         self.particle_coord_k = None
         self.scratch = None
@@ -157,12 +149,12 @@ class LatticeData:
         self.set_kernel(kernel or ("rows" if device.is_cpu else "gather"))
 
     def set_kernel(self, kernel: str):
-        """Choose the force kernel: "rows" (native CPU loop), "gather" or "split" (thread per particle).
+        """Choose the force kernel: "rows" (native CPU loop) or "gather" (thread per particle).
 
         Choose before making integrators: they size their buffers for the kernel in use.
         """
-        if kernel not in ("rows", "gather", "split"):
-            raise ValueError(f"lattice kernel must be 'rows', 'gather' or 'split' (got {kernel!r})")
+        if kernel not in ("rows", "gather"):
+            raise ValueError(f"lattice kernel must be 'rows' or 'gather' (got {kernel!r})")
         if kernel == "rows" and self.particle_coord_k is None:
             coord_k = np.zeros(self._particle_count, dtype=np.int32)
             for start, shape in zip(self.layout.start, self.layout.shape):

@@ -176,59 +176,6 @@ def test_fused_matches_unfused(device, method, kernel):
     assert np.abs(runs[True] - runs[False]).max() <= steps * 4.0 * EPS32 * np.abs(runs[False]).max()
 
 
-def _split_scene():
-    """Jellies with an interior (one rotated and dropping onto a plane, one in a second world) and
-    without one (thinner than 5 along an axis), so both split launches and their early exits run."""
-    b = _dropping(_builder((9, 7, 8), second=True))
-    _builder((6, 5, 12), world=1, second=False, builder=b)
-    b.add_plane((0.0, 0.2, 0.0), (0.0, 1.0, 0.0), world=1)
-    return b
-
-
-def test_split_launches_cover_every_particle_once(device):
-    """The split stage's interior and boundary threads map onto the particles of each jelly one to one."""
-    model = _split_scene().finalize(device, force_path="lattice")
-    lat = model.lattice
-    interior_coord, boundary_coord = model.kernels.interior_coord, model.kernels.boundary_coord
-
-    @wp.kernel
-    def count(shapes: wp.array(dtype=wp.vec3i), interior: int, hits: wp.array2d(dtype=wp.int32)):
-        j, t = wp.tid()
-        shape = shapes[j]
-        lc = wp.vec3i(-1, 0, 0)
-        if interior != 0:
-            lc = interior_coord(t, shape)
-        else:
-            lc = boundary_coord(t, shape)
-        if lc[0] >= 0:
-            wp.atomic_add(hits, j, (lc[0] * shape[1] + lc[1]) * shape[2] + lc[2], 1)
-
-    shapes = lat.layout.shape
-    hits = wp.zeros((lat.jelly_count, int(max(np.prod(s) for s in shapes))), dtype=wp.int32, device=device)
-    for interior, dim in ((1, lat.max_interior), (0, lat.max_boundary)):
-        wp.launch(count, dim=(lat.jelly_count, dim), inputs=[lat.jelly_shape, interior, hits], device=device)
-    hits = hits.numpy()
-    for j, shape in enumerate(shapes):
-        n = int(np.prod(shape))
-        assert np.all(hits[j, :n] == 1) and np.all(hits[j, n:] == 0), shape
-    assert lat.max_interior == 5 * 3 * 4 and lat.max_boundary == 9 * 7 * 8 - 5 * 3 * 4
-
-
-@pytest.mark.parametrize("method", ["symplectic", "midpoint", "rk4"])
-def test_split_stage_matches_gather(device, method):
-    """Interior and boundary launches compute the one-launch gather stage's forces with the same
-    arithmetic in the same order (an absent type's terms select to zero instead of adding the zero of
-    a self-spring): on the CPU the same bits, through impacts and resting contact."""
-    steps, dt = 150, 1.0e-4
-    runs = {}
-    for kernel in ("gather", "split"):
-        model = _split_scene().finalize(device, force_path="lattice")
-        model.lattice.set_kernel(kernel)
-        runs[kernel] = np.concatenate(_run(model, method, steps, dt, fused=True))
-    bound = 0.0 if device.is_cpu else steps * 4.0 * EPS32 * np.abs(runs["gather"]).max()
-    assert np.abs(runs["split"] - runs["gather"]).max() <= bound
-
-
 @pytest.mark.parametrize("method", ["symplectic", "midpoint", "rk4"])
 def test_fused_contact_matches_separate_contact(device, method):
     """Plane contact inside the fused gather stage (the last stage's response and the resting-contact
