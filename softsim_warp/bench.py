@@ -219,7 +219,7 @@ class _Case:
 
 
 class _OurCase(_Case):
-    """Our integrator on one model; ``options`` (fused, fuse_contact) go to ExplicitIntegrator."""
+    """Our integrator on one model; ``options`` (fused, fuse_contact, block_dim) go to ExplicitIntegrator."""
 
     def __init__(self, model, method, dt, steps, use_graph, options=None):
         from .integrators import ExplicitIntegrator, make_integrator  # noqa: PLC0415
@@ -519,6 +519,13 @@ def fast_path_variants(device):
         ("springs, graph", "springs", None, None, True),
         ("lattice gather, unfused, graph", "lattice", "gather", {"fused": False}, True),
         ("lattice gather, fused, graph", "lattice", "gather", {"fused": True, "fuse_contact": False}, True),
+        (
+            "lattice gather, fused+contact, 256 threads/block, graph",
+            "lattice",
+            "gather",
+            {"fused": True, "fuse_contact": True, "block_dim": 256},
+            True,
+        ),
         ("lattice gather, fused+contact, graph", "lattice", "gather", {"fused": True, "fuse_contact": True}, True),
     ]
     if device.is_cpu:
@@ -619,6 +626,7 @@ def _result_row(case, bandwidth, peer_row, use_graph, copies) -> dict:
             "copies": copies,
             "graph": use_graph,
             "fused": bool(getattr(integrator, "fused", False)),
+            "block_dim": getattr(integrator, "block_dim", None) if getattr(integrator, "fused", False) else None,
             "ms_per_step": ms,
             "cpu_ms_per_step": case.cpu_ms_per_step() if case.device.is_cpu else None,
             "steps_per_s": 1e3 / ms,

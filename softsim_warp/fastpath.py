@@ -23,8 +23,15 @@ from __future__ import annotations
 import warp as wp
 
 
-def configure_fused(integrator, fused=None, fuse_contact=None):
-    """Decide whether ``integrator`` uses fused stages (default: whenever the model takes the lattice path)."""
+# Threads per block of the fused gather stage: 128 from this many particles on, else Warp's 256.
+# H200, fused symplectic / rk4 step: 100^3 0.102 / 0.466 ms at 128 against 0.111 / 0.515 at 256;
+# 40^3 0.0105 / 0.0446 against 0.0100 / 0.0426 (docs/PERFORMANCE.md).
+SMALL_BLOCKS_FROM = 1 << 18
+
+
+def configure_fused(integrator, fused=None, fuse_contact=None, block_dim=None):
+    """Decide whether ``integrator`` uses fused stages (default: whenever the model takes the lattice
+    path), whether plane contact joins them, and the gather stage's threads per block."""
     model = integrator.model
     lat = model.lattice
     if fused is None:
@@ -39,6 +46,9 @@ def configure_fused(integrator, fused=None, fuse_contact=None):
     if fuse_contact is None:
         fuse_contact = True
     integrator.fuse_contact = bool(gather and model.plane_count and bool(fuse_contact))
+    if block_dim is None:
+        block_dim = 128 if model.particle_count >= SMALL_BLOCKS_FROM else 256
+    integrator.block_dim = int(block_dim)
     integrator._stage_buffers = None
 
 
@@ -139,6 +149,7 @@ def step_fused(integrator, state_in, state_out, dt):
                 ],
                 outputs=outputs,
                 device=model.device,
+                block_dim=integrator.block_dim,
             )
         q, qd = q_next, qd_next
         if stage < integrator.stage_count - 1:
