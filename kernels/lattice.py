@@ -204,7 +204,9 @@ return 1.0f / wp::sqrt(x);
 
     ctype = "float" if scalar == wp.float32 else "double"
 
-    @wp.func_native(f"const {ctype}* t = (const {ctype}*)a.data + 3 * i;\nreturn wp::vec_t<3, {ctype}>(t[0], t[1], t[2]);")
+    @wp.func_native(
+        f"const {ctype}* t = (const {ctype}*)a.data + 3 * i;\nreturn wp::vec_t<3, {ctype}>(t[0], t[1], t[2]);"
+    )
     def load_vec(a: wp.array(dtype=vec3), i: int) -> vec3:
         """``a[i]`` of a contiguous array, addressed as data + 3 i scalars.
 
@@ -303,7 +305,9 @@ return 1.0f / wp::sqrt(x);
                 o[axis] = 4 * side - 2
                 ok = has_bending and inside(a + o[0], b + o[1], c + o[2], shape)
                 p = wp.where(ok, i + o[0] * row + o[1] * shape[2] + o[2], i)
-                f += stencil_spring_force(x, load_vec(q, p), v, load_vec(qd, p), table_entry(jelly_rest, j, 27 + axis), ks_bending, kd_bending)
+                f += stencil_spring_force(
+                    x, load_vec(q, p), v, load_vec(qd, p), table_entry(jelly_rest, j, 27 + axis), ks_bending, kd_bending
+                )
         return f
 
     @wp.kernel(module="unique")

@@ -22,7 +22,6 @@ from __future__ import annotations
 
 import warp as wp
 
-
 # Threads per block of the fused gather stage: 128 from this many particles on, else Warp's 256.
 # H200, fused symplectic / rk4 step: 100^3 0.102 / 0.466 ms at 128 against 0.111 / 0.515 at 256;
 # 40^3 0.0105 / 0.0446 against 0.0100 / 0.0426 (docs/PERFORMANCE.md).
