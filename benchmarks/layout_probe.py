@@ -60,8 +60,46 @@ const float* t = (const float*)a.data + 3 * i;
 return wp::vec3(t[0], t[1], t[2]);
 """
 )
-def load3_packed(a: wp.array(dtype=wp.vec3), i: int) -> wp.vec3:
+def load_vec3_pointer(a: wp.array(dtype=wp.vec3), i: int) -> wp.vec3:
     """Contiguous ``a[i]`` addressed from the data pointer alone (Warp's ``a[i]`` also multiplies by a run-time stride)."""
+
+
+@wp.func
+def load_vec3(a: wp.array(dtype=wp.vec3), i: int):
+    return a[i]
+
+
+@wp.func
+def load_vec4(a: wp.array(dtype=wp.vec4), i: int):
+    t = a[i]
+    return wp.vec3(t[0], t[1], t[2])
+
+
+@wp.func
+def load_soa(a: wp.array2d(dtype=float), i: int):
+    return wp.vec3(a[0, i], a[1, i], a[2, i])
+
+
+@wp.func
+def load_packed_x(a: wp.array(dtype=wp.vec4), i: int):
+    return load3(a, 2 * i)
+
+
+@wp.func
+def load_packed_v(a: wp.array(dtype=wp.vec4), i: int):
+    return load3(a, 2 * i + 1)
+
+
+# Per layout: the type of the position and velocity arrays, and how to read particle i of each
+# (the packed layout passes its one interleaved array as both).
+LAYOUTS = {
+    "vec3": (wp.array(dtype=wp.vec3), load_vec3, load_vec3),
+    "vec3 native": (wp.array(dtype=wp.vec3), load_vec3_pointer, load_vec3_pointer),
+    "vec4": (wp.array(dtype=wp.vec4), load_vec4, load_vec4),
+    "vec4 native": (wp.array(dtype=wp.vec4), load3, load3),
+    "packed native": (wp.array(dtype=wp.vec4), load_packed_x, load_packed_v),
+    "soa": (wp.array2d(dtype=float), load_soa, load_soa),
+}
 
 
 def make_kernel(layout, n, spacing, spring=spring):
@@ -71,120 +109,23 @@ def make_kernel(layout, n, spacing, spring=spring):
     off_c = wp.constant(wp.types.vector(len(offs), wp.int32)(*offs))
     rest_c = wp.constant(wp.types.vector(len(rests), wp.float32)(*rests))
     count = len(offs)
+    state_array, load_x, load_v = LAYOUTS[layout]
 
-    if layout == "vec3":
-
-        @wp.kernel(module="unique")
-        def k(x: wp.array(dtype=wp.vec3), v: wp.array(dtype=wp.vec3), f: wp.array(dtype=wp.vec3)):
-            i = wp.tid()
-            a = i // (n * n)
-            b = (i // n) % n
-            c = i % n
-            if a < 2 or b < 2 or c < 2 or a >= n - 2 or b >= n - 2 or c >= n - 2:
-                return
-            xi = x[i]
-            vi = v[i]
-            acc = wp.vec3()
-            for s in range(count):
-                p = i + off_c[s]
-                acc += spring(xi - x[p], vi - v[p], rest_c[s])
-            f[i] = acc
-
-    elif layout == "vec4":
-
-        @wp.kernel(module="unique")
-        def k(x: wp.array(dtype=wp.vec4), v: wp.array(dtype=wp.vec4), f: wp.array(dtype=wp.vec3)):
-            i = wp.tid()
-            a = i // (n * n)
-            b = (i // n) % n
-            c = i % n
-            if a < 2 or b < 2 or c < 2 or a >= n - 2 or b >= n - 2 or c >= n - 2:
-                return
-            x4 = x[i]
-            v4 = v[i]
-            xi = wp.vec3(x4[0], x4[1], x4[2])
-            vi = wp.vec3(v4[0], v4[1], v4[2])
-            acc = wp.vec3()
-            for s in range(count):
-                p = i + off_c[s]
-                xp = x[p]
-                vp = v[p]
-                acc += spring(xi - wp.vec3(xp[0], xp[1], xp[2]), vi - wp.vec3(vp[0], vp[1], vp[2]), rest_c[s])
-            f[i] = acc
-
-    elif layout == "vec3 native":
-
-        @wp.kernel(module="unique")
-        def k(x: wp.array(dtype=wp.vec3), v: wp.array(dtype=wp.vec3), f: wp.array(dtype=wp.vec3)):
-            i = wp.tid()
-            a = i // (n * n)
-            b = (i // n) % n
-            c = i % n
-            if a < 2 or b < 2 or c < 2 or a >= n - 2 or b >= n - 2 or c >= n - 2:
-                return
-            xi = load3_packed(x, i)
-            vi = load3_packed(v, i)
-            acc = wp.vec3()
-            for s in range(count):
-                p = i + off_c[s]
-                acc += spring(xi - load3_packed(x, p), vi - load3_packed(v, p), rest_c[s])
-            f[i] = acc
-
-    elif layout == "vec4 native":
-
-        @wp.kernel(module="unique")
-        def k(x: wp.array(dtype=wp.vec4), v: wp.array(dtype=wp.vec4), f: wp.array(dtype=wp.vec3)):
-            i = wp.tid()
-            a = i // (n * n)
-            b = (i // n) % n
-            c = i % n
-            if a < 2 or b < 2 or c < 2 or a >= n - 2 or b >= n - 2 or c >= n - 2:
-                return
-            xi = load3(x, i)
-            vi = load3(v, i)
-            acc = wp.vec3()
-            for s in range(count):
-                p = i + off_c[s]
-                acc += spring(xi - load3(x, p), vi - load3(v, p), rest_c[s])
-            f[i] = acc
-
-    elif layout == "packed native":
-
-        @wp.kernel(module="unique")
-        def k(xv: wp.array(dtype=wp.vec4), f: wp.array(dtype=wp.vec3)):
-            i = wp.tid()
-            a = i // (n * n)
-            b = (i // n) % n
-            c = i % n
-            if a < 2 or b < 2 or c < 2 or a >= n - 2 or b >= n - 2 or c >= n - 2:
-                return
-            xi = load3(xv, 2 * i)
-            vi = load3(xv, 2 * i + 1)
-            acc = wp.vec3()
-            for s in range(count):
-                p = i + off_c[s]
-                acc += spring(xi - load3(xv, 2 * p), vi - load3(xv, 2 * p + 1), rest_c[s])
-            f[i] = acc
-
-    else:
-
-        @wp.kernel(module="unique")
-        def k(x: wp.array2d(dtype=float), v: wp.array2d(dtype=float), f: wp.array(dtype=wp.vec3)):
-            i = wp.tid()
-            a = i // (n * n)
-            b = (i // n) % n
-            c = i % n
-            if a < 2 or b < 2 or c < 2 or a >= n - 2 or b >= n - 2 or c >= n - 2:
-                return
-            xi = wp.vec3(x[0, i], x[1, i], x[2, i])
-            vi = wp.vec3(v[0, i], v[1, i], v[2, i])
-            acc = wp.vec3()
-            for s in range(count):
-                p = i + off_c[s]
-                acc += spring(
-                    xi - wp.vec3(x[0, p], x[1, p], x[2, p]), vi - wp.vec3(v[0, p], v[1, p], v[2, p]), rest_c[s]
-                )
-            f[i] = acc
+    @wp.kernel(module="unique")
+    def k(x: state_array, v: state_array, f: wp.array(dtype=wp.vec3)):
+        i = wp.tid()
+        a = i // (n * n)
+        b = (i // n) % n
+        c = i % n
+        if a < 2 or b < 2 or c < 2 or a >= n - 2 or b >= n - 2 or c >= n - 2:
+            return
+        xi = load_x(x, i)
+        vi = load_v(v, i)
+        acc = wp.vec3()
+        for s in range(count):
+            p = i + off_c[s]
+            acc += spring(xi - load_x(x, p), vi - load_v(v, p), rest_c[s])
+        f[i] = acc
 
     return k
 
@@ -197,18 +138,20 @@ def main():
     x, v = perturbed_lattice(n, spacing)
     pad = lambda u: np.concatenate([u, np.zeros((len(u), 1), np.float32)], 1)  # noqa: E731
     x4, v4 = wp.array(pad(x), dtype=wp.vec4, device=dev), wp.array(pad(v), dtype=wp.vec4, device=dev)
+    x3, v3 = wp.array(x, dtype=wp.vec3, device=dev), wp.array(v, dtype=wp.vec3, device=dev)
+    packed = wp.array(np.hstack([pad(x), pad(v)]).reshape(-1, 4), dtype=wp.vec4, device=dev)
     inputs = {
-        "vec3": [wp.array(x, dtype=wp.vec3, device=dev), wp.array(v, dtype=wp.vec3, device=dev)],
-        "vec3 native": [wp.array(x, dtype=wp.vec3, device=dev), wp.array(v, dtype=wp.vec3, device=dev)],
-        "vec4": [x4, v4],
-        "vec4 native": [x4, v4],
-        "packed native": [wp.array(np.hstack([pad(x), pad(v)]).reshape(-1, 4), dtype=wp.vec4, device=dev)],
-        "soa": [wp.array(x.T.copy(), dtype=float, device=dev), wp.array(v.T.copy(), dtype=float, device=dev)],
+        "vec3": (x3, v3),
+        "vec3 native": (x3, v3),
+        "vec4": (x4, v4),
+        "vec4 native": (x4, v4),
+        "packed native": (packed, packed),
+        "soa": (wp.array(x.T.copy(), dtype=float, device=dev), wp.array(v.T.copy(), dtype=float, device=dev)),
     }
     variants = {}
-    for layout, arrays in inputs.items():
+    for layout, (xa, va) in inputs.items():
         f = wp.zeros(n**3, dtype=wp.vec3, device=dev)
-        variants[layout] = (make_kernel(layout, n, spacing), n**3, [*arrays, f], f)
+        variants[layout] = (make_kernel(layout, n, spacing), n**3, [xa, va, f], f)
     run_cases(variants, dev, a.evals, a.repeats, n, a.out, key="layout")
 
 
