@@ -654,7 +654,6 @@ return 1.0f / wp::sqrt(x);
 
     return {
         "inv_sqrt": inv_sqrt,
-        "load_vec": load_vec,
         "stencil_spring_force": stencil_spring_force,
         "lattice_coord": lattice_coord,
         "gather_lattice_force": gather_lattice_force,
