@@ -526,6 +526,13 @@ def fast_path_variants(device):
             {"fused": True, "fuse_contact": True, "block_dim": 256},
             True,
         ),
+        (
+            "lattice stencil (Warp loops), fused+contact, graph",
+            "lattice",
+            "stencil",
+            {"fused": True, "fuse_contact": True},
+            True,
+        ),
         ("lattice gather, fused+contact, graph", "lattice", "gather", {"fused": True, "fuse_contact": True}, True),
     ]
     if device.is_cpu:

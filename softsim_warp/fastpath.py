@@ -41,7 +41,7 @@ def configure_fused(integrator, fused=None, fuse_contact=None, block_dim=None):
     # Only the gather kernel can apply contact per particle; the row kernel works per jelly. On by
     # default: the fused stage calls the same contact_planes as collide_planes on the same values
     # (tests/test_perf_paths.py: bitwise on the CPU), one launch fewer per stage with planes.
-    gather = fused and lat.kernel == "gather"
+    gather = fused and lat.per_particle
     if fuse_contact is None:
         fuse_contact = True
     integrator.fuse_contact = bool(gather and model.plane_count and bool(fuse_contact))
@@ -115,7 +115,9 @@ def step_fused(integrator, state_in, state_out, dt):
         else:
             lat.check_contiguous(q, qd)
             wp.launch(
-                model.kernels.integrate_lattice_stage,
+                model.kernels.integrate_lattice_stage
+                if lat.kernel == "gather"
+                else model.kernels.integrate_lattice_stage_stencil,
                 dim=model.particle_count,
                 inputs=[
                     stage,

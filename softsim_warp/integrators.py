@@ -225,7 +225,7 @@ class ExplicitIntegrator(Integrator):
         # Stage buffers, allocated once: forces, the stage state and the RK accumulators.
         n = model.particle_count
         # A fused gather stage keeps forces in registers; the row kernel and the plain path need f.
-        gather_fused = self.fused and model.lattice.kernel == "gather"
+        gather_fused = self.fused and model.lattice.per_particle
         self.f = wp.zeros(0 if gather_fused else n, dtype=model.vec3, device=device)
         multi = self.stage_count > 1
         self.q_s = wp.zeros(n if multi else 0, dtype=model.vec3, device=device)

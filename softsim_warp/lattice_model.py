@@ -125,8 +125,10 @@ class LatticeData:
             int32; allocated only for the CPU row kernel, which reads it.
         scratch: workspace of the row kernel, shape [particle_count], vec3; allocated with
             ``particle_coord_k``.
-        kernel: "rows" (CPU: one vectorised native loop per jelly) or "gather" (one thread per
-            particle); chosen by device, overridable for tests and benchmarks.
+        kernel: "rows" (CPU: one vectorised native loop per jelly), "gather" (one thread per
+            particle, straight-line native code; the CUDA default) or "stencil" (the same gather
+            written as Warp loops, the reference it is tested against); chosen by device,
+            overridable for tests and benchmarks.
         layout: the host :class:`LatticeLayout`.
     """
 
@@ -149,12 +151,12 @@ class LatticeData:
         self.set_kernel(kernel or ("rows" if device.is_cpu else "gather"))
 
     def set_kernel(self, kernel: str):
-        """Choose the force kernel: "rows" (native CPU loop) or "gather" (thread per particle).
+        """Choose the force kernel: "rows" (native CPU loop), "gather" or "stencil" (thread per particle).
 
         Choose before making integrators: they size their buffers for the kernel in use.
         """
-        if kernel not in ("rows", "gather"):
-            raise ValueError(f"lattice kernel must be 'rows' or 'gather' (got {kernel!r})")
+        if kernel not in ("rows", "gather", "stencil"):
+            raise ValueError(f"lattice kernel must be 'rows', 'gather' or 'stencil' (got {kernel!r})")
         if kernel == "rows" and self.particle_coord_k is None:
             coord_k = np.zeros(self._particle_count, dtype=np.int32)
             for start, shape in zip(self.layout.start, self.layout.shape):
@@ -163,6 +165,11 @@ class LatticeData:
             self.particle_coord_k = wp.array(coord_k, dtype=wp.int32, device=self.device)
             self.scratch = wp.empty(self._particle_count, dtype=self.layout_vec3, device=self.device)
         self.kernel = kernel
+
+    @property
+    def per_particle(self) -> bool:
+        """Whether the kernel runs one thread per particle (gather or stencil), so contact can fuse."""
+        return self.kernel != "rows"
 
     @staticmethod
     def check_contiguous(*arrays):
@@ -214,7 +221,9 @@ def eval_lattice_forces(model, q: wp.array, qd: wp.array, f_out: wp.array):
     else:
         lat.check_contiguous(q, qd)
         wp.launch(
-            model.kernels.eval_lattice_springs,
+            model.kernels.eval_lattice_springs
+            if lat.kernel == "gather"
+            else model.kernels.eval_lattice_springs_stencil,
             dim=model.particle_count,
             inputs=[
                 model.particle_jelly,

@@ -1,0 +1,100 @@
+"""Does capping the fused stage's registers (more resident warps) speed it up? A measurement.
+
+    python benchmarks/regs_probe.py --device cuda:0 --size 100 --caps 0,80,72,64,56
+    python benchmarks/regs_probe.py --device cuda:0 --size 100 --caps 0 \
+        --kernels integrate_lattice_stage_stencil,integrate_lattice_stage
+
+The fused stage kernels named by ``--kernels`` (``integrate_lattice_stage``: the native gather;
+``integrate_lattice_stage_stencil``: the Warp-loop gather), each compiled with
+``cuda_max_registers`` at each cap (0: the compiler's choice), stepped through the benchmark jelly
+with CUDA graphs; the variants are timed in turn, round after round, in one process. The cap is
+ignored on the CPU, where the model uses the row kernel. Results: docs/PERFORMANCE.md.
+"""
+
+import argparse
+import json
+import time
+import types
+
+import numpy as np
+import warp as wp
+
+from softsim_warp.bench import JellySpec, build_jelly_model
+from softsim_warp.integrators import ExplicitIntegrator
+
+
+def variant_kernel(kernel, cap):
+    if cap == 0:
+        return kernel
+    return wp.kernel(kernel.func, module="unique", cuda_max_registers=cap)
+
+
+def main():
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--device", default="cuda:0")
+    parser.add_argument("--size", type=int, default=100)
+    parser.add_argument("--caps", default="0,80,72,64,56")
+    parser.add_argument("--kernels", default="integrate_lattice_stage", help="stage kernels (names in model.kernels)")
+    parser.add_argument("--integrators", default="symplectic,rk4")
+    parser.add_argument("--steps", type=int, default=100)
+    parser.add_argument("--repeats", type=int, default=7)
+    parser.add_argument("--out", default=None)
+    args = parser.parse_args()
+    spec = JellySpec()
+    caps = [int(c) for c in args.caps.split(",")]
+    keep, cases = [], []
+    variants = [(name, cap) for name in args.kernels.split(",") for cap in caps]
+    for method in args.integrators.split(","):
+        for name, cap in variants:
+            model = build_jelly_model(args.size, spec, args.device)
+            model.kernels = types.SimpleNamespace(**vars(model.kernels))
+            model.kernels.integrate_lattice_stage = variant_kernel(getattr(model.kernels, name), cap)
+            integrator = ExplicitIntegrator(model, method)
+            states = [model.state(), model.state()]
+
+            def step(count, integrator=integrator, states=states):
+                for k in range(count):
+                    integrator.step(states[k % 2], states[1 - k % 2], spec.dt)
+
+            step(2)
+            wp.synchronize_device(args.device)
+            graph = None
+            if wp.get_device(args.device).is_cuda:
+                with wp.ScopedCapture(device=args.device, force_module_load=False) as capture:
+                    step(args.steps)
+                graph = capture.graph
+            keep.append((model, integrator, states))
+            cases.append({"integrator": method, "kernel": name, "cap": cap, "step": step, "graph": graph, "wall": []})
+    for _ in range(args.repeats):
+        for case in cases:
+            wp.synchronize_device(args.device)
+            t0 = time.perf_counter()
+            if case["graph"] is not None:
+                wp.capture_launch(case["graph"])
+            else:
+                case["step"](args.steps)
+            wp.synchronize_device(args.device)
+            case["wall"].append(time.perf_counter() - t0)
+    rows = []
+    print(f"{'integrator':<12}{'kernel':<34}{'cap':>6}{'ms/step':>12}{'vs first':>10}")
+    for case in cases:
+        ms = 1e3 * float(np.median(case["wall"])) / args.steps
+        base = next((c for c in rows if c["integrator"] == case["integrator"]), None)
+        ratio = base["ms_per_step"] / ms if base else 1.0
+        rows.append(
+            {
+                "integrator": case["integrator"],
+                "kernel": case["kernel"],
+                "cap": case["cap"],
+                "ms_per_step": ms,
+                "speedup": ratio,
+            }
+        )
+        print(f"{case['integrator']:<12}{case['kernel']:<34}{case['cap']:>6}{ms:>12.4f}{ratio:>9.2f}x")
+    if args.out:
+        with open(args.out, "w") as f:
+            json.dump({"device": str(wp.get_device(args.device)), "size": args.size, "rows": rows}, f, indent=1)
+
+
+if __name__ == "__main__":
+    main()
