@@ -428,30 +428,27 @@ return 1.0f / wp::sqrt(x);
         qd: wp.array(dtype=vec3),
     ) -> vec3: ...
 
-    def make_eval_lattice_springs(gather):
-        """The force kernel around a per-particle gather (``gather_native`` or ``gather_lattice_force``)."""
-
-        @wp.kernel(module="unique")
-        def eval_lattice_springs(
-            # Model:
-            particle_jelly: wp.array(dtype=wp.int32),
-            jelly_start: wp.array(dtype=wp.int32),
-            jelly_shape: wp.array(dtype=wp.vec3i),
-            jelly_types: wp.array(dtype=wp.int32),
-            jelly_rest: wp.array2d(dtype=scalar),
-            jelly_ks: wp.array2d(dtype=scalar),
-            jelly_kd: wp.array2d(dtype=scalar),
-            # State in:
-            q: wp.array(dtype=vec3),
-            qd: wp.array(dtype=vec3),
-            # Out (every element written; no zeroing needed):
-            f_out: wp.array(dtype=vec3),
-        ):
-            i = wp.tid()
-            j = particle_jelly[i]
-            f_out[i] = gather(i, j, jelly_start, jelly_shape, jelly_types, jelly_rest, jelly_ks, jelly_kd, q, qd)
-
-        return eval_lattice_springs
+    @wp.kernel(module="unique")
+    def eval_lattice_springs(
+        # Model:
+        particle_jelly: wp.array(dtype=wp.int32),
+        jelly_start: wp.array(dtype=wp.int32),
+        jelly_shape: wp.array(dtype=wp.vec3i),
+        jelly_types: wp.array(dtype=wp.int32),
+        jelly_rest: wp.array2d(dtype=scalar),
+        jelly_ks: wp.array2d(dtype=scalar),
+        jelly_kd: wp.array2d(dtype=scalar),
+        # State in:
+        q: wp.array(dtype=vec3),
+        qd: wp.array(dtype=vec3),
+        # Out (every element written; no zeroing needed):
+        f_out: wp.array(dtype=vec3),
+    ):
+        i = wp.tid()
+        j = particle_jelly[i]
+        f_out[i] = gather_lattice_force(
+            i, j, jelly_start, jelly_shape, jelly_types, jelly_rest, jelly_ks, jelly_kd, q, qd
+        )
 
     def make_integrate_lattice_stage(gather):
         """The fused stage kernel around a per-particle gather (``gather_native`` or ``gather_lattice_force``)."""
@@ -580,10 +577,10 @@ return 1.0f / wp::sqrt(x);
 
         return integrate_lattice_stage
 
-    # "gather": the native gather (the CUDA default); "stencil": the same gather as Warp loops, the
-    # readable reference the native one is tested against bit for bit (tests/test_perf_paths.py).
-    eval_lattice_springs = make_eval_lattice_springs(gather_native)
-    eval_lattice_springs_stencil = make_eval_lattice_springs(gather_lattice_force)
+    # Lattice kernel "gather": the native gather (the CUDA default); "stencil": the same gather as
+    # Warp loops, the readable reference the native one is tested against bit for bit
+    # (tests/test_perf_paths.py). The plain force kernel above (eval_forces: the implicit
+    # integrator, unfused stepping) keeps the Warp loops; docs/PERFORMANCE.md says why.
     integrate_lattice_stage = make_integrate_lattice_stage(gather_native)
     integrate_lattice_stage_stencil = make_integrate_lattice_stage(gather_lattice_force)
 
@@ -794,7 +791,6 @@ return 1.0f / wp::sqrt(x);
         "integrate_lattice_stage": integrate_lattice_stage,
         "integrate_lattice_stage_stencil": integrate_lattice_stage_stencil,
         "gather_native": gather_native,
-        "eval_lattice_springs_stencil": eval_lattice_springs_stencil,
         "eval_lattice_rows": eval_lattice_rows,
         "integrate_lattice_rows_stage": integrate_lattice_rows_stage,
         "reduce_lattice_springs": reduce_lattice_springs,

@@ -126,9 +126,10 @@ class LatticeData:
         scratch: workspace of the row kernel, shape [particle_count], vec3; allocated with
             ``particle_coord_k``.
         kernel: "rows" (CPU: one vectorised native loop per jelly), "gather" (one thread per
-            particle, straight-line native code; the CUDA default) or "stencil" (the same gather
-            written as Warp loops, the reference it is tested against); chosen by device,
-            overridable for tests and benchmarks.
+            particle; the fused stages gather with straight-line native code; the CUDA default) or
+            "stencil" (the fused stages gather with Warp loops, the reference the native gather is
+            tested against); chosen by device, overridable for tests and benchmarks. The plain
+            force kernel of both per-particle kernels is the Warp-loop gather.
         layout: the host :class:`LatticeLayout`.
     """
 
@@ -221,9 +222,7 @@ def eval_lattice_forces(model, q: wp.array, qd: wp.array, f_out: wp.array):
     else:
         lat.check_contiguous(q, qd)
         wp.launch(
-            model.kernels.eval_lattice_springs
-            if lat.kernel == "gather"
-            else model.kernels.eval_lattice_springs_stencil,
+            model.kernels.eval_lattice_springs,
             dim=model.particle_count,
             inputs=[
                 model.particle_jelly,
