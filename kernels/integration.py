@@ -26,6 +26,54 @@ def build(scalar):
         return f * inv_mass + gravity
 
     @wp.func
+    def stage_values(
+        i: int,
+        stage: int,
+        h: scalar,
+        f: vec3,
+        inv_mass: scalar,
+        w: int,
+        gravity: vec3,
+        world_stage_count: wp.array(dtype=wp.int32),
+        world_symplectic: wp.array(dtype=wp.int32),
+        world_stage_c: wp.array2d(dtype=scalar),
+        world_stage_b: wp.array2d(dtype=scalar),
+        q_n: wp.array(dtype=vec3),
+        qd_n: wp.array(dtype=vec3),
+        qd_s: wp.array(dtype=vec3),
+        acc_q_out: wp.array(dtype=vec3),
+        acc_qd_out: wp.array(dtype=vec3),
+    ):
+        """Stage ``stage`` of particle i (world w) given its force f at the stage state.
+
+        Returns (kind, x, v): kind 0 when the world has fewer stages (nothing to write), 1 when
+        (x, v) is the step's result y_{n+1}, 2 when (x, v) is the next stage state y_{s+1} (the
+        accumulators are written here). The caller writes (x, v), so the fused lattice stage can
+        apply contact to them first and store each particle once.
+        """
+        count = world_stage_count[w]
+        if stage >= count:
+            return 0, vec3(scalar(0.0)), vec3(scalar(0.0))
+        a = acceleration(f, inv_mass, gravity)
+        if world_symplectic[w] != 0:
+            # Semi-implicit Euler: velocity first, then position with the new velocity.
+            v_new = qd_n[i] + h * a
+            return 1, q_n[i] + h * v_new, v_new
+        v = qd_s[i]
+        b = world_stage_b[w, stage]
+        acc_q = b * v
+        acc_qd = b * a
+        if stage > 0:
+            acc_q = acc_q + acc_q_out[i]
+            acc_qd = acc_qd + acc_qd_out[i]
+        if stage == count - 1:
+            return 1, q_n[i] + h * acc_q, qd_n[i] + h * acc_qd
+        acc_q_out[i] = acc_q
+        acc_qd_out[i] = acc_qd
+        c = world_stage_c[w, stage + 1]
+        return 2, q_n[i] + (h * c) * v, qd_n[i] + (h * c) * a
+
+    @wp.func
     def advance_stage(
         i: int,
         stage: int,
@@ -50,35 +98,34 @@ def build(scalar):
     ):
         """Stage ``stage`` of particle i given its force f at the stage state; True when it wrote y_{n+1}.
 
-        Shared by ``integrate_stage`` and the fused lattice stage (kernels/lattice.py).
+        Used by ``integrate_stage``; the fused lattice stage (kernels/lattice.py) calls
+        ``stage_values`` itself.
         """
-        w = particle_world[i]
-        count = world_stage_count[w]
-        if stage >= count:
-            return False
-        a = acceleration(f, particle_inv_mass[i], gravity)
-        v = qd_s[i]
-        if world_symplectic[w] != 0:
-            # Semi-implicit Euler: velocity first, then position with the new velocity.
-            v_new = qd_n[i] + h * a
-            qd_out[i] = v_new
-            q_out[i] = q_n[i] + h * v_new
+        kind, x, v = stage_values(
+            i,
+            stage,
+            h,
+            f,
+            particle_inv_mass[i],
+            particle_world[i],
+            gravity,
+            world_stage_count,
+            world_symplectic,
+            world_stage_c,
+            world_stage_b,
+            q_n,
+            qd_n,
+            qd_s,
+            acc_q_out,
+            acc_qd_out,
+        )
+        if kind == 1:
+            q_out[i] = x
+            qd_out[i] = v
             return True
-        b = world_stage_b[w, stage]
-        acc_q = b * v
-        acc_qd = b * a
-        if stage > 0:
-            acc_q = acc_q + acc_q_out[i]
-            acc_qd = acc_qd + acc_qd_out[i]
-        if stage == count - 1:
-            q_out[i] = q_n[i] + h * acc_q
-            qd_out[i] = qd_n[i] + h * acc_qd
-            return True
-        acc_q_out[i] = acc_q
-        acc_qd_out[i] = acc_qd
-        c = world_stage_c[w, stage + 1]
-        q_next_out[i] = q_n[i] + (h * c) * v
-        qd_next_out[i] = qd_n[i] + (h * c) * a
+        if kind == 2:
+            q_next_out[i] = x
+            qd_next_out[i] = v
         return False
 
     @wp.kernel(module="unique")
@@ -109,8 +156,31 @@ def build(scalar):
     ):
         i = wp.tid()
         advance_stage(
-            i, stage, h, f_s[i], particle_inv_mass, particle_world, gravity, world_stage_count, world_symplectic,
-            world_stage_c, world_stage_b, q_n, qd_n, qd_s, acc_q_out, acc_qd_out, q_next_out, qd_next_out, q_out, qd_out,
+            i,
+            stage,
+            h,
+            f_s[i],
+            particle_inv_mass,
+            particle_world,
+            gravity,
+            world_stage_count,
+            world_symplectic,
+            world_stage_c,
+            world_stage_b,
+            q_n,
+            qd_n,
+            qd_s,
+            acc_q_out,
+            acc_qd_out,
+            q_next_out,
+            qd_next_out,
+            q_out,
+            qd_out,
         )
 
-    return {"acceleration": acceleration, "advance_stage": advance_stage, "integrate_stage": integrate_stage}
+    return {
+        "acceleration": acceleration,
+        "stage_values": stage_values,
+        "advance_stage": advance_stage,
+        "integrate_stage": integrate_stage,
+    }

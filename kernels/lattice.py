@@ -93,7 +93,8 @@ def _gather_snippet(ctype):
         "const int* shape = (const int*)jelly_shape.data + 3 * j;",
         "const int nx = shape[0], ny = shape[1], nz = shape[2], row = ny * nz;",
         "const int local = i - start;",
-        "const int c = local % nz, ab = local / nz, b = ab % ny, a = ab / ny;",
+        "const unsigned ul = (unsigned)local, unz = (unsigned)nz, uny = (unsigned)ny, uab = ul / unz;",
+        "const int c = (int)(ul - uab * unz), a = (int)(uab / uny), b = (int)(uab - (unsigned)a * uny);",
         "const int types = ((const int*)jelly_types.data)[j];",
         "const bool s0 = (types & 1) != 0, s1 = (types & 2) != 0, s2 = (types & 4) != 0;",
     ]
@@ -289,7 +290,7 @@ def build(scalar):
     vec3 = wp.types.vector(3, scalar)
     contact_funcs = contact.build(scalar)
     contact_planes = contact_funcs["contact_planes"]
-    advance_stage = integration.build(scalar)["advance_stage"]
+    stage_values = integration.build(scalar)["stage_values"]
 
     if scalar == wp.float32:
         inv_sqrt_snippet = """
@@ -504,13 +505,15 @@ return 1.0f / wp::sqrt(x);
             i = wp.tid()
             j = particle_jelly[i]
             f = gather(i, j, jelly_start, jelly_shape, jelly_types, jelly_rest, jelly_ks, jelly_kd, q_s, qd_s)
-            last = advance_stage(
+            w = particle_world[i]
+            inv_mass = particle_inv_mass[i]
+            kind, x, v = stage_values(
                 i,
                 stage,
                 h,
                 f,
-                particle_inv_mass,
-                particle_world,
+                inv_mass,
+                w,
                 gravity,
                 world_stage_count,
                 world_symplectic,
@@ -521,18 +524,17 @@ return 1.0f / wp::sqrt(x);
                 qd_s,
                 acc_q_out,
                 acc_qd_out,
-                q_next_out,
-                qd_next_out,
-                q_out,
-                qd_out,
             )
-            if with_contact != 0 and particle_inv_mass[i] != scalar(0.0):
-                w = particle_world[i]
-                if last:
+            if kind == 0:
+                return
+            # Contact acts on the stage's values before they are stored, so each particle is
+            # written once (storing first and reading back for contact cost a store and a load).
+            if with_contact != 0 and inv_mass != scalar(0.0):
+                if kind == 1:
                     # Plane contact on the step's result, as collide_planes does after the step.
                     x, v = contact_planes(
-                        q_out[i],
-                        qd_out[i],
+                        x,
+                        v,
                         qd_n[i],
                         w,
                         plane_first,
@@ -548,15 +550,13 @@ return 1.0f / wp::sqrt(x);
                         h * world_contact_beta[w],
                         0,
                     )
-                    q_out[i] = x
-                    qd_out[i] = v
-                elif stage < world_stage_count[w] - 1:
+                else:
                     # The next stage state's resting contacts, as integrators.filter_stage_contacts
                     # does between stages (velocities only; h = 0: no position gain). Two calls rather
                     # than one on selected inputs: the single call measured 4 % slower on an H200.
                     x, v = contact_planes(
-                        q_next_out[i],
-                        qd_next_out[i],
+                        x,
+                        v,
                         qd_n[i],
                         w,
                         plane_first,
@@ -572,8 +572,12 @@ return 1.0f / wp::sqrt(x);
                         scalar(0.0),
                         1,
                     )
-                    q_next_out[i] = x
-                    qd_next_out[i] = v
+            if kind == 1:
+                q_out[i] = x
+                qd_out[i] = v
+            else:
+                q_next_out[i] = x
+                qd_next_out[i] = v
 
         return integrate_lattice_stage
 
