@@ -8,7 +8,9 @@ The fused stage kernels named by ``--kernels`` (``integrate_lattice_stage``: the
 ``integrate_lattice_stage_stencil``: the Warp-loop gather), each compiled with
 ``cuda_max_registers`` at each cap (0: the compiler's choice), stepped through the benchmark jelly
 with CUDA graphs; the variants are timed in turn, round after round, in one process. The cap is
-ignored on the CPU, where the model uses the row kernel. Results: docs/PERFORMANCE.md.
+ignored on the CPU. Each variant's final positions are compared with the first variant's of the
+same integrator (``max_rel_diff`` in the JSON; on the CPU the native and Warp-loop gathers give the
+same bits). Results: docs/PERFORMANCE.md.
 """
 
 import argparse
@@ -29,6 +31,13 @@ def variant_kernel(kernel, cap):
     return wp.kernel(kernel.func, module="unique", cuda_max_registers=cap)
 
 
+def _rel_diff(case, ref):
+    """Largest position difference between two variants' final states, relative to the largest coordinate."""
+    q = case["states"][0].particle_q.numpy().astype(np.float64)
+    q_ref = ref["states"][0].particle_q.numpy().astype(np.float64)
+    return float(np.abs(q - q_ref).max() / np.abs(q_ref).max())
+
+
 def main():
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--device", default="cuda:0")
@@ -47,6 +56,7 @@ def main():
     for method in args.integrators.split(","):
         for name, cap in variants:
             model = build_jelly_model(args.size, spec, args.device)
+            model.lattice.set_kernel("gather")  # the per-particle stage kernels (the CPU default is "rows")
             model.kernels = types.SimpleNamespace(**vars(model.kernels))
             model.kernels.integrate_lattice_stage = variant_kernel(getattr(model.kernels, name), cap)
             integrator = ExplicitIntegrator(model, method)
@@ -64,7 +74,17 @@ def main():
                     step(args.steps)
                 graph = capture.graph
             keep.append((model, integrator, states))
-            cases.append({"integrator": method, "kernel": name, "cap": cap, "step": step, "graph": graph, "wall": []})
+            cases.append(
+                {
+                    "integrator": method,
+                    "kernel": name,
+                    "cap": cap,
+                    "states": states,
+                    "step": step,
+                    "graph": graph,
+                    "wall": [],
+                }
+            )
     for _ in range(args.repeats):
         for case in cases:
             wp.synchronize_device(args.device)
@@ -88,6 +108,7 @@ def main():
                 "cap": case["cap"],
                 "ms_per_step": ms,
                 "speedup": ratio,
+                "max_rel_diff": _rel_diff(case, next(c for c in cases if c["integrator"] == case["integrator"])),
             }
         )
         print(f"{case['integrator']:<12}{case['kernel']:<34}{case['cap']:>6}{ms:>12.4f}{ratio:>9.2f}x")

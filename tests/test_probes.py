@@ -30,3 +30,16 @@ def test_probe_variants_agree(tmp_path, script, args, key):
     assert len(rows) >= 3
     for row in rows:
         assert row["max_rel_diff"] < 1.0e-5, row
+
+
+def test_regs_probe_variants_agree(tmp_path):
+    """benchmarks/regs_probe.py times the fused stage's native gather against the Warp-loop one; on
+    the CPU their trajectories are the same bits."""
+    out = tmp_path / "regs.json"
+    argv = [str(ROOT / "benchmarks/regs_probe.py"), "--device", "cpu", "--size", "8", "--caps", "0"]
+    argv += ["--kernels", "integrate_lattice_stage_stencil,integrate_lattice_stage", "--steps", "20", "--repeats", "1"]
+    subprocess.run([sys.executable, *argv, "--out", str(out)], check=True, capture_output=True, timeout=600)
+    rows = json.loads(out.read_text())["rows"]
+    assert {r["kernel"] for r in rows} == {"integrate_lattice_stage_stencil", "integrate_lattice_stage"}
+    assert len(rows) == 4
+    assert all(r["max_rel_diff"] == 0.0 for r in rows), rows
