@@ -14,7 +14,6 @@ import argparse
 import types
 
 import numpy as np
-import warp as wp
 
 from softsim_warp.integrators import make_integrator
 from softsim_warp.model import build_model
@@ -22,30 +21,6 @@ from softsim_warp.scene import load_scene
 from softsim_warp.simulate import Simulator
 
 SPRING_TYPES = ("structural", "shear", "bending")
-
-
-def native_eval_kernel(kernels):
-    """eval_lattice_springs around the native gather (what eval_forces ran in the failing runs)."""
-    gather = kernels.gather_native
-
-    @wp.kernel(module="unique")
-    def eval_native(
-        particle_jelly: wp.array(dtype=wp.int32),
-        jelly_start: wp.array(dtype=wp.int32),
-        jelly_shape: wp.array(dtype=wp.vec3i),
-        jelly_types: wp.array(dtype=wp.int32),
-        jelly_rest: wp.array2d(dtype=wp.float32),
-        jelly_ks: wp.array2d(dtype=wp.float32),
-        jelly_kd: wp.array2d(dtype=wp.float32),
-        q: wp.array(dtype=wp.vec3),
-        qd: wp.array(dtype=wp.vec3),
-        f_out: wp.array(dtype=wp.vec3),
-    ):
-        i = wp.tid()
-        j = particle_jelly[i]
-        f_out[i] = gather(i, j, jelly_start, jelly_shape, jelly_types, jelly_rest, jelly_ks, jelly_kd, q, qd)
-
-    return eval_native
 
 
 def main():
@@ -60,13 +35,13 @@ def main():
         for run in range(args.runs):
             scene = load_scene("jelly_drop", [f"jelly.0.springs.{t}.ks={args.ks}" for t in SPRING_TYPES])
             model = build_model(scene, args.device, force_path="springs" if path == "springs" else "auto")
-            if model.scalar != wp.float32:
-                raise SystemExit("implicit_energy_probe.py: the scene must be float32")
             if model.lattice is not None:
                 model.lattice.set_kernel("stencil" if path == "stencil" else "gather")
                 if path == "native":
                     model.kernels = types.SimpleNamespace(**vars(model.kernels))
-                    model.kernels.eval_lattice_springs = native_eval_kernel(model.kernels)
+                    model.kernels.eval_lattice_springs = model.kernels.make_eval_lattice_springs(
+                        model.kernels.gather_native
+                    )
             integrator = make_integrator("implicit", model)
             result = Simulator(model, integrator, dt=0.01, fps=50.0, frames=50).run()
             e = np.array([m.total_energy for m in result.metrics])

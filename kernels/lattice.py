@@ -429,27 +429,32 @@ return 1.0f / wp::sqrt(x);
         qd: wp.array(dtype=vec3),
     ) -> vec3: ...
 
-    @wp.kernel(module="unique")
-    def eval_lattice_springs(
-        # Model:
-        particle_jelly: wp.array(dtype=wp.int32),
-        jelly_start: wp.array(dtype=wp.int32),
-        jelly_shape: wp.array(dtype=wp.vec3i),
-        jelly_types: wp.array(dtype=wp.int32),
-        jelly_rest: wp.array2d(dtype=scalar),
-        jelly_ks: wp.array2d(dtype=scalar),
-        jelly_kd: wp.array2d(dtype=scalar),
-        # State in:
-        q: wp.array(dtype=vec3),
-        qd: wp.array(dtype=vec3),
-        # Out (every element written; no zeroing needed):
-        f_out: wp.array(dtype=vec3),
-    ):
-        i = wp.tid()
-        j = particle_jelly[i]
-        f_out[i] = gather_lattice_force(
-            i, j, jelly_start, jelly_shape, jelly_types, jelly_rest, jelly_ks, jelly_kd, q, qd
-        )
+    def make_eval_lattice_springs(gather):
+        """The force kernel around a per-particle gather (``gather_lattice_force`` or ``gather_native``)."""
+
+        @wp.kernel(module="unique")
+        def eval_lattice_springs(
+            # Model:
+            particle_jelly: wp.array(dtype=wp.int32),
+            jelly_start: wp.array(dtype=wp.int32),
+            jelly_shape: wp.array(dtype=wp.vec3i),
+            jelly_types: wp.array(dtype=wp.int32),
+            jelly_rest: wp.array2d(dtype=scalar),
+            jelly_ks: wp.array2d(dtype=scalar),
+            jelly_kd: wp.array2d(dtype=scalar),
+            # State in:
+            q: wp.array(dtype=vec3),
+            qd: wp.array(dtype=vec3),
+            # Out (every element written; no zeroing needed):
+            f_out: wp.array(dtype=vec3),
+        ):
+            i = wp.tid()
+            j = particle_jelly[i]
+            f_out[i] = gather(i, j, jelly_start, jelly_shape, jelly_types, jelly_rest, jelly_ks, jelly_kd, q, qd)
+
+        return eval_lattice_springs
+
+    eval_lattice_springs = make_eval_lattice_springs(gather_lattice_force)
 
     def make_integrate_lattice_stage(gather):
         """The fused stage kernel around a per-particle gather (``gather_native`` or ``gather_lattice_force``)."""
@@ -792,6 +797,7 @@ return 1.0f / wp::sqrt(x);
         "lattice_coord": lattice_coord,
         "gather_lattice_force": gather_lattice_force,
         "eval_lattice_springs": eval_lattice_springs,
+        "make_eval_lattice_springs": make_eval_lattice_springs,
         "integrate_lattice_stage": integrate_lattice_stage,
         "integrate_lattice_stage_stencil": integrate_lattice_stage_stencil,
         "gather_native": gather_native,
