@@ -69,7 +69,7 @@ def _gather_snippet(ctype):
 
     Why it is faster than the Warp loops (H200, Nsight Compute, fused symplectic stage at 100^3):
     the loops' select-then-index addressing and short-circuit bounds tests cost about 34 integer
-    instructions per spring; here a spring is about 37 instructions in all (20 floating point, 6
+    instructions per spring; here a spring is about 38 instructions in all (20 floating point, 6
     loads, 6 register moves for the stand-in, the reciprocal square root and its guard), the
     kernel executes 54 M warp instructions instead of 69 M and needs 64 registers instead of 96.
     On CUDA the reciprocal square root is ``rsqrt.approx.ftz`` (the instruction rsqrtf uses for
@@ -98,7 +98,7 @@ def _gather_snippet(ctype):
         "const int types = ((const int*)jelly_types.data)[j];",
         "const bool s0 = (types & 1) != 0, s1 = (types & 2) != 0, s2 = (types & 4) != 0;",
     ]
-    for axis, (v, n) in enumerate((("a", "nx"), ("b", "ny"), ("c", "nz"))):
+    for v, n in (("a", "nx"), ("b", "ny"), ("c", "nz")):
         lines.append(f"const bool {v}m2 = {v} >= 2, {v}m1 = {v} >= 1, {v}p1 = {v} + 1 < {n}, {v}p2 = {v} + 2 < {n};")
     lines += [
         f"const T* rest = (const T*)jelly_rest.data + {REST_SLOTS} * j;",
@@ -115,6 +115,8 @@ def _gather_snippet(ctype):
     def slot(o):
         return rest_slot(*max(o, tuple(-x for x in o)))
 
+    # The 32 offsets and spring types in gather_lattice_force's order (the 3x3x3 block in
+    # (di, dj, dk) order, then bending axis by axis, -2 before +2), so the sums round alike.
     neighbours = []
     for di in (-1, 0, 1):
         for dj in (-1, 0, 1):
