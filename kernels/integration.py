@@ -48,8 +48,9 @@ def build(scalar):
 
         Returns (kind, x, v): kind 0 when the world has fewer stages (nothing to write), 1 when
         (x, v) is the step's result y_{n+1}, 2 when (x, v) is the next stage state y_{s+1} (the
-        accumulators are written here). The caller writes (x, v), so the fused lattice stage can
-        apply contact to them first and store each particle once.
+        accumulators are written here). The caller writes (x, v): ``integrate_stage`` below, and the
+        fused lattice stage (kernels/lattice.py), which applies contact to them first and stores
+        each particle once.
         """
         count = world_stage_count[w]
         if stage >= count:
@@ -72,61 +73,6 @@ def build(scalar):
         acc_qd_out[i] = acc_qd
         c = world_stage_c[w, stage + 1]
         return 2, q_n[i] + (h * c) * v, qd_n[i] + (h * c) * a
-
-    @wp.func
-    def advance_stage(
-        i: int,
-        stage: int,
-        h: scalar,
-        f: vec3,
-        particle_inv_mass: wp.array(dtype=scalar),
-        particle_world: wp.array(dtype=wp.int32),
-        gravity: vec3,
-        world_stage_count: wp.array(dtype=wp.int32),
-        world_symplectic: wp.array(dtype=wp.int32),
-        world_stage_c: wp.array2d(dtype=scalar),
-        world_stage_b: wp.array2d(dtype=scalar),
-        q_n: wp.array(dtype=vec3),
-        qd_n: wp.array(dtype=vec3),
-        qd_s: wp.array(dtype=vec3),
-        acc_q_out: wp.array(dtype=vec3),
-        acc_qd_out: wp.array(dtype=vec3),
-        q_next_out: wp.array(dtype=vec3),
-        qd_next_out: wp.array(dtype=vec3),
-        q_out: wp.array(dtype=vec3),
-        qd_out: wp.array(dtype=vec3),
-    ):
-        """Stage ``stage`` of particle i given its force f at the stage state; True when it wrote y_{n+1}.
-
-        Used by ``integrate_stage``; the fused lattice stage (kernels/lattice.py) calls
-        ``stage_values`` itself.
-        """
-        kind, x, v = stage_values(
-            i,
-            stage,
-            h,
-            f,
-            particle_inv_mass[i],
-            particle_world[i],
-            gravity,
-            world_stage_count,
-            world_symplectic,
-            world_stage_c,
-            world_stage_b,
-            q_n,
-            qd_n,
-            qd_s,
-            acc_q_out,
-            acc_qd_out,
-        )
-        if kind == 1:
-            q_out[i] = x
-            qd_out[i] = v
-            return True
-        if kind == 2:
-            q_next_out[i] = x
-            qd_next_out[i] = v
-        return False
 
     @wp.kernel(module="unique")
     def integrate_stage(
@@ -155,13 +101,13 @@ def build(scalar):
         qd_out: wp.array(dtype=vec3),
     ):
         i = wp.tid()
-        advance_stage(
+        kind, x, v = stage_values(
             i,
             stage,
             h,
             f_s[i],
-            particle_inv_mass,
-            particle_world,
+            particle_inv_mass[i],
+            particle_world[i],
             gravity,
             world_stage_count,
             world_symplectic,
@@ -172,15 +118,16 @@ def build(scalar):
             qd_s,
             acc_q_out,
             acc_qd_out,
-            q_next_out,
-            qd_next_out,
-            q_out,
-            qd_out,
         )
+        if kind == 1:
+            q_out[i] = x
+            qd_out[i] = v
+        elif kind == 2:
+            q_next_out[i] = x
+            qd_next_out[i] = v
 
     return {
         "acceleration": acceleration,
         "stage_values": stage_values,
-        "advance_stage": advance_stage,
         "integrate_stage": integrate_stage,
     }

@@ -163,7 +163,7 @@ def _rows_snippet(ctype, with_stage=False):
     """C++ body of the CPU row kernel for scalar type ``ctype`` ("float" or "double").
 
     With ``with_stage`` the forces go to a scratch buffer and an integrator stage follows (the
-    same arithmetic as ``advance_stage`` in kernels/integration.py, for the jelly's world).
+    same arithmetic as ``stage_values`` in kernels/integration.py, for the jelly's world).
     """
     table = ", ".join(f"{{{di}, {dj}, {dk}, {t}, {rest_slot(di, dj, dk)}}}" for (di, dj, dk), t in HALF_OFFSETS)
     head = f"""
@@ -182,7 +182,7 @@ def _rows_snippet(ctype, with_stage=False):
 
 
 _ROWS_STAGE = """
-    // Stage update of the jelly's particles (advance_stage, vectorised): a = f/m + g.
+    // Stage update of the jelly's particles (stage_values, vectorised): a = f/m + g.
     const T* __restrict__ im = (const T*)particle_inv_mass.data + start;
     const T* __restrict__ xn = (const T*)q_n.data + 3 * start;
     const T* __restrict__ vn = (const T*)qd_n.data + 3 * start;
