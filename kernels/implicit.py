@@ -260,22 +260,24 @@ def build(scalar):
         xf: vec3,
         touching: int,
         normal: vec3,
-        plane_count: int,
-        plane_world: wp.array(dtype=wp.int32),
+        plane_first: wp.array(dtype=wp.int32),
         plane_point: wp.array(dtype=vec3),
         plane_normal: wp.array(dtype=vec3),
         plane_hole_center: wp.array(dtype=vec3),
         plane_hole_radius: wp.array(dtype=scalar),
         eps: scalar,
     ):
-        """(count, normal) of the planes of world w that the free result xf touches, added to the arguments."""
-        for p in range(plane_count):
-            if plane_world[p] == w:
-                nrm = plane_normal[p]
-                phi = plane_distance(xf, plane_point[p], nrm, plane_hole_center[p], plane_hole_radius[p])
-                if phi < eps:
-                    touching = touching + 1
-                    normal = nrm
+        """(count, normal) of the planes of world w that the free result xf touches, added to the arguments.
+
+        World w's planes are plane_first[w] .. plane_first[w + 1] - 1 (sorted by world), as in
+        contact.contact_planes.
+        """
+        for p in range(plane_first[w], plane_first[w + 1]):
+            nrm = plane_normal[p]
+            phi = plane_distance(xf, plane_point[p], nrm, plane_hole_center[p], plane_hole_radius[p])
+            if phi < eps:
+                touching = touching + 1
+                normal = nrm
         return touching, normal
 
     @wp.func
@@ -285,34 +287,30 @@ def build(scalar):
         xp: vec3,
         touching: int,
         normal: vec3,
-        bowl_count: int,
-        bowl_world: wp.array(dtype=wp.int32),
+        bowl_first: wp.array(dtype=wp.int32),
         bowl_center: wp.array(dtype=vec3),
         bowl_radius: wp.array(dtype=scalar),
         bowl_cut_height: wp.array(dtype=scalar),
-        sphere_count: int,
-        sphere_world: wp.array(dtype=wp.int32),
+        sphere_first: wp.array(dtype=wp.int32),
         sphere_center: wp.array(dtype=vec3),
         sphere_radius: wp.array(dtype=scalar),
         eps: scalar,
     ):
         """The same for bowls and spheres, with collide_bowls' rule that a bowl holds only what began inside."""
-        for b in range(bowl_count):
-            if bowl_world[b] == w:
-                c = bowl_center[b]
-                radius = bowl_radius[b]
-                phi_prev, _n_prev = sphere_distance(xp, c, radius)
-                if phi_prev <= eps + radius * scalar(1.0e-4):
-                    phi, nrm = bowl_distance(xf, c, radius, bowl_cut_height[b])
-                    if phi < eps:
-                        touching = touching + 1
-                        normal = nrm
-        for s in range(sphere_count):
-            if sphere_world[s] == w:
-                phi, nrm = sphere_distance(xf, sphere_center[s], sphere_radius[s])
+        for b in range(bowl_first[w], bowl_first[w + 1]):
+            c = bowl_center[b]
+            radius = bowl_radius[b]
+            phi_prev, _n_prev = sphere_distance(xp, c, radius)
+            if phi_prev <= eps + radius * scalar(1.0e-4):
+                phi, nrm = bowl_distance(xf, c, radius, bowl_cut_height[b])
                 if phi < eps:
                     touching = touching + 1
                     normal = nrm
+        for s in range(sphere_first[w], sphere_first[w + 1]):
+            phi, nrm = sphere_distance(xf, sphere_center[s], sphere_radius[s])
+            if phi < eps:
+                touching = touching + 1
+                normal = nrm
         return touching, normal
 
     @wp.kernel(module="unique")
@@ -322,19 +320,16 @@ def build(scalar):
         particle_world: wp.array(dtype=wp.int32),
         particle_mass: wp.array(dtype=scalar),
         fixed: wp.array(dtype=wp.int32),
-        plane_count: int,
-        plane_world: wp.array(dtype=wp.int32),
+        plane_first: wp.array(dtype=wp.int32),
         plane_point: wp.array(dtype=vec3),
         plane_normal: wp.array(dtype=vec3),
         plane_hole_center: wp.array(dtype=vec3),
         plane_hole_radius: wp.array(dtype=scalar),
-        bowl_count: int,
-        bowl_world: wp.array(dtype=wp.int32),
+        bowl_first: wp.array(dtype=wp.int32),
         bowl_center: wp.array(dtype=vec3),
         bowl_radius: wp.array(dtype=scalar),
         bowl_cut_height: wp.array(dtype=scalar),
-        sphere_count: int,
-        sphere_world: wp.array(dtype=wp.int32),
+        sphere_first: wp.array(dtype=wp.int32),
         sphere_center: wp.array(dtype=vec3),
         sphere_radius: wp.array(dtype=scalar),
         contact_epsilon: scalar,
@@ -376,8 +371,7 @@ def build(scalar):
                 xf,
                 0,
                 vec3(scalar(0.0)),
-                plane_count,
-                plane_world,
+                plane_first,
                 plane_point,
                 plane_normal,
                 plane_hole_center,
@@ -390,13 +384,11 @@ def build(scalar):
                 q_n[i],
                 touching,
                 nrm,
-                bowl_count,
-                bowl_world,
+                bowl_first,
                 bowl_center,
                 bowl_radius,
                 bowl_cut_height,
-                sphere_count,
-                sphere_world,
+                sphere_first,
                 sphere_center,
                 sphere_radius,
                 contact_epsilon,

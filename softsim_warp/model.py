@@ -315,7 +315,6 @@ class ModelBuilder:
         m.plane_hole_radius = arr(col("hole_radius", (n,)), scalar, np_scalar)
         m.plane_restitution = arr(col("restitution", (n,)), scalar, np_scalar)
         m.plane_friction = arr(col("friction", (n,)), scalar, np_scalar)
-        m.plane_world = arr(col("world", (n,)), wp.int32, np.int32)
 
         # Bowls and spheres; float32 cannot hold an infinite cut, so "no cut" is stored as 1e30.
         m.bowls = [dict(b) for b in bowls]
@@ -334,12 +333,10 @@ class ModelBuilder:
         m.bowl_cut_height = arr(np.minimum(cols(bowls, "cut_height", (nb,)), 1.0e30), scalar, np_scalar)
         m.bowl_restitution = arr(cols(bowls, "restitution", (nb,)), scalar, np_scalar)
         m.bowl_friction = arr(cols(bowls, "friction", (nb,)), scalar, np_scalar)
-        m.bowl_world = arr(cols(bowls, "world", (nb,)), wp.int32, np.int32)
         m.sphere_center = arr(cols(spheres, "center", (ns, 3)), vec3, np_scalar)
         m.sphere_radius = arr(cols(spheres, "radius", (ns,)), scalar, np_scalar)
         m.sphere_restitution = arr(cols(spheres, "restitution", (ns,)), scalar, np_scalar)
         m.sphere_friction = arr(cols(spheres, "friction", (ns,)), scalar, np_scalar)
-        m.sphere_world = arr(cols(spheres, "world", (ns,)), wp.int32, np.int32)
         return m
 
 
@@ -363,19 +360,18 @@ class Model:
         lattice_reason: host string, why the lattice path does or does not apply.
         gravity: acceleration [m/s^2], vec3 value.
         plane_*: per plane point [m], unit normal, hole centre [m] and radius [m] (0 = none),
-            restitution, friction coefficient and world, shape [plane_count]; planes, bowls and
-            spheres are sorted by world.
+            restitution and friction coefficient, shape [plane_count]; planes, bowls and spheres
+            are sorted by world.
         plane_first, bowl_first, sphere_first: index of each world's first primitive of the kind,
-            shape [world_count + 1], int32; world w has first[w] .. first[w + 1] - 1.
+            shape [world_count + 1], int32; world w has first[w] .. first[w + 1] - 1 (the host
+            lists ``planes``, ``bowls``, ``spheres`` hold each primitive's world).
         bowl_center: sphere centre of each bowl [m], shape [bowl_count], vec3.
         bowl_radius: sphere radius [m], shape [bowl_count], scalar.
         bowl_cut_height: the bowl exists where y < cut height [m] (1e30: whole sphere), shape [bowl_count], scalar.
         bowl_restitution, bowl_friction: coefficients [1], shape [bowl_count], scalar.
-        bowl_world: world of each bowl, shape [bowl_count], int32.
         sphere_center: centre of each solid sphere [m], shape [sphere_count], vec3.
         sphere_radius: radius [m], shape [sphere_count], scalar.
         sphere_restitution, sphere_friction: coefficients [1], shape [sphere_count], scalar.
-        sphere_world: world of each sphere, shape [sphere_count], int32.
         bowls, spheres: host lists of dicts with the same values (float64).
         contact_epsilon: distance within which a particle touches a surface [m].
         contact_velocity_epsilon: approach speed below which a touching particle rests [m/s].
