@@ -51,14 +51,16 @@ def main():
     args = parser.parse_args()
     spec = JellySpec()
     caps = [int(c) for c in args.caps.split(",")]
-    keep, cases = [], []
+    keep, cases, built = [], [], {}
     variants = [(name, cap) for name in args.kernels.split(",") for cap in caps]
     for method in args.integrators.split(","):
         for name, cap in variants:
             model = build_jelly_model(args.size, spec, args.device)
             model.lattice.set_kernel("gather")  # the per-particle stage kernels (the CPU default is "rows")
             model.kernels = types.SimpleNamespace(**vars(model.kernels))
-            model.kernels.integrate_lattice_stage = variant_kernel(getattr(model.kernels, name), cap)
+            if (name, cap) not in built:  # one build per variant, shared by the integrators
+                built[name, cap] = variant_kernel(getattr(model.kernels, name), cap)
+            model.kernels.integrate_lattice_stage = built[name, cap]
             integrator = ExplicitIntegrator(model, method)
             states = [model.state(), model.state()]
 
