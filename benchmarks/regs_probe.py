@@ -5,7 +5,8 @@
         --kernels integrate_lattice_stage_stencil,integrate_lattice_stage
 
 The fused stage kernels named by ``--kernels`` (``integrate_lattice_stage``: the native gather;
-``integrate_lattice_stage_stencil``: the Warp-loop gather), each compiled with
+``integrate_lattice_stage_stencil``: the Warp-loop gather; ``gather:fast+fma``: the native gather
+built with those ``_gather_snippet`` options), each compiled with
 ``cuda_max_registers`` at each cap (0: the compiler's choice), stepped through the benchmark jelly
 with CUDA graphs; the variants are timed in turn, round after round, in one process. The cap is
 ignored on the CPU. Each variant's final positions are compared with the first variant's of the
@@ -23,6 +24,18 @@ import warp as wp
 
 from softsim_warp.bench import JellySpec, build_jelly_model
 from softsim_warp.integrators import ExplicitIntegrator
+
+
+def stage_kernel(kernels, name):
+    """A stage kernel by name: one in ``model.kernels``, or ``gather:OPT+OPT`` for the fused stage
+    around ``gather_native`` built with those ``_gather_snippet`` options (e.g. ``gather:fast+fma``)."""
+    if not name.startswith("gather:"):
+        return getattr(kernels, name)
+    options = {}
+    for opt in name.split(":", 1)[1].split("+"):
+        key, _, value = opt.partition("=")
+        options[key] = value or True
+    return kernels.make_integrate_lattice_stage(kernels.make_gather_native(**options))
 
 
 def variant_kernel(kernel, cap):
@@ -59,8 +72,9 @@ def main():
             model.lattice.set_kernel("gather")  # the per-particle stage kernels (the CPU default is "rows")
             model.kernels = types.SimpleNamespace(**vars(model.kernels))
             if (name, cap) not in built:  # one build per variant, shared by the integrators
-                built[name, cap] = variant_kernel(getattr(model.kernels, name), cap)
-            model.kernels.integrate_lattice_stage = built[name, cap]
+                built[name, cap] = variant_kernel(stage_kernel(model.kernels, name), cap)
+            # Both names: step_fused takes the padded one for the model's own (padded) states.
+            model.kernels.integrate_lattice_stage = model.kernels.integrate_lattice_stage_padded = built[name, cap]
             integrator = ExplicitIntegrator(model, method)
             states = [model.state(), model.state()]
 

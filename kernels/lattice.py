@@ -56,7 +56,7 @@ def rest_slot(di, dj, dk):
     return (di + 1) * 9 + (dj + 1) * 3 + (dk + 1)
 
 
-def _gather_snippet(ctype):
+def _gather_snippet(ctype, padded=False):
     """C++ body of ``gather_native``: the 32-neighbour force on particle i, straight-line.
 
     Generated per stencil so that every neighbour is addressed from one of 21 row pointers (one
@@ -75,6 +75,14 @@ def _gather_snippet(ctype):
     On CUDA the reciprocal square root is ``rsqrt.approx.ftz`` (the instruction rsqrtf uses for
     normal numbers, without its denormal fix-up); a squared length below the smallest normal
     number counts as coincident particles (zero force), where the stencil tests ``> 0``.
+
+    ``padded``: for state arrays that sit inside an allocation reaching ``LatticeData.pad``
+    elements past both ends (``Model.particle_array``), so that every stencil address of every
+    particle is readable. Then all 64 neighbour loads are unconditional and a spring's force is
+    added only when the spring exists: the add is predicated, so whatever an invalid neighbour's
+    address holds (a particle of another jelly or world, even a non-finite one, or the zeroed pad)
+    never reaches the sum. No stand-in moves (11 % fewer instructions per thread), same sums in the
+    same order.
     """
     tiny = "1.17549435e-38f" if ctype == "float" else "2.2250738585072014e-308"
     rsqrt = (
@@ -136,24 +144,34 @@ def _gather_snippet(ctype):
         name = f"{di + 2}{dj + 2}"
         lines.append(f"const T* xr{name} = X + 3 * ({di} * row + {dj} * nz);")
         lines.append(f"const T* vr{name} = V + 3 * ({di} * row + {dj} * nz);")
+
     for (di, dj, dk), ty in neighbours:
         name = f"{di + 2}{dj + 2}"
         conds = [f"s{ty}"] + [f"{v}{flag[d]}" for v, d in zip("abc", (di, dj, dk)) if d]
-        lines.append(
+        s = slot((di, dj, dk))
+        head = (
             f"{{ const bool ok = {' && '.join(conds)};"
             f" const T* xp = xr{name} + {3 * dk}; const T* vp = vr{name} + {3 * dk};"
-            f" T bx = x0, by = x1, bz = x2, ux = v0, uy = v1, uz = v2;"
-            f" if (ok) {{ bx = xp[0]; by = xp[1]; bz = xp[2]; ux = vp[0]; uy = vp[1]; uz = vp[2]; }}"
-            f" SOFTSIM_SPRING(r{slot((di, dj, dk))}, k{ty}, c{ty}); }}"
         )
+        if padded:
+            lines.append(
+                head + " const T bx = xp[0], by = xp[1], bz = xp[2], ux = vp[0], uy = vp[1], uz = vp[2];"
+                f" SOFTSIM_SPRING(r{s}, k{ty}, c{ty}, ok); }}"
+            )
+        else:
+            lines.append(
+                head + " T bx = x0, by = x1, bz = x2, ux = v0, uy = v1, uz = v2;"
+                " if (ok) { bx = xp[0]; by = xp[1]; bz = xp[2]; ux = vp[0]; uy = vp[1]; uz = vp[2]; }"
+                f" SOFTSIM_SPRING(r{s}, k{ty}, c{ty}, true); }}"
+            )
     lines.append("return wp::vec_t<3, T>(f0, f1, f2);")
     spring = (
-        "#define SOFTSIM_SPRING(rest_, ks_, kd_) { \\\n"
+        "#define SOFTSIM_SPRING(rest_, ks_, kd_, ok_) { \\\n"
         "  const T dx = x0 - bx, dy = x1 - by, dz = x2 - bz; \\\n"
         "  const T l2 = dx * dx + dy * dy + dz * dz; \\\n"
         f"  T inv = T(0); if (l2 >= T({tiny})) SOFTSIM_RSQRT(l2, inv); \\\n"
         "  const T mag = ks_ * (l2 * inv - rest_) + kd_ * ((v0 - ux) * dx + (v1 - uy) * dy + (v2 - uz) * dz) * inv; \\\n"
-        "  const T s = -mag * inv; f0 += s * dx; f1 += s * dy; f2 += s * dz; }\n"
+        "  const T s = -mag * inv; if (ok_) { f0 += s * dx; f1 += s * dy; f2 += s * dz; } }\n"
     )
     # The macros are textual: undefining them after the return statement is fine.
     return rsqrt + spring + "\n".join(lines) + "\n#undef SOFTSIM_SPRING\n#undef SOFTSIM_RSQRT\n"
@@ -417,19 +435,26 @@ return 1.0f / wp::sqrt(x);
                 )
         return f
 
-    @wp.func_native(_gather_snippet(ctype))
-    def gather_native(
-        i: int,
-        j: int,
-        jelly_start: wp.array(dtype=wp.int32),
-        jelly_shape: wp.array(dtype=wp.vec3i),
-        jelly_types: wp.array(dtype=wp.int32),
-        jelly_rest: wp.array2d(dtype=scalar),
-        jelly_ks: wp.array2d(dtype=scalar),
-        jelly_kd: wp.array2d(dtype=scalar),
-        q: wp.array(dtype=vec3),
-        qd: wp.array(dtype=vec3),
-    ) -> vec3: ...
+    def make_gather_native(**options):
+        """``gather_native`` with the given ``_gather_snippet`` options (each call its own function)."""
+
+        @wp.func_native(_gather_snippet(ctype, **options))
+        def gather_native(
+            i: int,
+            j: int,
+            jelly_start: wp.array(dtype=wp.int32),
+            jelly_shape: wp.array(dtype=wp.vec3i),
+            jelly_types: wp.array(dtype=wp.int32),
+            jelly_rest: wp.array2d(dtype=scalar),
+            jelly_ks: wp.array2d(dtype=scalar),
+            jelly_kd: wp.array2d(dtype=scalar),
+            q: wp.array(dtype=vec3),
+            qd: wp.array(dtype=vec3),
+        ) -> vec3: ...
+
+        return gather_native
+
+    gather_native = make_gather_native()
 
     def make_eval_lattice_springs(gather):
         """The force kernel around a per-particle gather (``gather_lattice_force`` or ``gather_native``)."""
@@ -593,6 +618,8 @@ return 1.0f / wp::sqrt(x);
     # (tests/test_perf_paths.py). The plain force kernel above (eval_forces: the implicit
     # integrator, unfused stepping) keeps the Warp loops; docs/PERFORMANCE.md says why.
     integrate_lattice_stage = make_integrate_lattice_stage(gather_native)
+    # For state arrays inside padded allocations (Model.particle_array); step_fused checks.
+    integrate_lattice_stage_padded = make_integrate_lattice_stage(make_gather_native(padded=True))
     integrate_lattice_stage_stencil = make_integrate_lattice_stage(gather_lattice_force)
 
     @wp.func_native(_rows_snippet("float" if scalar == wp.float32 else "double"))
@@ -802,7 +829,10 @@ return 1.0f / wp::sqrt(x);
         "make_eval_lattice_springs": make_eval_lattice_springs,
         "integrate_lattice_stage": integrate_lattice_stage,
         "integrate_lattice_stage_stencil": integrate_lattice_stage_stencil,
+        "integrate_lattice_stage_padded": integrate_lattice_stage_padded,
         "gather_native": gather_native,
+        "make_gather_native": make_gather_native,
+        "make_integrate_lattice_stage": make_integrate_lattice_stage,
         "eval_lattice_rows": eval_lattice_rows,
         "integrate_lattice_rows_stage": integrate_lattice_rows_stage,
         "reduce_lattice_springs": reduce_lattice_springs,

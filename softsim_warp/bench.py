@@ -219,11 +219,17 @@ class _Case:
 
 
 class _OurCase(_Case):
-    """Our integrator on one model; ``options`` (fused, fuse_contact, block_dim) go to ExplicitIntegrator."""
+    """Our integrator on one model; ``options`` (fused, fuse_contact, block_dim) go to ExplicitIntegrator.
+
+    ``unpadded_states`` in the options steps copies of the states made by ``wp.clone`` (not padded),
+    so the fused stage takes the gather with bounds-checked loads (``Model.particle_array``).
+    """
 
     def __init__(self, model, method, dt, steps, use_graph, options=None):
         from .integrators import ExplicitIntegrator, make_integrator  # noqa: PLC0415
 
+        options = dict(options or {})
+        unpadded = options.pop("unpadded_states", False)
         self.model = model
         self.method = method
         try:
@@ -233,6 +239,11 @@ class _OurCase(_Case):
         except ImportError as exc:  # the implicit integrator lives in its own module
             raise CommandLineError("--integrators", f"{method} is not available here ({exc})", method) from None
         self.states = [model.state(), model.state()]
+        if unpadded:
+            import warp as wp  # noqa: PLC0415
+
+            for state in self.states:
+                state.particle_q, state.particle_qd = wp.clone(state.particle_q), wp.clone(state.particle_qd)
 
         def step(count):
             for k in range(count):
@@ -531,6 +542,13 @@ def fast_path_variants(device):
             "lattice",
             "stencil",
             {"fused": True, "fuse_contact": True},
+            True,
+        ),
+        (
+            "lattice gather, checked loads (unpadded states), fused+contact, graph",
+            "lattice",
+            "gather",
+            {"fused": True, "fuse_contact": True, "unpadded_states": True},
             True,
         ),
         ("lattice gather, fused+contact, graph", "lattice", "gather", {"fused": True, "fuse_contact": True}, True),

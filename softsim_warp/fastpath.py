@@ -6,7 +6,9 @@ set, :func:`step_fused` from ``step``. The kernel follows the lattice kernel the
 * gather (CUDA): ``integrate_lattice_stage`` gathers each particle's spring force, adds gravity
   and writes the particle's stage update; on a world's last stage it also applies plane contact
   (and between stages the resting-contact filter), so a symplectic or Euler step over planes is a
-  single launch.
+  single launch. When every array it gathers from is padded (``Model.particle_array``: the
+  model's states and the integrator's stage buffers are), ``integrate_lattice_stage_padded``
+  runs instead: the same sums without bounds-checked loads.
 * rows (CPU): ``integrate_lattice_rows_stage`` computes a jelly's forces with the vectorised row
   loops and then its particles' stage update; contact follows as its own kernel.
 
@@ -58,17 +60,16 @@ def stage_buffers(integrator):
     """
     if integrator._stage_buffers is None:
         model = integrator.model
-        n = model.particle_count
         count = 0 if integrator.stage_count == 1 else (1 if integrator.stage_count == 2 else 2)
         bufs = []
         for k in range(2):
-            size = n if k < count else 0
-            bufs.append(
-                (
-                    integrator.q_s if k == 0 else wp.zeros(size, dtype=model.vec3, device=model.device),
-                    integrator.qd_s if k == 0 else wp.zeros(size, dtype=model.vec3, device=model.device),
-                )
-            )
+            if k == 0:
+                bufs.append((integrator.q_s, integrator.qd_s))
+            elif k < count:
+                bufs.append((model.particle_array(), model.particle_array()))
+            else:
+                empty = wp.zeros(0, dtype=model.vec3, device=model.device)
+                bufs.append((empty, empty))
         integrator._stage_buffers = bufs
     return integrator._stage_buffers
 
@@ -83,6 +84,16 @@ def step_fused(integrator, state_in, state_out, dt):
     bufs = stage_buffers(integrator)
     rows = lat.kernel == "rows"
     q, qd = state_in.particle_q, state_in.particle_qd
+    stage_kernel = None
+    if not rows:
+        gathered = [q, qd] + [a for k in range(min(integrator.stage_count - 1, 2)) for a in bufs[k]]
+        lat.check_contiguous(*gathered)
+        if lat.kernel == "stencil":
+            stage_kernel = model.kernels.integrate_lattice_stage_stencil
+        elif lat.padded(*gathered):
+            stage_kernel = model.kernels.integrate_lattice_stage_padded
+        else:
+            stage_kernel = model.kernels.integrate_lattice_stage
     for stage in range(integrator.stage_count):
         q_next, qd_next = bufs[stage % 2]
         outputs = [integrator.acc_q, integrator.acc_qd, q_next, qd_next, state_out.particle_q, state_out.particle_qd]
@@ -113,11 +124,8 @@ def step_fused(integrator, state_in, state_out, dt):
                 device=model.device,
             )
         else:
-            lat.check_contiguous(q, qd)
             wp.launch(
-                model.kernels.integrate_lattice_stage
-                if lat.kernel == "gather"
-                else model.kernels.integrate_lattice_stage_stencil,
+                stage_kernel,
                 dim=model.particle_count,
                 inputs=[
                     stage,
@@ -154,5 +162,7 @@ def step_fused(integrator, state_in, state_out, dt):
             )
         q, qd = q_next, qd_next
         if stage < integrator.stage_count - 1:
-            filter_stage_contacts(model, state_in, q, qd, integrator.world_contact_beta, planes=not integrator.fuse_contact)
+            filter_stage_contacts(
+                model, state_in, q, qd, integrator.world_contact_beta, planes=not integrator.fuse_contact
+            )
     apply_contacts(model, state_in, state_out, dt, integrator.world_contact_beta, planes=not integrator.fuse_contact)

@@ -65,7 +65,9 @@ def eval_forces(model: Model, q: wp.array, qd: wp.array, f_out: wp.array):
         )
 
 
-def apply_contacts(model: Model, state_in: State, state_out: State, dt: float, world_contact_beta: wp.array, planes=True):
+def apply_contacts(
+    model: Model, state_in: State, state_out: State, dt: float, world_contact_beta: wp.array, planes=True
+):
     """Terrain contact on ``state_out`` after a step of ``dt`` from ``state_in``; one launch per primitive type present.
 
     ``world_contact_beta`` is, per world, the integrator's position gain for a force held constant
@@ -228,8 +230,9 @@ class ExplicitIntegrator(Integrator):
         gather_fused = self.fused and model.lattice.per_particle
         self.f = wp.zeros(0 if gather_fused else n, dtype=model.vec3, device=device)
         multi = self.stage_count > 1
-        self.q_s = wp.zeros(n if multi else 0, dtype=model.vec3, device=device)
-        self.qd_s = wp.zeros(n if multi else 0, dtype=model.vec3, device=device)
+        # Stage states are gathered from like the state itself, so they are made the same way.
+        self.q_s = model.particle_array() if multi else wp.zeros(0, dtype=model.vec3, device=device)
+        self.qd_s = model.particle_array() if multi else wp.zeros(0, dtype=model.vec3, device=device)
         self.acc_q = wp.zeros(n if multi else 0, dtype=model.vec3, device=device)
         self.acc_qd = wp.zeros(n if multi else 0, dtype=model.vec3, device=device)
         if self.fused:

@@ -131,6 +131,10 @@ class LatticeData:
             tested against); chosen by device, overridable for tests and benchmarks. The plain
             force kernel of both per-particle kernels is the Warp-loop gather.
         layout: the host :class:`LatticeLayout`.
+        pad: elements a state array's allocation must reach past both its ends for the padded
+            gather (``integrate_lattice_stage_padded``) to read every stencil address of every
+            particle: 2 ny nz + nz + 2 of the largest jelly, a bound on |di ny nz + dj nz + dk|
+            over the stencil. ``Model.particle_array`` allocates that way.
     """
 
     def __init__(self, layout: LatticeLayout, device, scalar, np_scalar, particle_count: int, kernel=None):
@@ -145,6 +149,7 @@ class LatticeData:
         self.jelly_kd = wp.array2d(layout.kd.astype(np_scalar), dtype=scalar, device=device)
         self.jelly_world = wp.array(layout.world, dtype=wp.int32, device=device)
         self._particle_count = particle_count
+        self.pad = max((int(2 * ny * nz + nz + 2) for _, ny, nz in layout.shape), default=0)
         self.layout_vec3 = wp.types.vector(3, scalar)
         self.particle_coord_k = None
         self.scratch = None
@@ -171,6 +176,26 @@ class LatticeData:
     def per_particle(self) -> bool:
         """Whether the kernel runs one thread per particle (gather or stencil), so contact can fuse."""
         return self.kernel != "rows"
+
+    def padded(self, *arrays) -> bool:
+        """Whether every array is a contiguous view whose allocation reaches ``pad`` elements past both ends.
+
+        Only views made by slicing a 1-D array (``Model.particle_array``) qualify: their parent
+        (``_ref``) is the allocation, so its extent is known. Anything else (a user's own array, a
+        clone) is not padded, and the fused stage uses the gather that never reads outside the array.
+        """
+        for a in arrays:
+            parent = getattr(a, "_ref", None)
+            if not isinstance(parent, wp.array) or parent.ndim != 1 or not parent.is_contiguous:
+                return False
+            if not a.is_contiguous or a.ndim != 1 or parent.dtype != a.dtype or a.ptr is None:
+                return False
+            size = wp.types.type_size_in_bytes(a.dtype)
+            before = (a.ptr - parent.ptr) // size
+            after = parent.shape[0] - before - a.shape[0]
+            if before < self.pad or after < self.pad:
+                return False
+        return True
 
     @staticmethod
     def check_contiguous(*arrays):

@@ -132,12 +132,16 @@ class ModelBuilder:
         local = lattice.lattice_points(shape, size)
         rot = rotation_matrix(axis, degrees)
         center = np.asarray(center, dtype=np.float64)
-        scale = np.ones(3) if initial_scale is None else np.broadcast_to(np.asarray(initial_scale, dtype=np.float64), (3,))
+        scale = (
+            np.ones(3) if initial_scale is None else np.broadcast_to(np.asarray(initial_scale, dtype=np.float64), (3,))
+        )
         if np.any(scale == 0.0):
             raise ValueError(f"initial_scale components must be nonzero (got {scale.tolist()})")
         rest_pose = local @ rot.T + center
         q = (local * scale) @ rot.T + center
-        qd = np.asarray(velocity, dtype=np.float64) + np.cross(np.asarray(angular_velocity, dtype=np.float64), q - center)
+        qd = np.asarray(velocity, dtype=np.float64) + np.cross(
+            np.asarray(angular_velocity, dtype=np.float64), q - center
+        )
         start = self._particle_count
         spring_start = self._spring_count
         self.add_particles(q, qd, particle_mass, world=world)
@@ -170,7 +174,9 @@ class ModelBuilder:
 
     # -- terrain --------------------------------------------------------------------------------
 
-    def add_plane(self, point, normal, restitution=0.5, friction=0.3, hole_center=None, hole_radius=0.0, size=20.0, world=0):
+    def add_plane(
+        self, point, normal, restitution=0.5, friction=0.3, hole_center=None, hole_radius=0.0, size=20.0, world=0
+    ):
         """Add a collision plane; particles within ``hole_radius`` of ``hole_center`` pass through it."""
         normal = np.asarray(normal, dtype=np.float64)
         normal = normal / np.linalg.norm(normal)
@@ -419,9 +425,14 @@ class Model:
     def _make_spring_arrays(self):
         """Copy the spring list to the device (at finalize, or lazily on the lattice path)."""
         np_scalar = NUMPY_SCALARS[self.precision]
-        self.spring_indices = wp.array(np.asarray(self.spring_indices_host, np.int32), dtype=wp.vec2i, device=self.device)
-        for name, host in (("spring_rest_length", self.spring_rest_host), ("spring_stiffness", self.spring_stiffness_host),
-                           ("spring_damping", self.spring_damping_host)):
+        self.spring_indices = wp.array(
+            np.asarray(self.spring_indices_host, np.int32), dtype=wp.vec2i, device=self.device
+        )
+        for name, host in (
+            ("spring_rest_length", self.spring_rest_host),
+            ("spring_stiffness", self.spring_stiffness_host),
+            ("spring_damping", self.spring_damping_host),
+        ):
             setattr(self, name, wp.array(np.asarray(host, np_scalar), dtype=self.scalar, device=self.device))
 
     def __getattr__(self, name):
@@ -431,11 +442,28 @@ class Model:
             return self.__dict__[name]
         raise AttributeError(name)
 
+    def particle_array(self, values: wp.array | None = None) -> wp.array:
+        """A per-particle vec3 array (zeros, or a copy of ``values``) for states and stage buffers.
+
+        On the lattice path it is a view into an allocation ``lattice.pad`` elements longer at both
+        ends (zeroed), so the fused stage can read every stencil neighbour without bounds-checked
+        loads (``integrate_lattice_stage_padded``); an array made any other way still works, through
+        the checked gather.
+        """
+        pad = self.lattice.pad if self.lattice is not None else 0
+        n = self.particle_count
+        a = wp.zeros(n + 2 * pad, dtype=self.vec3, device=self.device)
+        if pad:
+            a = a[pad : pad + n]
+        if values is not None:
+            wp.copy(a, values)
+        return a
+
     def state(self) -> State:
         """A new state holding the model's initial positions and velocities."""
         s = State()
-        s.particle_q = wp.clone(self.particle_q)
-        s.particle_qd = wp.clone(self.particle_qd)
+        s.particle_q = self.particle_array(self.particle_q)
+        s.particle_qd = self.particle_array(self.particle_qd)
         return s
 
 

@@ -144,6 +144,81 @@ def test_native_gather_equals_stencil_gather(device, method, precision):
     assert np.array_equal(runs["gather"][1], runs["stencil"][1])
 
 
+def test_model_states_are_padded_for_the_gather():
+    """States and stage buffers sit inside allocations reaching ``lattice.pad`` past both ends; a
+    clone, a plain array or a view with too little room is not padded (and gets the checked gather)."""
+    model = _builder().finalize("cpu", force_path="lattice")
+    lat = model.lattice
+    # The largest jelly is 4 x 5 x 6: 2 ny nz + nz + 2 bounds every stencil offset |di ny nz + dj nz + dk|.
+    assert lat.pad == 2 * 5 * 6 + 6 + 2
+    state = model.state()
+    assert lat.padded(state.particle_q, state.particle_qd)
+    assert np.array_equal(state.particle_q.numpy(), model.particle_q.numpy())
+    integrator = ExplicitIntegrator(model, "rk4", fused=True)
+    assert lat.padded(integrator.q_s, integrator.qd_s)
+    assert not lat.padded(wp.clone(state.particle_q))
+    assert not lat.padded(model.particle_q)
+    big = wp.zeros(model.particle_count + 2 * lat.pad, dtype=model.vec3, device="cpu")
+    assert lat.padded(big[lat.pad : lat.pad + model.particle_count])
+    assert not lat.padded(big[lat.pad - 1 : lat.pad - 1 + model.particle_count])
+
+
+@pytest.mark.parametrize("method", ["symplectic", "rk4"])
+def test_padded_gather_equals_checked_gather(device, method):
+    """The padded gather (unconditional loads, predicated adds) and the checked one (predicated
+    loads) compute the same sums: the same bits, the model's padded states against unpadded copies
+    (both CPU and CUDA run the same arithmetic in both, only the loads differ)."""
+    b = _dropping(_builder())
+    b.add_jelly((3, 7, 2), (0.2, 0.6, 0.1), 0.02, SPRINGS, center=(1.0, 0.0, 0.0), world=1)
+    finals = {}
+    for padded in (True, False):
+        model = b.finalize(device, force_path="lattice")
+        model.lattice.set_kernel("gather")
+        integrator = ExplicitIntegrator(model, method, fused=True)
+        states = [model.state(), model.state()]
+        if not padded:
+            for s in states:
+                s.particle_q, s.particle_qd = wp.clone(s.particle_q), wp.clone(s.particle_qd)
+        assert model.lattice.padded(states[0].particle_q) == padded
+        for k in range(100):
+            integrator.step(states[k % 2], states[1 - k % 2], 1.0e-4)
+        finals[padded] = states[0].particle_q.numpy(), states[0].particle_qd.numpy()
+    assert np.abs(finals[True][1]).max() > 0.0
+    assert np.array_equal(finals[True][0], finals[False][0])
+    assert np.array_equal(finals[True][1], finals[False][1])
+
+
+@pytest.mark.parametrize("kernel", ["gather", "stencil"])
+def test_blown_up_world_does_not_reach_its_neighbour(device, kernel):
+    """A world whose state is NaN leaves the next world in memory untouched, bit for bit.
+
+    The padded gather loads invalid neighbours from wherever their addresses point (here the NaN
+    jelly next door) and must drop them by predication, not by multiplying by zero. The run is the
+    side-by-side comparison's situation: one method blows up, the others must not notice.
+    """
+    finals = []
+    for poison in (False, True):
+        b = _builder(second=False, world=0)
+        b.add_jelly((4, 3, 5), (0.3, 0.2, 0.4), 0.01, SPRINGS, center=(1.0, 0.3, 0.0), world=1)
+        model = _dropping(b).finalize(device, force_path="lattice")
+        model.lattice.set_kernel(kernel)
+        integrator = ExplicitIntegrator(model, "rk4", fused=True)
+        states = [model.state(), model.state()]
+        n0 = 4 * 5 * 6
+        if poison:
+            q = states[0].particle_q.numpy()
+            q[:n0] = np.nan
+            states[0].particle_q.assign(q)
+        for k in range(20):
+            integrator.step(states[k % 2], states[1 - k % 2], 1.0e-4)
+        q = states[0].particle_q.numpy()
+        if poison:
+            assert np.isnan(q[:n0]).all()
+        finals.append(q[n0:])
+    assert np.isfinite(finals[1]).all()
+    assert np.array_equal(finals[0], finals[1])
+
+
 def _run(model, method, steps, dt, fused=None, use_graph=False):
     integrator = ExplicitIntegrator(model, method, fused=fused)
     sim = Simulator(model, integrator, dt, 1.0 / (steps * dt), 1, use_graph=use_graph)
