@@ -127,7 +127,8 @@ def build(scalar):
     def contact_planes(
         x: vec3,
         v: vec3,
-        v_prev: vec3,
+        v_prev: wp.array(dtype=vec3),
+        i: int,
         w: int,
         plane_first: wp.array(dtype=wp.int32),
         plane_point: wp.array(dtype=vec3),
@@ -142,28 +143,33 @@ def build(scalar):
         beta_h: scalar,
         stage: int,
     ):
-        """One particle of world ``w`` against every plane of that world; returns the new (x, v).
+        """Particle i of world ``w`` against every plane of that world; returns the new (x, v).
 
-        Shared by ``collide_planes`` and the fused last stage of the lattice path.
+        ``v_prev[i]`` is the particle's velocity before the step. Shared by ``collide_planes`` and
+        the fused stages of the lattice path, where most particles are nowhere near a plane: the
+        hole, the coefficients and the previous velocity are read only within ``eps`` of it.
         """
         # The planes of world w are plane_first[w] .. plane_first[w + 1] - 1 (sorted by world).
         for p in range(plane_first[w], plane_first[w + 1]):
             n = plane_normal[p]
-            phi = plane_distance(x, plane_point[p], n, plane_hole_center[p], plane_hole_radius[p])
-            x, v = resolve_contact(
-                x,
-                v,
-                wp.dot(n, v_prev),
-                phi,
-                n,
-                plane_restitution[p],
-                plane_friction[p],
-                eps,
-                eps_v,
-                rest_steps,
-                beta_h,
-                stage,
-            )
+            point = plane_point[p]
+            if wp.dot(x - point, n) < eps:
+                # The same distance again, now with the hole (which only ever removes contact).
+                phi = plane_distance(x, point, n, plane_hole_center[p], plane_hole_radius[p])
+                x, v = resolve_contact(
+                    x,
+                    v,
+                    wp.dot(n, v_prev[i]),
+                    phi,
+                    n,
+                    plane_restitution[p],
+                    plane_friction[p],
+                    eps,
+                    eps_v,
+                    rest_steps,
+                    beta_h,
+                    stage,
+                )
         return x, v
 
     # -- Bowls and spheres ----------------------------------------------------------------------
@@ -322,7 +328,8 @@ def build(scalar):
             x, v = contact_planes(
                 q_out[i],
                 qd_out[i],
-                qd_prev[i],
+                qd_prev,
+                i,
                 w,
                 plane_first,
                 plane_point,

@@ -567,7 +567,8 @@ return 1.0f / wp::sqrt(x);
                     x, v = contact_planes(
                         x,
                         v,
-                        qd_n[i],
+                        qd_n,
+                        i,
                         w,
                         plane_first,
                         plane_point,
@@ -589,7 +590,8 @@ return 1.0f / wp::sqrt(x);
                     x, v = contact_planes(
                         x,
                         v,
-                        qd_n[i],
+                        qd_n,
+                        i,
                         w,
                         plane_first,
                         plane_point,
