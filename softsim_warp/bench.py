@@ -531,10 +531,10 @@ def fast_path_variants(device):
         ("lattice gather, unfused, graph", "lattice", "gather", {"fused": False}, True),
         ("lattice gather, fused, graph", "lattice", "gather", {"fused": True, "fuse_contact": False}, True),
         (
-            "lattice gather, fused+contact, 256 threads/block, graph",
+            "lattice gather, fused+contact, 128 threads/block, graph",
             "lattice",
             "gather",
-            {"fused": True, "fuse_contact": True, "block_dim": 256},
+            {"fused": True, "fuse_contact": True, "block_dim": 128},
             True,
         ),
         (

@@ -24,9 +24,10 @@ from __future__ import annotations
 
 import warp as wp
 
-# Threads per block of the fused gather stage: 128 from this many particles on, else Warp's 256.
-# H200, fused symplectic / rk4 step: 100^3 0.102 / 0.466 ms at 128 against 0.111 / 0.515 at 256;
-# 40^3 0.0105 / 0.0446 against 0.0100 / 0.0426 (docs/PERFORMANCE.md).
+# Threads per block of the fused stage: Warp's 256, except 128 for the Warp-loop gather ("stencil",
+# 96 registers) from this many particles on. H200, fused symplectic / rk4 step at 100^3: stencil
+# 0.102 / 0.466 ms at 128 against 0.111 / 0.515 at 256 (third session); the padded native gather
+# 0.0679 / 0.3014 ms at 128 against 0.0654 / 0.2903 at 256 (docs/PERFORMANCE.md, fifth session).
 SMALL_BLOCKS_FROM = 1 << 18
 
 
@@ -48,7 +49,8 @@ def configure_fused(integrator, fused=None, fuse_contact=None, block_dim=None):
         fuse_contact = True
     integrator.fuse_contact = bool(gather and model.plane_count and bool(fuse_contact))
     if block_dim is None:
-        block_dim = 128 if model.particle_count >= SMALL_BLOCKS_FROM else 256
+        stencil = lat is not None and lat.kernel == "stencil"
+        block_dim = 128 if stencil and model.particle_count >= SMALL_BLOCKS_FROM else 256
     integrator.block_dim = int(block_dim)
     integrator._stage_buffers = None
 
