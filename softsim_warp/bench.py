@@ -75,13 +75,18 @@ def build_jelly_model(size: int, spec: JellySpec, device, force_path="auto", pre
 
 
 def device_arrays_bytes(*objects) -> int:
-    """Bytes of the distinct Warp arrays held (one level deep, lists and tuples included) by ``objects``."""
+    """Bytes of the distinct Warp allocations held (one level deep, lists and tuples included) by ``objects``.
+
+    A view (a padded state array, ``Model.particle_array``) counts as the allocation it is a view of.
+    """
     import warp as wp  # noqa: PLC0415
 
     seen = {}
 
     def visit(value):
         if isinstance(value, wp.array):
+            while isinstance(getattr(value, "_ref", None), wp.array):
+                value = value._ref
             if value.ptr is not None:
                 seen[value.ptr] = value.capacity
         elif isinstance(value, (list, tuple)):

@@ -163,6 +163,18 @@ def test_model_states_are_padded_for_the_gather():
     assert not lat.padded(big[lat.pad - 1 : lat.pad - 1 + model.particle_count])
 
 
+def test_bench_memory_counts_padded_allocations():
+    """The benchmark's memory column counts a padded state array's whole allocation, once."""
+    from softsim_warp.bench import device_arrays_bytes
+
+    model = _builder().finalize("cpu", force_path="lattice")
+    state = model.state()
+    whole = (model.particle_count + 2 * model.lattice.pad) * 12
+    assert device_arrays_bytes(state) == 2 * whole
+    state.particle_qd = state.particle_q  # the same allocation twice counts once
+    assert device_arrays_bytes(state) == whole
+
+
 @pytest.mark.parametrize("method", ["symplectic", "rk4"])
 def test_padded_gather_equals_checked_gather(device, method):
     """The padded gather (unconditional loads, predicated adds) and the checked one (predicated
