@@ -4,9 +4,10 @@
     python benchmarks/regs_probe.py --device cuda:0 --size 100 --caps 0 \
         --kernels integrate_lattice_stage_stencil,integrate_lattice_stage
 
-The fused stage kernels named by ``--kernels`` (``integrate_lattice_stage``: the native gather;
-``integrate_lattice_stage_stencil``: the Warp-loop gather; ``gather:fast+fma``: the native gather
-built with those ``_gather_snippet`` options), each compiled with
+The fused stage kernels named by ``--kernels`` (``integrate_lattice_stage_padded``: the native
+gather over padded arrays, what the model's states get; ``integrate_lattice_stage``: the native
+gather with bounds-checked loads; ``integrate_lattice_stage_stencil``: the Warp-loop gather;
+``gather:OPT+OPT``: the native gather built with those ``_gather_snippet`` options), each compiled with
 ``cuda_max_registers`` at each cap (0: the compiler's choice), stepped through the benchmark jelly
 with CUDA graphs; the variants are timed in turn, round after round, in one process. The cap is
 ignored on the CPU. Each variant's final positions are compared with the first variant's of the
@@ -28,13 +29,10 @@ from softsim_warp.integrators import ExplicitIntegrator
 
 def stage_kernel(kernels, name):
     """A stage kernel by name: one in ``model.kernels``, or ``gather:OPT+OPT`` for the fused stage
-    around ``gather_native`` built with those ``_gather_snippet`` options (e.g. ``gather:fast+fma``)."""
+    around ``gather_native`` built with those ``_gather_snippet`` options (e.g. ``gather:padded``)."""
     if not name.startswith("gather:"):
         return getattr(kernels, name)
-    options = {}
-    for opt in name.split(":", 1)[1].split("+"):
-        key, _, value = opt.partition("=")
-        options[key] = value or True
+    options = {opt: True for opt in name.split(":", 1)[1].split("+") if opt}
     return kernels.make_integrate_lattice_stage(kernels.make_gather_native(**options))
 
 
