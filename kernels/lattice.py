@@ -312,7 +312,8 @@ def build(scalar):
     vec3 = wp.types.vector(3, scalar)
     contact_funcs = contact.build(scalar)
     contact_planes = contact_funcs["contact_planes"]
-    stage_values = integration.build(scalar)["stage_values"]
+    integration_funcs = integration.build(scalar)
+    stage_values = integration_funcs["stage_values_contiguous"]
 
     if scalar == wp.float32:
         inv_sqrt_snippet = """
@@ -331,17 +332,9 @@ return 1.0f / wp::sqrt(x);
 
     ctype = "float" if scalar == wp.float32 else "double"
 
-    @wp.func_native(
-        f"const {ctype}* t = (const {ctype}*)a.data + 3 * i;\nreturn wp::vec_t<3, {ctype}>(t[0], t[1], t[2]);"
-    )
-    def load_vec(a: wp.array(dtype=vec3), i: int) -> vec3:
-        """``a[i]`` of a contiguous array, addressed as data + 3 i scalars.
-
-        Warp's ``a[i]`` multiplies i by the array's run-time stride; here the element size is a
-        constant, so a neighbour's address is the particle's plus an offset the compiler folds
-        into the load (the bare gather measured 1.24x faster on an H200, benchmarks/layout_probe.py).
-        The lattice launches pass only contiguous arrays (``LatticeData.check_contiguous``).
-        """
+    # a[i] of a contiguous vec3 array with the element size a constant (see load_contiguous).
+    load_vec = integration_funcs["load_contiguous"]
+    store_vec = integration_funcs["store_contiguous"]
 
     @wp.func_native(f"return ((const {ctype}*)a.data)[j * a.shape[1] + k];")
     def table_entry(a: wp.array2d(dtype=scalar), j: int, k: int) -> scalar:
@@ -609,11 +602,11 @@ return 1.0f / wp::sqrt(x);
                         1,
                     )
             if kind == 1:
-                q_out[i] = x
-                qd_out[i] = v
+                store_vec(q_out, i, x)
+                store_vec(qd_out, i, v)
             else:
-                q_next_out[i] = x
-                qd_next_out[i] = v
+                store_vec(q_next_out, i, x)
+                store_vec(qd_next_out, i, v)
 
         return integrate_lattice_stage
 

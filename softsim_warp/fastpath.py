@@ -89,7 +89,8 @@ def step_fused(integrator, state_in, state_out, dt):
     stage_kernel = None
     if not rows:
         gathered = [q, qd] + [a for k in range(min(integrator.stage_count - 1, 2)) for a in bufs[k]]
-        lat.check_contiguous(*gathered)
+        # The fused stages address every per-particle array from its data pointer.
+        lat.check_contiguous(*gathered, state_out.particle_q, state_out.particle_qd)
         if lat.kernel == "stencil":
             stage_kernel = model.kernels.integrate_lattice_stage_stencil
         elif lat.padded(*gathered):
