@@ -475,3 +475,9 @@ def test_lattice_kernels_refuse_strided_state(device):
     f = wp.zeros(n, dtype=wp.vec3, device=device)
     with pytest.raises(ValueError, match="contiguous"):
         eval_forces(model, wide[::2], wide[::2], f)
+    # The fused stage writes its output state through the data pointer too.
+    integrator = ExplicitIntegrator(model, "symplectic", fused=True)
+    state_in, state_out = model.state(), model.state()
+    state_out.particle_q = wide[::2]
+    with pytest.raises(ValueError, match="contiguous"):
+        integrator.step(state_in, state_out, 1.0e-4)
