@@ -10,7 +10,6 @@ is the same one the graph replays. Results: docs/PERFORMANCE.md.
 import argparse
 import os
 import sys
-import types
 
 import warp as wp
 
@@ -18,7 +17,7 @@ from softsim_warp.bench import JellySpec, build_jelly_model
 from softsim_warp.integrators import ExplicitIntegrator
 
 sys.path.insert(0, os.path.dirname(__file__))
-from regs_probe import stage_kernel  # noqa: E402
+from regs_probe import install_stage_kernel, stage_kernel  # noqa: E402
 
 
 def main():
@@ -28,14 +27,14 @@ def main():
     parser.add_argument("--steps", type=int, default=20)
     parser.add_argument("--device", default="cuda:0")
     parser.add_argument("--block-dim", type=int, default=None)
-    parser.add_argument("--kernel", default="integrate_lattice_stage", help="stage kernel, as regs_probe --kernels")
+    parser.add_argument(
+        "--kernel", default=None, help="stage kernel, as regs_probe --kernels (default: the model's own choice)"
+    )
     args = parser.parse_args()
     spec = JellySpec()
     model = build_jelly_model(args.size, spec, args.device)
-    if args.kernel != "integrate_lattice_stage":
-        model.kernels = types.SimpleNamespace(**vars(model.kernels))
-        kernel = stage_kernel(model.kernels, args.kernel)
-        model.kernels.integrate_lattice_stage = model.kernels.integrate_lattice_stage_padded = kernel
+    if args.kernel is not None:
+        install_stage_kernel(model, stage_kernel(model.kernels, args.kernel))
     integrator = ExplicitIntegrator(model, args.integrator, block_dim=args.block_dim)
     states = [model.state(), model.state()]
     for k in range(args.steps):

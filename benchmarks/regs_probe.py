@@ -36,6 +36,13 @@ def stage_kernel(kernels, name):
     return kernels.make_integrate_lattice_stage(kernels.make_gather_native(**options))
 
 
+def install_stage_kernel(model, kernel):
+    """Make the model's fused stages launch ``kernel``, whichever gather ``step_fused`` would pick
+    (the padded one for the model's own states, the checked one for other arrays)."""
+    model.kernels = types.SimpleNamespace(**vars(model.kernels))
+    model.kernels.integrate_lattice_stage = model.kernels.integrate_lattice_stage_padded = kernel
+
+
 def variant_kernel(kernel, cap):
     if cap == 0:
         return kernel
@@ -68,11 +75,9 @@ def main():
         for name, cap in variants:
             model = build_jelly_model(args.size, spec, args.device)
             model.lattice.set_kernel("gather")  # the per-particle stage kernels (the CPU default is "rows")
-            model.kernels = types.SimpleNamespace(**vars(model.kernels))
             if (name, cap) not in built:  # one build per variant, shared by the integrators
                 built[name, cap] = variant_kernel(stage_kernel(model.kernels, name), cap)
-            # Both names: step_fused takes the padded one for the model's own (padded) states.
-            model.kernels.integrate_lattice_stage = model.kernels.integrate_lattice_stage_padded = built[name, cap]
+            install_stage_kernel(model, built[name, cap])
             integrator = ExplicitIntegrator(model, method)
             states = [model.state(), model.state()]
 
