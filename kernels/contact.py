@@ -205,6 +205,18 @@ def build(scalar):
         return r - radius, n
 
     @wp.func
+    def bowl_holds(x_prev: vec3, center: vec3, radius: scalar, eps: scalar):
+        """Whether a bowl holds a particle that began the step at ``x_prev``, and the sphere's
+        outward normal there: (holds, normal).
+
+        The bowl holds what is inside it: a particle that began the step outside the sphere
+        (beyond the contact layer and float rounding of a corrected position) is behind the shell
+        and passes, instead of being pulled through the wall to the inside.
+        """
+        phi_out, n_out = sphere_distance(x_prev, center, radius)
+        return phi_out <= eps + radius * scalar(1.0e-4), n_out
+
+    @wp.func
     def contact_bowls(
         x: vec3,
         v: vec3,
@@ -228,11 +240,8 @@ def build(scalar):
         for b in range(bowl_first[w], bowl_first[w + 1]):
             c = bowl_center[b]
             radius = bowl_radius[b]
-            # The bowl holds what is inside it: a particle that began the step outside the
-            # sphere (beyond the contact layer and float rounding of a corrected position) is
-            # behind the shell and passes, instead of being pulled through the wall to the inside.
-            phi_out, n_out = sphere_distance(x_prev, c, radius)
-            if phi_out <= eps + radius * scalar(1.0e-4):
+            holds, n_out = bowl_holds(x_prev, c, radius, eps)
+            if holds:
                 phi, n = bowl_distance(x, c, radius, bowl_cut_height[b])
                 # The bowl's normal at the step's start is the sphere's, turned inward.
                 x, v = resolve_contact(
@@ -447,6 +456,7 @@ def build(scalar):
         "contact_planes": contact_planes,
         "collide_planes": collide_planes,
         "bowl_distance": bowl_distance,
+        "bowl_holds": bowl_holds,
         "sphere_distance": sphere_distance,
         "contact_bowls": contact_bowls,
         "contact_spheres": contact_spheres,

@@ -100,6 +100,7 @@ def build(scalar):
     contact_funcs = contact.build(scalar)
     plane_distance = contact_funcs["plane_distance"]
     bowl_distance = contact_funcs["bowl_distance"]
+    bowl_holds = contact_funcs["bowl_holds"]
     sphere_distance = contact_funcs["sphere_distance"]
 
     @wp.func
@@ -296,12 +297,12 @@ def build(scalar):
         sphere_radius: wp.array(dtype=scalar),
         eps: scalar,
     ):
-        """The same for bowls and spheres, with collide_bowls' rule that a bowl holds only what began inside."""
+        """The same for bowls and spheres; a bowl holds only what began inside it (contact.bowl_holds, as collide_bowls)."""
         for b in range(bowl_first[w], bowl_first[w + 1]):
             c = bowl_center[b]
             radius = bowl_radius[b]
-            phi_prev, _n_prev = sphere_distance(xp, c, radius)
-            if phi_prev <= eps + radius * scalar(1.0e-4):
+            holds, _n_prev = bowl_holds(xp, c, radius, eps)
+            if holds:
                 phi, nrm = bowl_distance(xf, c, radius, bowl_cut_height[b])
                 if phi < eps:
                     touching = touching + 1
