@@ -55,6 +55,11 @@ def configure_fused(integrator, fused=None, fuse_contact=None, block_dim=None):
     integrator._stage_buffers = None
 
 
+def stage_buffer_count(integrator) -> int:
+    """How many of the two stage states a step uses: none for one stage, the second from three on."""
+    return min(integrator.stage_count - 1, 2)
+
+
 def stage_buffers(integrator):
     """Two stage states (q, qd) to ping-pong between; the second only for methods of three or more stages.
 
@@ -62,7 +67,7 @@ def stage_buffers(integrator):
     """
     if integrator._stage_buffers is None:
         model = integrator.model
-        count = 0 if integrator.stage_count == 1 else (1 if integrator.stage_count == 2 else 2)
+        count = stage_buffer_count(integrator)
         bufs = []
         for k in range(2):
             if k == 0:
@@ -88,7 +93,7 @@ def step_fused(integrator, state_in, state_out, dt):
     q, qd = state_in.particle_q, state_in.particle_qd
     stage_kernel = None
     if not rows:
-        gathered = [q, qd] + [a for k in range(min(integrator.stage_count - 1, 2)) for a in bufs[k]]
+        gathered = [q, qd] + [a for pair in bufs[: stage_buffer_count(integrator)] for a in pair]
         # The fused stages address every per-particle array from its data pointer.
         lat.check_contiguous(*gathered, state_out.particle_q, state_out.particle_qd)
         if lat.kernel == "stencil":
