@@ -5,7 +5,8 @@
         --kernels integrate_lattice_stage_stencil,integrate_lattice_stage
 
 The fused stage kernels named by ``--kernels`` (``integrate_lattice_stage_padded``: the native
-gather over padded arrays, what the model's states get; ``integrate_lattice_stage``: the native
+gather over padded arrays, what the model's states get; ``integrate_lattice_stage_padded_uniform``:
+the same with the coefficients as a kernel argument, what large one-jelly models get; ``integrate_lattice_stage``: the native
 gather with bounds-checked loads; ``integrate_lattice_stage_stencil``: the Warp-loop gather;
 ``gather:OPT+OPT``: the native gather built with those ``_gather_snippet`` options), each compiled with
 ``cuda_max_registers`` at each cap (0: the compiler's choice), stepped through the benchmark jelly
@@ -33,14 +34,16 @@ def stage_kernel(kernels, name):
     if not name.startswith("gather:"):
         return getattr(kernels, name)
     options = {opt: True for opt in name.split(":", 1)[1].split("+") if opt}
-    return kernels.make_integrate_lattice_stage(kernels.make_gather_native(**options))
+    gather = kernels.make_gather_native(**options)
+    return kernels.make_integrate_lattice_stage(gather, uniform=bool(options.get("uniform")))
 
 
 def install_stage_kernel(model, kernel):
     """Make the model's fused stages launch ``kernel``, whichever gather ``step_fused`` would pick
     (the padded one for the model's own states, the checked one for other arrays)."""
     model.kernels = types.SimpleNamespace(**vars(model.kernels))
-    model.kernels.integrate_lattice_stage = model.kernels.integrate_lattice_stage_padded = kernel
+    k = model.kernels
+    k.integrate_lattice_stage = k.integrate_lattice_stage_padded = k.integrate_lattice_stage_padded_uniform = kernel
 
 
 def variant_kernel(kernel, cap):

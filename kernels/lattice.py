@@ -34,6 +34,7 @@ Both agree with ``eval_springs`` over the spring list to float32 rounding (tests
 Measurements and the reasons for each choice: docs/PERFORMANCE.md.
 """
 
+import numpy as np
 import warp as wp
 
 from softsim_warp.lattice import STENCILS
@@ -45,6 +46,8 @@ wp.set_module_options({"enable_backward": False})
 # Half-stencil offsets (one per +/- pair) and their spring types, in lattice.STENCILS order.
 HALF_OFFSETS = [(off, t) for t, stencil in STENCILS.items() for off in stencil]
 REST_SLOTS = 32
+# Length of the uniform gather's coefficient vector (``common_coefficients``).
+COEF_LENGTH = 22
 
 
 def rest_slot(di, dj, dk):
@@ -58,7 +61,41 @@ def rest_slot(di, dj, dk):
     return (di + 1) * 9 + (dj + 1) * 3 + (dk + 1)
 
 
-def _gather_snippet(ctype, padded=False):
+# The rest slot of each +/- offset pair (one per half-stencil offset): the order of ``common_coefficients``.
+UNIFORM_SLOTS = sorted(rest_slot(*max(off, tuple(-x for x in off))) for off, _ in HALF_OFFSETS)
+
+
+def common_coefficients(rest, ks, kd, types, dtype):
+    """The uniform gather's coefficients when every jelly that has a spring type has the same ones.
+
+    ``rest`` [J, REST_SLOTS], ``ks`` and ``kd`` [J, 3] and ``types`` [J] are ``LatticeLayout``'s
+    tables. Returns ks r for each slot of UNIFORM_SLOTS, then -ks and kd per type (zeros for a type
+    no jelly has), as an array of ``dtype``; or None when two jellies that both have a type differ
+    in its ks, kd or a rest length. Rounded as the table gather computes them: rest and ks first to
+    ``dtype``, then their product in ``dtype``.
+    """
+    rest, ks, kd = (np.asarray(t, dtype=np.float64).astype(dtype) for t in (rest, ks, kd))
+    types = np.asarray(types)
+    slot_type = {rest_slot(*max(off, tuple(-x for x in off))): t for off, t in HALF_OFFSETS}
+    coef = np.zeros(COEF_LENGTH, dtype=dtype)
+    for t in range(3):
+        having = np.flatnonzero((types >> t) & 1)
+        if having.size == 0:
+            continue
+        slots = [s for s in UNIFORM_SLOTS if slot_type[s] == t]
+        table = np.concatenate([rest[having][:, slots], ks[having, t : t + 1], kd[having, t : t + 1]], axis=1)
+        if not np.all(table == table[0]):
+            return None
+        first = having[0]
+        for n, s in enumerate(UNIFORM_SLOTS):
+            if slot_type[s] == t:
+                coef[n] = rest[first, s] * ks[first, t]
+        coef[16 + t] = -ks[first, t]
+        coef[19 + t] = kd[first, t]
+    return coef
+
+
+def _gather_snippet(ctype, padded=False, uniform=False):
     """C++ body of ``gather_native``: the 32-neighbour force on particle i, straight-line.
 
     Generated per stencil so that every neighbour is addressed from one of 21 row pointers (one
@@ -69,14 +106,20 @@ def _gather_snippet(ctype, padded=False):
     no address outside the arrays is read (the loads are predicated, not branched around). Same
     sums in the same order as the stencil loops.
 
+    A spring's force on i is s d with d = x_i - x_b, l^2 = max(|d|^2, tiny) and
+    s = (ks r) / l - ks - kd ((v_i - v_b) . d) / l^2, the same as -(ks (l - r) + kd (dv . d^)) d^:
+    ks r is one coefficient per offset, so the factor takes four instructions after the reciprocal
+    square root. Clamping the squared length at the smallest normal number instead of testing it
+    keeps coincident particles (and a stand-in) at exactly zero force: d = 0 and s stays finite
+    (for ks r below 3.7e19 in float32).
+
     Why it is faster than the Warp loops (H200, Nsight Compute, fused symplectic stage at 100^3):
     the loops' select-then-index addressing and short-circuit bounds tests cost about 34 integer
     instructions per spring; here a spring is about 38 instructions in all (20 floating point, 6
     loads, 6 register moves for the stand-in, the reciprocal square root and its guard), the
     kernel executes 54 M warp instructions instead of 69 M and needs 64 registers instead of 96.
     On CUDA the reciprocal square root is ``rsqrt.approx.ftz`` (the instruction rsqrtf uses for
-    normal numbers, without its denormal fix-up); a squared length below the smallest normal
-    number counts as coincident particles (zero force), where the stencil tests ``> 0``.
+    normal numbers, without its denormal fix-up).
 
     ``padded``: for state arrays that sit inside an allocation reaching ``LatticeData.pad``
     elements past both ends (``Model.particle_array``), so that every stencil address of every
@@ -85,6 +128,13 @@ def _gather_snippet(ctype, padded=False):
     address holds (a particle of another jelly or world, even a non-finite one, or the zeroed pad)
     never reaches the sum. No stand-in moves (11 % fewer instructions per thread), same sums in the
     same order.
+
+    ``uniform``: for models whose jellies all have the same rest lengths, ks and kd
+    (``LatticeData.uniform``). The coefficients (``common_coefficients``) come as the kernel
+    argument ``coef`` instead of per-jelly tables; on CUDA a kernel argument lives in the constant
+    bank, which an instruction reads as an operand, so a spring needs no load and no multiply for
+    its coefficients and the stage needs 48 registers instead of 64. Same bits as the tables
+    (``common_coefficients`` rounds ks r as the table gather does).
     """
     tiny = "1.17549435e-38f" if ctype == "float" else "2.2250738585072014e-308"
     rsqrt = (
@@ -110,11 +160,15 @@ def _gather_snippet(ctype, padded=False):
     ]
     for v, n in (("a", "nx"), ("b", "ny"), ("c", "nz")):
         lines.append(f"const bool {v}m2 = {v} >= 2, {v}m1 = {v} >= 1, {v}p1 = {v} + 1 < {n}, {v}p2 = {v} + 2 < {n};")
+    lines += []
+    if not uniform:
+        lines += [
+            f"const T* rest = (const T*)jelly_rest.data + {REST_SLOTS} * j;",
+            "const T* ks = (const T*)jelly_ks.data + 3 * j;",
+            "const T* kd = (const T*)jelly_kd.data + 3 * j;",
+            "const T k0 = ks[0], k1 = ks[1], k2 = ks[2], c0 = kd[0], c1 = kd[1], c2 = kd[2];",
+        ]
     lines += [
-        f"const T* rest = (const T*)jelly_rest.data + {REST_SLOTS} * j;",
-        "const T* ks = (const T*)jelly_ks.data + 3 * j;",
-        "const T* kd = (const T*)jelly_kd.data + 3 * j;",
-        "const T k0 = ks[0], k1 = ks[1], k2 = ks[2], c0 = kd[0], c1 = kd[1], c2 = kd[2];",
         "const T* X = (const T*)q.data + 3 * i;",
         "const T* V = (const T*)qd.data + 3 * i;",
         "const T x0 = X[0], x1 = X[1], x2 = X[2], v0 = V[0], v1 = V[1], v2 = V[2];",
@@ -139,8 +193,17 @@ def _gather_snippet(ctype, padded=False):
             o = [0, 0, 0]
             o[axis] = side
             neighbours.append((tuple(o), 2))
-    for s in sorted({slot(o) for o, _ in neighbours}):
-        lines.append(f"const T r{s} = rest[{s}];")
+    slot_type = {slot(o): ty for o, ty in neighbours}
+    if uniform:
+        # Coefficients from the kernel argument (the constant bank): UNIFORM_SLOTS order, then -ks, kd.
+        for n, s in enumerate(UNIFORM_SLOTS):
+            lines.append(f"const T r{s}k = coef.c[{n}];")
+        lines.append("const T n0 = coef.c[16], n1 = coef.c[17], n2 = coef.c[18];")
+        lines.append("const T c0 = coef.c[19], c1 = coef.c[20], c2 = coef.c[21];")
+    else:
+        for s in sorted(slot_type):
+            lines.append(f"const T r{s}k = rest[{s}] * k{slot_type[s]};")
+        lines.append("const T n0 = -k0, n1 = -k1, n2 = -k2;")
     rows = sorted({(o[0], o[1]) for o, _ in neighbours})
     for di, dj in rows:
         name = f"{di + 2}{dj + 2}"
@@ -158,22 +221,23 @@ def _gather_snippet(ctype, padded=False):
         if padded:
             lines.append(
                 head + " const T bx = xp[0], by = xp[1], bz = xp[2], ux = vp[0], uy = vp[1], uz = vp[2];"
-                f" SOFTSIM_SPRING(r{s}, k{ty}, c{ty}, ok); }}"
+                f" SOFTSIM_SPRING(r{s}k, n{ty}, c{ty}, ok); }}"
             )
         else:
             lines.append(
                 head + " T bx = x0, by = x1, bz = x2, ux = v0, uy = v1, uz = v2;"
                 " if (ok) { bx = xp[0]; by = xp[1]; bz = xp[2]; ux = vp[0]; uy = vp[1]; uz = vp[2]; }"
-                f" SOFTSIM_SPRING(r{s}, k{ty}, c{ty}, true); }}"
+                f" SOFTSIM_SPRING(r{s}k, n{ty}, c{ty}, true); }}"
             )
     lines.append("return wp::vec_t<3, T>(f0, f1, f2);")
     spring = (
-        "#define SOFTSIM_SPRING(rest_, ks_, kd_, ok_) { \\\n"
+        "#define SOFTSIM_SPRING(kr_, nks_, kd_, ok_) { \\\n"
         "  const T dx = x0 - bx, dy = x1 - by, dz = x2 - bz; \\\n"
-        "  const T l2 = dx * dx + dy * dy + dz * dz; \\\n"
-        f"  T inv = T(0); if (l2 >= T({tiny})) SOFTSIM_RSQRT(l2, inv); \\\n"
-        "  const T mag = ks_ * (l2 * inv - rest_) + kd_ * ((v0 - ux) * dx + (v1 - uy) * dy + (v2 - uz) * dz) * inv; \\\n"
-        "  const T s = -mag * inv; if (ok_) { f0 += s * dx; f1 += s * dy; f2 += s * dz; } }\n"
+        f"  const T l2 = wp::max(dx * dx + dy * dy + dz * dz, T({tiny})); \\\n"
+        "  T inv; SOFTSIM_RSQRT(l2, inv); \\\n"
+        "  const T dot = (v0 - ux) * dx + (v1 - uy) * dy + (v2 - uz) * dz; \\\n"
+        "  const T s = kr_ * inv + nks_ - kd_ * (dot * (inv * inv)); \\\n"
+        "  if (ok_) { f0 += s * dx; f1 += s * dy; f2 += s * dz; } }\n"
     )
     # The macros are textual: undefining them after the return statement is fine.
     return rsqrt + spring + "\n".join(lines) + "\n#undef SOFTSIM_SPRING\n#undef SOFTSIM_RSQRT\n"
@@ -340,21 +404,22 @@ return 1.0f / wp::sqrt(x);
     def table_entry(a: wp.array2d(dtype=scalar), j: int, k: int) -> scalar:
         """``a[j, k]`` of a contiguous 2-d table (row offset once per thread, column offset folded)."""
 
-    @wp.func
-    def stencil_spring_force(x: vec3, xb: vec3, v: vec3, vb: vec3, rest: scalar, ks: scalar, kd: scalar):
-        """``spring_force`` with one reciprocal square root for both the length and the direction.
+    tiny = float(np.finfo(np.float32 if scalar == wp.float32 else np.float64).tiny)
 
-        The IEEE square root and the three divisions of d / |d| cost the gather kernel a third of
-        its time on an H200; rsqrtf's 2 ulp are of the order of the float32 rounding the sum
-        already has. Coincident particles give zero force, as in ``spring_force``.
+    @wp.func
+    def stencil_spring_force(x: vec3, xb: vec3, v: vec3, vb: vec3, kr: scalar, nks: scalar, kd: scalar):
+        """``spring_force`` as s d with one reciprocal square root (see ``_gather_snippet``).
+
+        ``kr`` is ks times the rest length, ``nks`` is -ks. The IEEE square root and the three
+        divisions of d / |d| cost the gather kernel a third of its time on an H200; rsqrtf's 2 ulp
+        are of the order of the float32 rounding the sum already has. Coincident particles give
+        zero force, as in ``spring_force``: the squared length is clamped at the smallest normal
+        number, so s stays finite while d = 0.
         """
         d = x - xb
-        l2 = wp.dot(d, d)
-        inv = scalar(0.0)
-        if l2 > scalar(0.0):
-            inv = inv_sqrt(l2)
-        magnitude = ks * (l2 * inv - rest) + kd * wp.dot(v - vb, d) * inv
-        return (-magnitude * inv) * d
+        inv = inv_sqrt(wp.max(wp.dot(d, d), scalar(tiny)))
+        s = kr * inv + nks - kd * (wp.dot(v - vb, d) * (inv * inv))
+        return s * d
 
     @wp.func
     def lattice_coord(local: int, shape: wp.vec3i):
@@ -414,7 +479,7 @@ return 1.0f / wp::sqrt(x);
                         rest = table_entry(jelly_rest, j, (di + 1) * 9 + (dj + 1) * 3 + dk + 1)
                         ks = wp.where(ty == 0, ks_structural, ks_shear)
                         kd = wp.where(ty == 0, kd_structural, kd_shear)
-                        f += stencil_spring_force(x, load_vec(q, p), v, load_vec(qd, p), rest, ks, kd)
+                        f += stencil_spring_force(x, load_vec(q, p), v, load_vec(qd, p), rest * ks, -ks, kd)
         # Bending: +-2 along each axis.
         has_bending = ((types >> 2) & 1) != 0
         ks_bending = jelly_ks[j, 2]
@@ -425,13 +490,29 @@ return 1.0f / wp::sqrt(x);
                 o[axis] = 4 * side - 2
                 ok = has_bending and inside(a + o[0], b + o[1], c + o[2], shape)
                 p = wp.where(ok, i + o[0] * row + o[1] * shape[2] + o[2], i)
-                f += stencil_spring_force(
-                    x, load_vec(q, p), v, load_vec(qd, p), table_entry(jelly_rest, j, 27 + axis), ks_bending, kd_bending
-                )
+                kr = table_entry(jelly_rest, j, 27 + axis) * ks_bending
+                f += stencil_spring_force(x, load_vec(q, p), v, load_vec(qd, p), kr, -ks_bending, kd_bending)
         return f
+
+    coef_vec = wp.types.vector(COEF_LENGTH, scalar)
 
     def make_gather_native(**options):
         """``gather_native`` with the given ``_gather_snippet`` options (each call its own function)."""
+        if options.get("uniform"):
+
+            @wp.func_native(_gather_snippet(ctype, **options))
+            def gather_uniform(
+                i: int,
+                j: int,
+                jelly_start: wp.array(dtype=wp.int32),
+                jelly_shape: wp.array(dtype=wp.vec3i),
+                jelly_types: wp.array(dtype=wp.int32),
+                q: wp.array(dtype=vec3),
+                qd: wp.array(dtype=vec3),
+                coef: coef_vec,
+            ) -> vec3: ...
+
+            return gather_uniform
 
         @wp.func_native(_gather_snippet(ctype, **options))
         def gather_native(
@@ -478,8 +559,12 @@ return 1.0f / wp::sqrt(x);
 
     eval_lattice_springs = make_eval_lattice_springs(gather_lattice_force)
 
-    def make_integrate_lattice_stage(gather):
-        """The fused stage kernel around a per-particle gather (``gather_native`` or ``gather_lattice_force``)."""
+    def make_integrate_lattice_stage(gather, uniform=False):
+        """The fused stage kernel around a per-particle gather (``gather_native`` or ``gather_lattice_force``).
+
+        ``uniform``: the gather takes the jellies' common coefficients as the vector ``stencil_coef``
+        (a kernel argument) instead of reading the rest, ks and kd tables.
+        """
 
         @wp.kernel(module="unique")
         def integrate_lattice_stage(
@@ -513,6 +598,8 @@ return 1.0f / wp::sqrt(x);
             eps_v: scalar,
             rest_steps: scalar,
             world_contact_beta: wp.array(dtype=scalar),
+            # The jellies' common stencil coefficients (read by uniform gathers only):
+            stencil_coef: coef_vec,
             # State in (y_n) and stage state (y_s):
             q_n: wp.array(dtype=vec3),
             qd_n: wp.array(dtype=vec3),
@@ -531,7 +618,10 @@ return 1.0f / wp::sqrt(x);
             # depends on another's output within the launch.
             i = wp.tid()
             j = particle_jelly[i]
-            f = gather(i, j, jelly_start, jelly_shape, jelly_types, jelly_rest, jelly_ks, jelly_kd, q_s, qd_s)
+            if wp.static(uniform):
+                f = gather(i, j, jelly_start, jelly_shape, jelly_types, q_s, qd_s, stencil_coef)
+            else:
+                f = gather(i, j, jelly_start, jelly_shape, jelly_types, jelly_rest, jelly_ks, jelly_kd, q_s, qd_s)
             w = particle_world[i]
             inv_mass = particle_inv_mass[i]
             kind, x, v = stage_values(
@@ -617,6 +707,10 @@ return 1.0f / wp::sqrt(x);
     integrate_lattice_stage = make_integrate_lattice_stage(gather_native)
     # For state arrays inside padded allocations (Model.particle_array); step_fused checks.
     integrate_lattice_stage_padded = make_integrate_lattice_stage(make_gather_native(padded=True))
+    # The same when every jelly has the same coefficients (LatticeData.uniform): they come as a kernel argument.
+    integrate_lattice_stage_padded_uniform = make_integrate_lattice_stage(
+        make_gather_native(padded=True, uniform=True), uniform=True
+    )
     integrate_lattice_stage_stencil = make_integrate_lattice_stage(gather_lattice_force)
 
     @wp.func_native(_rows_snippet("float" if scalar == wp.float32 else "double"))
@@ -827,6 +921,7 @@ return 1.0f / wp::sqrt(x);
         "integrate_lattice_stage": integrate_lattice_stage,
         "integrate_lattice_stage_stencil": integrate_lattice_stage_stencil,
         "integrate_lattice_stage_padded": integrate_lattice_stage_padded,
+        "integrate_lattice_stage_padded_uniform": integrate_lattice_stage_padded_uniform,
         "gather_native": gather_native,
         "make_gather_native": make_gather_native,
         "make_integrate_lattice_stage": make_integrate_lattice_stage,

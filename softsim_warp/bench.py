@@ -224,7 +224,7 @@ class _Case:
 
 
 class _OurCase(_Case):
-    """Our integrator on one model; ``options`` (fused, fuse_contact, block_dim) go to ExplicitIntegrator.
+    """Our integrator on one model; ``options`` (fused, fuse_contact, block_dim, uniform) go to ExplicitIntegrator.
 
     ``unpadded_states`` in the options steps copies of the states made by ``wp.clone`` (not padded),
     so the fused stage takes the gather with bounds-checked loads (``Model.particle_array``).
@@ -556,6 +556,13 @@ def fast_path_variants(device):
             {"fused": True, "fuse_contact": True, "unpadded_states": True},
             True,
         ),
+        (
+            "lattice gather, per-jelly coefficient tables, fused+contact, graph",
+            "lattice",
+            "gather",
+            {"fused": True, "fuse_contact": True, "uniform": False},
+            True,
+        ),
         ("lattice gather, fused+contact, graph", "lattice", "gather", {"fused": True, "fuse_contact": True}, True),
     ]
     if device.is_cpu:
@@ -657,6 +664,7 @@ def _result_row(case, bandwidth, peer_row, use_graph, copies) -> dict:
             "graph": use_graph,
             "fused": bool(getattr(integrator, "fused", False)),
             "block_dim": getattr(integrator, "block_dim", None) if getattr(integrator, "fused", False) else None,
+            "uniform": bool(getattr(integrator, "uniform", False)),
             "ms_per_step": ms,
             "cpu_ms_per_step": case.cpu_ms_per_step() if case.device.is_cpu else None,
             "steps_per_s": 1e3 / ms,

@@ -8,7 +8,9 @@ set, :func:`step_fused` from ``step``. The kernel follows the lattice kernel the
   (and between stages the resting-contact filter), so a symplectic or Euler step over planes is a
   single launch. When every array it gathers from is padded (``Model.particle_array``: the
   model's states and the integrator's stage buffers are), ``integrate_lattice_stage_padded``
-  runs instead: the same sums without bounds-checked loads.
+  runs instead: the same sums without bounds-checked loads; and for large models whose jellies
+  share their coefficients, ``integrate_lattice_stage_padded_uniform``, which takes them as a
+  kernel argument (same bits).
 * rows (CPU): ``integrate_lattice_rows_stage`` computes a jelly's forces with the vectorised row
   loops and then its particles' stage update; contact follows as its own kernel.
 
@@ -30,10 +32,18 @@ import warp as wp
 # 0.0679 / 0.3014 ms at 128 against 0.0654 / 0.2903 at 256 (docs/PERFORMANCE.md, fifth session).
 SMALL_BLOCKS_FROM = 1 << 18
 
+# Particles from which the padded stage takes its coefficients as a kernel argument when the
+# jellies share them (``integrate_lattice_stage_padded_uniform``): 48 registers instead of 64.
+# H200, seventh session (docs/PERFORMANCE.md): 1.07x symplectic, 1.06x rk4 at 100^3, but 0.96x /
+# 0.95x at 40^3, where a few blocks per SM leave the latency to the loads each thread has in flight.
+UNIFORM_FROM = 1 << 18
 
-def configure_fused(integrator, fused=None, fuse_contact=None, block_dim=None):
+
+def configure_fused(integrator, fused=None, fuse_contact=None, block_dim=None, uniform=None):
     """Decide whether ``integrator`` uses fused stages (default: whenever the model takes the lattice
-    path), whether plane contact joins them, and the gather stage's threads per block."""
+    path), whether plane contact joins them, the gather stage's threads per block, and whether the
+    padded gather takes the jellies' shared coefficients as a kernel argument (``uniform``; default:
+    when they share them, from ``UNIFORM_FROM`` particles on)."""
     model = integrator.model
     lat = model.lattice
     if fused is None:
@@ -52,6 +62,12 @@ def configure_fused(integrator, fused=None, fuse_contact=None, block_dim=None):
         stencil = lat is not None and lat.kernel == "stencil"
         block_dim = 128 if stencil and model.particle_count >= SMALL_BLOCKS_FROM else 256
     integrator.block_dim = int(block_dim)
+    shared = lat is not None and lat.uniform
+    if uniform is None:
+        uniform = shared and model.particle_count >= UNIFORM_FROM
+    elif uniform and not shared:
+        raise ValueError("uniform coefficients need jellies that share their ks, kd and rest lengths")
+    integrator.uniform = bool(gather and uniform)
     integrator._stage_buffers = None
 
 
@@ -100,6 +116,8 @@ def step_fused(integrator, state_in, state_out, dt):
             stage_kernel = model.kernels.integrate_lattice_stage_stencil
         elif lat.padded(*gathered):
             stage_kernel = model.kernels.integrate_lattice_stage_padded
+            if integrator.uniform:
+                stage_kernel = model.kernels.integrate_lattice_stage_padded_uniform
         else:
             stage_kernel = model.kernels.integrate_lattice_stage
     for stage in range(integrator.stage_count):
@@ -159,6 +177,7 @@ def step_fused(integrator, state_in, state_out, dt):
                     model.contact_velocity_epsilon,
                     model.restitution_threshold_steps,
                     integrator.world_contact_beta,
+                    lat.stencil_coef,
                     state_in.particle_q,
                     state_in.particle_qd,
                     q,

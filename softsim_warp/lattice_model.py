@@ -17,7 +17,7 @@ import numpy as np
 import warp as wp
 
 from . import lattice
-from .kernels.lattice import REST_SLOTS, rest_slot
+from .kernels.lattice import COEF_LENGTH, REST_SLOTS, common_coefficients, rest_slot
 
 # Rest lengths of one stencil offset count as one value when they agree to this relative
 # tolerance: float64 rounding of initial distances in a rotated lattice is ~1e-16.
@@ -121,6 +121,11 @@ class LatticeData:
         jelly_ks: stiffness per spring type [N/m], shape [J, 3], scalar.
         jelly_kd: damping per spring type [N s/m], shape [J, 3], scalar.
         jelly_world: world of each jelly, shape [J], int32.
+        uniform: whether every jelly that has a spring type has the same ks, kd and rest lengths for
+            it (copies of one jelly in several worlds, the benchmark's single jelly); then large
+            models step with ``integrate_lattice_stage_padded_uniform``.
+        stencil_coef: those shared coefficients as one vector (``kernels.lattice.common_coefficients``),
+            passed by value to the fused stage kernels; zeros when not ``uniform``.
         particle_coord_k: third lattice coordinate k of each particle, shape [particle_count],
             int32; allocated only for the CPU row kernel, which reads it.
         scratch: workspace of the row kernel, shape [particle_count], vec3; allocated with
@@ -149,6 +154,14 @@ class LatticeData:
         self.jelly_kd = wp.array2d(layout.kd.astype(np_scalar), dtype=scalar, device=device)
         self.jelly_world = wp.array(layout.world, dtype=wp.int32, device=device)
         self._particle_count = particle_count
+        # The uniform gather's coefficients, when the jellies share them (common_coefficients; the
+        # kernels take the argument either way, as zeros when they do not).
+        coef = common_coefficients(layout.rest, layout.ks, layout.kd, layout.types, np_scalar)
+        self.uniform = coef is not None
+        if coef is None:
+            coef = np.zeros(COEF_LENGTH, dtype=np_scalar)
+        coef_type = wp.types.vector(COEF_LENGTH, scalar)
+        self.stencil_coef = coef_type(*coef)
         self.pad = max((int(2 * ny * nz + nz + 2) for _, ny, nz in layout.shape), default=0)
         self.layout_vec3 = wp.types.vector(3, scalar)
         self.particle_coord_k = None

@@ -207,7 +207,7 @@ def test_padded_gather_equals_checked_gather(device, method):
         assert np.abs(finals[True][0] - finals[False][0]).max() <= bound
 
 
-@pytest.mark.parametrize("kernel", ["gather", "stencil"])
+@pytest.mark.parametrize("kernel", ["gather", "stencil", "uniform"])
 def test_blown_up_world_does_not_reach_its_neighbour(device, kernel):
     """A world whose state is NaN leaves the next world in memory untouched, bit for bit.
 
@@ -217,11 +217,13 @@ def test_blown_up_world_does_not_reach_its_neighbour(device, kernel):
     """
     finals = []
     for poison in (False, True):
-        b = _builder(second=False, world=0)
+        # "uniform": the gather with the coefficients as a kernel argument (unrotated jellies of one
+        # spacing share them).
+        b = _builder(second=False, world=0, degrees=0.0 if kernel == "uniform" else 30.0)
         b.add_jelly((4, 3, 5), (0.3, 0.2, 0.4), 0.01, SPRINGS, center=(1.0, 0.3, 0.0), world=1)
         model = _dropping(b).finalize(device, force_path="lattice")
-        model.lattice.set_kernel(kernel)
-        integrator = ExplicitIntegrator(model, "rk4", fused=True)
+        model.lattice.set_kernel("gather" if kernel == "uniform" else kernel)
+        integrator = ExplicitIntegrator(model, "rk4", fused=True, uniform=kernel == "uniform" or None)
         states = [model.state(), model.state()]
         n0 = 4 * 5 * 6
         if poison:
@@ -481,3 +483,86 @@ def test_lattice_kernels_refuse_strided_state(device):
     state_out.particle_q = wide[::2]
     with pytest.raises(ValueError, match="contiguous"):
         integrator.step(state_in, state_out, 1.0e-4)
+
+
+def _shared_coefficient_jellies(copies=False):
+    """Three unrotated jellies of spacing 0.1 with the same coefficients in two worlds, the third
+    without shear springs (an absent type does not break the sharing), dropped onto a plane.
+
+    Rest lengths are the initial distances, so jellies of other shapes or places share them to
+    float32 rounding only; with ``copies`` the three have one shape and place (in three worlds),
+    so they share them in float64 too.
+    """
+    b = _builder(degrees=0.0, second=False)
+    no_shear = {k: v for k, v in SPRINGS.items() if k != "shear"}
+    if copies:
+        for world, springs in ((1, SPRINGS), (2, no_shear)):
+            b.add_jelly((4, 5, 6), (0.3, 0.4, 0.5), 0.01, springs, center=(0.0, 0.3, 0.0), world=world)
+        return _dropping(b)
+    b.add_jelly((3, 7, 3), (0.2, 0.6, 0.2), 0.02, SPRINGS, center=(1.0, 0.0, 0.0), world=1)
+    b.add_jelly((3, 3, 4), (0.2, 0.2, 0.3), 0.01, no_shear, center=(0.0, 1.0, 0.0))
+    return _dropping(b)
+
+
+@pytest.mark.parametrize("method", ["symplectic", "rk4"])
+@pytest.mark.parametrize("precision", ["float32", "float64"])
+def test_uniform_gather_equals_table_gather(device, method, precision):
+    """With the coefficients as a kernel argument (``integrate_lattice_stage_padded_uniform``) the
+    padded gather computes what it computes from the per-jelly tables: on the CPU the same bits over
+    100 steps with impacts (``common_coefficients`` rounds ks r as the table gather does); on CUDA
+    to float32 rounding (4 ulps of the largest coordinate per step, as test_padded_gather_equals_checked_gather)."""
+    steps = 100
+    b = _shared_coefficient_jellies(copies=precision == "float64")
+    finals = {}
+    for uniform in (True, False):
+        model = b.finalize(device, precision, force_path="lattice")
+        model.lattice.set_kernel("gather")
+        assert model.lattice.uniform
+        integrator = ExplicitIntegrator(model, method, fused=True, uniform=uniform)
+        assert integrator.uniform == uniform
+        states = [model.state(), model.state()]
+        for k in range(steps):
+            integrator.step(states[k % 2], states[1 - k % 2], 1.0e-4)
+        finals[uniform] = states[0].particle_q.numpy(), states[0].particle_qd.numpy()
+    assert np.abs(finals[True][1]).max() > 0.0
+    if device.is_cpu:
+        assert np.array_equal(finals[True][0], finals[False][0])
+        assert np.array_equal(finals[True][1], finals[False][1])
+    else:
+        eps = EPS32 if precision == "float32" else EPS64
+        bound = steps * 4.0 * eps * np.abs(finals[False][0]).max()
+        assert np.abs(finals[True][0] - finals[False][0]).max() <= bound
+
+
+def test_common_coefficients():
+    """Shared coefficients are ks r per half-stencil slot, then -ks and kd per type, rounded as the
+    table gather rounds them; jellies that differ in a type both have share nothing."""
+    from softsim_warp.kernels.lattice import UNIFORM_SLOTS, common_coefficients, rest_slot
+
+    model = _shared_coefficient_jellies().finalize("cpu", force_path="lattice")
+    lat = model.lattice
+    layout = lat.layout
+    coef = np.array(lat.stencil_coef, dtype=np.float32)
+    rest = layout.rest[0].astype(np.float32)
+    ks = layout.ks[0].astype(np.float32)
+    # Slot of the structural offset (1, 0, 0): rest 0.1 times ks 1000 in float32.
+    n = UNIFORM_SLOTS.index(rest_slot(1, 0, 0))
+    assert coef[n] == rest[rest_slot(1, 0, 0)] * ks[0]
+    assert abs(coef[n] - 100.0) < 1e-4
+    n = UNIFORM_SLOTS.index(rest_slot(0, 0, 2))
+    assert coef[n] == rest[rest_slot(0, 0, 2)] * ks[2]
+    assert list(coef[16:]) == [-1000.0, -700.0, -300.0, 1.0, 0.5, np.float32(0.2)]
+    # A rest length or a stiffness that differs in a type two jellies have: no sharing, and asking
+    # for the uniform kernel is an error.
+    for key, spacing in (("ks", 0.1), ("rest", 0.11)):
+        springs = dict(SPRINGS, bending={"ks": 301.0 if key == "ks" else 300.0, "kd": 0.2})
+        b = _builder(degrees=0.0, second=False)
+        size = tuple(spacing * (n - 1) for n in (3, 3, 4))
+        b.add_jelly((3, 3, 4), size, 0.01, springs, center=(0.0, 1.0, 0.0))
+        other = b.finalize("cpu", force_path="lattice")
+        assert not other.lattice.uniform
+        assert not np.any(np.array(other.lattice.stencil_coef))
+        with pytest.raises(ValueError, match="uniform coefficients"):
+            ExplicitIntegrator(other, "symplectic", fused=True, uniform=True)
+        lay = other.lattice.layout
+        assert common_coefficients(lay.rest, lay.ks, lay.kd, lay.types, np.float32) is None
