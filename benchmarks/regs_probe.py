@@ -34,8 +34,7 @@ def stage_kernel(kernels, name):
     if not name.startswith("gather:"):
         return getattr(kernels, name)
     options = {opt: True for opt in name.split(":", 1)[1].split("+") if opt}
-    gather = kernels.make_gather_native(**options)
-    return kernels.make_integrate_lattice_stage(gather, uniform=bool(options.get("uniform")))
+    return kernels.make_integrate_lattice_stage(kernels.make_gather_native(**options))
 
 
 def install_stage_kernel(model, kernel):

@@ -92,6 +92,10 @@ def build(scalar):
                 v_new = load(qd_n, i) + h * a
                 return 1, load(q_n, i) + h * v_new, v_new
             v = load(qd_s, i)
+            if count == 1:
+                # Explicit Euler, the one-stage tableau (b = 1): the sums below without reading it
+                # (b * v is v exactly, so the same bits).
+                return 1, load(q_n, i) + h * v, load(qd_n, i) + h * a
             b = world_stage_b[w, stage]
             acc_q = b * v
             acc_qd = b * a

@@ -432,6 +432,9 @@ return 1.0f / wp::sqrt(x);
     def inside(a: int, b: int, c: int, shape: wp.vec3i):
         return a >= 0 and a < shape[0] and b >= 0 and b < shape[1] and c >= 0 and c < shape[2]
 
+    # The uniform gather's coefficients (common_coefficients), passed by value.
+    coef_vec = wp.types.vector(COEF_LENGTH, scalar)
+
     @wp.func
     def gather_lattice_force(
         i: int,
@@ -444,8 +447,12 @@ return 1.0f / wp::sqrt(x);
         jelly_kd: wp.array2d(dtype=scalar),
         q: wp.array(dtype=vec3),
         qd: wp.array(dtype=vec3),
+        coef: coef_vec,
     ):
-        """Spring force on particle i of lattice jelly j: the sum over its stencil neighbours."""
+        """Spring force on particle i of lattice jelly j: the sum over its stencil neighbours.
+
+        Every gather takes the same arguments; this one reads the tables and ignores ``coef``.
+        """
         shape = jelly_shape[j]
         lc = lattice_coord(i - jelly_start[j], shape)
         a = lc[0]
@@ -494,25 +501,12 @@ return 1.0f / wp::sqrt(x);
                 f += stencil_spring_force(x, load_vec(q, p), v, load_vec(qd, p), kr, -ks_bending, kd_bending)
         return f
 
-    coef_vec = wp.types.vector(COEF_LENGTH, scalar)
-
     def make_gather_native(**options):
-        """``gather_native`` with the given ``_gather_snippet`` options (each call its own function)."""
-        if options.get("uniform"):
+        """``gather_native`` with the given ``_gather_snippet`` options (each call its own function).
 
-            @wp.func_native(_gather_snippet(ctype, **options))
-            def gather_uniform(
-                i: int,
-                j: int,
-                jelly_start: wp.array(dtype=wp.int32),
-                jelly_shape: wp.array(dtype=wp.vec3i),
-                jelly_types: wp.array(dtype=wp.int32),
-                q: wp.array(dtype=vec3),
-                qd: wp.array(dtype=vec3),
-                coef: coef_vec,
-            ) -> vec3: ...
-
-            return gather_uniform
+        The arguments are ``gather_lattice_force``'s; a uniform gather reads ``coef`` instead of the
+        rest, ks and kd tables, the others ignore it.
+        """
 
         @wp.func_native(_gather_snippet(ctype, **options))
         def gather_native(
@@ -526,6 +520,7 @@ return 1.0f / wp::sqrt(x);
             jelly_kd: wp.array2d(dtype=scalar),
             q: wp.array(dtype=vec3),
             qd: wp.array(dtype=vec3),
+            coef: coef_vec,
         ) -> vec3: ...
 
         return gather_native
@@ -553,17 +548,19 @@ return 1.0f / wp::sqrt(x);
         ):
             i = wp.tid()
             j = particle_jelly[i]
-            f_out[i] = gather(i, j, jelly_start, jelly_shape, jelly_types, jelly_rest, jelly_ks, jelly_kd, q, qd)
+            f_out[i] = gather(
+                i, j, jelly_start, jelly_shape, jelly_types, jelly_rest, jelly_ks, jelly_kd, q, qd, coef_vec()
+            )
 
         return eval_lattice_springs
 
     eval_lattice_springs = make_eval_lattice_springs(gather_lattice_force)
 
-    def make_integrate_lattice_stage(gather, uniform=False):
+    def make_integrate_lattice_stage(gather):
         """The fused stage kernel around a per-particle gather (``gather_native`` or ``gather_lattice_force``).
 
-        ``uniform``: the gather takes the jellies' common coefficients as the vector ``stencil_coef``
-        (a kernel argument) instead of reading the rest, ks and kd tables.
+        The kernel passes the gather both the per-jelly tables and ``stencil_coef``, the jellies'
+        common coefficients (a kernel argument); a uniform gather reads the latter.
         """
 
         @wp.kernel(module="unique")
@@ -618,10 +615,9 @@ return 1.0f / wp::sqrt(x);
             # depends on another's output within the launch.
             i = wp.tid()
             j = particle_jelly[i]
-            if wp.static(uniform):
-                f = gather(i, j, jelly_start, jelly_shape, jelly_types, q_s, qd_s, stencil_coef)
-            else:
-                f = gather(i, j, jelly_start, jelly_shape, jelly_types, jelly_rest, jelly_ks, jelly_kd, q_s, qd_s)
+            f = gather(
+                i, j, jelly_start, jelly_shape, jelly_types, jelly_rest, jelly_ks, jelly_kd, q_s, qd_s, stencil_coef
+            )
             w = particle_world[i]
             inv_mass = particle_inv_mass[i]
             kind, x, v = stage_values(
@@ -708,9 +704,7 @@ return 1.0f / wp::sqrt(x);
     # For state arrays inside padded allocations (Model.particle_array); step_fused checks.
     integrate_lattice_stage_padded = make_integrate_lattice_stage(make_gather_native(padded=True))
     # The same when every jelly has the same coefficients (LatticeData.uniform): they come as a kernel argument.
-    integrate_lattice_stage_padded_uniform = make_integrate_lattice_stage(
-        make_gather_native(padded=True, uniform=True), uniform=True
-    )
+    integrate_lattice_stage_padded_uniform = make_integrate_lattice_stage(make_gather_native(padded=True, uniform=True))
     integrate_lattice_stage_stencil = make_integrate_lattice_stage(gather_lattice_force)
 
     @wp.func_native(_rows_snippet("float" if scalar == wp.float32 else "double"))
