@@ -30,11 +30,14 @@ from softsim_warp.integrators import ExplicitIntegrator
 
 def stage_kernel(kernels, name):
     """A stage kernel by name: one in ``model.kernels``, or ``gather:OPT+OPT`` for the fused stage
-    around ``gather_native`` built with those ``_gather_snippet`` options (e.g. ``gather:padded``)."""
+    around ``gather_native`` built with those ``_gather_snippet`` options (e.g. ``gather:padded``; the
+    option ``indexed`` builds the stage with Warp-indexed reads instead)."""
     if not name.startswith("gather:"):
         return getattr(kernels, name)
     options = {opt: True for opt in name.split(":", 1)[1].split("+") if opt}
-    return kernels.make_integrate_lattice_stage(kernels.make_gather_native(**options))
+    # "indexed": the stage's own reads through Warp's indexing (make_integrate_lattice_stage(direct=False)).
+    direct = not options.pop("indexed", False)
+    return kernels.make_integrate_lattice_stage(kernels.make_gather_native(**options), direct=direct)
 
 
 def install_stage_kernel(model, kernel):

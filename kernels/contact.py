@@ -124,53 +124,70 @@ def build(scalar):
         return phi
 
     @wp.func
-    def contact_planes(
-        x: vec3,
-        v: vec3,
-        v_prev: wp.array(dtype=vec3),
-        i: int,
-        w: int,
-        plane_first: wp.array(dtype=wp.int32),
-        plane_point: wp.array(dtype=vec3),
-        plane_normal: wp.array(dtype=vec3),
-        plane_hole_center: wp.array(dtype=vec3),
-        plane_hole_radius: wp.array(dtype=scalar),
-        plane_restitution: wp.array(dtype=scalar),
-        plane_friction: wp.array(dtype=scalar),
-        eps: scalar,
-        eps_v: scalar,
-        rest_steps: scalar,
-        beta_h: scalar,
-        stage: int,
-    ):
-        """Particle i of world ``w`` against every plane of that world; returns the new (x, v).
+    def int_indexed(a: wp.array(dtype=wp.int32), i: int):
+        return a[i]
 
-        ``v_prev[i]`` is the particle's velocity before the step. Shared by ``collide_planes`` and
-        the fused stages of the lattice path, where most particles are nowhere near a plane: the
-        hole, the coefficients and the previous velocity are read only within ``eps`` of it.
-        """
-        # The planes of world w are plane_first[w] .. plane_first[w + 1] - 1 (sorted by world).
-        for p in range(plane_first[w], plane_first[w + 1]):
-            n = plane_normal[p]
-            point = plane_point[p]
-            if wp.dot(x - point, n) < eps:
-                # The same distance again, now with the hole (which only ever removes contact).
-                phi = plane_distance(x, point, n, plane_hole_center[p], plane_hole_radius[p])
-                x, v = resolve_contact(
-                    x,
-                    v,
-                    wp.dot(n, v_prev[i]),
-                    phi,
-                    n,
-                    plane_restitution[p],
-                    plane_friction[p],
-                    eps,
-                    eps_v,
-                    rest_steps,
-                    beta_h,
-                    stage,
-                )
-        return x, v
+    @wp.func
+    def vec_indexed(a: wp.array(dtype=vec3), i: int):
+        return a[i]
+
+    def make_contact_planes(int_at=int_indexed, vec_at=vec_indexed):
+        """``contact_planes`` reading the world's plane range and each plane's point and normal (what
+        every particle reads) through ``int_at`` / ``vec_at``: Warp's indexing by default, or loads
+        from the data pointer for the fused lattice stage (kernels/integration.py's ``*_contiguous``)."""
+
+        @wp.func
+        def contact_planes(
+            x: vec3,
+            v: vec3,
+            v_prev: wp.array(dtype=vec3),
+            i: int,
+            w: int,
+            plane_first: wp.array(dtype=wp.int32),
+            plane_point: wp.array(dtype=vec3),
+            plane_normal: wp.array(dtype=vec3),
+            plane_hole_center: wp.array(dtype=vec3),
+            plane_hole_radius: wp.array(dtype=scalar),
+            plane_restitution: wp.array(dtype=scalar),
+            plane_friction: wp.array(dtype=scalar),
+            eps: scalar,
+            eps_v: scalar,
+            rest_steps: scalar,
+            beta_h: scalar,
+            stage: int,
+        ):
+            """Particle i of world ``w`` against every plane of that world; returns the new (x, v).
+
+            ``v_prev[i]`` is the particle's velocity before the step. Shared by ``collide_planes`` and
+            the fused stages of the lattice path, where most particles are nowhere near a plane: the
+            hole, the coefficients and the previous velocity are read only within ``eps`` of it.
+            """
+            # The planes of world w are plane_first[w] .. plane_first[w + 1] - 1 (sorted by world).
+            for p in range(int_at(plane_first, w), int_at(plane_first, w + 1)):
+                n = vec_at(plane_normal, p)
+                point = vec_at(plane_point, p)
+                if wp.dot(x - point, n) < eps:
+                    # The same distance again, now with the hole (which only ever removes contact).
+                    phi = plane_distance(x, point, n, plane_hole_center[p], plane_hole_radius[p])
+                    x, v = resolve_contact(
+                        x,
+                        v,
+                        wp.dot(n, v_prev[i]),
+                        phi,
+                        n,
+                        plane_restitution[p],
+                        plane_friction[p],
+                        eps,
+                        eps_v,
+                        rest_steps,
+                        beta_h,
+                        stage,
+                    )
+            return x, v
+
+        return contact_planes
+
+    contact_planes = make_contact_planes()
 
     # -- Bowls and spheres ----------------------------------------------------------------------
     # Curved primitives give resolve_contact the distance and normal at the particle itself; a
@@ -454,6 +471,7 @@ def build(scalar):
         "resolve_contact": resolve_contact,
         "plane_distance": plane_distance,
         "contact_planes": contact_planes,
+        "make_contact_planes": make_contact_planes,
         "collide_planes": collide_planes,
         "bowl_distance": bowl_distance,
         "bowl_holds": bowl_holds,

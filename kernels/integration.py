@@ -52,9 +52,34 @@ def build(scalar):
     def store_contiguous(a: wp.array(dtype=vec3), i: int, value: vec3):
         """``a[i] = value`` of a contiguous array (see ``load_contiguous``)."""
 
-    def make_stage_values(load, store):
+    @wp.func
+    def int_indexed(a: wp.array(dtype=wp.int32), i: int):
+        return a[i]
+
+    @wp.func
+    def scalar_indexed(a: wp.array(dtype=scalar), i: int):
+        return a[i]
+
+    @wp.func
+    def entry_indexed(a: wp.array2d(dtype=scalar), j: int, k: int):
+        return a[j, k]
+
+    @wp.func_native("return ((const int*)a.data)[i];")
+    def int_contiguous(a: wp.array(dtype=wp.int32), i: int) -> int:
+        """``a[i]`` of a contiguous int32 array from its data pointer (see ``load_contiguous``)."""
+
+    @wp.func_native(f"return ((const {ctype}*)a.data)[i];")
+    def scalar_contiguous(a: wp.array(dtype=scalar), i: int) -> scalar:
+        """``a[i]`` of a contiguous scalar array from its data pointer (see ``load_contiguous``)."""
+
+    @wp.func_native(f"return ((const {ctype}*)a.data)[j * a.shape[1] + k];")
+    def entry_contiguous(a: wp.array2d(dtype=scalar), j: int, k: int) -> scalar:
+        """``a[j, k]`` of a contiguous 2-d table from its data pointer."""
+
+    def make_stage_values(load, store, entry=entry_indexed, int_at=int_indexed):
         """``stage_values`` reading and writing per-particle arrays through ``load`` / ``store``
-        (``load_indexed`` / ``store_indexed``: any array; the ``*_contiguous`` pair: contiguous ones)."""
+        (``load_indexed`` / ``store_indexed``: any array; the ``*_contiguous`` pair: contiguous ones)
+        and the per-world tables through ``entry`` / ``int_at``."""
 
         @wp.func
         def stage_values(
@@ -83,11 +108,11 @@ def build(scalar):
             fused lattice stage (kernels/lattice.py), which applies contact to them first and stores
             each particle once.
             """
-            count = world_stage_count[w]
+            count = int_at(world_stage_count, w)
             if stage >= count:
                 return 0, vec3(scalar(0.0)), vec3(scalar(0.0))
             a = acceleration(f, inv_mass, gravity)
-            if world_symplectic[w] != 0:
+            if int_at(world_symplectic, w) != 0:
                 # Semi-implicit Euler: velocity first, then position with the new velocity.
                 v_new = load(qd_n, i) + h * a
                 return 1, load(q_n, i) + h * v_new, v_new
@@ -96,7 +121,7 @@ def build(scalar):
                 # Explicit Euler, the one-stage tableau (b = 1): the sums below without reading it
                 # (b * v is v exactly, so the same bits).
                 return 1, load(q_n, i) + h * v, load(qd_n, i) + h * a
-            b = world_stage_b[w, stage]
+            b = entry(world_stage_b, w, stage)
             acc_q = b * v
             acc_qd = b * a
             if stage > 0:
@@ -106,13 +131,14 @@ def build(scalar):
                 return 1, load(q_n, i) + h * acc_q, load(qd_n, i) + h * acc_qd
             store(acc_q_out, i, acc_q)
             store(acc_qd_out, i, acc_qd)
-            c = world_stage_c[w, stage + 1]
+            c = entry(world_stage_c, w, stage + 1)
             return 2, load(q_n, i) + (h * c) * v, load(qd_n, i) + (h * c) * a
 
         return stage_values
 
     stage_values = make_stage_values(load_indexed, store_indexed)
     stage_values_contiguous = make_stage_values(load_contiguous, store_contiguous)
+    stage_values_direct = make_stage_values(load_contiguous, store_contiguous, entry_contiguous, int_contiguous)
 
     @wp.kernel(module="unique")
     def integrate_stage(
@@ -170,6 +196,11 @@ def build(scalar):
         "acceleration": acceleration,
         "stage_values": stage_values,
         "stage_values_contiguous": stage_values_contiguous,
+        "stage_values_direct": stage_values_direct,
+        "int_contiguous": int_contiguous,
+        "scalar_contiguous": scalar_contiguous,
+        "int_indexed": int_indexed,
+        "scalar_indexed": scalar_indexed,
         "load_contiguous": load_contiguous,
         "store_contiguous": store_contiguous,
         "integrate_stage": integrate_stage,
