@@ -23,6 +23,8 @@ import functools
 
 import warp as wp
 
+from . import integration
+
 wp.set_module_options({"enable_backward": False})
 
 
@@ -123,15 +125,9 @@ def build(scalar):
                 return scalar(1.0e30)
         return phi
 
-    @wp.func
-    def int_indexed(a: wp.array(dtype=wp.int32), i: int):
-        return a[i]
+    indexing = integration.build(scalar)
 
-    @wp.func
-    def vec_indexed(a: wp.array(dtype=vec3), i: int):
-        return a[i]
-
-    def make_contact_planes(int_at=int_indexed, vec_at=vec_indexed):
+    def make_contact_planes(int_at=indexing["int_indexed"], vec_at=indexing["load_indexed"]):
         """``contact_planes`` reading the world's plane range and each plane's point and normal (what
         every particle reads) through ``int_at`` / ``vec_at``: Warp's indexing by default, or loads
         from the data pointer for the fused lattice stage (kernels/integration.py's ``*_contiguous``)."""

@@ -200,6 +200,7 @@ def build(scalar):
         "int_contiguous": int_contiguous,
         "scalar_contiguous": scalar_contiguous,
         "int_indexed": int_indexed,
+        "load_indexed": load_indexed,
         "scalar_indexed": scalar_indexed,
         "load_contiguous": load_contiguous,
         "store_contiguous": store_contiguous,
