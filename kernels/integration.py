@@ -198,6 +198,7 @@ def build(scalar):
         "stage_values_contiguous": stage_values_contiguous,
         "stage_values_direct": stage_values_direct,
         "int_contiguous": int_contiguous,
+        "entry_contiguous": entry_contiguous,
         "scalar_contiguous": scalar_contiguous,
         "int_indexed": int_indexed,
         "load_indexed": load_indexed,

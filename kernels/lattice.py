@@ -61,8 +61,15 @@ def rest_slot(di, dj, dk):
     return (di + 1) * 9 + (dj + 1) * 3 + (dk + 1)
 
 
-# The rest slot of each +/- offset pair (one per half-stencil offset): the order of ``common_coefficients``.
-UNIFORM_SLOTS = sorted(rest_slot(*max(off, tuple(-x for x in off))) for off, _ in HALF_OFFSETS)
+def pair_slot(off):
+    """The rest slot an offset and its opposite share: that of the larger of the two (as tuples)."""
+    return rest_slot(*max(off, tuple(-x for x in off)))
+
+
+# Spring type of each +/- offset pair's slot (one per half-stencil offset), and those slots in the
+# order of ``common_coefficients``.
+PAIR_SLOT_TYPE = {pair_slot(off): t for off, t in HALF_OFFSETS}
+UNIFORM_SLOTS = sorted(PAIR_SLOT_TYPE)
 
 
 def common_coefficients(rest, ks, kd, types, dtype):
@@ -76,20 +83,18 @@ def common_coefficients(rest, ks, kd, types, dtype):
     """
     rest, ks, kd = (np.asarray(t, dtype=np.float64).astype(dtype) for t in (rest, ks, kd))
     types = np.asarray(types)
-    slot_type = {rest_slot(*max(off, tuple(-x for x in off))): t for off, t in HALF_OFFSETS}
     coef = np.zeros(COEF_LENGTH, dtype=dtype)
     for t in range(3):
         having = np.flatnonzero((types >> t) & 1)
         if having.size == 0:
             continue
-        slots = [s for s in UNIFORM_SLOTS if slot_type[s] == t]
+        index = [n for n, s in enumerate(UNIFORM_SLOTS) if PAIR_SLOT_TYPE[s] == t]
+        slots = [UNIFORM_SLOTS[n] for n in index]
         table = np.concatenate([rest[having][:, slots], ks[having, t : t + 1], kd[having, t : t + 1]], axis=1)
         if not np.all(table == table[0]):
             return None
         first = having[0]
-        for n, s in enumerate(UNIFORM_SLOTS):
-            if slot_type[s] == t:
-                coef[n] = rest[first, s] * ks[first, t]
+        coef[index] = rest[first, slots] * ks[first, t]
         coef[16 + t] = -ks[first, t]
         coef[19 + t] = kd[first, t]
     return coef
@@ -160,7 +165,6 @@ def _gather_snippet(ctype, padded=False, uniform=False):
     ]
     for v, n in (("a", "nx"), ("b", "ny"), ("c", "nz")):
         lines.append(f"const bool {v}m2 = {v} >= 2, {v}m1 = {v} >= 1, {v}p1 = {v} + 1 < {n}, {v}p2 = {v} + 2 < {n};")
-    lines += []
     if not uniform:
         lines += [
             f"const T* rest = (const T*)jelly_rest.data + {REST_SLOTS} * j;",
@@ -174,10 +178,6 @@ def _gather_snippet(ctype, padded=False, uniform=False):
         "const T x0 = X[0], x1 = X[1], x2 = X[2], v0 = V[0], v1 = V[1], v2 = V[2];",
         "T f0 = T(0), f1 = T(0), f2 = T(0);",
     ]
-
-    # Rest length of each offset, read once per +/- pair (the table is symmetric).
-    def slot(o):
-        return rest_slot(*max(o, tuple(-x for x in o)))
 
     # The 32 offsets and spring types in gather_lattice_force's order (the 3x3x3 block in
     # (di, dj, dk) order, then bending axis by axis, -2 before +2), so the sums round alike.
@@ -193,7 +193,7 @@ def _gather_snippet(ctype, padded=False, uniform=False):
             o = [0, 0, 0]
             o[axis] = side
             neighbours.append((tuple(o), 2))
-    slot_type = {slot(o): ty for o, ty in neighbours}
+    # Coefficients per +/- offset pair (the rest table is symmetric): ks r, -ks and kd.
     if uniform:
         # Coefficients from the kernel argument (the constant bank): UNIFORM_SLOTS order, then -ks, kd.
         for n, s in enumerate(UNIFORM_SLOTS):
@@ -201,8 +201,8 @@ def _gather_snippet(ctype, padded=False, uniform=False):
         lines.append("const T n0 = coef.c[16], n1 = coef.c[17], n2 = coef.c[18];")
         lines.append("const T c0 = coef.c[19], c1 = coef.c[20], c2 = coef.c[21];")
     else:
-        for s in sorted(slot_type):
-            lines.append(f"const T r{s}k = rest[{s}] * k{slot_type[s]};")
+        for s in UNIFORM_SLOTS:
+            lines.append(f"const T r{s}k = rest[{s}] * k{PAIR_SLOT_TYPE[s]};")
         lines.append("const T n0 = -k0, n1 = -k1, n2 = -k2;")
     rows = sorted({(o[0], o[1]) for o, _ in neighbours})
     for di, dj in rows:
@@ -213,7 +213,7 @@ def _gather_snippet(ctype, padded=False, uniform=False):
     for (di, dj, dk), ty in neighbours:
         name = f"{di + 2}{dj + 2}"
         conds = [f"s{ty}"] + [f"{v}{flag[d]}" for v, d in zip("abc", (di, dj, dk)) if d]
-        s = slot((di, dj, dk))
+        s = pair_slot((di, dj, dk))
         head = (
             f"{{ const bool ok = {' && '.join(conds)};"
             f" const T* xp = xr{name} + {3 * dk}; const T* vp = vr{name} + {3 * dk};"
@@ -403,9 +403,8 @@ return 1.0f / wp::sqrt(x);
     load_vec = integration_funcs["load_contiguous"]
     store_vec = integration_funcs["store_contiguous"]
 
-    @wp.func_native(f"return ((const {ctype}*)a.data)[j * a.shape[1] + k];")
-    def table_entry(a: wp.array2d(dtype=scalar), j: int, k: int) -> scalar:
-        """``a[j, k]`` of a contiguous 2-d table (row offset once per thread, column offset folded)."""
+    # a[j, k] of a contiguous 2-d table (row offset once per thread, column offset folded).
+    table_entry = integration_funcs["entry_contiguous"]
 
     tiny = float(np.finfo(np.float32 if scalar == wp.float32 else np.float64).tiny)
 
