@@ -8,7 +8,8 @@ The fused stage kernels named by ``--kernels`` (``integrate_lattice_stage_padded
 gather over padded arrays, what the model's states get; ``integrate_lattice_stage_padded_uniform``:
 the same with the coefficients as a kernel argument, what large one-jelly models get; ``integrate_lattice_stage``: the native
 gather with bounds-checked loads; ``integrate_lattice_stage_stencil``: the Warp-loop gather;
-``gather:OPT+OPT``: the native gather built with those ``_gather_snippet`` options), each compiled with
+``gather:OPT+OPT``: the native gather built with those ``_gather_snippet`` options, plus ``indexed``
+and ``single`` for the stage's own options), each compiled with
 ``cuda_max_registers`` at each cap (0: the compiler's choice), stepped through the benchmark jelly
 with CUDA graphs; the variants are timed in turn, round after round, in one process. The cap is
 ignored on the CPU. Each variant's final positions are compared with the first variant's of the
@@ -37,7 +38,9 @@ def stage_kernel(kernels, name):
     options = {opt: True for opt in name.split(":", 1)[1].split("+") if opt}
     # "indexed": the stage's own reads through Warp's indexing (make_integrate_lattice_stage(direct=False)).
     direct = not options.pop("indexed", False)
-    return kernels.make_integrate_lattice_stage(kernels.make_gather_native(**options), direct=direct)
+    # "single": the one-jelly stage (make_integrate_lattice_stage(single=True)).
+    single = options.pop("single", False)
+    return kernels.make_integrate_lattice_stage(kernels.make_gather_native(**options), direct=direct, single=single)
 
 
 def install_stage_kernel(model, kernel):
@@ -45,7 +48,8 @@ def install_stage_kernel(model, kernel):
     (the padded one for the model's own states, the checked one for other arrays)."""
     model.kernels = types.SimpleNamespace(**vars(model.kernels))
     k = model.kernels
-    k.integrate_lattice_stage = k.integrate_lattice_stage_padded = k.integrate_lattice_stage_padded_uniform = kernel
+    k.integrate_lattice_stage = k.integrate_lattice_stage_padded = kernel
+    k.integrate_lattice_stage_padded_uniform = k.integrate_lattice_stage_single = kernel
 
 
 def variant_kernel(kernel, cap):

@@ -288,6 +288,7 @@ _ROWS_STAGE = """
     }
     const int cols = world_stage_b.shape[1];
     const T b = ((const T*)world_stage_b.data)[w * cols + stage];
+    const T b0 = ((const T*)world_stage_b.data)[w * cols];
     T* __restrict__ aq = (T*)acc_q_out.data + 3 * start;
     T* __restrict__ aqd = (T*)acc_qd_out.data + 3 * start;
     const bool first = stage == 0, last = stage == count - 1;
@@ -301,12 +302,14 @@ _ROWS_STAGE = """
             const T a = mi == T(0) ? T(0) : fo[e] * mi + g[d];
             const T vs = v[e];
             T acc_x = b * vs, acc_v = b * a;
-            if (!first) { acc_x = acc_x + aq[e]; acc_v = acc_v + aqd[e]; }
+            // Stage 0's position term b_0 v_n is recomputed at stage 1, not stored (stage_values).
+            if (stage == 1) { acc_x = acc_x + b0 * vn[e]; acc_v = acc_v + aqd[e]; }
+            else if (!first) { acc_x = acc_x + aq[e]; acc_v = acc_v + aqd[e]; }
             if (last) {
                 xo[e] = xn[e] + h * acc_x;
                 vo[e] = vn[e] + h * acc_v;
             } else {
-                aq[e] = acc_x;
+                if (!first) aq[e] = acc_x;
                 aqd[e] = acc_v;
                 xnext[e] = xn[e] + hc * vs;
                 vnext[e] = vn[e] + hc * a;
@@ -558,7 +561,7 @@ return 1.0f / wp::sqrt(x);
 
     eval_lattice_springs = make_eval_lattice_springs(gather_lattice_force)
 
-    def make_integrate_lattice_stage(gather, direct=True):
+    def make_integrate_lattice_stage(gather, direct=True, single=False):
         """The fused stage kernel around a per-particle gather (``gather_native`` or ``gather_lattice_force``).
 
         The kernel passes the gather both the per-jelly tables and ``stencil_coef``, the jellies'
@@ -570,6 +573,10 @@ return 1.0f / wp::sqrt(x);
         access: the wrap of a negative index and a 64-bit multiply by the run-time stride). These
         are the model's and the integrator's own arrays, contiguous by construction. Measured
         1.02-1.05x at 100^3 and 40^3 on an H200 (docs/PERFORMANCE.md, seventh session).
+
+        ``single``: for a model that is one jelly of particles of one mass (``LatticeData.single``):
+        the jelly is 0 and the world and inverse mass are particle 0's, so the kernel reads no
+        per-particle jelly, world or mass (12 of a symplectic stage's 60 bytes a particle).
         """
         sv = integration_funcs["stage_values_direct"] if direct else stage_values
         planes = contact_planes_direct if direct else contact_planes
@@ -627,12 +634,18 @@ return 1.0f / wp::sqrt(x);
             # the stage state y_s and writes only its own particle into other buffers, so no thread
             # depends on another's output within the launch.
             i = wp.tid()
-            j = int_at(particle_jelly, i)
+            # The particle whose jelly, world and mass are read: itself, or 0 for all in a single jelly.
+            p = i
+            j = int(0)
+            if wp.static(single):
+                p = 0
+            else:
+                j = int_at(particle_jelly, i)
             f = gather(
                 i, j, jelly_start, jelly_shape, jelly_types, jelly_rest, jelly_ks, jelly_kd, q_s, qd_s, stencil_coef
             )
-            w = int_at(particle_world, i)
-            inv_mass = scalar_at(particle_inv_mass, i)
+            w = int_at(particle_world, p)
+            inv_mass = scalar_at(particle_inv_mass, p)
             kind, x, v = sv(
                 i,
                 stage,
@@ -674,7 +687,7 @@ return 1.0f / wp::sqrt(x);
                         eps,
                         eps_v,
                         rest_steps,
-                        h * world_contact_beta[w],
+                        h * scalar_at(world_contact_beta, w),
                         0,
                     )
                 else:
@@ -718,6 +731,10 @@ return 1.0f / wp::sqrt(x);
     integrate_lattice_stage_padded = make_integrate_lattice_stage(make_gather_native(padded=True))
     # The same when every jelly has the same coefficients (LatticeData.uniform): they come as a kernel argument.
     integrate_lattice_stage_padded_uniform = make_integrate_lattice_stage(make_gather_native(padded=True, uniform=True))
+    # And when the model is one jelly of one particle mass (LatticeData.single): no per-particle tables.
+    integrate_lattice_stage_single = make_integrate_lattice_stage(
+        make_gather_native(padded=True, uniform=True), single=True
+    )
     integrate_lattice_stage_stencil = make_integrate_lattice_stage(gather_lattice_force)
 
     @wp.func_native(_rows_snippet("float" if scalar == wp.float32 else "double"))
@@ -929,6 +946,7 @@ return 1.0f / wp::sqrt(x);
         "integrate_lattice_stage_stencil": integrate_lattice_stage_stencil,
         "integrate_lattice_stage_padded": integrate_lattice_stage_padded,
         "integrate_lattice_stage_padded_uniform": integrate_lattice_stage_padded_uniform,
+        "integrate_lattice_stage_single": integrate_lattice_stage_single,
         "gather_native": gather_native,
         "make_gather_native": make_gather_native,
         "make_integrate_lattice_stage": make_integrate_lattice_stage,

@@ -102,10 +102,11 @@ def device_arrays_bytes(*objects) -> int:
 def step_bytes(model, integrator) -> int:
     """Bytes one step must move between the device memory and the cores, for the kernels it launches.
 
-    The model counts every per-particle or per-spring array a kernel reads or writes once per
-    launch (a read-modify-write twice), neighbour reads as cache hits, and small per-jelly or
-    per-world tables as free: the least traffic these kernels can cause. N particles, S springs,
-    s the scalar size, v = 3 s the vector size:
+    The model counts every per-particle or per-spring array a launch reads or writes once (a
+    read-modify-write twice, an array read twice in one launch once: on a method's first stage
+    the stage state is y_n), neighbour reads as cache hits, and small per-jelly or per-world tables
+    as free: the least traffic these kernels can cause. N particles, S springs, s the scalar size,
+    v = 3 s the vector size:
 
     * spring list, per stage: zero f (N v), ``eval_springs`` (S (8 + 3 s) index and parameters,
       x and v 2 N v, f read-modify-write 2 N v), ``integrate_stage`` (inverse mass and world
@@ -113,35 +114,46 @@ def step_bytes(model, integrator) -> int:
     * lattice rows (CPU), per stage: x, v of the stage state 2 N v, lattice k-coordinate 4 N,
       the force buffer written and read 2 N v, inverse mass N s, plus the stage I/O;
     * lattice gather (CUDA), per stage: x, v of the stage state 2 N v, jelly and world 8 N,
-      inverse mass N s, plus the stage I/O (contact fused into the last stage moves nothing more);
-    * stage I/O: y_n read 2 N v; accumulators read on stages after the first and written before
-      the last 2 N v each; next stage state written before the last 2 N v; y_{n+1} written 2 N v;
+      inverse mass N s (none of these three for one jelly of one mass,
+      ``integrate_lattice_stage_single``), plus the stage I/O (contact fused into the last stage
+      moves nothing more);
+    * stage I/O: y_n 2 N v on stages after the first (on the first it is the stage state, which
+      the unfused ``integrate_stage`` reads the velocity of only: x_n N v more); the velocity
+      accumulator N v and, from stage 2 on, the position accumulator N v, read on stages after the
+      first and written before the last (stage 0's position term b_0 v_n is recomputed at stage 1
+      from v_n); the next stage state written before the last 2 N v; y_{n+1} written 2 N v;
     * contact when not fused: inverse mass and world N (s + 4), y_n 2 N v, y_{n+1} read and
-      written 4 N v. Symplectic Euler reads y_n and writes y_{n+1} only.
+      written 4 N v.
+
+    A batch of methods is counted as its longest method.
     """
     n, springs = model.particle_count, model.spring_count
     s = 8 if model.precision == "float64" else 4
     v = 3 * s
-    stages = integrator.stage_count
-    symplectic = all(m == "symplectic" for m in integrator.methods)
+    count = integrator.stage_count
     lattice = model.lattice
+    fused = lattice is not None and integrator.fused
     total = 0
-    for stage in range(stages):
+    for stage in range(count):
         if lattice is None:
             total += n * v + springs * (8 + 3 * s) + 4 * n * v + n * (s + 4) + 2 * n * v
-        elif lattice.kernel == "rows" and integrator.fused:
+        elif lattice.kernel == "rows" and fused:
             total += 2 * n * v + 4 * n + 2 * n * v + n * s
-        elif integrator.fused:
-            total += 2 * n * v + 8 * n + n * s
+        elif fused:
+            total += 2 * n * v + (0 if getattr(integrator, "single", False) else 8 * n + n * s)
         else:  # lattice forces (f written), then integrate_stage (f and stage velocity read)
             total += 2 * n * v + (4 * n if lattice.kernel == "rows" else 8 * n) + n * v + 2 * n * v + n * (s + 4)
-        if symplectic:
-            total += 4 * n * v
-            continue
-        total += 2 * n * v  # y_n
-        if stage > 0:
+        if stage == 0:
+            total += 0 if fused else n * v  # x_n: the unfused update reads the stage velocity only
+        else:
             total += 2 * n * v
-        total += 2 * n * v if stage == stages - 1 else 6 * n * v
+        if count == 1:
+            total += 2 * n * v
+            continue
+        accumulators = 1 if stage == 0 else 2  # vectors of them kept from this stage on
+        if stage > 0:
+            total += (1 if stage == 1 else 2) * n * v
+        total += 2 * n * v if stage == count - 1 else accumulators * n * v + 2 * n * v
     if model.plane_count and not getattr(integrator, "fuse_contact", False):
         total += n * (s + 4) + 6 * n * v
     return int(total)

@@ -10,7 +10,8 @@ set, :func:`step_fused` from ``step``. The kernel follows the lattice kernel the
   model's states and the integrator's stage buffers are), ``integrate_lattice_stage_padded``
   runs instead: the same sums without bounds-checked loads; and for large models whose jellies
   share their coefficients, ``integrate_lattice_stage_padded_uniform``, which takes them as a
-  kernel argument (same bits).
+  kernel argument (same bits); ``integrate_lattice_stage_single`` when the model is also one
+  jelly of one particle mass, which reads no per-particle jelly, world or mass.
 * rows (CPU): ``integrate_lattice_rows_stage`` computes a jelly's forces with the vectorised row
   loops and then its particles' stage update; contact follows as its own kernel.
 
@@ -68,6 +69,8 @@ def configure_fused(integrator, fused=None, fuse_contact=None, block_dim=None, u
     elif uniform and not shared:
         raise ValueError("uniform coefficients need jellies that share their ks, kd and rest lengths")
     integrator.uniform = bool(gather and uniform)
+    # One jelly of one mass: the uniform stage that reads no per-particle jelly, world or mass.
+    integrator.single = bool(integrator.uniform and lat.single)
     integrator._stage_buffers = None
 
 
@@ -118,6 +121,8 @@ def step_fused(integrator, state_in, state_out, dt):
             stage_kernel = model.kernels.integrate_lattice_stage_padded
             if integrator.uniform:
                 stage_kernel = model.kernels.integrate_lattice_stage_padded_uniform
+                if integrator.single:
+                    stage_kernel = model.kernels.integrate_lattice_stage_single
         else:
             stage_kernel = model.kernels.integrate_lattice_stage
     for stage in range(integrator.stage_count):

@@ -126,6 +126,9 @@ class LatticeData:
             models step with ``integrate_lattice_stage_padded_uniform``.
         stencil_coef: those shared coefficients as one vector (``kernels.lattice.common_coefficients``),
             passed by value to the fused stage kernels; zeros when not ``uniform``.
+        single: whether the model is one jelly whose particles all have one mass (the benchmark's
+            jelly, a one-jelly scene); then the uniform stage need not read a per-particle jelly,
+            world or mass (``integrate_lattice_stage_single``).
         particle_coord_k: third lattice coordinate k of each particle, shape [particle_count],
             int32; allocated only for the CPU row kernel, which reads it.
         scratch: workspace of the row kernel, shape [particle_count], vec3; allocated with
@@ -142,7 +145,9 @@ class LatticeData:
             over the stencil. ``Model.particle_array`` allocates that way.
     """
 
-    def __init__(self, layout: LatticeLayout, device, scalar, np_scalar, particle_count: int, kernel=None):
+    def __init__(
+        self, layout: LatticeLayout, device, scalar, np_scalar, particle_count: int, kernel=None, particle_mass=None
+    ):
         self.layout = layout
         self.device = device
         self.jelly_count = len(layout.start)
@@ -162,6 +167,14 @@ class LatticeData:
             coef = np.zeros(COEF_LENGTH, dtype=np_scalar)
         coef_type = wp.types.vector(COEF_LENGTH, scalar)
         self.stencil_coef = coef_type(*coef)
+        mass = np.asarray(particle_mass if particle_mass is not None else [])
+        self.single = bool(
+            self.uniform
+            and self.jelly_count == 1
+            and int(layout.start[0]) == 0
+            and int(np.prod(layout.shape[0])) == particle_count == mass.shape[0]
+            and np.all(mass == mass[0])
+        )
         self.pad = max((int(2 * ny * nz + nz + 2) for _, ny, nz in layout.shape), default=0)
         self.layout_vec3 = wp.types.vector(3, scalar)
         self.particle_coord_k = None

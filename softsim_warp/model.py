@@ -285,7 +285,7 @@ class ModelBuilder:
             if layout is None and force_path == "lattice":
                 raise ValueError(f"the lattice path does not apply: {m.lattice_reason}")
             if layout is not None:
-                m.lattice = LatticeData(layout, device, scalar, np_scalar, m.particle_count)
+                m.lattice = LatticeData(layout, device, scalar, np_scalar, m.particle_count, particle_mass=mass)
         if m.lattice is None:
             m._make_spring_arrays()
         # --- end lattice fast path
