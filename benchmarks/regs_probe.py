@@ -6,12 +6,13 @@
 
 The fused stage kernels named by ``--kernels`` (``integrate_lattice_stage_padded``: the native
 gather over padded arrays, what the model's states get; ``integrate_lattice_stage_padded_uniform``:
-the same with the coefficients as a kernel argument, what large one-jelly models get; ``integrate_lattice_stage``: the native
-gather with bounds-checked loads; ``integrate_lattice_stage_stencil``: the Warp-loop gather;
+the same with the coefficients as a kernel argument, what large models of jellies that share them
+get; ``integrate_lattice_stage_single``: that for one jelly of one mass; ``integrate_lattice_stage``:
+the native gather with bounds-checked loads; ``integrate_lattice_stage_stencil``: the Warp-loop gather;
 ``gather:OPT+OPT``: the native gather built with those ``_gather_snippet`` options, plus ``indexed``
 and ``single`` for the stage's own options), each compiled with
 ``cuda_max_registers`` at each cap (0: the compiler's choice), stepped through the benchmark jelly
-with CUDA graphs; the variants are timed in turn, round after round, in one process. The cap is
+with CUDA graphs, the stages sweeping in alternating directions or always forward (``--sweeps``); the variants are timed in turn, round after round, in one process. The cap is
 ignored on the CPU. Each variant's final positions are compared with the first variant's of the
 same integrator (``max_rel_diff`` in the JSON; on the CPU the native and Warp-loop gathers give the
 same bits). Results: docs/PERFORMANCE.md.
@@ -72,6 +73,10 @@ def main():
     parser.add_argument("--caps", default="0,80,72,64,56")
     parser.add_argument("--kernels", default="integrate_lattice_stage", help="stage kernels (names in model.kernels)")
     parser.add_argument("--integrators", default="symplectic,rk4")
+    parser.add_argument("--block-dims", default="0", help="threads per block (0: the integrator's choice)")
+    parser.add_argument(
+        "--sweeps", default="alternate", help="alternate and/or forward: the stages' particle order (step_fused)"
+    )
     parser.add_argument("--steps", type=int, default=100)
     parser.add_argument("--repeats", type=int, default=7)
     parser.add_argument("--out", default=None)
@@ -79,15 +84,21 @@ def main():
     spec = JellySpec()
     caps = [int(c) for c in args.caps.split(",")]
     keep, cases, built = [], [], {}
-    variants = [(name, cap) for name in args.kernels.split(",") for cap in caps]
+    variants = [
+        (name, cap, sweep, int(block))
+        for name in args.kernels.split(",")
+        for cap in caps
+        for sweep in args.sweeps.split(",")
+        for block in args.block_dims.split(",")
+    ]
     for method in args.integrators.split(","):
-        for name, cap in variants:
+        for name, cap, sweep, block in variants:
             model = build_jelly_model(args.size, spec, args.device)
             model.lattice.set_kernel("gather")  # the per-particle stage kernels (the CPU default is "rows")
             if (name, cap) not in built:  # one build per variant, shared by the integrators
                 built[name, cap] = variant_kernel(stage_kernel(model.kernels, name), cap)
             install_stage_kernel(model, built[name, cap])
-            integrator = ExplicitIntegrator(model, method)
+            integrator = ExplicitIntegrator(model, method, alternate=sweep == "alternate", block_dim=block or None)
             states = [model.state(), model.state()]
 
             def step(count, integrator=integrator, states=states):
@@ -107,6 +118,8 @@ def main():
                     "integrator": method,
                     "kernel": name,
                     "cap": cap,
+                    "sweep": sweep,
+                    "block_dim": integrator.block_dim,
                     "states": states,
                     "step": step,
                     "graph": graph,
@@ -124,7 +137,7 @@ def main():
             wp.synchronize_device(args.device)
             case["wall"].append(time.perf_counter() - t0)
     rows = []
-    print(f"{'integrator':<12}{'kernel':<34}{'cap':>6}{'ms/step':>12}{'vs first':>10}")
+    print(f"{'integrator':<12}{'kernel':<40}{'cap':>6}{'sweep':>11}{'block':>7}{'ms/step':>12}{'vs first':>10}")
     for case in cases:
         ms = 1e3 * float(np.median(case["wall"])) / args.steps
         base = next((c for c in rows if c["integrator"] == case["integrator"]), None)
@@ -134,12 +147,16 @@ def main():
                 "integrator": case["integrator"],
                 "kernel": case["kernel"],
                 "cap": case["cap"],
+                "sweep": case["sweep"],
+                "block_dim": case["block_dim"],
                 "ms_per_step": ms,
                 "speedup": ratio,
                 "max_rel_diff": _rel_diff(case, next(c for c in cases if c["integrator"] == case["integrator"])),
             }
         )
-        print(f"{case['integrator']:<12}{case['kernel']:<34}{case['cap']:>6}{ms:>12.4f}{ratio:>9.2f}x")
+        print(
+            f"{case['integrator']:<12}{case['kernel']:<40}{case['cap']:>6}{case['sweep']:>11}{case['block_dim']:>7}{ms:>12.4f}{ratio:>9.2f}x"
+        )
     if args.out:
         with open(args.out, "w") as f:
             json.dump({"device": str(wp.get_device(args.device)), "size": args.size, "rows": rows}, f, indent=1)

@@ -588,6 +588,7 @@ return 1.0f / wp::sqrt(x);
             stage: int,
             h: scalar,
             with_contact: int,
+            reverse: int,
             # Model:
             particle_inv_mass: wp.array(dtype=scalar),
             particle_world: wp.array(dtype=wp.int32),
@@ -634,6 +635,10 @@ return 1.0f / wp::sqrt(x);
             # the stage state y_s and writes only its own particle into other buffers, so no thread
             # depends on another's output within the launch.
             i = wp.tid()
+            if reverse != 0:
+                # Sweep the particles last to first: what the previous launch wrote last (a forward
+                # sweep) is what this one reads first, while it is still in L2 (fastpath.step_fused).
+                i = q_n.shape[0] - 1 - i
             # The particle whose jelly, world and mass are read: itself, or 0 for all in a single jelly.
             p = i
             j = int(0)

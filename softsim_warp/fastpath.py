@@ -40,11 +40,12 @@ SMALL_BLOCKS_FROM = 1 << 18
 UNIFORM_FROM = 1 << 18
 
 
-def configure_fused(integrator, fused=None, fuse_contact=None, block_dim=None, uniform=None):
+def configure_fused(integrator, fused=None, fuse_contact=None, block_dim=None, uniform=None, alternate=None):
     """Decide whether ``integrator`` uses fused stages (default: whenever the model takes the lattice
-    path), whether plane contact joins them, the gather stage's threads per block, and whether the
+    path), whether plane contact joins them, the gather stage's threads per block, whether the
     padded gather takes the jellies' shared coefficients as a kernel argument (``uniform``; default:
-    when they share them, from ``UNIFORM_FROM`` particles on)."""
+    when they share them, from ``UNIFORM_FROM`` particles on), and whether successive gather stages
+    sweep the particles in alternating directions (``alternate``, default on; see ``step_fused``)."""
     model = integrator.model
     lat = model.lattice
     if fused is None:
@@ -71,6 +72,8 @@ def configure_fused(integrator, fused=None, fuse_contact=None, block_dim=None, u
     integrator.uniform = bool(gather and uniform)
     # One jelly of one mass: the uniform stage that reads no per-particle jelly, world or mass.
     integrator.single = bool(integrator.uniform and lat.single)
+    integrator.alternate = bool(gather and (True if alternate is None else alternate))
+    integrator._reverse = 0
     integrator._stage_buffers = None
 
 
@@ -155,6 +158,13 @@ def step_fused(integrator, state_in, state_out, dt):
                 device=model.device,
             )
         else:
+            # Alternate sweeps: each launch visits the particles in the direction opposite to the
+            # previous one (across steps too), so it first reads the stage state the previous launch
+            # wrote last, still in L2. Order does not change the arithmetic: the same bits. A
+            # captured graph keeps the directions it was recorded with.
+            reverse = integrator._reverse
+            if integrator.alternate:
+                integrator._reverse = 1 - reverse
             wp.launch(
                 stage_kernel,
                 dim=model.particle_count,
@@ -162,6 +172,7 @@ def step_fused(integrator, state_in, state_out, dt):
                     stage,
                     h,
                     int(integrator.fuse_contact),
+                    reverse,
                     model.particle_inv_mass,
                     model.particle_world,
                     model.particle_jelly,

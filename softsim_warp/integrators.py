@@ -185,11 +185,20 @@ class ExplicitIntegrator(Integrator):
         model: the model to advance.
         method: a method name for every world, or a list with one name per world (the copies of
             a side-by-side comparison advance in the same launches).
-        fused, fuse_contact, block_dim, uniform: the lattice fast path's options
+        fused, fuse_contact, block_dim, uniform, alternate: the lattice fast path's options
             (:func:`softsim_warp.fastpath.configure_fused`); None picks what pays.
     """
 
-    def __init__(self, model: Model, method="symplectic", fused=None, fuse_contact=None, block_dim=None, uniform=None):
+    def __init__(
+        self,
+        model: Model,
+        method="symplectic",
+        fused=None,
+        fuse_contact=None,
+        block_dim=None,
+        uniform=None,
+        alternate=None,
+    ):
         super().__init__(model)
         methods = [method] * model.world_count if isinstance(method, str) else list(method)
         if len(methods) != model.world_count:
@@ -223,7 +232,7 @@ class ExplicitIntegrator(Integrator):
         # last stage) where it pays; see softsim_warp/fastpath.py and docs/PERFORMANCE.md.
         from .fastpath import configure_fused  # noqa: PLC0415
 
-        configure_fused(self, fused, fuse_contact, block_dim, uniform)
+        configure_fused(self, fused, fuse_contact, block_dim, uniform, alternate)
         # Stage buffers, allocated once: forces, the stage state and the RK accumulators.
         n = model.particle_count
         # A fused gather stage keeps forces in registers; the row kernel and the plain path need f.
