@@ -111,12 +111,14 @@ def _gather_snippet(ctype, padded=False, uniform=False):
     no address outside the arrays is read (the loads are predicated, not branched around). Same
     sums in the same order as the stencil loops.
 
-    A spring's force on i is s d with d = x_i - x_b, l^2 = max(|d|^2, tiny) and
-    s = (ks r) / l - ks - kd ((v_i - v_b) . d) / l^2, the same as -(ks (l - r) + kd (dv . d^)) d^:
-    ks r is one coefficient per offset, so the factor takes four instructions after the reciprocal
-    square root. Clamping the squared length at the smallest normal number instead of testing it
-    keeps coincident particles (and a stand-in) at exactly zero force: d = 0 and s stays finite
-    (for ks r below 3.7e19 in float32).
+    A spring's force on i is s d with d = x_i - x_b, 1/l = rsqrt(dx^2 + (dy^2 + (dz^2 + tiny))) and
+    s = (ks r - kd ((v_i - v_b) . d) / l) / l - ks, the same as -(ks (l - r) + kd (dv . d^)) d^:
+    ks r is one coefficient per offset, so the factor takes three instructions after the
+    reciprocal square root, and the squared length three fused multiply-adds. Adding the smallest
+    normal number ``tiny`` (which changes no squared length above 2^-100 or so) instead of testing
+    for zero keeps coincident particles (and a stand-in) at exactly zero force: d = 0 and s stays
+    finite (for ks r below 3.7e19 in float32). Two instructions a spring fewer than
+    max(|d|^2, tiny) and kr / l - ks - kd (dv . d) / l^2 (eighth session, docs/PERFORMANCE.md).
 
     Why it is faster than the Warp loops (H200, Nsight Compute, fused symplectic stage at 100^3):
     the loops' select-then-index addressing and short-circuit bounds tests cost about 34 integer
@@ -233,10 +235,10 @@ def _gather_snippet(ctype, padded=False, uniform=False):
     spring = (
         "#define SOFTSIM_SPRING(kr_, nks_, kd_, ok_) { \\\n"
         "  const T dx = x0 - bx, dy = x1 - by, dz = x2 - bz; \\\n"
-        f"  const T l2 = wp::max(dx * dx + dy * dy + dz * dz, T({tiny})); \\\n"
+        f"  const T l2 = dx * dx + (dy * dy + (dz * dz + T({tiny}))); \\\n"
         "  T inv; SOFTSIM_RSQRT(l2, inv); \\\n"
         "  const T dot = (v0 - ux) * dx + (v1 - uy) * dy + (v2 - uz) * dz; \\\n"
-        "  const T s = kr_ * inv + nks_ - kd_ * (dot * (inv * inv)); \\\n"
+        "  const T s = (kr_ - kd_ * (dot * inv)) * inv + nks_; \\\n"
         "  if (ok_) { f0 += s * dx; f1 += s * dy; f2 += s * dz; } }\n"
     )
     # The macros are textual: undefining them after the return statement is fine.
@@ -418,12 +420,13 @@ return 1.0f / wp::sqrt(x);
         ``kr`` is ks times the rest length, ``nks`` is -ks. The IEEE square root and the three
         divisions of d / |d| cost the gather kernel a third of its time on an H200; rsqrtf's 2 ulp
         are of the order of the float32 rounding the sum already has. Coincident particles give
-        zero force, as in ``spring_force``: the squared length is clamped at the smallest normal
-        number, so s stays finite while d = 0.
+        zero force, as in ``spring_force``: the squared length has the smallest normal number
+        added, so s stays finite while d = 0. Same operations in the same order as the native
+        gather's spring (bitwise on the CPU).
         """
         d = x - xb
-        inv = inv_sqrt(wp.max(wp.dot(d, d), scalar(tiny)))
-        s = kr * inv + nks - kd * (wp.dot(v - vb, d) * (inv * inv))
+        inv = inv_sqrt(d[0] * d[0] + (d[1] * d[1] + (d[2] * d[2] + scalar(tiny))))
+        s = (kr - kd * (wp.dot(v - vb, d) * inv)) * inv + nks
         return s * d
 
     @wp.func
