@@ -18,7 +18,9 @@ set, :func:`step_fused` from ``step``. The kernel follows the lattice kernel the
 Other terrain (``model.contact_hooks``) always runs after the step.
 
 A fused stage reads neighbours from the stage state and writes the next stage state, so the two
-must be different buffers: multi-stage methods ping-pong between two stage buffers.
+must be different buffers: multi-stage methods ping-pong between two stage buffers. Successive
+gather launches sweep the particles in opposite directions (``alternate``), so that each starts
+on what the previous one wrote last, still in L2; the order changes no result.
 
 ``eval_forces`` stays the one force routine for everything else (the implicit integrator, tests).
 """
