@@ -16,9 +16,7 @@ import os as _os
 # Run from a source checkout (python -m softsim_warp in the repository), they sit beside it instead.
 _here = _os.path.dirname(_os.path.abspath(__file__))
 _root = _os.path.dirname(_here)
-if not _os.path.isdir(_os.path.join(_here, "kernels")) and _os.path.isfile(
-    _os.path.join(_root, "kernels", "__init__.py")
-):
+if not _os.path.isdir(_os.path.join(_here, "kernels")) and _os.path.isfile(_os.path.join(_root, "kernels", "__init__.py")):
     __path__.append(_root)
 
 from .errors import ExplosionError  # noqa: E402, SceneError, UserError

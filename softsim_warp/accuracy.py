@@ -112,9 +112,8 @@ def jelly_size(scene) -> float:
     return max(max(j["size"]) for j in scene.jellies)
 
 
-def run_trajectory(
-    scene, integrator, dt, *, device=None, precision=None, fps=None, frames=None, use_graph=True, max_speed=None
-) -> Trajectory:
+def run_trajectory(scene, integrator, dt, *, device=None, precision=None, fps=None, frames=None,
+                   use_graph=True, max_speed=None) -> Trajectory:
     """Run ``scene`` with ``integrator`` at (frame-rounded) ``dt`` and keep every frame's positions.
 
     Args:
@@ -148,15 +147,8 @@ def run_trajectory(
     model = build_model(scene, device=device, precision=precision)
     integ = make_integrator(integrator, model, scene.data.get("implicit"))
     graph = bool(use_graph)
-    sim = Simulator(
-        model,
-        integ,
-        h,
-        fps,
-        frames,
-        use_graph=graph,
-        max_speed=max_speed if max_speed is not None else scene.sim.get("max_speed"),
-    )
+    sim = Simulator(model, integ, h, fps, frames, use_graph=graph,
+                    max_speed=max_speed if max_speed is not None else scene.sim.get("max_speed"))
     compile_seconds = sim.warm_up()
     if graph:
         # Capture the per-frame graphs now (one per buffer parity), then restart from frame 0, so
@@ -190,8 +182,7 @@ def run_trajectory(
         if not finite or speed > sim.max_speed:
             exploded = True
             reason = (
-                "non-finite state"
-                if not finite
+                "non-finite state" if not finite
                 else f"max speed {speed:.4g} m/s exceeds the bound {sim.max_speed:.4g} m/s"
             )
             explosion = {"frame": k, "time": float(times[k]), "reason": reason}
@@ -282,19 +273,8 @@ def pairwise_orders(dts, errors):
 # The whole measurement
 
 
-def measure(
-    scene,
-    integrators=ALL_INTEGRATORS,
-    dts=None,
-    *,
-    device=None,
-    precision=None,
-    duration=None,
-    reference_dt=None,
-    fps=None,
-    use_graph=True,
-    log=None,
-) -> dict:
+def measure(scene, integrators=ALL_INTEGRATORS, dts=None, *, device=None, precision=None, duration=None,
+            reference_dt=None, fps=None, use_graph=True, log=None) -> dict:
     """Run every integrator at every step against the reference; return the report as a dict.
 
     Args:
@@ -331,26 +311,10 @@ def measure(
     dev = wp.get_device(device)
 
     say(f"reference: {REFERENCE_METHOD} {REFERENCE_PRECISION} at dt={ref_dt:.4g} s and {ref_dt / 2:.4g} s")
-    ref_coarse = run_trajectory(
-        scene,
-        REFERENCE_METHOD,
-        ref_dt,
-        device=dev,
-        precision=REFERENCE_PRECISION,
-        fps=fps,
-        frames=frames,
-        use_graph=use_graph,
-    )
-    ref = run_trajectory(
-        scene,
-        REFERENCE_METHOD,
-        ref_dt / 2,
-        device=dev,
-        precision=REFERENCE_PRECISION,
-        fps=fps,
-        frames=frames,
-        use_graph=use_graph,
-    )
+    ref_coarse = run_trajectory(scene, REFERENCE_METHOD, ref_dt, device=dev, precision=REFERENCE_PRECISION,
+                                fps=fps, frames=frames, use_graph=use_graph)
+    ref = run_trajectory(scene, REFERENCE_METHOD, ref_dt / 2, device=dev, precision=REFERENCE_PRECISION,
+                         fps=fps, frames=frames, use_graph=use_graph)
     if ref.exploded or ref_coarse.exploded:
         raise RuntimeError(
             f"the reference run ({REFERENCE_METHOD}, {REFERENCE_PRECISION}, dt={ref_dt:g} s) exploded: "
@@ -362,9 +326,8 @@ def measure(
     for name in integrators:
         for dt in per_method[name]:
             try:
-                tr = run_trajectory(
-                    scene, name, dt, device=dev, precision=precision, fps=fps, frames=frames, use_graph=use_graph
-                )
+                tr = run_trajectory(scene, name, dt, device=dev, precision=precision, fps=fps, frames=frames,
+                                    use_graph=use_graph)
             except ImportError as e:
                 skipped[name] = f"not available ({e})"
                 say(f"{name}: skipped, not available ({e})")
@@ -472,11 +435,7 @@ def format_table(report: dict) -> str:
         f"{'integrator':<11}{'dt [s]':>11}{'steps':>8}{'wall s/sim s':>14}{'RMS error':>12}{'end error':>12}  status",
     ]
     for r in report["runs"]:
-        status = (
-            "ok"
-            if r["stable"]
-            else f"UNSTABLE (stopped at t={r['explosion']['time']:.3g} s: {r['explosion']['reason']})"
-        )
+        status = "ok" if r["stable"] else f"UNSTABLE (stopped at t={r['explosion']['time']:.3g} s: {r['explosion']['reason']})"
         lines.append(
             f"{r['integrator']:<11}{r['dt']:>11.4g}{r['steps']:>8d}{r['wall_per_sim_second']:>14.4g}"
             f"{_fmt(r['rms_error']):>12}{_fmt(r['end_error']):>12}  {status}"
@@ -499,13 +458,8 @@ def _fmt(x, spec=".3g"):
     return format(x, spec)
 
 
-COLORS = {
-    "euler": "tab:red",
-    "symplectic": "tab:orange",
-    "midpoint": "tab:green",
-    "rk4": "tab:blue",
-    "implicit": "tab:purple",
-}
+COLORS = {"euler": "tab:red", "symplectic": "tab:orange", "midpoint": "tab:green", "rk4": "tab:blue",
+          "implicit": "tab:purple"}
 
 
 def plot_report(report: dict, path, title=None):
@@ -532,31 +486,17 @@ def plot_report(report: dict, path, title=None):
         order = report["orders"][name]["order"]
         label = f"{name} (order {order:.2f})" if math.isfinite(order) else name
         if ok:
-            ax_wp.loglog(
-                [r["wall_per_sim_second"] for r in ok], [r["rms_error"] for r in ok], "o-", color=c, label=name
-            )
+            ax_wp.loglog([r["wall_per_sim_second"] for r in ok], [r["rms_error"] for r in ok], "o-", color=c, label=name)
             for r in ok:
-                ax_wp.annotate(
-                    f"{r['dt']:.2g}",
-                    (r["wall_per_sim_second"], r["rms_error"]),
-                    fontsize=7,
-                    xytext=(3, 3),
-                    textcoords="offset points",
-                    color=c,
-                )
+                ax_wp.annotate(f"{r['dt']:.2g}", (r["wall_per_sim_second"], r["rms_error"]), fontsize=7,
+                               xytext=(3, 3), textcoords="offset points", color=c)
             ax_cv.loglog([r["dt"] for r in ok], [r["rms_error"] for r in ok], "o-", color=c, label=label)
         for r in bad:
             w = r["wall_per_sim_second"] if math.isfinite(r["wall_per_sim_second"]) else None
             if w:
                 ax_wp.loglog([w], [top], "x", color=c, markersize=9, mew=2)
-                ax_wp.annotate(
-                    f"{r['dt']:.2g} unstable",
-                    (w, top),
-                    fontsize=7,
-                    xytext=(3, -10),
-                    textcoords="offset points",
-                    color=c,
-                )
+                ax_wp.annotate(f"{r['dt']:.2g} unstable", (w, top), fontsize=7, xytext=(3, -10),
+                               textcoords="offset points", color=c)
             ax_cv.loglog([r["dt"]], [top], "x", color=c, markersize=9, mew=2)
             ax_cv.annotate("unstable", (r["dt"], top), fontsize=7, xytext=(3, -10), textcoords="offset points", color=c)
     # Error over time at each integrator's smallest stable step: where the error comes from (an
@@ -582,26 +522,16 @@ def plot_report(report: dict, path, title=None):
         ax.set_ylim(bottom, top * 3)
         ax.grid(True, which="both", alpha=0.3)
         ax.set_ylabel("RMS position error / jelly size")
-    ax_cv.annotate(
-        f"reference self-difference {ref['self_error']:.2g}",
-        (0.02, ref["self_error"]),
-        xycoords=("axes fraction", "data"),
-        fontsize=7,
-        color="gray",
-        xytext=(0, 2),
-        textcoords="offset points",
-    )
+    ax_cv.annotate(f"reference self-difference {ref['self_error']:.2g}", (0.02, ref["self_error"]),
+                   xycoords=("axes fraction", "data"), fontsize=7, color="gray", xytext=(0, 2), textcoords="offset points")
     ax_wp.set_xlabel("wall seconds per simulated second")
     ax_cv.set_xlabel("dt [s]")
     ax_wp.set_title("work-precision (labels: dt [s]; x: unstable)")
     ax_cv.set_title("convergence (fitted order in legend)")
     ax_wp.legend(fontsize=8)
     ax_cv.legend(fontsize=8)
-    fig.suptitle(
-        title
-        or f"{report['scene']}: {report['particles']} particles, {report['duration']:g} s, "
-        f"{report['precision']}, {report['device']}"
-    )
+    fig.suptitle(title or f"{report['scene']}: {report['particles']} particles, {report['duration']:g} s, "
+                 f"{report['precision']}, {report['device']}")
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
@@ -620,15 +550,10 @@ def _float_list(text):
 
 
 def add_parser(subparsers, add_common):
-    p = subparsers.add_parser(
-        "accuracy", help="error against a float64 rk4 reference and wall time, per integrator and dt"
-    )
+    p = subparsers.add_parser("accuracy", help="error against a float64 rk4 reference and wall time, per integrator and dt")
     p.add_argument("scene", help="scene file (.toml) or built-in scene name")
-    p.add_argument(
-        "--integrators",
-        default=",".join(ALL_INTEGRATORS),
-        help="comma-separated methods (default: all; implicit is skipped if unavailable)",
-    )
+    p.add_argument("--integrators", default=",".join(ALL_INTEGRATORS),
+                   help="comma-separated methods (default: all; implicit is skipped if unavailable)")
     p.add_argument("--dts", help="comma-separated steps [s] (default: the scene's dt x 2, 1, 1/2, 1/4, 1/8)")
     p.add_argument("--duration", type=float, help="simulated seconds (default: the scene's)")
     p.add_argument("--reference-dt", type=float, help="reference rk4 step [s] (default: smallest dt / 8)")
@@ -692,18 +617,8 @@ def run(args) -> int:
     device = resolve_device(args.device)
     log = None if args.quiet else (lambda line: print(line, file=sys.stderr, flush=True))
     try:
-        report = measure(
-            scene,
-            methods,
-            dts,
-            device=device,
-            precision=args.precision,
-            duration=args.duration,
-            reference_dt=args.reference_dt,
-            fps=args.fps,
-            use_graph=not args.no_graph,
-            log=log,
-        )
+        report = measure(scene, methods, dts, device=device, precision=args.precision, duration=args.duration,
+                         reference_dt=args.reference_dt, fps=args.fps, use_graph=not args.no_graph, log=log)
     except RuntimeError as e:
         if "reference run" in str(e):
             given = (args.reference_dt,) if args.reference_dt else ()

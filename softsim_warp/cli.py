@@ -50,14 +50,8 @@ def _argparse_error(message: str) -> CommandLineError:
 
 def _add_common(p: argparse.ArgumentParser):
     p.add_argument("--device", default="cpu", help="Warp device: cpu or cuda:N (default cpu)")
-    p.add_argument(
-        "--set",
-        dest="overrides",
-        action="append",
-        default=[],
-        metavar="KEY=VALUE",
-        help="override a scene value by dotted key, e.g. jelly.0.springs.shear.ks=500 (repeatable)",
-    )
+    p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
+                   help="override a scene value by dotted key, e.g. jelly.0.springs.shear.ks=500 (repeatable)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.add_argument("--debug", action="store_true", help="show tracebacks for errors and Warp's start-up messages")
 
@@ -77,20 +71,13 @@ def build_parser() -> argparse.ArgumentParser:
     g.add_argument("--frames", help="output frames after frame 0")
     run.add_argument("--fps", help="output frames per second")
     run.add_argument("--precision", help="scalar type of every kernel: float32 or float64")
-    run.add_argument(
-        "--deterministic",
-        action="store_true",
-        help="atomic-free force and metric sums: bitwise-identical runs on CUDA too (CPU runs always are)",
-    )
+    run.add_argument("--deterministic", action="store_true",
+                     help="atomic-free force and metric sums: bitwise-identical runs on CUDA too (CPU runs always are)")
     run.add_argument("--out", default=None, help="USD output (.usdc or .usda; default <scene>.usdc)")
     run.add_argument("--metrics", help="write per-frame metrics as JSON")
     run.add_argument("--springs", action="store_true", help="also write springs as BasisCurves")
-    run.add_argument(
-        "--no-graph", action="store_true", help="launch kernels one by one instead of replaying a captured graph"
-    )
-    run.add_argument(
-        "--preview", metavar="GIF", help="also render the written USD to this animated GIF (softsim preview)"
-    )
+    run.add_argument("--no-graph", action="store_true", help="launch kernels one by one instead of replaying a captured graph")
+    run.add_argument("--preview", metavar="GIF", help="also render the written USD to this animated GIF (softsim preview)")
     _add_common(run)
 
     sub.add_parser("scenes", help="list the built-in scenes")
@@ -125,14 +112,9 @@ def _number(text: str):
 def _flag_overrides(args) -> list:
     """Command-line flags become scene overrides, so they are validated like the file's values."""
     out = []
-    for flag, key in (
-        ("integrator", "simulation.integrator"),
-        ("dt", "simulation.dt"),
-        ("fps", "simulation.fps"),
-        ("precision", "simulation.precision"),
-        ("duration", "simulation.duration"),
-        ("frames", "simulation.frames"),
-    ):
+    for flag, key in (("integrator", "simulation.integrator"), ("dt", "simulation.dt"), ("fps", "simulation.fps"),
+                      ("precision", "simulation.precision"), ("duration", "simulation.duration"),
+                      ("frames", "simulation.frames")):
         value = getattr(args, flag, None)
         if value is not None:
             out.append((key, value if flag in ("integrator", "precision") else _number(value)))
@@ -149,9 +131,7 @@ def load_for_cli(args):
     validated = scene_mod.validate(data, source)
     sim = validated["simulation"]
     if sim["dt"] > 1.0 / sim["fps"]:
-        raise SceneError(
-            source, "simulation.dt", f"must not exceed the frame interval 1/fps = {1.0 / sim['fps']:g} s", sim["dt"]
-        )
+        raise SceneError(source, "simulation.dt", f"must not exceed the frame interval 1/fps = {1.0 / sim['fps']:g} s", sim["dt"])
     return scene_mod.Scene(validated, source=source, name=validated.get("name", path.stem))
 
 
@@ -278,46 +258,26 @@ def _run(args, signals) -> int:
 
     model = build_model(scene, device=device, deterministic=args.deterministic)
     integrator = make_integrator(sim["integrator"], model, scene.data.get("implicit"))
-    simulator = Simulator(
-        model,
-        integrator,
-        sim["dt"],
-        sim["fps"],
-        frames,
-        use_graph=None if not args.no_graph else False,
-        max_speed=sim.get("max_speed"),
-    )
+    simulator = Simulator(model, integrator, sim["dt"], sim["fps"], frames, use_graph=None if not args.no_graph else False,
+                          max_speed=sim.get("max_speed"))
     if signals.received is not None:
         return 128 + int(signals.received)
-    writer = UsdWriter(
-        out,
-        model,
-        sim["fps"],
-        springs=args.springs,
-        metadata={
-            "softsim:scene": scene.name,
-            "softsim:integrator": sim["integrator"],
-            "softsim:dt": sim["dt"],
-            "softsim:deterministic": bool(args.deterministic),
-        },
-    )
+    writer = UsdWriter(out, model, sim["fps"], springs=args.springs,
+                       metadata={"softsim:scene": scene.name, "softsim:integrator": sim["integrator"], "softsim:dt": sim["dt"],
+                                 "softsim:deterministic": bool(args.deterministic)})
     progress = None
     if not args.quiet:
         from tqdm import tqdm  # noqa: PLC0415
 
-        progress = tqdm(
-            total=frames + 1, unit="frame", desc=f"{scene.name} {sim['integrator']}", file=sys.stderr, leave=False
-        )
+        progress = tqdm(total=frames + 1, unit="frame", desc=f"{scene.name} {sim['integrator']}", file=sys.stderr, leave=False)
     simulator.stop_requested = lambda: signals.received
     signals.busy = lambda: simulator.writing
     try:
         result = simulator.run([writer], progress=progress)
     except BaseException as exc:
         signals.closing = True
-        writer.close(
-            status="interrupted" if isinstance(exc, KeyboardInterrupt) else "failed",
-            extra={"softsim:frames": writer.last_frame + 1},
-        )
+        writer.close(status="interrupted" if isinstance(exc, KeyboardInterrupt) else "failed",
+                     extra={"softsim:frames": writer.last_frame + 1})
         raise
     finally:
         if progress is not None:

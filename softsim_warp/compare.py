@@ -53,19 +53,12 @@ def add_parser(subparsers, add_common):
         help="comma-separated integrators, one copy each, in grid order "
         f"(default {','.join(DEFAULT_INTEGRATORS)}; with --vary: the scene's integrator)",
     )
-    p.add_argument(
-        "--vary",
-        action="append",
-        default=[],
-        metavar="KEY=V1,V2,...",
-        help="one copy per value of a dotted scene key, e.g. jelly.0.springs.structural.ks=1000,2000; "
-        "several --vary make a product",
-    )
+    p.add_argument("--vary", action="append", default=[], metavar="KEY=V1,V2,...",
+                   help="one copy per value of a dotted scene key, e.g. jelly.0.springs.structural.ks=1000,2000; "
+                   "several --vary make a product")
     p.add_argument("--out", help="USD output (.usdc or .usda; default <scene>_compare.usdc)")
     p.add_argument("--metrics", help="write per-copy, per-frame metrics as JSON")
-    p.add_argument(
-        "--plot", help="write a PNG of COM height, total energy and deformation over time, one line per copy"
-    )
+    p.add_argument("--plot", help="write a PNG of COM height, total energy and deformation over time, one line per copy")
     p.add_argument("--columns", type=int, help="copies per grid row (default ceil(sqrt(copies)))")
     p.add_argument("--gap", type=float, help="space between neighbouring copies [m] (default a quarter of a cell)")
     g = p.add_mutually_exclusive_group()
@@ -75,9 +68,7 @@ def add_parser(subparsers, add_common):
     p.add_argument("--fps", type=float, help="output frames per second")
     p.add_argument("--precision", choices=["float32", "float64"], help="scalar type of every kernel")
     p.add_argument("--springs", action="store_true", help="also write springs as BasisCurves")
-    p.add_argument(
-        "--no-graph", action="store_true", help="launch kernels one by one instead of replaying a captured graph"
-    )
+    p.add_argument("--no-graph", action="store_true", help="launch kernels one by one instead of replaying a captured graph")
     add_common(p)
     return p
 
@@ -87,9 +78,7 @@ def run(args) -> int:
     from .outputs import check_writable  # noqa: PLC0415
 
     plan = plan_variants(args)
-    out = check_writable(
-        args.out or f"{Path(plan.source).stem}_compare.usdc", "--out", suffixes=(".usdc", ".usda", ".usd")
-    )
+    out = check_writable(args.out or f"{Path(plan.source).stem}_compare.usdc", "--out", suffixes=(".usdc", ".usda", ".usd"))
     if args.metrics:
         check_writable(args.metrics, "--metrics")
     if args.plot:
@@ -104,44 +93,28 @@ def run(args) -> int:
     if not args.quiet:
         from tqdm import tqdm  # noqa: PLC0415
 
-        progress = tqdm(
-            total=plan.frames + 1, unit="frame", desc=f"{plan.name} x{len(plan.variants)}", file=sys.stderr, leave=False
-        )
+        progress = tqdm(total=plan.frames + 1, unit="frame", desc=f"{plan.name} x{len(plan.variants)}",
+                        file=sys.stderr, leave=False)
     try:
         with cli._Signals() as signals:
-            result = run_comparison(
-                plan,
-                device,
-                out,
-                metrics_path=args.metrics,
-                plot_path=args.plot,
-                columns=args.columns,
-                gap=args.gap,
-                springs=args.springs,
-                use_graph=None if not args.no_graph else False,
-                progress=progress,
-                stop_requested=lambda: signals.received,
-            )
+            result = run_comparison(plan, device, out, metrics_path=args.metrics, plot_path=args.plot,
+                                    columns=args.columns, gap=args.gap, springs=args.springs,
+                                    use_graph=None if not args.no_graph else False, progress=progress,
+                                    stop_requested=lambda: signals.received)
     finally:
         if progress is not None:
             progress.close()
     for v in result.variants:
         state = f"exploded at t = {v.exploded['time']:.4g} s ({v.exploded['reason']})" if v.exploded else "complete"
         print(f"{plan.name} [{v.name}]: {v.integrator}, {state}", file=sys.stderr)
-    print(
-        f"{plan.name}: {len(result.variants)} copies, {result.frames_written} frames, {result.steps} steps at "
-        f"dt={plan.dt:g} s in {result.wall_seconds:.2f} s -> {out}",
-        file=sys.stderr,
-    )
+    print(f"{plan.name}: {len(result.variants)} copies, {result.frames_written} frames, {result.steps} steps at "
+          f"dt={plan.dt:g} s in {result.wall_seconds:.2f} s -> {out}", file=sys.stderr)
     if result.interrupted:
         return 128 + int(signals.received)
     exploded = [v.name for v in result.variants if v.exploded]
     if exploded:
-        print(
-            f"error: {plan.source}: copies exploded: {', '.join(exploded)}; the others ran to the end and every "
-            "frame was kept (an exploded copy stays at its last finite frame)",
-            file=sys.stderr,
-        )
+        print(f"error: {plan.source}: copies exploded: {', '.join(exploded)}; the others ran to the end and every "
+              "frame was kept (an exploded copy stays at its last finite frame)", file=sys.stderr)
         return cli.EXIT_EXPLODED
     return 0
 
@@ -245,11 +218,9 @@ def _parse_vary(items) -> list[tuple[str, list]]:
             raise SceneError("--vary", key, "repeats a value (each copy needs its own name)", raw)
         if key.split(".")[0] == "simulation" and key != "simulation.integrator":
             raise SceneError(
-                "--vary",
-                key,
+                "--vary", key,
                 "every copy shares one clock and one model, so [simulation] values cannot vary; "
-                "run them as separate `softsim run`s",
-                raw,
+                "run them as separate `softsim run`s", raw,
             )
         varies.append((key, values))
     return varies
@@ -269,9 +240,8 @@ def plan_variants(args) -> Plan:
         integrators = [s.strip() for s in args.integrators.split(",")]
         for name in integrators:
             if name not in scene_mod.INTEGRATORS:
-                raise CommandLineError(
-                    "--integrators", f"unknown integrator; choose from {', '.join(scene_mod.INTEGRATORS)}", name
-                )
+                raise CommandLineError("--integrators", f"unknown integrator; choose from {', '.join(scene_mod.INTEGRATORS)}",
+                                       name)
         if len(set(integrators)) != len(integrators):
             raise CommandLineError("--integrators", "lists an integrator twice", args.integrators)
     elif varies:
@@ -310,9 +280,7 @@ def plan_variants(args) -> Plan:
     for v in variants[1:]:
         for key in sorted(set(first) | set(v.data["simulation"])):
             if key != "integrator" and first.get(key) != v.data["simulation"].get(key):
-                raise SceneError(
-                    "--vary", f"simulation.{key}", "must be the same for every copy", v.data["simulation"].get(key)
-                )
+                raise SceneError("--vary", f"simulation.{key}", "must be the same for every copy", v.data["simulation"].get(key))
     names = [v.name for v in variants]
     if len(set(names)) != len(names):
         raise CommandLineError("--vary", "two copies would get the same prim name", ", ".join(names))
@@ -320,9 +288,7 @@ def plan_variants(args) -> Plan:
         v.world = w
     sim = first
     if sim["dt"] > 1.0 / sim["fps"]:
-        raise SceneError(
-            source, "simulation.dt", f"must not exceed the frame interval 1/fps = {1.0 / sim['fps']:g} s", sim["dt"]
-        )
+        raise SceneError(source, "simulation.dt", f"must not exceed the frame interval 1/fps = {1.0 / sim['fps']:g} s", sim["dt"])
     frames = scene_mod.Scene(variants[0].data).frame_count()
     name = variants[0].data.get("name", path.stem)
     return Plan(source=source, name=name, variants=variants, dt=sim["dt"], fps=sim["fps"], frames=frames, sim=sim)
@@ -455,9 +421,8 @@ def _variant_speed_bound(model, start, end, world):
     view = types.SimpleNamespace(
         particle_q_host=model.particle_q_host[start:end],
         planes=[p for p in model.planes if p["world"] == world],
-        terrain_anchor_points=terrain_anchors(
-            [b for b in model.bowls if b["world"] == world], [s for s in model.spheres if s["world"] == world]
-        ),
+        terrain_anchor_points=terrain_anchors([b for b in model.bowls if b["world"] == world],
+                                              [s for s in model.spheres if s["world"] == world]),
         particle_qd=types.SimpleNamespace(numpy=lambda: qd),
         particle_count=end - start,
         gravity_host=model.gravity_host,
@@ -483,19 +448,8 @@ def rigid_deviation(rest: np.ndarray, current: np.ndarray, mass: np.ndarray) -> 
     return float(math.sqrt(max(float(w @ np.einsum("ij,ij->i", resid, resid)), 0.0)))
 
 
-def run_comparison(
-    plan: Plan,
-    device,
-    out,
-    metrics_path=None,
-    plot_path=None,
-    columns=None,
-    gap=None,
-    springs=False,
-    use_graph=None,
-    progress=None,
-    stop_requested=None,
-) -> ComparisonResult:
+def run_comparison(plan: Plan, device, out, metrics_path=None, plot_path=None, columns=None, gap=None,
+                   springs=False, use_graph=None, progress=None, stop_requested=None) -> ComparisonResult:
     """Run every variant of ``plan`` and write the stage (and metrics / plot when asked)."""
     import time  # noqa: PLC0415
 
@@ -521,13 +475,9 @@ def run_comparison(
     groups = []
     max_speed = plan.sim.get("max_speed")
     if explicit:
-        groups.append(
-            _Group(explicit, _make_builder, device, precision, plan.dt, plan.fps, plan.frames, use_graph, max_speed)
-        )
+        groups.append(_Group(explicit, _make_builder, device, precision, plan.dt, plan.fps, plan.frames, use_graph, max_speed))
     for v in implicit:
-        groups.append(
-            _Group([v], _make_builder, device, precision, plan.dt, plan.fps, plan.frames, use_graph, max_speed)
-        )
+        groups.append(_Group([v], _make_builder, device, precision, plan.dt, plan.fps, plan.frames, use_graph, max_speed))
 
     display_ranges = []
     for v in variants:
@@ -544,15 +494,9 @@ def run_comparison(
         start, end = g.ranges[lw]
         bounds.append(max_speed if max_speed is not None else _variant_speed_bound(g.model, start, end, lw))
         jellies = [(j.particle_start - start, j.particle_count) for j in g.model.jellies if j.world == lw]
-        rest.append(
-            [
-                (
-                    display.particle_q_host[display_ranges[v.world][0] + s : display_ranges[v.world][0] + s + n],
-                    display.particle_mass_host[display_ranges[v.world][0] + s : display_ranges[v.world][0] + s + n],
-                )
-                for s, n in jellies
-            ]
-        )
+        rest.append([(display.particle_q_host[display_ranges[v.world][0] + s: display_ranges[v.world][0] + s + n],
+                      display.particle_mass_host[display_ranges[v.world][0] + s: display_ranges[v.world][0] + s + n])
+                     for s, n in jellies])
         results.append(VariantResult(v.name, v.integrator, v.overrides, v.world, f"/World/{v.name}", off))
 
     groups_usd = {v.world: (v.name, off) for v, off in zip(variants, offsets)}
@@ -591,8 +535,7 @@ def run_comparison(
                         res.exploded = {
                             "frame": k,
                             "time": t_frame,
-                            "reason": "non-finite state"
-                            if nonfinite
+                            "reason": "non-finite state" if nonfinite
                             else f"max speed {vmax:.4g} m/s exceeds the bound {bounds[v.world]:.4g} m/s",
                         }
                     else:
@@ -619,21 +562,18 @@ def run_comparison(
     status = "interrupted" if result.interrupted else ("exploded" if any(r.exploded for r in results) else "complete")
     writer.close(status=status, extra={"softsim:frames": result.frames_written})
     if metrics_path:
-        write_json_atomic(
-            metrics_path,
-            {
-                "scene": plan.name,
-                "source": plan.source,
-                "dt": plan.dt,
-                "fps": plan.fps,
-                "precision": precision,
-                "device": str(device),
-                "frames": result.frames_written,
-                "steps": result.steps,
-                "wall_seconds": result.wall_seconds,
-                "variants": [r.as_dict() for r in results],
-            },
-        )
+        write_json_atomic(metrics_path, {
+            "scene": plan.name,
+            "source": plan.source,
+            "dt": plan.dt,
+            "fps": plan.fps,
+            "precision": precision,
+            "device": str(device),
+            "frames": result.frames_written,
+            "steps": result.steps,
+            "wall_seconds": result.wall_seconds,
+            "variants": [r.as_dict() for r in results],
+        })
     if plot_path:
         plot_comparison(results, plot_path, title=f"{plan.name}: dt = {plan.dt:g} s")
     return result
@@ -648,7 +588,7 @@ def _frame_metrics(k, t, jelly_metrics, q, rest) -> dict:
     offset, sq = 0, 0.0
     for r, m in rest:
         n = len(r)
-        dev = rigid_deviation(r, q[offset : offset + n].astype(np.float64), m)
+        dev = rigid_deviation(r, q[offset: offset + n].astype(np.float64), m)
         sq += dev * dev * float(m.sum())
         offset += n
     return {

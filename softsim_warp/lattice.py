@@ -24,7 +24,9 @@ def _half_stencil(offsets):
 _AXES = [(1, 0, 0), (0, 1, 0), (0, 0, 1)]
 STENCILS = {
     STRUCTURAL: _AXES,
-    SHEAR: _half_stencil([o for o in itertools.product((-1, 0, 1), repeat=3) if sum(abs(c) for c in o) >= 2]),
+    SHEAR: _half_stencil(
+        [o for o in itertools.product((-1, 0, 1), repeat=3) if sum(abs(c) for c in o) >= 2]
+    ),
     BENDING: [(2 * a, 2 * b, 2 * c) for a, b, c in _AXES],
 }
 

@@ -25,15 +25,10 @@ def add_parser(subparsers, add_common):
     g.add_argument("--time", type=float, help="time [s] for --png")
     p.add_argument("--gif", help="write the whole clip to this animated GIF, in real time")
     p.add_argument("--fps", type=float, help="GIF frame rate (default the file's, at most 30)")
-    p.add_argument(
-        "--size", default=None, metavar="WxH", help="image size in pixels (default 800x600 PNG, 640x480 GIF)"
-    )
-    p.add_argument(
-        "--split",
-        action="store_true",
-        help="for a `softsim compare` stage: render each copy alone and tile the pictures in the "
-        "stage's grid, labelled with the copy's name (--png only)",
-    )
+    p.add_argument("--size", default=None, metavar="WxH", help="image size in pixels (default 800x600 PNG, 640x480 GIF)")
+    p.add_argument("--split", action="store_true",
+                   help="for a `softsim compare` stage: render each copy alone and tile the pictures in the "
+                   "stage's grid, labelled with the copy's name (--png only)")
     add_common(p)
     return p
 
@@ -106,10 +101,8 @@ def _copies(stage):
     for child in world.GetChildren() if world else []:
         if not child.IsA(UsdGeom.Xform):
             continue
-        has_jelly = any(
-            p.IsA(UsdGeom.Mesh) and UsdGeom.Mesh(p).GetPointsAttr().GetNumTimeSamples() > 1
-            for p in Usd.PrimRange(child)
-        )
+        has_jelly = any(p.IsA(UsdGeom.Mesh) and UsdGeom.Mesh(p).GetPointsAttr().GetNumTimeSamples() > 1
+                        for p in Usd.PrimRange(child))
         if has_jelly:
             t = UsdGeom.Xformable(child).ComputeLocalToWorldTransform(0).ExtractTranslation()
             out.append((child.GetName(), (float(t[0]), float(t[2]))))
@@ -179,14 +172,7 @@ def render_split_png(usd_path, png_path, frame=None, time=None, size=None):
             ax = fig.add_axes((c / cols, 1.0 - (r + 1) / rows, 1.0 / cols, (1.0 / rows) * tile_h / (tile_h + 30)))
             ax.imshow(img)
             ax.set_axis_off()
-            fig.text(
-                (c + 0.5) / cols,
-                1.0 - r / rows - 0.5 * (30 / (tile_h + 30)) / rows,
-                name,
-                ha="center",
-                va="center",
-                fontsize=13,
-                family="monospace",
-            )
+            fig.text((c + 0.5) / cols, 1.0 - r / rows - 0.5 * (30 / (tile_h + 30)) / rows, name,
+                     ha="center", va="center", fontsize=13, family="monospace")
     fig.savefig(os.fspath(png_path), format="png", facecolor="white")
     return rendered

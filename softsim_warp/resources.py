@@ -21,9 +21,7 @@ import os
 from dataclasses import dataclass, field
 
 # Bytes per item. S: scalar size (4 for float32, 8 for float64).
-HOST_BUILD_PER_SPRING = (
-    192  # the above plus the lattice-path detection in finalize (per-spring offsets and checks; measured ~179)
-)
+HOST_BUILD_PER_SPRING = 192  # the above plus the lattice-path detection in finalize (per-spring offsets and checks; measured ~179)
 HOST_BUILD_PER_PARTICLE = 96  # float64 q, qd, mass, int32 jelly/world, lattice meshgrids
 HOST_MODEL_PER_SPRING = 44  # host copies kept in the Model: pairs, type, rest/ks/kd (float64)
 HOST_MODEL_PER_PARTICLE = 32  # q and mass (float64) kept in the Model

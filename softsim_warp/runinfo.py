@@ -99,9 +99,7 @@ def explosion_message(scene, model, result) -> str:
     if pred is None:
         text += "; no stability prediction is available for this jelly"
     elif pred == 0.0:
-        text += (
-            f"; the linear analysis predicts {sim['integrator']} unstable at every dt for this jelly (an undamped mode)"
-        )
+        text += f"; the linear analysis predicts {sim['integrator']} unstable at every dt for this jelly (an undamped mode)"
     elif np.isfinite(pred):
         text += f"; largest dt predicted stable for this jelly: {pred:.3g} s"
     kept = f"frames 0-{result.frames_written - 1} were kept" if result.frames_written else "no frame was kept"

@@ -380,10 +380,7 @@ def resolve_scene_path(name_or_path: str):
         near = difflib.get_close_matches(name_or_path, names, n=1)
         hint = f"; did you mean '{near[0]}'?" if near else ""
         raise SceneError(
-            name_or_path,
-            "scene",
-            f"no such scene file or built-in scene; built-ins: {', '.join(names)}{hint}",
-            name_or_path,
+            name_or_path, "scene", f"no such scene file or built-in scene; built-ins: {', '.join(names)}{hint}", name_or_path
         )
     return Path(f"{name_or_path}.toml"), entry.read_bytes
 
@@ -515,11 +512,8 @@ def validate(data: dict, source: str) -> dict:
             jelly["particle_mass"] = jelly.pop("total_mass") / count
         if "initial_scale" in jelly and any(c == 0.0 for c in jelly["initial_scale"]):
             # A zero axis would put particles on top of each other: springs without a direction.
-            ctx.fail(
-                f"{key}.initial_scale",
-                "components must be nonzero (negative mirrors the lattice)",
-                jelly["initial_scale"],
-            )
+            ctx.fail(f"{key}.initial_scale", "components must be nonzero (negative mirrors the lattice)",
+                     jelly["initial_scale"])
     for plane in out.get("plane", []):
         plane["normal"] = _unit(plane["normal"])
     for jelly in out["jelly"]:
@@ -527,11 +521,8 @@ def validate(data: dict, source: str) -> dict:
     for i, bowl in enumerate(out.get("bowl", [])):
         bottom = bowl["center"][1] - bowl["radius"]
         if "cut_height" in bowl and bowl["cut_height"] <= bottom:
-            ctx.fail(
-                f"bowl.{i}.cut_height",
-                f"must be above the bowl's lowest point center.y - radius = {bottom:g}",
-                bowl["cut_height"],
-            )
+            ctx.fail(f"bowl.{i}.cut_height", f"must be above the bowl's lowest point center.y - radius = {bottom:g}",
+                     bowl["cut_height"])
     # Checks of the scene as a whole (sizes, precision range, a jelly starting inside terrain);
     # see checks.py.
     from .checks import check_scene  # noqa: PLC0415

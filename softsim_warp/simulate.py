@@ -84,15 +84,8 @@ class MetricsProbe:
             wp.launch(
                 m.kernels.reduce_lattice_springs,
                 dim=m.particle_count,
-                inputs=[
-                    m.particle_jelly,
-                    lat.jelly_start,
-                    lat.jelly_shape,
-                    lat.jelly_types,
-                    lat.jelly_rest,
-                    lat.jelly_ks,
-                    state.particle_q,
-                ],
+                inputs=[m.particle_jelly, lat.jelly_start, lat.jelly_shape, lat.jelly_types, lat.jelly_rest, lat.jelly_ks,
+                        state.particle_q],
                 outputs=[self.spring_energy],
                 device=m.device,
             )
@@ -188,9 +181,7 @@ class Simulator:
         max_speed: speed treated as an explosion [m/s]; ``None`` derives it from the scene.
     """
 
-    def __init__(
-        self, model: Model, integrator: Integrator, dt: float, fps: float, frames: int, use_graph=None, max_speed=None
-    ):
+    def __init__(self, model: Model, integrator: Integrator, dt: float, fps: float, frames: int, use_graph=None, max_speed=None):
         self.model = model
         self.integrator = integrator
         self.dt = float(dt)

@@ -89,12 +89,8 @@ def predict(jelly_small: dict, methods) -> dict:
 
     springs = jelly_small["springs"]
     return predict_lattice_dt(
-        jelly_small["resolution"],
-        jelly_small["size"],
-        jelly_small["particle_mass"],
-        {k: v["ks"] for k, v in springs.items()},
-        {k: v["kd"] for k, v in springs.items()},
-        methods=tuple(methods),
+        jelly_small["resolution"], jelly_small["size"], jelly_small["particle_mass"],
+        {k: v["ks"] for k, v in springs.items()}, {k: v["kd"] for k, v in springs.items()}, methods=tuple(methods),
     )
 
 
@@ -162,7 +158,8 @@ def probe(model, integrator, dt, steps, *, displacement=None, samples=SAMPLES, u
     t_start = time.perf_counter()
     chunk = max(1, math.ceil(steps / samples))
     n_chunks = math.ceil(steps / chunk)
-    sim = Simulator(model, integrator, dt, fps=1.0, frames=1, use_graph=use_graph, max_speed=math.inf)
+    sim = Simulator(model, integrator, dt, fps=1.0, frames=1, use_graph=use_graph,
+                    max_speed=math.inf)
     if displacement is not None:
         q0 = model.particle_q_host + displacement
         from .model import NUMPY_SCALARS  # noqa: PLC0415
@@ -238,20 +235,8 @@ def find_limit(is_stable, guess, min_dt=MIN_DT, max_dt=1.0, rtol=DEFAULT_RTOL) -
     return {"dt": lo, "unstable_dt": hi, "bound": "", "probes": probes}
 
 
-def measure_limit(
-    model,
-    method,
-    *,
-    guess,
-    steps=None,
-    duration=None,
-    max_dt,
-    min_dt=MIN_DT,
-    rtol=DEFAULT_RTOL,
-    max_steps=200_000,
-    options=None,
-    use_graph=True,
-) -> dict:
+def measure_limit(model, method, *, guess, steps=None, duration=None, max_dt, min_dt=MIN_DT, rtol=DEFAULT_RTOL,
+                  max_steps=200_000, options=None, use_graph=True) -> dict:
     """Largest stable dt of ``method`` on ``model``, by :func:`find_limit` over :func:`probe` runs.
 
     The run is ``steps`` steps, or ``duration`` seconds (``ceil(duration / dt)`` steps, at most
@@ -290,23 +275,9 @@ def _guess(pred, fallback):
     return pred if (math.isfinite(pred) and pred > 0) else fallback
 
 
-def analyse(
-    scene,
-    integrators=ALL_INTEGRATORS,
-    *,
-    ks_values=DEFAULT_KS,
-    device=None,
-    precision=None,
-    steps=DEFAULT_STEPS,
-    duration=None,
-    rtol=DEFAULT_RTOL,
-    scene_runs=True,
-    max_dt=None,
-    use_graph=True,
-    lattice_max=LATTICE_MAX,
-    jelly_index=0,
-    log=None,
-) -> dict:
+def analyse(scene, integrators=ALL_INTEGRATORS, *, ks_values=DEFAULT_KS, device=None, precision=None, steps=DEFAULT_STEPS,
+            duration=None, rtol=DEFAULT_RTOL, scene_runs=True, max_dt=None, use_graph=True, lattice_max=LATTICE_MAX,
+            jelly_index=0, log=None) -> dict:
     """Measured and predicted stability limits of every integrator; returns the JSON-ready report.
 
     Args:
@@ -358,42 +329,19 @@ def analyse(
             p = float(pred[method])
             row = {"integrator": method, "damping": "none" if undamped else "scene", "predicted": p}
             t0 = time.perf_counter()
-            row["lattice"] = _clean(
-                measure_limit(
-                    lat,
-                    method,
-                    guess=_guess(p, fallback),
-                    steps=steps,
-                    max_dt=max_dt,
-                    rtol=rtol,
-                    options=options,
-                    use_graph=use_graph,
-                )
-            )
+            row["lattice"] = _clean(measure_limit(lat, method, guess=_guess(p, fallback), steps=steps, max_dt=max_dt,
+                                                  rtol=rtol, options=options, use_graph=use_graph))
             if sc is not None and p == 0.0:
                 # Unstable at every dt (euler or midpoint without damping): a finite run only finds
                 # how small a step hides the growth for `duration`, at up to max_steps per probe.
                 row["scene_note"] = "not measured: the linear analysis finds no stable dt"
             elif sc is not None:
-                row["scene"] = _clean(
-                    measure_limit(
-                        sc,
-                        method,
-                        guess=_guess(p, fallback),
-                        duration=duration,
-                        max_dt=max_dt,
-                        rtol=rtol,
-                        options=options,
-                        use_graph=use_graph,
-                    )
-                )
+                row["scene"] = _clean(measure_limit(sc, method, guess=_guess(p, fallback), duration=duration,
+                                                    max_dt=max_dt, rtol=rtol, options=options, use_graph=use_graph))
             rows.append(row)
-            say(
-                f"{method:>10} {'undamped' if undamped else 'damped':>8}: predicted {_fmt_dt(p)}, lattice "
-                f"{_fmt_limit(row['lattice'])}"
-                + (f", scene {_fmt_limit(row['scene'])}" if "scene" in row else "")
-                + f"  ({time.perf_counter() - t0:.1f} s)"
-            )
+            say(f"{method:>10} {'undamped' if undamped else 'damped':>8}: predicted {_fmt_dt(p)}, lattice "
+                f"{_fmt_limit(row['lattice'])}" + (f", scene {_fmt_limit(row['scene'])}" if "scene" in row else "")
+                + f"  ({time.perf_counter() - t0:.1f} s)")
 
     ks_map = []
     for ks in ks_values:
@@ -402,18 +350,8 @@ def analyse(
         lat = lattice_model(js, dev, precision)
         for method in available:
             p = float(pred[method])
-            m = _clean(
-                measure_limit(
-                    lat,
-                    method,
-                    guess=_guess(p, fallback),
-                    steps=steps,
-                    max_dt=max_dt,
-                    rtol=rtol,
-                    options=options,
-                    use_graph=use_graph,
-                )
-            )
+            m = _clean(measure_limit(lat, method, guess=_guess(p, fallback), steps=steps, max_dt=max_dt, rtol=rtol,
+                                     options=options, use_graph=use_graph))
             ks_map.append({"ks": ks, "integrator": method, "predicted": p, "measured": m})
             say(f"ks={ks:g} {method:>10}: predicted {_fmt_dt(p)}, measured {_fmt_limit(m)}")
 
@@ -423,14 +361,8 @@ def analyse(
         "source": scene.source,
         "device": str(dev),
         "precision": precision,
-        "lattice": {
-            "jelly": jelly_index,
-            "resolution": js["resolution"],
-            "size": js["size"],
-            "particle_mass": js["particle_mass"],
-            "springs": js["springs"],
-            "steps": steps,
-        },
+        "lattice": {"jelly": jelly_index, "resolution": js["resolution"], "size": js["size"], "particle_mass": js["particle_mass"],
+                    "springs": js["springs"], "steps": steps},
         "scene_duration": duration if scene_runs else None,
         "max_dt": max_dt,
         "rtol": rtol,
@@ -449,13 +381,8 @@ def analyse(
 
 
 def _clean(limit: dict) -> dict:
-    return {
-        "dt": limit["dt"],
-        "unstable_dt": limit["unstable_dt"],
-        "bound": limit["bound"],
-        "probes": len(limit["probes"]),
-        "notes": limit.get("notes", []),
-    }
+    return {"dt": limit["dt"], "unstable_dt": limit["unstable_dt"], "bound": limit["bound"],
+            "probes": len(limit["probes"]), "notes": limit.get("notes", [])}
 
 
 def _fmt_dt(x):
@@ -515,13 +442,8 @@ def format_table(report: dict) -> str:
     return "\n".join(lines)
 
 
-COLORS = {
-    "euler": "tab:red",
-    "symplectic": "tab:orange",
-    "midpoint": "tab:green",
-    "rk4": "tab:blue",
-    "implicit": "tab:purple",
-}
+COLORS = {"euler": "tab:red", "symplectic": "tab:orange", "midpoint": "tab:green", "rk4": "tab:blue",
+          "implicit": "tab:purple"}
 
 
 def plot_report(report: dict, path):
@@ -534,20 +456,13 @@ def plot_report(report: dict, path):
     fig, (ax_l, ax_m) = plt.subplots(1, 2, figsize=(13, 5.5))
     methods = list(dict.fromkeys(r["integrator"] for r in report["limits"]))
     max_dt = report["max_dt"]
-    finite = [
-        v
-        for r in report["limits"]
-        for v in (r["predicted"], r["lattice"]["dt"], r.get("scene", {}).get("dt", 0))
-        if 0 < v < math.inf
-    ]
+    finite = [v for r in report["limits"] for v in (r["predicted"], r["lattice"]["dt"], r.get("scene", {}).get("dt", 0))
+              if 0 < v < math.inf]
     floor = min(finite) / 10 if finite else max_dt * 1e-4
     # One column per integrator: x offsets for (damping) x (predicted, lattice, scene); a value of 0
     # (no stable dt) sits on the floor as a downward triangle, "stable up to max_dt" as an upward one.
-    styles = {
-        "predicted": ("_", 16, "predicted (linear)"),
-        "lattice": ("o", 7, "measured, lattice"),
-        "scene": ("s", 7, "measured, scene"),
-    }
+    styles = {"predicted": ("_", 16, "predicted (linear)"), "lattice": ("o", 7, "measured, lattice"),
+              "scene": ("s", 7, "measured, scene")}
     for d_i, damping in enumerate(("scene", "none")):
         for k_i, key in enumerate(styles):
             marker, size, label = styles[key]
@@ -564,15 +479,8 @@ def plot_report(report: dict, path):
                     v, mk = max_dt, "^"
                 x = i + (d_i - 0.5) * 0.4 + (k_i - 1) * 0.1
                 c = "k" if key == "predicted" else f"C{k_i}"
-                ax_l.plot(
-                    [x],
-                    [v],
-                    mk,
-                    color=c,
-                    ms=size if mk == marker else 9,
-                    mfc=c if damping == "scene" else "none",
-                    mew=2,
-                )
+                ax_l.plot([x], [v], mk, color=c, ms=size if mk == marker else 9, mfc=c if damping == "scene" else "none",
+                          mew=2)
     for k_i, key in enumerate(styles):
         marker, size, label = styles[key]
         c = "k" if key == "predicted" else f"C{k_i}"
@@ -610,9 +518,7 @@ def plot_report(report: dict, path):
     ax_m.grid(True, which="both", alpha=0.3)
     ax_m.legend(fontsize=7, ncol=2)
     lat = report["lattice"]
-    fig.suptitle(
-        f"{report['scene']}: lattice {'x'.join(map(str, lat['resolution']))}, {report['precision']}, {report['device']}"
-    )
+    fig.suptitle(f"{report['scene']}: lattice {'x'.join(map(str, lat['resolution']))}, {report['precision']}, {report['device']}")
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)
@@ -625,33 +531,17 @@ def plot_report(report: dict, path):
 def add_parser(subparsers, add_common):
     p = subparsers.add_parser("stability", help="largest stable dt per integrator: measured by bisection and predicted")
     p.add_argument("scene", help="scene file (.toml) or built-in scene name")
-    p.add_argument(
-        "--integrators",
-        default=",".join(ALL_INTEGRATORS),
-        help="comma-separated methods (default: all; implicit is skipped if unavailable)",
-    )
-    p.add_argument(
-        "--ks",
-        help=f"comma-separated stiffnesses of the map [N/m] (default {','.join(f'{k:g}' for k in DEFAULT_KS)}; "
-        "'none' for no map)",
-    )
-    p.add_argument(
-        "--steps", type=int, default=DEFAULT_STEPS, help=f"lattice run length [steps] (default {DEFAULT_STEPS})"
-    )
+    p.add_argument("--integrators", default=",".join(ALL_INTEGRATORS),
+                   help="comma-separated methods (default: all; implicit is skipped if unavailable)")
+    p.add_argument("--ks", help=f"comma-separated stiffnesses of the map [N/m] (default {','.join(f'{k:g}' for k in DEFAULT_KS)}; "
+                                "'none' for no map)")
+    p.add_argument("--steps", type=int, default=DEFAULT_STEPS, help=f"lattice run length [steps] (default {DEFAULT_STEPS})")
     p.add_argument("--duration", type=float, help="scene run length [s] (default min(scene duration, 1 s))")
-    p.add_argument(
-        "--lattice",
-        type=int,
-        default=LATTICE_MAX,
-        help=f"particles per axis of the small lattice, at most (default {LATTICE_MAX})",
-    )
+    p.add_argument("--lattice", type=int, default=LATTICE_MAX,
+                   help=f"particles per axis of the small lattice, at most (default {LATTICE_MAX})")
     p.add_argument("--jelly", type=int, default=0, help="which jelly of the scene the lattice copies (default 0)")
-    p.add_argument(
-        "--no-scene", action="store_true", help="measure on the small lattice only (skip the full-scene runs)"
-    )
-    p.add_argument(
-        "--rtol", type=float, default=DEFAULT_RTOL, help=f"relative width of the final bracket (default {DEFAULT_RTOL})"
-    )
+    p.add_argument("--no-scene", action="store_true", help="measure on the small lattice only (skip the full-scene runs)")
+    p.add_argument("--rtol", type=float, default=DEFAULT_RTOL, help=f"relative width of the final bracket (default {DEFAULT_RTOL})")
     p.add_argument("--precision", choices=["float32", "float64"], help="precision of the runs")
     p.add_argument("--out", help="write the report as JSON")
     p.add_argument("--plot", help="write the plots (.png/.pdf/.svg)")
@@ -666,11 +556,8 @@ def run(args) -> int:
     from .outputs import check_writable, save_report  # noqa: PLC0415
 
     methods = _parse_methods(args.integrators)
-    ks = (
-        ()
-        if args.ks and args.ks.strip().lower() == "none"
-        else (_parse_positive_list(args.ks, "--ks") if args.ks else DEFAULT_KS)
-    )
+    ks = () if args.ks and args.ks.strip().lower() == "none" else (
+        _parse_positive_list(args.ks, "--ks") if args.ks else DEFAULT_KS)
     if args.steps < 10:
         raise CommandLineError("--steps", "must be an integer >= 10", args.steps)
     _check_positive(args.duration, "--duration")
@@ -687,21 +574,9 @@ def run(args) -> int:
         raise CommandLineError("--jelly", f"this scene has jellies 0 to {len(scene.jellies) - 1}", args.jelly)
     device = resolve_device(args.device)
     log = None if args.quiet else (lambda line: print(line, file=sys.stderr, flush=True))
-    report = analyse(
-        scene,
-        methods,
-        ks_values=ks,
-        device=device,
-        precision=args.precision,
-        steps=args.steps,
-        duration=args.duration,
-        rtol=args.rtol,
-        scene_runs=not args.no_scene,
-        use_graph=not args.no_graph,
-        lattice_max=args.lattice,
-        jelly_index=args.jelly,
-        log=log,
-    )
+    report = analyse(scene, methods, ks_values=ks, device=device, precision=args.precision, steps=args.steps,
+                     duration=args.duration, rtol=args.rtol, scene_runs=not args.no_scene,
+                     use_graph=not args.no_graph, lattice_max=args.lattice, jelly_index=args.jelly, log=log)
     print(format_table(report))
     save_report(report, args.out, args.plot, plot_report)
     return 0

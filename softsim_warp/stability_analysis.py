@@ -573,7 +573,9 @@ def lattice_jacobians(shape, size, particle_mass, ks, kd):
     points = lattice.lattice_points(shape, size)
     pairs, types = lattice.lattice_springs(shape)
     rest = np.linalg.norm(points[pairs[:, 0]] - points[pairs[:, 1]], axis=1)
-    return linearize(points, pairs, rest, _per_type(ks, "ks")[types], _per_type(kd, "kd")[types], particle_mass)
+    return linearize(
+        points, pairs, rest, _per_type(ks, "ks")[types], _per_type(kd, "kd")[types], particle_mass
+    )
 
 
 def predict_lattice_dt(shape, size, particle_mass, ks, kd, methods=METHODS, *, rtol=1e-4):
@@ -596,7 +598,9 @@ def predict_lattice_dt(shape, size, particle_mass, ks, kd, methods=METHODS, *, r
     # Deflate and take the eigenvalues once; every method reuses them.
     Kr, Cr, _ = _reduced(K, C, m)
     lam = np.linalg.eigvals(_first_order(Kr, Cr)) if Kr.size else np.zeros(0, complex)
-    return {method: _max_stable_dt_reduced(method, Kr, Cr, rtol, 1e-9, _ZERO_TOL, lam=lam) for method in methods}
+    return {
+        method: _max_stable_dt_reduced(method, Kr, Cr, rtol, 1e-9, _ZERO_TOL, lam=lam) for method in methods
+    }
 
 
 # ---------------------------------------------------------------------------------------------

@@ -26,7 +26,9 @@ def _cap(center, radius, theta_max, rings, segments, inward):
     thetas = np.linspace(0.0, theta_max, rings + 1)[1 : n_rings + 1]
     phis = np.linspace(0.0, 2.0 * math.pi, segments, endpoint=False)
     st, ct = np.sin(thetas)[:, None], np.cos(thetas)[:, None]
-    ring_pts = np.stack([st * np.cos(phis), -ct * np.ones_like(phis), st * np.sin(phis)], axis=-1).reshape(-1, 3)
+    ring_pts = np.stack(
+        [st * np.cos(phis), -ct * np.ones_like(phis), st * np.sin(phis)], axis=-1
+    ).reshape(-1, 3)
     pts = [center + radius * np.array([[0.0, -1.0, 0.0]]), center + radius * ring_pts]
     if closed:
         pts.append(center + radius * np.array([[0.0, 1.0, 0.0]]))
