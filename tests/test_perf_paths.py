@@ -310,6 +310,17 @@ def test_fused_matches_unfused(device, method, kernel):
     assert np.abs(runs[True] - runs[False]).max() <= steps * 4.0 * EPS32 * np.abs(runs[False]).max()
 
 
+def _gather_integrator(device, method, builder=None, **options):
+    """The dropping two-jelly model (or ``builder``'s) on the fused gather stages with ``options``
+    (which the integrator must have taken as given)."""
+    model = (builder or _dropping(_builder())).finalize(device, force_path="lattice")
+    model.lattice.set_kernel("gather")
+    integrator = ExplicitIntegrator(model, method, fused=True, **options)
+    for key, value in options.items():
+        assert getattr(integrator, key) == value
+    return model, integrator
+
+
 @pytest.mark.parametrize("method", ["symplectic", "midpoint", "rk4"])
 def test_fused_contact_matches_separate_contact(device, method):
     """Plane contact inside the fused gather stage (the last stage's response and the resting-contact
@@ -319,10 +330,7 @@ def test_fused_contact_matches_separate_contact(device, method):
     steps, dt = 150, 1.0e-4
     runs = {}
     for fuse_contact in (False, True):
-        model = _dropping(_builder()).finalize(device, force_path="lattice")
-        model.lattice.set_kernel("gather")
-        integrator = ExplicitIntegrator(model, method, fused=True, fuse_contact=fuse_contact)
-        assert integrator.fuse_contact == fuse_contact
+        model, integrator = _gather_integrator(device, method, fuse_contact=fuse_contact)
         sim = Simulator(model, integrator, dt, 1.0 / (steps * dt), 1, use_graph=False)
         sim.advance(steps)
         runs[fuse_contact] = sim.state.particle_q.numpy().astype(np.float64)
@@ -545,10 +553,9 @@ def test_single_jelly_stage_equals_table_stage(device, method):
     steps = 100
     finals = {}
     for uniform in (True, False):
-        model = _dropping(_builder(degrees=0.0, second=False)).finalize(device, force_path="lattice")
-        model.lattice.set_kernel("gather")
+        builder = _dropping(_builder(degrees=0.0, second=False))
+        model, integrator = _gather_integrator(device, method, builder, uniform=uniform)
         assert model.lattice.single
-        integrator = ExplicitIntegrator(model, method, fused=True, uniform=uniform)
         assert integrator.single == uniform
         finals[uniform] = _step_states(integrator, [model.state(), model.state()], steps)
     _assert_same_run(device, finals[True], finals[False], steps, EPS32)
@@ -565,10 +572,7 @@ def test_alternating_sweeps_change_nothing(device, method):
     same bits as sweeping forward every time, since no particle's arithmetic depends on the order."""
     finals = {}
     for alternate in (True, False):
-        model = _dropping(_builder()).finalize(device, force_path="lattice")
-        model.lattice.set_kernel("gather")
-        integrator = ExplicitIntegrator(model, method, fused=True, alternate=alternate)
-        assert integrator.alternate == alternate
+        model, integrator = _gather_integrator(device, method, alternate=alternate)
         finals[alternate] = _step_states(integrator, [model.state(), model.state()], 51)
         # 51 steps of 1 or 4 stages: the next launch's direction.
         assert integrator._reverse == (int(51 * integrator.stage_count % 2) if alternate else 0)
