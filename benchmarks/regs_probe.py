@@ -12,7 +12,9 @@ the native gather with bounds-checked loads; ``integrate_lattice_stage_stencil``
 ``gather:OPT+OPT``: the native gather built with those ``_gather_snippet`` options, plus ``indexed``
 and ``single`` for the stage's own options), each compiled with
 ``cuda_max_registers`` at each cap (0: the compiler's choice), stepped through the benchmark jelly
-with CUDA graphs, the stages sweeping in alternating directions or always forward (``--sweeps``); the variants are timed in turn, round after round, in one process. The cap is
+with CUDA graphs, the stages sweeping in alternating directions or always forward (``--sweeps``),
+at the given threads per block (``--block-dims``) and with a spacer allocated before each model
+(``--shifts``, KiB: where its arrays land); the variants are timed in turn, round after round, in one process. The cap is
 ignored on the CPU. Each variant's final positions are compared with the first variant's of the
 same integrator (``max_rel_diff`` in the JSON; on the CPU the native and Warp-loop gathers give the
 same bits). Results: docs/PERFORMANCE.md.
@@ -75,6 +77,9 @@ def main():
     parser.add_argument("--integrators", default="symplectic,rk4")
     parser.add_argument("--block-dims", default="0", help="threads per block (0: the integrator's choice)")
     parser.add_argument(
+        "--shifts", default="0", help="KiB allocated (and kept) before each model: where its arrays land in memory"
+    )
+    parser.add_argument(
         "--sweeps", default="alternate", help="alternate and/or forward: the stages' particle order (step_fused)"
     )
     parser.add_argument("--steps", type=int, default=100)
@@ -85,14 +90,17 @@ def main():
     caps = [int(c) for c in args.caps.split(",")]
     keep, cases, built = [], [], {}
     variants = [
-        (name, cap, sweep, int(block))
+        (name, cap, sweep, int(block), int(shift))
         for name in args.kernels.split(",")
         for cap in caps
         for sweep in args.sweeps.split(",")
         for block in args.block_dims.split(",")
+        for shift in args.shifts.split(",")
     ]
     for method in args.integrators.split(","):
-        for name, cap, sweep, block in variants:
+        for name, cap, sweep, block, shift in variants:
+            # A spacer before the model moves where its arrays land (kept alive with the case).
+            spacer = wp.empty(256 * int(shift), dtype=wp.float32, device=args.device)
             model = build_jelly_model(args.size, spec, args.device)
             model.lattice.set_kernel("gather")  # the per-particle stage kernels (the CPU default is "rows")
             if (name, cap) not in built:  # one build per variant, shared by the integrators
@@ -112,7 +120,7 @@ def main():
                 with wp.ScopedCapture(device=args.device, force_module_load=False) as capture:
                     step(args.steps)
                 graph = capture.graph
-            keep.append((model, integrator, states))
+            keep.append((spacer, model, integrator, states))
             cases.append(
                 {
                     "integrator": method,
@@ -120,6 +128,7 @@ def main():
                     "cap": cap,
                     "sweep": sweep,
                     "block_dim": integrator.block_dim,
+                    "shift_kib": int(shift),
                     "states": states,
                     "step": step,
                     "graph": graph,
@@ -137,7 +146,9 @@ def main():
             wp.synchronize_device(args.device)
             case["wall"].append(time.perf_counter() - t0)
     rows = []
-    print(f"{'integrator':<12}{'kernel':<40}{'cap':>6}{'sweep':>11}{'block':>7}{'ms/step':>12}{'vs first':>10}")
+    print(
+        f"{'integrator':<12}{'kernel':<40}{'cap':>6}{'sweep':>11}{'block':>7}{'shift':>7}{'ms/step':>12}{'vs first':>10}"
+    )
     for case in cases:
         ms = 1e3 * float(np.median(case["wall"])) / args.steps
         base = next((c for c in rows if c["integrator"] == case["integrator"]), None)
@@ -149,13 +160,15 @@ def main():
                 "cap": case["cap"],
                 "sweep": case["sweep"],
                 "block_dim": case["block_dim"],
+                "shift_kib": case["shift_kib"],
+                "state_address": case["states"][0].particle_q.ptr,
                 "ms_per_step": ms,
                 "speedup": ratio,
                 "max_rel_diff": _rel_diff(case, next(c for c in cases if c["integrator"] == case["integrator"])),
             }
         )
         print(
-            f"{case['integrator']:<12}{case['kernel']:<40}{case['cap']:>6}{case['sweep']:>11}{case['block_dim']:>7}{ms:>12.4f}{ratio:>9.2f}x"
+            f"{case['integrator']:<12}{case['kernel']:<40}{case['cap']:>6}{case['sweep']:>11}{case['block_dim']:>7}{case['shift_kib']:>7}{ms:>12.4f}{ratio:>9.2f}x"
         )
     if args.out:
         with open(args.out, "w") as f:
