@@ -175,6 +175,42 @@ def test_bench_memory_counts_padded_allocations():
     assert device_arrays_bytes(state) == whole
 
 
+def test_step_bytes_lists_each_array_once():
+    """``bench.step_bytes`` per particle, array by array (float32: a vec3 array is 12 bytes a particle),
+    for the one-jelly benchmark model on a plane: each array a launch reads or writes counted once."""
+    from softsim_warp.bench import JellySpec, build_jelly_model, step_bytes
+
+    model = build_jelly_model(4, JellySpec(), "cpu")
+    n, v = model.particle_count, 12
+    ids = 4 + 4 + 4  # jelly, world, inverse mass
+    model.lattice.set_kernel("gather")
+    expected = {
+        # (method, uniform -> the one-jelly stage): bytes a particle
+        # symplectic: the state read (it is y_n) and y_{n+1} written
+        ("symplectic", True): 2 * v + 2 * v,
+        ("symplectic", False): 2 * v + ids + 2 * v,
+        # rk4, stage by stage: the stage state read; y_n read after the first; the velocity
+        # accumulator written (stage 0), read and both written (1), both read and written (2),
+        # both read (3); the next state or the result written
+        ("rk4", True): (2 * v + v + 2 * v)
+        + (4 * v + v + 2 * v + 2 * v)
+        + (4 * v + 4 * v + 2 * v)
+        + (4 * v + 2 * v + 2 * v),
+    }
+    expected[("rk4", False)] = expected[("rk4", True)] + 4 * ids
+    for (method, uniform), per_particle in expected.items():
+        integrator = ExplicitIntegrator(model, method, fused=True, uniform=uniform)
+        assert integrator.single == uniform and integrator.fuse_contact
+        assert step_bytes(model, integrator) == n * per_particle, (method, uniform)
+    assert expected[("symplectic", True)] == 48 and expected[("rk4", True)] == 384
+    # The CPU row kernel (one stage): state read, k-coordinate, force buffer written and read,
+    # inverse mass, y_{n+1} written; then plane contact as its own kernel (inverse mass and world,
+    # y_n read, y_{n+1} read and written).
+    model.lattice.set_kernel("rows")
+    rows = ExplicitIntegrator(model, "symplectic", fused=True)
+    assert step_bytes(model, rows) == n * ((2 * v + 4 + 2 * v + 4 + 2 * v) + (8 + 6 * v))
+
+
 @pytest.mark.parametrize("method", ["symplectic", "rk4"])
 def test_padded_gather_equals_checked_gather(device, method):
     """The padded gather (unconditional loads, predicated adds) and the checked one (predicated
