@@ -11,7 +11,9 @@ Timing: one untimed step loads (or compiles) the kernels; ``--steps`` steps are 
 graph (``wp.ScopedCapture``, CPU and CUDA) unless ``--no-graph``; after a warm-up replay, every
 repeat synchronises, reads the clock, replays, synchronises and reads the clock again; the median
 over ``--repeats`` is reported. Cases of one size (ours and Newton's) run their repeats in turn,
-so load from other processes on a shared machine hits them alike.
+so load from other processes on a shared machine hits them alike. On CUDA, nvidia-smi (where
+present) samples the clock and power meanwhile (:class:`ClockMonitor`): a run long enough to
+reach the GPU's power cap is clocked down, and the report says so.
 
 Nothing here imports pxr (the GPU machine has no usd-core) or Newton unless ``--peer newton``.
 """
@@ -21,6 +23,8 @@ from __future__ import annotations
 import datetime
 import math
 import platform
+import shutil
+import subprocess
 import time
 from dataclasses import asdict, dataclass
 
@@ -157,6 +161,80 @@ def step_bytes(model, integrator) -> int:
     if model.plane_count and not getattr(integrator, "fuse_contact", False):
         total += n * (s + 4) + 6 * n * v
     return int(total)
+
+
+# nvidia-smi's clock event reasons (``clocks_event_reasons.active``) that slow the clock down.
+POWER_CAP = 0x4  # software power cap
+SLOWDOWN = 0x8 | 0x20 | 0x40 | 0x80  # hardware slowdown, software and hardware thermal, power brake
+
+
+class ClockMonitor:
+    """Samples the GPU's SM clock, power draw and clock event reasons with nvidia-smi while cases are timed.
+
+    A fused stage keeps every SM busy: run long enough, a GPU reaches its power cap and lowers its
+    clock, and the step gets slower (docs/PERFORMANCE.md, "Sustained load"). ``summary()`` tells
+    whether that happened during the timing: the clock range, the power, and the fraction of
+    samples at the power cap or otherwise slowed down. None where there is no nvidia-smi (the CPU,
+    another vendor), or it printed nothing usable. ``-i`` takes the CUDA ordinal, which is
+    nvidia-smi's index unless CUDA_VISIBLE_DEVICES or CUDA_DEVICE_ORDER reorders the devices.
+    """
+
+    QUERY = "clocks.sm,clocks.max.sm,power.draw,power.limit,clocks_event_reasons.active"
+
+    def __init__(self, device, period_ms=100):
+        self.command = None
+        smi = shutil.which("nvidia-smi") if device.is_cuda else None
+        if smi:
+            self.command = [smi, f"--query-gpu={self.QUERY}", "--format=csv,noheader,nounits"]
+            self.command += ["-i", str(device.ordinal), "-lms", str(int(period_ms))]
+        self.process = None
+        self.lines = []
+
+    def __enter__(self):
+        if self.command:
+            try:
+                self.process = subprocess.Popen(
+                    self.command, stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True
+                )
+            except OSError:
+                self.process = None
+        return self
+
+    def __exit__(self, *exc):
+        if self.process is not None:
+            self.process.terminate()
+            try:
+                out, _ = self.process.communicate(timeout=5)
+            except subprocess.TimeoutExpired:
+                self.process.kill()
+                out, _ = self.process.communicate()
+            self.lines = out.splitlines()
+        return False
+
+    def summary(self) -> dict | None:
+        samples = []
+        for line in self.lines:
+            fields = [f.strip() for f in line.split(",")]
+            try:
+                clock, max_clock, power, limit = (float(f) for f in fields[:4])
+                reasons = int(fields[4], 16)
+            except (ValueError, IndexError):
+                continue  # "[N/A]", a header, a cut line
+            if reasons & 0x1:
+                continue  # idle: between cases, not under load
+            samples.append((clock, max_clock, power, limit, reasons))
+        if not samples:
+            return None
+        clock, max_clock, power, limit, reasons = (np.array(c) for c in zip(*samples))
+        return {
+            "samples": len(samples),
+            "sm_clock_mhz": {"min": float(clock.min()), "median": float(np.median(clock)), "max": float(clock.max())},
+            "max_sm_clock_mhz": float(max_clock.max()),
+            "power_w": {"median": float(np.median(power)), "max": float(power.max())},
+            "power_limit_w": float(limit.max()),
+            "power_capped_fraction": float(np.mean((reasons & POWER_CAP) != 0)),
+            "slowed_down_fraction": float(np.mean((reasons & SLOWDOWN) != 0)),
+        }
 
 
 def measure_copy_bandwidth(device, nbytes=None, repeats=5) -> float:
@@ -427,7 +505,7 @@ def run(args) -> int:
     spec = JellySpec()
     bandwidth = measure_copy_bandwidth(device)
     use_graph = not args.no_graph
-    results, peers = [], []
+    results, peers, gpu_clocks = [], [], []
 
     if args.scene:
         from .model import build_model  # noqa: PLC0415
@@ -463,9 +541,13 @@ def run(args) -> int:
         everyone = cases + ([peer] if peer else [])
         for case in everyone:
             case.compile_s = case.prepare()
-        for _ in range(args.repeats):
-            for case in everyone:
-                case.time_once()
+        with ClockMonitor(device) as monitor:
+            for _ in range(args.repeats):
+                for case in everyone:
+                    case.time_once()
+        clocks = monitor.summary()
+        if clocks is not None:
+            gpu_clocks.append({"case": label, **clocks})
         peer_row = None
         if peer is not None:
             peer_row = {
@@ -491,6 +573,14 @@ def run(args) -> int:
         results += rows
 
     _print_table(results, bandwidth, device)
+    for c in gpu_clocks:
+        clock = c["sm_clock_mhz"]
+        print(
+            f"gpu while timing {c['case']}: SM clock {clock['min']:.0f}-{clock['max']:.0f} MHz (median"
+            f" {clock['median']:.0f}, max {c['max_sm_clock_mhz']:.0f}), power up to {c['power_w']['max']:.0f}"
+            f" of {c['power_limit_w']:.0f} W, at the power cap in {100 * c['power_capped_fraction']:.0f} %"
+            f" of {c['samples']} samples"
+        )
     data = {
         "arguments": {k: v for k, v in vars(args).items() if isinstance(v, (str, int, float, bool, list, type(None)))},
         "date": datetime.datetime.now(datetime.UTC).isoformat(timespec="seconds"),
@@ -509,6 +599,8 @@ def run(args) -> int:
         },
         "results": results,
         "peer": peers,
+        # nvidia-smi's samples while each size's cases were timed (ClockMonitor; empty without it).
+        "gpu_clocks": gpu_clocks,
     }
     save_report(data, args.out, args.plot, plot)
     return 0

@@ -5,6 +5,8 @@ and the plain paths themselves where the arithmetic is the same (bitwise).
 """
 
 import json
+import os
+import time
 
 import numpy as np
 import pytest
@@ -209,6 +211,44 @@ def test_step_bytes_lists_each_array_once():
     model.lattice.set_kernel("rows")
     rows = ExplicitIntegrator(model, "symplectic", fused=True)
     assert step_bytes(model, rows) == n * ((2 * v + 4 + 2 * v + 4 + 2 * v) + (8 + 6 * v))
+
+
+def test_clock_monitor_reads_nvidia_smi(tmp_path, monkeypatch):
+    """The bench's clock monitor parses nvidia-smi's samples: idle and unreadable ones are left
+    out, and the power-cap (0x4) and slowdown (thermal, 0x20) samples are counted."""
+    import types
+
+    from softsim_warp.bench import ClockMonitor
+
+    fake = tmp_path / "nvidia-smi"
+    lines = [
+        "345, 1980, 80.5, 700.00, 0x0000000000000001",  # idle
+        "1980, 1980, 450.2, 700.00, 0x0000000000000000",
+        "1800, 1980, 699.9, 700.00, 0x0000000000000004",
+        "1590, 1980, 700.7, 700.00, 0x0000000000000004",
+        "1700, 1980, 650.0, 700.00, 0x0000000000000020",
+        "[N/A], 1980, [N/A], 700.00, 0x0000000000000000",
+    ]
+    ready = tmp_path / "printed"
+    body = "".join(f"echo '{line}'\n" for line in lines)
+    fake.write_text(f"#!/bin/sh\n{body}touch '{ready}'\nexec sleep 30\n")
+    fake.chmod(0o755)
+    monkeypatch.setenv("PATH", f"{tmp_path}:{os.environ['PATH']}")
+    gpu = types.SimpleNamespace(is_cuda=True, ordinal=0)
+    with ClockMonitor(gpu, period_ms=50) as monitor:
+        deadline = time.monotonic() + 30.0
+        while not ready.exists() and time.monotonic() < deadline:
+            time.sleep(0.02)
+    assert monitor.command[-4:] == ["-i", "0", "-lms", "50"]
+    c = monitor.summary()
+    assert c["samples"] == 4
+    assert c["sm_clock_mhz"] == {"min": 1590.0, "median": 1750.0, "max": 1980.0}
+    assert c["power_w"]["max"] == 700.7 and c["power_limit_w"] == 700.0
+    assert c["power_capped_fraction"] == 0.5 and c["slowed_down_fraction"] == 0.25
+    # No nvidia-smi (or not a GPU): no monitor, no summary.
+    with ClockMonitor(types.SimpleNamespace(is_cuda=False, ordinal=0)) as idle:
+        pass
+    assert idle.command is None and idle.summary() is None
 
 
 @pytest.mark.parametrize("method", ["symplectic", "rk4"])
