@@ -100,10 +100,6 @@ def common_coefficients(rest, ks, kd, types, dtype):
     return coef
 
 
-# Register cap of the one-jelly stage's CUDA build (integrate_lattice_stage_single); see build().
-SINGLE_MAX_REGISTERS = 48
-
-
 def _gather_snippet(ctype, padded=False, uniform=False):
     """C++ body of ``gather_native``: the 32-neighbour force on particle i, straight-line.
 
@@ -568,7 +564,7 @@ return 1.0f / wp::sqrt(x);
 
     eval_lattice_springs = make_eval_lattice_springs(gather_lattice_force)
 
-    def make_integrate_lattice_stage(gather, direct=True, single=False, max_registers=None):
+    def make_integrate_lattice_stage(gather, direct=True, single=False):
         """The fused stage kernel around a per-particle gather (``gather_native`` or ``gather_lattice_force``).
 
         The kernel passes the gather both the per-jelly tables and ``stencil_coef``, the jellies'
@@ -584,9 +580,6 @@ return 1.0f / wp::sqrt(x);
         ``single``: for a model that is one jelly of particles of one mass (``LatticeData.single``):
         the jelly is 0 and the world and inverse mass are particle 0's, so the kernel reads no
         per-particle jelly, world or mass (12 of a symplectic stage's 60 bytes a particle).
-
-        ``max_registers``: a register cap for the CUDA build (``cuda_max_registers``; the CPU
-        ignores it).
         """
         sv = integration_funcs["stage_values_direct"] if direct else stage_values
         planes = contact_planes_direct if direct else contact_planes
@@ -735,8 +728,6 @@ return 1.0f / wp::sqrt(x);
                 store_vec(q_next_out, i, x)
                 store_vec(qd_next_out, i, v)
 
-        if max_registers:
-            return wp.kernel(integrate_lattice_stage.func, module="unique", cuda_max_registers=max_registers)
         return integrate_lattice_stage
 
     # Lattice kernel "gather": the native gather (the CUDA default); "stencil": the same gather as
@@ -749,9 +740,8 @@ return 1.0f / wp::sqrt(x);
     # The same when every jelly has the same coefficients (LatticeData.uniform): they come as a kernel argument.
     integrate_lattice_stage_padded_uniform = make_integrate_lattice_stage(make_gather_native(padded=True, uniform=True))
     # And when the model is one jelly of one particle mass (LatticeData.single): no per-particle tables.
-    # The compiler's choice for it is 64 registers; SINGLE_MAX_REGISTERS caps it (docs/PERFORMANCE.md).
     integrate_lattice_stage_single = make_integrate_lattice_stage(
-        make_gather_native(padded=True, uniform=True), single=True, max_registers=SINGLE_MAX_REGISTERS
+        make_gather_native(padded=True, uniform=True), single=True
     )
     integrate_lattice_stage_stencil = make_integrate_lattice_stage(gather_lattice_force)
 
