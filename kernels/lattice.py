@@ -140,7 +140,8 @@ def _gather_snippet(ctype, padded=False, uniform=False):
     (``LatticeData.uniform``). The coefficients (``common_coefficients``) come as the kernel
     argument ``coef`` instead of per-jelly tables; on CUDA a kernel argument lives in the constant
     bank, which an instruction reads as an operand, so a spring needs no load and no multiply for
-    its coefficients and the stage needs 48 registers instead of 64. Same bits as the tables
+    its coefficients (the seventh session's H200 build needed 48 registers instead of 64; with the
+    eighth session's spring factor the one-jelly stage's build takes 64). Same bits as the tables
     (``common_coefficients`` rounds ks r as the table gather does).
     """
     tiny = "1.17549435e-38f" if ctype == "float" else "2.2250738585072014e-308"

@@ -36,7 +36,8 @@ import warp as wp
 SMALL_BLOCKS_FROM = 1 << 18
 
 # Particles from which the padded stage takes its coefficients as a kernel argument when the
-# jellies share them (``integrate_lattice_stage_padded_uniform``): 48 registers instead of 64.
+# jellies share them (``integrate_lattice_stage_padded_uniform``; 48 registers instead of 64 in the
+# seventh session's build).
 # H200, seventh session (docs/PERFORMANCE.md): 1.07x symplectic, 1.06x rk4 at 100^3, but 0.96x /
 # 0.95x at 40^3, where a few blocks per SM leave the latency to the loads each thread has in flight.
 UNIFORM_FROM = 1 << 18
