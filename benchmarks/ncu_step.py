@@ -34,7 +34,7 @@ def main():
     spec = JellySpec()
     model = build_jelly_model(args.size, spec, args.device)
     if args.kernel is not None:
-        install_stage_kernel(model, stage_kernel(model.kernels, args.kernel))
+        install_stage_kernel(model, stage_kernel(model.kernels, args.kernel, model))
     integrator = ExplicitIntegrator(model, args.integrator, block_dim=args.block_dim)
     states = [model.state(), model.state()]
     for k in range(args.steps):

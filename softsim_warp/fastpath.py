@@ -10,8 +10,10 @@ set, :func:`step_fused` from ``step``. The kernel follows the lattice kernel the
   model's states and the integrator's stage buffers are), ``integrate_lattice_stage_padded``
   runs instead: the same sums without bounds-checked loads; and for large models whose jellies
   share their coefficients, ``integrate_lattice_stage_padded_uniform``, which takes them as a
-  kernel argument (same bits); ``integrate_lattice_stage_single`` when the model is also one
-  jelly of one particle mass, which reads no per-particle jelly, world or mass.
+  kernel argument (same bits); and when the model is also one jelly of one particle mass, the
+  one-jelly stage, which reads no per-particle jelly, world or mass, compiled for the jelly's
+  shape and spring types (``single_stage``: constant neighbour offsets, 48 registers instead of
+  64 on an H200, 1.08-1.12x; docs/PERFORMANCE.md).
 * rows (CPU): ``integrate_lattice_rows_stage`` computes a jelly's forces with the vectorised row
   loops and then its particles' stage update; contact follows as its own kernel.
 
@@ -128,7 +130,8 @@ def step_fused(integrator, state_in, state_out, dt):
             if integrator.uniform:
                 stage_kernel = model.kernels.integrate_lattice_stage_padded_uniform
                 if integrator.single:
-                    stage_kernel = model.kernels.integrate_lattice_stage_single
+                    # Compiled for the jelly's shape and spring types (kernels/lattice.py single_stage).
+                    stage_kernel = model.kernels.single_stage(lat.layout.shape[0], lat.layout.types[0])
         else:
             stage_kernel = model.kernels.integrate_lattice_stage
     for stage in range(integrator.stage_count):

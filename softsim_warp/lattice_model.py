@@ -128,7 +128,8 @@ class LatticeData:
             passed by value to the fused stage kernels; zeros when not ``uniform``.
         single: whether the model is one jelly whose particles all have one mass (the benchmark's
             jelly, a one-jelly scene); then the uniform stage need not read a per-particle jelly,
-            world or mass (``integrate_lattice_stage_single``).
+            world or mass (``integrate_lattice_stage_single``, compiled for the jelly's shape by
+            ``kernels.single_stage``).
         particle_coord_k: third lattice coordinate k of each particle, shape [particle_count],
             int32; allocated only for the CPU row kernel, which reads it.
         scratch: workspace of the row kernel, shape [particle_count], vec3; allocated with

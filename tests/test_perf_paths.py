@@ -7,10 +7,12 @@ and the plain paths themselves where the arithmetic is the same (bitwise).
 import json
 import os
 import time
+import types
 
 import numpy as np
 import pytest
 import warp as wp
+from softsim_warp.kernels import get_kernels
 
 from softsim_warp.integrators import EXPLICIT, ExplicitIntegrator, eval_forces
 from softsim_warp.lattice import spring_counts
@@ -640,6 +642,34 @@ def test_single_jelly_stage_equals_table_stage(device, method):
         b = _dropping(_builder(degrees=0.0, second=False))
         b._mass[0][5] = mass
         assert not b.finalize(device, force_path="lattice").lattice.single
+
+
+@pytest.mark.parametrize("method", ["symplectic", "rk4"])
+@pytest.mark.parametrize("shear", [True, False])
+def test_shape_compiled_stage_equals_generic_stage(device, method, shear):
+    """A one-jelly model steps with the one-jelly stage compiled for its jelly's shape and spring
+    types (``single_stage``): the same bits as the stage that reads them at run time
+    (``integrate_lattice_stage_single``) on the CPU, within 4 ulps per step on CUDA, with and without
+    shear springs (whose springs the compiled stage then leaves out), over an impact. One kernel per
+    (shape, types)."""
+    springs = SPRINGS if shear else {k: v for k, v in SPRINGS.items() if k != "shear"}
+    steps = 60
+    finals = {}
+    for compiled in (True, False):
+        builder = _dropping(_builder(shape=(5, 4, 7), springs=springs, degrees=0.0, second=False))
+        model = builder.finalize(device, force_path="lattice")
+        model.lattice.set_kernel("gather")
+        if not compiled:
+            model.kernels = types.SimpleNamespace(**vars(model.kernels))
+            model.kernels.single_stage = lambda shape, mask, k=model.kernels: k.integrate_lattice_stage_single
+        integrator = ExplicitIntegrator(model, method, fused=True, uniform=True)
+        assert integrator.single
+        finals[compiled] = _step_states(integrator, [model.state(), model.state()], steps)
+    _assert_same_run(device, finals[True], finals[False], steps, EPS32)
+    kernels = get_kernels(wp.float32)
+    assert kernels.single_stage((5, 4, 7), 7) is kernels.single_stage(np.array([5, 4, 7]), np.int32(7))
+    assert kernels.single_stage((5, 4, 7), 7) is not kernels.single_stage((5, 4, 8), 7)
+    assert kernels.single_stage((5, 4, 7), 7) is not kernels.single_stage((5, 4, 7), 5)
 
 
 @pytest.mark.parametrize("method", ["symplectic", "rk4"])
