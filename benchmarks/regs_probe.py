@@ -10,8 +10,8 @@ the same with the coefficients as a kernel argument, what large models of jellie
 get; ``integrate_lattice_stage_single``: that for one jelly of one mass; ``integrate_lattice_stage``:
 the native gather with bounds-checked loads; ``integrate_lattice_stage_stencil``: the Warp-loop gather;
 ``gather:OPT+OPT``: the native gather built with those ``_gather_snippet`` options, plus ``indexed``
-and ``single`` for the stage's own options and ``shape`` for the jelly's shape compiled in;
-``single_stage``: the one-jelly stage the model steps with, compiled for its jelly), each compiled with
+and ``single`` for the stage's own options; ``single_stage``: the one-jelly stage the model steps
+with, compiled for its jelly), each compiled with
 ``cuda_max_registers`` at each cap (0: the compiler's choice), stepped through the benchmark jelly
 with CUDA graphs, the stages sweeping in alternating directions or always forward (``--sweeps``),
 at the given threads per block (``--block-dims``) and with a spacer allocated before each model
@@ -36,17 +36,14 @@ from softsim_warp.integrators import ExplicitIntegrator
 def stage_kernel(kernels, name, model=None):
     """A stage kernel by name: one in ``model.kernels``, or ``gather:OPT+OPT`` for the fused stage
     around ``gather_native`` built with those ``_gather_snippet`` options (e.g. ``gather:padded``; the
-    option ``indexed`` builds the stage with Warp-indexed reads instead; ``shape``: the jelly's shape,
-    spring types and start compiled in, from ``model``'s first jelly); ``single_stage``: what a
+    option ``indexed`` builds the stage with Warp-indexed reads instead); ``single_stage``: what a
     one-jelly model steps with, ``model.kernels.single_stage`` for ``model``'s jelly."""
-    layout = model.lattice.layout if model is not None else None
     if name == "single_stage":
+        layout = model.lattice.layout
         return kernels.single_stage(layout.shape[0], layout.types[0])
     if not name.startswith("gather:"):
         return getattr(kernels, name)
     options = {opt: True for opt in name.split(":", 1)[1].split("+") if opt}
-    if options.pop("shape", False):
-        options.update(shape=tuple(int(n) for n in layout.shape[0]), types=int(layout.types[0]), start=0)
     # "indexed": the stage's own reads through Warp's indexing (make_integrate_lattice_stage(direct=False)).
     direct = not options.pop("indexed", False)
     # "single": the one-jelly stage (make_integrate_lattice_stage(single=True)).

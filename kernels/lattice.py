@@ -149,8 +149,8 @@ def _gather_snippet(ctype, padded=False, uniform=False, shape=None, types=None, 
     neighbour's address is the thread's own plus a constant, which the load instruction carries: the
     gather needs two base pointers instead of one per lattice row (42), the lattice coordinate
     divisions become multiplications, and the springs of absent types are not compiled at all. The
-    H200 build takes 48 registers instead of 64 and 1912 instructions instead of 2032
-    (``benchmarks/sass_probe.py``). Same arithmetic, same bits.
+    sm_90 build takes 48 registers instead of 64 and 1904 instructions instead of 2032
+    (``benchmarks/sass_probe.py``; 48 registers on the H200 too). Same arithmetic, same bits.
     """
     tiny = "1.17549435e-38f" if ctype == "float" else "2.2250738585072014e-308"
     rsqrt = (
