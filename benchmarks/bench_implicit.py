@@ -35,12 +35,12 @@ import time
 import numpy as np
 import warp as wp
 
-from softsim_warp.implicit import ImplicitIntegrator
-from softsim_warp.integrators import ExplicitIntegrator
-from softsim_warp.model import ModelBuilder, build_model
-from softsim_warp.scene import load_scene
-from softsim_warp.simulate import speed_bound
-from softsim_warp.stability_analysis import predict_lattice_dt
+from softsim_warp.core.implicit import ImplicitIntegrator
+from softsim_warp.core.integrators import ExplicitIntegrator
+from softsim_warp.core.model import ModelBuilder, build_model
+from softsim_warp.io.scene import load_scene
+from softsim_warp.io.metrics import speed_bound
+from softsim_warp.core.stability_analysis import predict_lattice_dt
 
 SPRING_TYPES = ("structural", "shear", "bending")
 # jelly_drop's dampers; the stiffness is the benchmark's parameter.

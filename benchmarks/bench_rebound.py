@@ -19,9 +19,9 @@ import json
 import numpy as np
 import warp as wp
 
-from softsim_warp.integrators import make_integrator
-from softsim_warp.model import build_model
-from softsim_warp.scene import load_scene
+from softsim_warp.core.stepper import make_integrator
+from softsim_warp.core.model import build_model
+from softsim_warp.io.scene import load_scene
 
 SPRING_TYPES = ("structural", "shear", "bending")
 

@@ -94,8 +94,8 @@ def make_gather_runtime(n, spacing):
 
 def make_product(n, spacing, dev):
     """softsim's lattice force kernel (gather) on an n^3 jelly with the probe's springs: (model, f)."""
-    from softsim_warp.integrators import eval_forces  # noqa: PLC0415
-    from softsim_warp.model import ModelBuilder  # noqa: PLC0415
+    from softsim_warp.core.forces import eval_forces  # noqa: PLC0415
+    from softsim_warp.core.model import ModelBuilder  # noqa: PLC0415
 
     b = ModelBuilder((0.0, 0.0, 0.0))
     springs = {t: {"ks": 1000.0, "kd": 1.0} for t in ("structural", "shear", "bending")}

@@ -15,10 +15,10 @@ import types
 
 import numpy as np
 
-from softsim_warp.integrators import make_integrator
-from softsim_warp.model import build_model
-from softsim_warp.scene import load_scene
-from softsim_warp.simulate import Simulator
+from softsim_warp.core.stepper import make_integrator
+from softsim_warp.core.model import build_model
+from softsim_warp.io.scene import load_scene
+from softsim_warp.io.simulate import Simulator
 
 SPRING_TYPES = ("structural", "shear", "bending")
 

@@ -13,8 +13,8 @@ import sys
 
 import warp as wp
 
-from softsim_warp.bench import JellySpec, build_jelly_model
-from softsim_warp.integrators import ExplicitIntegrator
+from softsim_warp.commands.bench import JellySpec, build_jelly_model
+from softsim_warp.core.integrators import ExplicitIntegrator
 
 sys.path.insert(0, os.path.dirname(__file__))
 from regs_probe import install_stage_kernel, stage_kernel  # noqa: E402

@@ -29,8 +29,8 @@ import types
 import numpy as np
 import warp as wp
 
-from softsim_warp.bench import JellySpec, build_jelly_model
-from softsim_warp.integrators import ExplicitIntegrator
+from softsim_warp.commands.bench import JellySpec, build_jelly_model
+from softsim_warp.core.integrators import ExplicitIntegrator
 
 
 def stage_kernel(kernels, name, model=None):

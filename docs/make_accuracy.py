@@ -47,7 +47,7 @@ QUICK = {"--duration 1 ": "--duration 0.1 ", "--duration 3 ": "--duration 0.1 ",
 
 
 def builtin_scenes():
-    from softsim_warp.scene import builtin_scenes as names  # noqa: PLC0415
+    from softsim_warp.io.scene import builtin_scenes as names  # noqa: PLC0415
 
     return names()
 
@@ -83,9 +83,9 @@ def run_case(name, kind, args, device, quick):
 
 def table(report):
     if "limits" in report:
-        from softsim_warp.stability import format_table  # noqa: PLC0415
+        from softsim_warp.commands.stability import format_table  # noqa: PLC0415
     else:
-        from softsim_warp.accuracy import format_table  # noqa: PLC0415
+        from softsim_warp.commands.accuracy import format_table  # noqa: PLC0415
     return format_table(report)
 
 

@@ -14,10 +14,10 @@ import sys
 import numpy as np
 import warp as wp
 
-from softsim_warp.integrators import make_integrator
-from softsim_warp.model import build_model
-from softsim_warp.scene import load_scene
-from softsim_warp.simulate import Simulator
+from softsim_warp.core.stepper import make_integrator
+from softsim_warp.core.model import build_model
+from softsim_warp.io.scene import load_scene
+from softsim_warp.io.simulate import Simulator
 
 HOLE_RADIUS = 9.0 / math.sqrt(2.0)
 AXIS = np.array([2.0, 1.0])  # (x, z) of the hole's centre and the bowl's axis

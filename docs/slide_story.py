@@ -16,10 +16,10 @@ import sys
 import numpy as np
 import warp as wp
 
-from softsim_warp.integrators import make_integrator
-from softsim_warp.model import build_model
-from softsim_warp.scene import load_scene
-from softsim_warp.simulate import Simulator
+from softsim_warp.core.stepper import make_integrator
+from softsim_warp.core.model import build_model
+from softsim_warp.io.scene import load_scene
+from softsim_warp.io.simulate import Simulator
 
 FPS = 100
 FIT_START = 2.5  # s: the landing (0.33 s) and its rebounds (COM height settles by 2.5 s) are over

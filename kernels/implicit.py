@@ -5,7 +5,7 @@ One step solves ``A dv = b`` with
     A = M - h df/dv - h^2 df/dx,   b = M (v_n - v_k) + h (f(X, V) + M g) + c_kv df/dx v_k
 
 where (X, V) is the point the forces are linearised about and v_k the current velocity iterate
-(see ``softsim_warp/implicit.py``). Every spring (a, b) contributes the symmetric 3x3 block
+(see ``softsim_warp/core/implicit.py``). Every spring (a, b) contributes the symmetric 3x3 block
 
     B_s = h kd d^d^T + h^2 S,   S = ks [d^d^T + max(0, 1 - r/|d|) (I - d^d^T)],
 
@@ -50,7 +50,7 @@ from . import contact
 
 wp.set_module_options({"enable_backward": False})
 
-# Threads per reduction block; the launcher in softsim_warp/implicit.py uses the same value.
+# Threads per reduction block; the launcher in softsim_warp/core/implicit.py uses the same value.
 TILE = 256
 
 # Slots of the CG scalar array.

@@ -7,7 +7,15 @@ Typical use::
     model = ss.build_model(scene, device="cpu")
     integrator = ss.make_integrator("rk4", model)
     state_0, state_1 = model.state(), model.state()
-    integrator.step(state_0, state_1, scene.sim["dt"])
+    integrator.step(state_0, state_1, scene.sim["dt"])   # one step, state_0 -> state_1
+
+    stepper = ss.Stepper(model, integrator, scene.sim["dt"])
+    stepper.advance(100)                                  # 100 steps, replayed as one captured graph
+    positions = stepper.state.particle_q.numpy()
+
+Layers: ``softsim_warp.core`` (model, forces, contact, integrators; imports only ``kernels``),
+``softsim_warp.io`` (scenes, USD, metrics, the frame loop) and ``softsim_warp.commands`` (the CLI);
+see docs/ARCHITECTURE.md.
 """
 
 import os as _os
@@ -19,13 +27,21 @@ _root = _os.path.dirname(_here)
 if not _os.path.isdir(_os.path.join(_here, "kernels")) and _os.path.isfile(_os.path.join(_root, "kernels", "__init__.py")):
     __path__.append(_root)
 
-from .errors import ExplosionError  # noqa: E402, SceneError, UserError
-from .integrators import ExplicitIntegrator, Integrator, eval_forces, make_integrator  # noqa: E402
-from .model import Model, ModelBuilder, State, build_model  # noqa: E402
-from .scene import INTEGRATORS, Scene, builtin_scenes, load_scene, scene_from_dict  # noqa: E402
-from .simulate import FrameMetrics, RunResult, Simulator  # noqa: E402
+from .core.errors import ExplosionError, SceneError, UserError  # noqa: E402
+from .core.forces import eval_forces  # noqa: E402
+from .core.integrators import ExplicitIntegrator, Integrator  # noqa: E402
+from .core.model import Model, ModelBuilder, State, build_model  # noqa: E402
+from .core.stepper import Stepper, make_integrator  # noqa: E402
+from .io.scene import INTEGRATORS, Scene, builtin_scenes, load_scene, scene_from_dict  # noqa: E402
+from .io.simulate import FrameMetrics, RunResult, Simulator  # noqa: E402
+from .io.usd import UsdWriter  # noqa: E402
 
-__version__ = "0.1.0"
+from importlib.metadata import PackageNotFoundError as _NotFound, version as _version  # noqa: E402
+
+try:
+    __version__ = _version("softsim-warp")
+except _NotFound:  # a source checkout run without installing
+    __version__ = "0+source"
 
 __all__ = [
     "INTEGRATORS",
@@ -40,7 +56,9 @@ __all__ = [
     "SceneError",
     "Simulator",
     "State",
+    "Stepper",
     "UserError",
+    "UsdWriter",
     "build_model",
     "builtin_scenes",
     "eval_forces",

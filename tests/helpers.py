@@ -3,7 +3,7 @@
 import numpy as np
 
 from softsim_warp import ModelBuilder, make_integrator
-from softsim_warp.lattice import SPRING_TYPE_NAMES
+from softsim_warp.core.lattice import SPRING_TYPE_NAMES
 
 
 def jelly_builder(shape=(3, 3, 3), size=0.2, mass=0.01, ks=100.0, kd=0.0, gravity=(0.0, 0.0, 0.0), **kw):

@@ -642,7 +642,7 @@ def _captured_stderr():
 
 def run_case(case: Case, workdir: Path) -> tuple[int, str] | None:
     """Run ``softsim run`` in-process for ``case`` in ``workdir``; returns (exit code, stderr), None if not runnable here."""
-    from softsim_warp import cli  # noqa: PLC0415
+    from softsim_warp.commands import cli  # noqa: PLC0415
 
     argv = prepare(case, workdir)
     if argv is None:

@@ -10,16 +10,17 @@ import math
 import numpy as np
 import pytest
 
-from softsim_warp import accuracy, stability
-from softsim_warp.cli import main
-from softsim_warp.scene import load_scene
+from softsim_warp.commands import accuracy
+from softsim_warp.commands import stability
+from softsim_warp.commands.cli import main
+from softsim_warp.io.scene import load_scene
 
 SMALL = ["jelly.0.resolution=4"]
 
 
 def _implicit_available():
     try:
-        import softsim_warp.implicit  # noqa: F401, PLC0415
+        import softsim_warp.core.implicit  # noqa: F401, PLC0415
     except ImportError:
         return False
     return True

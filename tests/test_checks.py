@@ -9,8 +9,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from softsim_warp import build_model, checks, load_scene, scene_from_dict
-from softsim_warp.errors import SceneError
+from softsim_warp import build_model, load_scene, scene_from_dict
+from softsim_warp.io import checks
+from softsim_warp.core.errors import SceneError
 
 sys.path.insert(0, str(Path(__file__).parent))
 import robustness_cases as rc  # noqa: E402

@@ -11,8 +11,8 @@ import math
 import numpy as np
 import pytest
 
-from softsim_warp import cli
-from softsim_warp.compare import prim_token, rigid_deviation, short_keys, split_values
+from softsim_warp.commands import cli
+from softsim_warp.commands.compare import prim_token, rigid_deviation, short_keys, split_values
 
 # A small version of the 2023 scene: 4^3 particles, long enough to hit the hole's rim (t = 1.34 s)
 # and slide into the bowl, at 20 frames per second.
@@ -150,7 +150,7 @@ def test_names_and_value_lists():
 
 
 def test_compare_with_implicit_runs_it_as_its_own_model(tmp_path):
-    pytest.importorskip("softsim_warp.implicit")
+    pytest.importorskip("softsim_warp.core.implicit")
     out = tmp_path / "imp.usda"
     assert cli.main(["compare", "seed_bowl", *SMALL, "--duration", "1.5", "--integrators", "euler,implicit",
                      "--out", str(out), "--quiet"]) == 0

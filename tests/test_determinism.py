@@ -9,9 +9,10 @@ import numpy as np
 import pytest
 import warp as wp
 
-from softsim_warp import build_model, cli, eval_forces, load_scene, make_integrator
-from softsim_warp.deterministic import incident_springs_csr
-from softsim_warp.simulate import Simulator
+from softsim_warp import build_model, eval_forces, load_scene, make_integrator
+from softsim_warp.commands import cli, common
+from softsim_warp.core.forces import incident_springs_csr
+from softsim_warp.io.simulate import Simulator
 
 TIMING = {"wall_seconds", "step_seconds", "compile_seconds", "particle_steps_per_second"}
 
@@ -178,11 +179,11 @@ class _FakeGpu:
 
 def test_deterministic_refuses_implicit_on_cuda():
     """The implicit solver sums with atomics: --deterministic with it is refused on CUDA, allowed on the CPU."""
-    from softsim_warp.errors import CommandLineError  # noqa: PLC0415
+    from softsim_warp.core.errors import CommandLineError  # noqa: PLC0415
 
     with pytest.raises(CommandLineError) as e:
-        cli.check_deterministic("implicit", _FakeGpu())
+        common.check_deterministic("implicit", _FakeGpu())
     assert e.value.line().startswith("command line: --deterministic: not available with the implicit integrator")
-    cli.check_deterministic("implicit", wp.get_device("cpu"))
+    common.check_deterministic("implicit", wp.get_device("cpu"))
     for name in ("euler", "symplectic", "midpoint", "rk4"):
-        cli.check_deterministic(name, _FakeGpu())
+        common.check_deterministic(name, _FakeGpu())

@@ -9,9 +9,10 @@ import numpy as np
 import pytest
 import warp as wp
 
-from softsim_warp import build_model, cli, load_scene, make_integrator
-from softsim_warp.runinfo import predicted_stable_dt
-from softsim_warp.simulate import Simulator
+from softsim_warp import build_model, load_scene, make_integrator
+from softsim_warp.commands import cli
+from softsim_warp.io.runinfo import predicted_stable_dt
+from softsim_warp.io.simulate import Simulator
 
 # Explicit Euler on the seed-like jelly at 4 ms: ten times the symplectic step, twice the largest
 # step the linear analysis predicts stable for Euler (about 2 ms), so it must blow up.

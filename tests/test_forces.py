@@ -4,7 +4,8 @@ import numpy as np
 import pytest
 import warp as wp
 
-from softsim_warp import eval_forces, lattice
+from softsim_warp import eval_forces
+from softsim_warp.core import lattice
 from tests.helpers import jelly_builder
 
 

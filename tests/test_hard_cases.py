@@ -1,7 +1,7 @@
 """The hard cases (scenes/hard_*.toml): each scene's expected behaviour per integrator, as written in
 docs/HARD_CASES.md and the scene's description, checked on small lattices and short runs.
 
-``implicit`` joins every parametrised test once ``softsim_warp.implicit`` exists.
+``implicit`` joins every parametrised test once ``softsim_warp.core.implicit`` exists.
 """
 
 import json
@@ -10,13 +10,13 @@ import math
 import numpy as np
 import pytest
 
-from softsim_warp import stability
-from softsim_warp.cli import main
-from softsim_warp.integrators import make_integrator
-from softsim_warp.model import build_model
-from softsim_warp.scene import load_scene
-from softsim_warp.simulate import Simulator
-from softsim_warp.stability_analysis import lattice_jacobians, system_eigenvalues
+from softsim_warp.commands import stability
+from softsim_warp.commands.cli import main
+from softsim_warp.core.stepper import make_integrator
+from softsim_warp.core.model import build_model
+from softsim_warp.io.scene import load_scene
+from softsim_warp.io.simulate import Simulator
+from softsim_warp.core.stability_analysis import lattice_jacobians, system_eigenvalues
 
 EXPLICIT = ["euler", "symplectic", "midpoint", "rk4"]
 EPS32 = float(np.finfo(np.float32).eps)
@@ -24,7 +24,7 @@ EPS32 = float(np.finfo(np.float32).eps)
 
 def _implicit_available():
     try:
-        import softsim_warp.implicit  # noqa: F401, PLC0415
+        import softsim_warp.core.implicit  # noqa: F401, PLC0415
     except ImportError:
         return False
     return True
@@ -96,7 +96,7 @@ def test_initial_scale_is_validated(value, capsys):
 
 
 def test_initial_scale_keeps_rest_lengths_and_scales_positions():
-    from softsim_warp.model import ModelBuilder  # noqa: PLC0415
+    from softsim_warp.core.model import ModelBuilder  # noqa: PLC0415
 
     springs = {"structural": {"ks": 1.0}, "shear": {"ks": 1.0}, "bending": {"ks": 1.0}}
     plain, scaled = ModelBuilder(), ModelBuilder()
@@ -106,7 +106,7 @@ def test_initial_scale_keeps_rest_lengths_and_scales_positions():
     a, b = plain.finalize("cpu", "float64"), scaled.finalize("cpu", "float64")
     np.testing.assert_array_equal(a.spring_rest_host, b.spring_rest_host)
     # x = R (S local) + c: undo the rotation and the translation, then the scale.
-    from softsim_warp.model import rotation_matrix  # noqa: PLC0415
+    from softsim_warp.core.model import rotation_matrix  # noqa: PLC0415
 
     rot = rotation_matrix((0, 0, 1), 30.0)
     local_a = (a.particle_q_host - (1.0, 2.0, 3.0)) @ rot

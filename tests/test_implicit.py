@@ -12,13 +12,15 @@ import pytest
 import warp as wp
 from softsim_warp.kernels import implicit as ki
 
-from softsim_warp.cli import main as cli_main
-from softsim_warp.implicit import ImplicitIntegrator
-from softsim_warp.integrators import ExplicitIntegrator, make_integrator
-from softsim_warp.model import ModelBuilder, build_model, populate
-from softsim_warp.scene import load_scene
-from softsim_warp.simulate import MetricsProbe, Simulator
-from softsim_warp.stability_analysis import lattice_jacobians, predict_lattice_dt, step_spectral_radius
+from softsim_warp.commands.cli import main as cli_main
+from softsim_warp.core.implicit import ImplicitIntegrator
+from softsim_warp.core.integrators import ExplicitIntegrator
+from softsim_warp.core.stepper import make_integrator
+from softsim_warp.core.model import ModelBuilder, build_model, populate
+from softsim_warp.io.scene import load_scene
+from softsim_warp.io.metrics import MetricsProbe
+from softsim_warp.io.simulate import Simulator
+from softsim_warp.core.stability_analysis import lattice_jacobians, predict_lattice_dt, step_spectral_radius
 
 EPS32 = float(np.finfo(np.float32).eps)
 SPRING_TYPES = ("structural", "shear", "bending")

@@ -78,7 +78,7 @@ def test_rk4_energy_drift_bound(device):
     # dissipative at fourth order), so over T the drift is bounded by ~ (h w)^4 w T / 72 relative; with h w = 0.1
     # and w T = 100 that is 1.4e-4. We assert the looser 5e-4 bound, independent of the perturbation drawn.
     model, state = perturbed_jelly(device)
-    from softsim_warp.stability_analysis import predict_lattice_dt  # noqa: PLC0415
+    from softsim_warp.core.stability_analysis import predict_lattice_dt  # noqa: PLC0415
 
     w_max = 2.0 / predict_lattice_dt((3, 3, 3), (0.2,) * 3, 0.01, 100.0, 0.0, methods=("symplectic",))["symplectic"]
     h = 0.1 / w_max
@@ -92,7 +92,7 @@ def test_rk4_energy_drift_bound(device):
 def test_symplectic_energy_bounded(device):
     # Symplectic Euler conserves a modified energy: E oscillates within O(h w) of E0 with no secular drift.
     model, state = perturbed_jelly(device)
-    from softsim_warp.stability_analysis import predict_lattice_dt  # noqa: PLC0415
+    from softsim_warp.core.stability_analysis import predict_lattice_dt  # noqa: PLC0415
 
     w_max = 2.0 / predict_lattice_dt((3, 3, 3), (0.2,) * 3, 0.01, 100.0, 0.0, methods=("symplectic",))["symplectic"]
     h = 0.2 / w_max

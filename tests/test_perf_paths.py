@@ -14,10 +14,12 @@ import pytest
 import warp as wp
 from softsim_warp.kernels import get_kernels
 
-from softsim_warp.integrators import EXPLICIT, ExplicitIntegrator, eval_forces
-from softsim_warp.lattice import spring_counts
-from softsim_warp.model import ModelBuilder
-from softsim_warp.simulate import MetricsProbe, Simulator
+from softsim_warp.core.integrators import EXPLICIT, ExplicitIntegrator
+from softsim_warp.core.forces import eval_forces
+from softsim_warp.core.lattice import spring_counts
+from softsim_warp.core.model import ModelBuilder
+from softsim_warp.io.metrics import MetricsProbe
+from softsim_warp.io.simulate import Simulator
 
 EPS32 = float(np.finfo(np.float32).eps)
 EPS64 = float(np.finfo(np.float64).eps)
@@ -169,7 +171,7 @@ def test_model_states_are_padded_for_the_gather():
 
 def test_bench_memory_counts_padded_allocations():
     """The benchmark's memory column counts a padded state array's whole allocation, once."""
-    from softsim_warp.bench import device_arrays_bytes
+    from softsim_warp.commands.bench import device_arrays_bytes
 
     model = _builder().finalize("cpu", force_path="lattice")
     state = model.state()
@@ -182,7 +184,7 @@ def test_bench_memory_counts_padded_allocations():
 def test_step_bytes_lists_each_array_once():
     """``bench.step_bytes`` per particle, array by array (float32: a vec3 array is 12 bytes a particle),
     for the one-jelly benchmark model on a plane: each array a launch reads or writes counted once."""
-    from softsim_warp.bench import JellySpec, build_jelly_model, step_bytes
+    from softsim_warp.commands.bench import JellySpec, build_jelly_model, step_bytes
 
     model = build_jelly_model(4, JellySpec(), "cpu")
     n, v = model.particle_count, 12
@@ -220,7 +222,7 @@ def test_clock_monitor_reads_nvidia_smi(tmp_path, monkeypatch):
     out, and the power-cap (0x4) and slowdown (thermal, 0x20) samples are counted."""
     import types
 
-    from softsim_warp.bench import ClockMonitor
+    from softsim_warp.commands.bench import ClockMonitor
 
     fake = tmp_path / "nvidia-smi"
     lines = [
@@ -505,7 +507,7 @@ def test_lazy_spring_arrays_and_spring_energy(device):
 
 
 def test_bench_cli_writes_json(tmp_path, capsys):
-    from softsim_warp.cli import main
+    from softsim_warp.commands.cli import main
 
     out = tmp_path / "bench.json"
     assert (
@@ -559,7 +561,7 @@ def test_bench_cli_writes_json(tmp_path, capsys):
     ],
 )
 def test_bench_cli_rejects_bad_input(argv, message, capsys):
-    from softsim_warp.cli import main
+    from softsim_warp.commands.cli import main
 
     assert main(["bench", *argv]) == 2
     err = capsys.readouterr().err

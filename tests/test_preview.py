@@ -6,7 +6,7 @@ import pytest
 pytest.importorskip("pxr")
 pytest.importorskip("matplotlib")
 
-from softsim_warp.preview import render_gif, render_png
+from softsim_warp.io.preview import render_gif, render_png
 
 FPS = 30
 FRAMES = 10

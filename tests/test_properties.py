@@ -22,10 +22,11 @@ import warp as wp
 from hypothesis import HealthCheck, event, given, settings
 from hypothesis import strategies as st
 
-from softsim_warp import eval_forces, scene
-from softsim_warp.deterministic import attach
-from softsim_warp.errors import SceneError
-from softsim_warp.model import ModelBuilder
+from softsim_warp import eval_forces
+from softsim_warp.io import scene
+from softsim_warp.core.forces import attach
+from softsim_warp.core.errors import SceneError
+from softsim_warp.core.model import ModelBuilder
 
 sys.path.insert(0, str(Path(__file__).parent))
 import robustness_cases as rc  # noqa: E402

@@ -10,8 +10,10 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from softsim_warp import build_model, cli, load_scene, resources
-from softsim_warp.errors import SceneError
+from softsim_warp import build_model, load_scene
+from softsim_warp.commands import cli
+from softsim_warp.io import resources
+from softsim_warp.core.errors import SceneError
 
 sys.path.insert(0, str(Path(__file__).parent))
 import robustness_cases as rc  # noqa: E402

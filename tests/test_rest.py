@@ -12,9 +12,9 @@ import numpy as np
 import pytest
 import warp as wp
 
-from softsim_warp.integrators import make_integrator
-from softsim_warp.model import build_model
-from softsim_warp.scene import load_scene
+from softsim_warp.core.stepper import make_integrator
+from softsim_warp.core.model import build_model
+from softsim_warp.io.scene import load_scene
 
 METHODS = ["euler", "symplectic", "midpoint", "rk4"]
 THETA = math.radians(30.0)

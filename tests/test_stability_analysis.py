@@ -1,4 +1,4 @@
-"""Tests of softsim_warp.stability_analysis against closed forms and against direct time stepping."""
+"""Tests of softsim_warp.core.stability_analysis against closed forms and against direct time stepping."""
 
 from __future__ import annotations
 
@@ -22,7 +22,8 @@ def _load_modules():
     is used just long enough to import the two modules, then removed so later imports are unaffected.
     """
     try:
-        from softsim_warp import lattice, stability_analysis
+        from softsim_warp.core import lattice
+        from softsim_warp.core import stability_analysis
 
         return lattice, stability_analysis
     except ImportError:
@@ -34,8 +35,8 @@ def _load_modules():
     stub.__path__ = [str(PACKAGE_DIR)]
     sys.modules["softsim_warp"] = stub
     try:
-        lattice = importlib.import_module("softsim_warp.lattice")
-        stability_analysis = importlib.import_module("softsim_warp.stability_analysis")
+        lattice = importlib.import_module("softsim_warp.core.lattice")
+        stability_analysis = importlib.import_module("softsim_warp.core.stability_analysis")
     finally:
         for k in [k for k in sys.modules if k == "softsim_warp" or k.startswith("softsim_warp.")]:
             del sys.modules[k]

@@ -10,10 +10,10 @@ import numpy as np
 import pytest
 import warp as wp
 
-from softsim_warp.integrators import ExplicitIntegrator
-from softsim_warp.model import ModelBuilder, build_model
-from softsim_warp.scene import load_scene
-from softsim_warp.simulate import Simulator
+from softsim_warp.core.integrators import ExplicitIntegrator
+from softsim_warp.core.model import ModelBuilder, build_model
+from softsim_warp.io.scene import load_scene
+from softsim_warp.io.simulate import Simulator
 
 G = 9.8
 

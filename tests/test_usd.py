@@ -5,7 +5,7 @@ import pytest
 from pxr import Usd, UsdGeom, UsdValidation
 
 from softsim_warp import Simulator, build_model, load_scene, make_integrator
-from softsim_warp.usd_io import UsdWriter
+from softsim_warp.io.usd import UsdWriter
 
 
 class Recorder:

@@ -13,7 +13,10 @@ import numpy as np
 import warp as wp
 
 from . import lattice
-from .kernels import get_kernels
+from ..kernels import get_kernels
+from .forces import attach
+from .lattice_model import LatticeData, detect_lattice
+from .terrain import bowl_mesh, sphere_mesh
 
 SCALARS = {"float32": wp.float32, "float64": wp.float64}
 NUMPY_SCALARS = {"float32": np.float32, "float64": np.float64}
@@ -279,7 +282,6 @@ class ModelBuilder:
         m.lattice = None
         m.lattice_reason = "force_path=springs"
         if force_path != "springs":
-            from .lattice_model import LatticeData, detect_lattice  # noqa: PLC0415
 
             layout, m.lattice_reason = detect_lattice(self)
             if layout is None and force_path == "lattice":
@@ -361,7 +363,7 @@ class Model:
         spring_stiffness: ks [N/m], shape [spring_count], scalar.
         spring_damping: kd [N s/m], shape [spring_count], scalar.
             On the lattice path the four spring arrays are made on first access only.
-        lattice: :class:`~softsim_warp.lattice_model.LatticeData` (per-jelly tables of the
+        lattice: :class:`~softsim_warp.core.lattice_model.LatticeData` (per-jelly tables of the
             lattice force path) or None when the general spring list is used.
         lattice_reason: host string, why the lattice path does or does not apply.
         gravity: acceleration [m/s^2], vec3 value.
@@ -385,7 +387,7 @@ class Model:
             pressing impulse (h |f.n| / m) is a contact, not an impact [1]; see resolve_contact.
         jellies: host list of :class:`JellyInfo`.
         deterministic: forces without atomics when True; the CSR arrays it needs are documented
-            in ``softsim_warp.deterministic.attach``.
+            in ``softsim_warp.core.forces.attach``.
     """
 
     @property
@@ -403,7 +405,6 @@ class Model:
         Returns:
             A list of ``(prim_path, points (V, 3), face counts (F,), face indices)``.
         """
-        from .terrain_mesh import bowl_mesh, sphere_mesh  # noqa: PLC0415 - host geometry, only for output
 
         roots = roots or {}
         out = []
@@ -494,16 +495,15 @@ class State:
 
 
 def build_model(scene, device=None, precision=None, worlds=None, deterministic=False, force_path="auto") -> Model:
-    """Build a :class:`Model` from a validated :class:`~softsim_warp.scene.Scene`.
+    """Build a :class:`Model` from a validated :class:`~softsim_warp.io.scene.Scene`.
 
-    ``deterministic`` selects atomic-free force evaluation (``softsim_warp.deterministic.attach``);
+    ``deterministic`` selects atomic-free force evaluation (``softsim_warp.core.forces.attach``);
     ``force_path``: see ``ModelBuilder.finalize``.
     """
     builder = ModelBuilder(scene.sim["gravity"])
     populate(builder, scene.data)
     model = builder.finalize(device, precision or scene.sim["precision"], force_path=force_path)
     if deterministic:
-        from .deterministic import attach  # noqa: PLC0415
 
         attach(model)
     return model

@@ -17,7 +17,7 @@ from dataclasses import dataclass, field
 from importlib import resources
 from pathlib import Path
 
-from .errors import COMMAND_LINE, SceneError
+from ..core.errors import COMMAND_LINE, SceneError
 
 INTEGRATORS = ("euler", "symplectic", "midpoint", "rk4", "implicit")
 PRECISIONS = ("float32", "float64")

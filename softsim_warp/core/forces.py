@@ -1,21 +1,27 @@
-"""Deterministic runs (``softsim run --deterministic``): bitwise-identical results from run to run on CUDA.
+"""Internal forces: springs and dampers, one entry point (:func:`eval_forces`) and its paths.
 
-Two parts of a step and a frame sum floats from many threads into one place with atomics: the
-spring forces on each particle (on the spring-list path; the lattice path gathers without atomics)
-and the per-jelly metrics. :func:`attach` gives a spring-list model a CSR list
-of each particle's incident springs, after which :func:`softsim_warp.integrators.eval_forces`
-evaluates forces with the atomic-free kernels of ``kernels/deterministic.py``, and
-:class:`~softsim_warp.deterministic_metrics.DeterministicMetricsProbe` sums metrics in a fixed order. Integration and contact are
-per-particle already. The implicit integrator's own solver reductions are not covered here.
+A model takes one of three force paths, chosen when it is finalised and never per call:
 
-On the CPU every run is deterministic anyway (Warp runs a launch's threads in order); there the
-gather gives the same bits as the atomic kernel (see the kernel module's docstring).
+* lattice (``core/lattice_model.py``, ``kernels/lattice.py``): a jelly built as a regular lattice
+  stores no spring index arrays; each particle gathers its springs from the lattice stencil (CUDA)
+  or each jelly runs its row loops (CPU). No atomics, so it is deterministic as it stands.
+* spring list, atomic: one thread per spring adds its force to both particles with atomics; any
+  topology (``kernels/springs.py``). Fastest for a general spring list, but the order of the
+  atomic adds, and so the float sum, varies from run to run on CUDA.
+* spring list, deterministic (``softsim run --deterministic``): one thread per spring writes its
+  force, then one thread per particle sums its incident springs in ascending spring order from a
+  CSR list (:func:`attach`), bitwise-identical from run to run on CUDA as on the CPU.
+
+Determinism is this property of the force path; the per-frame metrics have their own fixed-order
+reduction (``io/metrics.py``). The implicit integrator's solver reductions are not covered.
 """
 
 from __future__ import annotations
 
 import numpy as np
 import warp as wp
+
+from .lattice_model import eval_lattice_forces
 
 
 def incident_springs_csr(pairs: np.ndarray, particle_count: int) -> tuple[np.ndarray, np.ndarray]:
@@ -68,7 +74,7 @@ def attach(model) -> None:
     model.deterministic = True
 
 
-def eval_spring_forces(model, q: wp.array, qd: wp.array, f_out: wp.array):
+def _eval_spring_forces_gathered(model, q: wp.array, qd: wp.array, f_out: wp.array):
     """Spring and damper forces of (q, qd) into ``f_out`` without atomics; every entry is written."""
     k = model.kernels
     if model.spring_count:
@@ -93,3 +99,31 @@ def eval_spring_forces(model, q: wp.array, qd: wp.array, f_out: wp.array):
         outputs=[f_out],
         device=model.device,
     )
+
+
+def eval_forces(model, q: wp.array, qd: wp.array, f_out: wp.array):
+    """Internal forces (springs and dampers) of the state (q, qd) into ``f_out``; gravity is added as an acceleration."""
+    if model.lattice is not None:
+        # Regular lattice: springs implicit in the lattice, each particle's force gathered (no atomics).
+        eval_lattice_forces(model, q, qd, f_out)
+        return
+    if model.deterministic:
+        # Spring list, atomic-free: per-spring forces, then a fixed-order gather per particle.
+        _eval_spring_forces_gathered(model, q, qd, f_out)
+        return
+    f_out.zero_()
+    if model.spring_count:
+        wp.launch(
+            model.kernels.eval_springs,
+            dim=model.spring_count,
+            inputs=[
+                model.spring_indices,
+                model.spring_rest_length,
+                model.spring_stiffness,
+                model.spring_damping,
+                q,
+                qd,
+            ],
+            outputs=[f_out],
+            device=model.device,
+        )

@@ -6,29 +6,9 @@ Everything here is host-side NumPy, run once when a model is built. Particle ``(
 
 from __future__ import annotations
 
-import itertools
-
 import numpy as np
 
-STRUCTURAL, SHEAR, BENDING = 0, 1, 2
-SPRING_TYPE_NAMES = ("structural", "shear", "bending")
-
-
-def _half_stencil(offsets):
-    """Keep one offset of each +/- pair (the lexicographically positive one), so each pair is listed once."""
-    return [o for o in offsets if o > (0, 0, 0)]
-
-
-# Structural: axis neighbours at offset 1. Shear: face and body diagonals of the 3x3x3 block.
-# Bending: axis neighbours at offset 2. Each stencil holds one offset per +/- pair.
-_AXES = [(1, 0, 0), (0, 1, 0), (0, 0, 1)]
-STENCILS = {
-    STRUCTURAL: _AXES,
-    SHEAR: _half_stencil(
-        [o for o in itertools.product((-1, 0, 1), repeat=3) if sum(abs(c) for c in o) >= 2]
-    ),
-    BENDING: [(2 * a, 2 * b, 2 * c) for a, b, c in _AXES],
-}
+from ..kernels.lattice import BENDING, SHEAR, SPRING_TYPE_NAMES, STENCILS, STRUCTURAL  # noqa: F401 - re-exported
 
 
 def lattice_index(i, j, k, shape):

@@ -11,7 +11,7 @@ import json
 import os
 from pathlib import Path
 
-from .errors import CommandLineError
+from ..core.errors import CommandLineError
 
 USD_SUFFIXES = (".usdc", ".usda", ".usd")
 

@@ -7,7 +7,7 @@ from __future__ import annotations
 
 import sys
 
-from .errors import CommandLineError, UserError
+from ..core.errors import CommandLineError, UserError
 
 COMMAND = "preview"
 
@@ -44,7 +44,7 @@ def _size(text):
 
 
 def run(args) -> int:
-    from .outputs import check_writable  # noqa: PLC0415
+    from ..io.outputs import check_writable  # noqa: PLC0415
 
     if not args.png and not args.gif:
         raise CommandLineError("softsim preview", "give --png FILE and/or --gif FILE")
@@ -59,7 +59,7 @@ def run(args) -> int:
     if args.gif:
         check_writable(args.gif, "--gif", suffixes=(".gif",))
     size = _size(args.size)
-    from . import preview  # noqa: PLC0415
+    from ..io import preview  # noqa: PLC0415
 
     try:
         if args.png and args.split:
@@ -82,7 +82,7 @@ def run(args) -> int:
 
 def render_gif_or_error(usd_path, gif_path, fps=None):
     """``softsim run --preview``: the GIF of a finished run; bad input becomes a one-line UserError."""
-    from . import preview  # noqa: PLC0415
+    from ..io import preview  # noqa: PLC0415
 
     try:
         count = preview.render_gif(usd_path, gif_path, fps=fps)
@@ -123,7 +123,7 @@ def render_split_png(usd_path, png_path, frame=None, time=None, size=None):
     import numpy as np  # noqa: PLC0415
     from pxr import Sdf, Usd, UsdGeom  # noqa: PLC0415
 
-    from . import preview  # noqa: PLC0415
+    from ..io import preview  # noqa: PLC0415
 
     path = os.path.abspath(os.fspath(usd_path))
     if not os.path.isfile(path):

@@ -30,7 +30,8 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 
-from .errors import CommandLineError, UserError
+from ..core.errors import CommandLineError, UserError
+from .common import resolve_device
 
 COMMAND = "bench"
 DEFAULT_INTEGRATORS = ("euler", "symplectic", "midpoint", "rk4")
@@ -62,7 +63,7 @@ class JellySpec:
 
 def build_jelly_model(size: int, spec: JellySpec, device, force_path="auto", precision="float32", copies=1):
     """The benchmark jelly (``copies`` of it, one per world, each on its own ground plane) as a Model."""
-    from .model import ModelBuilder  # noqa: PLC0415
+    from ..core.model import ModelBuilder  # noqa: PLC0415
 
     builder = ModelBuilder((0.0, spec.gravity, 0.0))
     edge = spec.spacing * (size - 1)
@@ -321,7 +322,8 @@ class _OurCase(_Case):
     """
 
     def __init__(self, model, method, dt, steps, use_graph, options=None):
-        from .integrators import ExplicitIntegrator, make_integrator  # noqa: PLC0415
+        from ..core.integrators import ExplicitIntegrator  # noqa: PLC0415
+        from ..core.stepper import make_integrator  # noqa: PLC0415
 
         options = dict(options or {})
         unpadded = options.pop("unpadded_states", False)
@@ -441,10 +443,10 @@ def add_parser(subparsers, add_common):
 def _versions(peer):
     import warp as wp  # noqa: PLC0415
 
-    from . import __version__  # noqa: PLC0415
+    from importlib.metadata import version  # noqa: PLC0415
 
     versions = {
-        "softsim": __version__,
+        "softsim": version("softsim-warp"),
         "warp": wp.config.version,
         "numpy": np.__version__,
         "python": platform.python_version(),
@@ -472,8 +474,7 @@ def _device_name(device) -> str:
 
 
 def run(args) -> int:
-    from .cli import resolve_device  # noqa: PLC0415
-    from .outputs import check_writable, save_report  # noqa: PLC0415
+    from ..io.outputs import check_writable, save_report  # noqa: PLC0415
 
     sizes = _parse_list(args.sizes, "--sizes", convert=int)
     if any(n < 2 for n in sizes):
@@ -508,8 +509,8 @@ def run(args) -> int:
     results, peers, gpu_clocks = [], [], []
 
     if args.scene:
-        from .model import build_model  # noqa: PLC0415
-        from .scene import load_scene  # noqa: PLC0415
+        from ..core.model import build_model  # noqa: PLC0415
+        from ..io.scene import load_scene  # noqa: PLC0415
 
         scene = load_scene(args.scene, args.overrides)
         groups = [

@@ -17,7 +17,7 @@ import numpy as np
 import warp as wp
 
 from . import lattice
-from .kernels.lattice import COEF_LENGTH, REST_SLOTS, common_coefficients, rest_slot
+from ..kernels.lattice import COEF_LENGTH, REST_SLOTS, common_coefficients, rest_slot
 
 # Rest lengths of one stencil offset count as one value when they agree to this relative
 # tolerance: float64 rounding of initial distances in a rotated lattice is ~1e-16.

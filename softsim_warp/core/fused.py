@@ -31,6 +31,8 @@ from __future__ import annotations
 
 import warp as wp
 
+from .contact import apply_contacts, filter_stage_contacts
+
 # Threads per block of the fused stage: Warp's 256, except 128 for the Warp-loop gather ("stencil",
 # 96 registers) from this many particles on. H200, fused symplectic / rk4 step at 100^3: stencil
 # 0.102 / 0.466 ms at 128 against 0.111 / 0.515 at 256 (third session); the padded native gather
@@ -110,8 +112,6 @@ def stage_buffers(integrator):
 
 def step_fused(integrator, state_in, state_out, dt):
     """One step with one fused kernel per stage (see the module docstring)."""
-    from .integrators import apply_contacts, filter_stage_contacts  # noqa: PLC0415
-
     model = integrator.model
     lat = model.lattice
     h = model.scalar(dt)

@@ -1,7 +1,7 @@
-"""Integrators: explicit Euler, symplectic Euler, midpoint and RK4 (and the seam for implicit).
+"""Integrators: the ``Integrator`` interface and explicit Euler, symplectic Euler, midpoint and RK4.
 
-Force evaluation (:func:`eval_forces`) is apart from integration: every method only combines
-evaluations of it. Contact (:func:`apply_contacts`) runs once per step on the result; see
+Force evaluation (:func:`softsim_warp.core.forces.eval_forces`) is apart from integration: every method only combines
+evaluations of it. Contact (:func:`softsim_warp.core.contact.apply_contacts`) runs once per step on the result; see
 ``kernels/contact.py`` for why it is not part of the stages. ``step`` only launches kernels: no
 NumPy, no host synchronisation, so a run of steps can be captured as a graph and replayed.
 """
@@ -11,7 +11,9 @@ from __future__ import annotations
 import numpy as np
 import warp as wp
 
-from . import deterministic
+from .contact import apply_contacts, filter_stage_contacts
+from .forces import eval_forces
+from .fused import configure_fused, stage_buffers, step_fused
 from .model import NUMPY_SCALARS, Model, State
 
 # Butcher tableaux of the explicit methods, as (c, b): stage s is evaluated at
@@ -34,132 +36,6 @@ ORDER = {"euler": 1, "symplectic": 1, "midpoint": 2, "rk4": 4, "implicit": 1}
 # so their positions carry it and the response adds nothing.
 CONTACT_BETA = {"euler": 0.0, "midpoint": 0.0, "rk4": 0.0, "symplectic": 1.0, "implicit": 1.0}
 MAX_STAGES = 4
-
-
-def eval_forces(model: Model, q: wp.array, qd: wp.array, f_out: wp.array):
-    """Internal forces (springs and dampers) of the state (q, qd) into ``f_out``; gravity is added as an acceleration."""
-    if getattr(model, "deterministic", False) and model.lattice is None:
-        # Atomic-free: per-spring forces, then a fixed-order gather per particle (deterministic.py).
-        deterministic.eval_spring_forces(model, q, qd, f_out)
-        return
-    if model.lattice is not None:
-        from .lattice_model import eval_lattice_forces  # noqa: PLC0415
-
-        eval_lattice_forces(model, q, qd, f_out)
-        return
-    f_out.zero_()
-    if model.spring_count:
-        wp.launch(
-            model.kernels.eval_springs,
-            dim=model.spring_count,
-            inputs=[
-                model.spring_indices,
-                model.spring_rest_length,
-                model.spring_stiffness,
-                model.spring_damping,
-                q,
-                qd,
-            ],
-            outputs=[f_out],
-            device=model.device,
-        )
-
-
-def apply_contacts(
-    model: Model, state_in: State, state_out: State, dt: float, world_contact_beta: wp.array, planes=True
-):
-    """Terrain contact on ``state_out`` after a step of ``dt`` from ``state_in``; one launch per primitive type present.
-
-    ``world_contact_beta`` is, per world, the integrator's position gain for a force held constant
-    over the step (x_{n+1} gains beta h^2 a): resting contact and friction shift positions by it.
-    ``planes=False`` skips the planes (a fused lattice stage has already applied them).
-    """
-    h = model.scalar(dt)
-    _launch_contacts(model, state_in, state_out.particle_q, state_out.particle_qd, h, world_contact_beta, planes, 0)
-    for hook in getattr(model, "contact_hooks", ()):
-        hook(model, state_in, state_out, h, world_contact_beta)
-
-
-def filter_stage_contacts(
-    model: Model, state_in: State, q_s: wp.array, qd_s: wp.array, world_contact_beta: wp.array, planes=True
-):
-    """Contact on an intermediate Runge-Kutta stage state (q_s, qd_s) = y_n + h c_s k, velocities only.
-
-    Only particles that the contact response would hold (resting contact, not an impact) change:
-    their stage velocity loses its approaching normal part and what friction takes of the
-    tangential one. Without this, a particle resting on terrain moves into it within the stage
-    (the stage state ignores the surface), and the dampers of its springs answer that fictitious
-    velocity: at the seed's kd = 60 that takes ~18 % off the normal force that the step's contact
-    then sees, but less off the tangential force, so friction holds less than mu and a resting
-    jelly creeps (7 mm/s on a 30 degree slope with mu = 0.7 under midpoint, where symplectic Euler,
-    one stage at y_n, holds). Impacts and positions are left to the post-step response, so no
-    impulse enters a stage state. Contact hooks are not applied here. ``planes=False`` skips the
-    planes (a fused lattice stage with contact has filtered them already).
-    """
-    _launch_contacts(model, state_in, q_s, qd_s, model.scalar(0.0), world_contact_beta, planes, 1)
-
-
-def _launch_contacts(model: Model, state_in: State, q_out, qd_out, h, world_contact_beta, planes, stage):
-    # (count, kernel, the kind's arrays): every collide_* kernel takes the same arguments around them.
-    kinds = (
-        (
-            model.plane_count if planes else 0,
-            model.kernels.collide_planes,
-            (
-                model.plane_first,
-                model.plane_point,
-                model.plane_normal,
-                model.plane_hole_center,
-                model.plane_hole_radius,
-                model.plane_restitution,
-                model.plane_friction,
-            ),
-        ),
-        (
-            model.bowl_count,
-            model.kernels.collide_bowls,
-            (
-                model.bowl_first,
-                model.bowl_center,
-                model.bowl_radius,
-                model.bowl_cut_height,
-                model.bowl_restitution,
-                model.bowl_friction,
-            ),
-        ),
-        (
-            model.sphere_count,
-            model.kernels.collide_spheres,
-            (
-                model.sphere_first,
-                model.sphere_center,
-                model.sphere_radius,
-                model.sphere_restitution,
-                model.sphere_friction,
-            ),
-        ),
-    )
-    for count, kernel, arrays in kinds:
-        if count:
-            wp.launch(
-                kernel,
-                dim=model.particle_count,
-                inputs=[
-                    model.particle_inv_mass,
-                    model.particle_world,
-                    *arrays,
-                    model.contact_epsilon,
-                    model.contact_velocity_epsilon,
-                    model.restitution_threshold_steps,
-                    h,
-                    world_contact_beta,
-                    stage,
-                    state_in.particle_q,
-                    state_in.particle_qd,
-                ],
-                outputs=[q_out, qd_out],
-                device=model.device,
-            )
 
 
 class Integrator:
@@ -186,7 +62,7 @@ class ExplicitIntegrator(Integrator):
         method: a method name for every world, or a list with one name per world (the copies of
             a side-by-side comparison advance in the same launches).
         fused, fuse_contact, block_dim, uniform, alternate: the lattice fast path's options
-            (:func:`softsim_warp.fastpath.configure_fused`); None picks what pays.
+            (:func:`softsim_warp.core.fused.configure_fused`); None picks what pays.
     """
 
     def __init__(
@@ -229,8 +105,8 @@ class ExplicitIntegrator(Integrator):
             np.array([CONTACT_BETA[name] for name in methods], dtype=np_scalar), dtype=model.scalar, device=device
         )
         # Lattice fast path: one fused kernel per stage (forces + stage update, plane contact on the
-        # last stage) where it pays; see softsim_warp/fastpath.py and docs/PERFORMANCE.md.
-        from .fastpath import configure_fused  # noqa: PLC0415
+        # last stage) where it pays; see softsim_warp/core/fused.py and docs/PERFORMANCE.md.
+        from .fused import configure_fused  # noqa: PLC0415
 
         configure_fused(self, fused, fuse_contact, block_dim, uniform, alternate)
         # Stage buffers, allocated once: forces, the stage state and the RK accumulators.
@@ -245,13 +121,13 @@ class ExplicitIntegrator(Integrator):
         self.acc_q = wp.zeros(n if multi else 0, dtype=model.vec3, device=device)
         self.acc_qd = wp.zeros(n if multi else 0, dtype=model.vec3, device=device)
         if self.fused:
-            from .fastpath import stage_buffers  # noqa: PLC0415
+            from .fused import stage_buffers  # noqa: PLC0415
 
             stage_buffers(self)
 
     def step(self, state_in: State, state_out: State, dt: float):
         if self.fused:
-            from .fastpath import step_fused  # noqa: PLC0415
+            from .fused import step_fused  # noqa: PLC0415
 
             step_fused(self, state_in, state_out, dt)
             return
@@ -286,12 +162,3 @@ class ExplicitIntegrator(Integrator):
             if stage < self.stage_count - 1:
                 filter_stage_contacts(model, state_in, q, qd, self.world_contact_beta)
         apply_contacts(model, state_in, state_out, dt, self.world_contact_beta)
-
-
-def make_integrator(name, model: Model, options: dict | None = None) -> Integrator:
-    """The integrator called ``name`` (or one name per world) for ``model``."""
-    if isinstance(name, str) and name == "implicit":
-        from .implicit import ImplicitIntegrator  # noqa: PLC0415 - optional until it exists
-
-        return ImplicitIntegrator(model, **(options or {}))
-    return ExplicitIntegrator(model, name)

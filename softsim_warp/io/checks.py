@@ -1,11 +1,11 @@
-"""Checks of a scene as a whole, run by :func:`softsim_warp.scene.validate` after the schema.
+"""Checks of a scene as a whole, run by :func:`softsim_warp.io.scene.validate` after the schema.
 
 The schema checks each value alone; these check what only the whole scene shows:
 
 * every number is representable in the scene's precision (a stiffness of 1e39 is finite in the
   TOML file but infinite in float32, and a mass of 1e-40 is zero there, so 1/m is infinite);
 * neighbouring particles are farther apart than the precision can resolve at their position;
-* the scene fits in host memory before anything is built (:mod:`softsim_warp.resources`);
+* the scene fits in host memory before anything is built (:mod:`softsim_warp.io.resources`);
 * no jelly starts inside terrain: every terrain type registers a signed-distance function in
   :data:`TERRAIN_SDF`, evaluated in NumPy on the jelly's initial particles.
 """
@@ -75,7 +75,7 @@ def jelly_points(jelly: dict, chunk: int = _CHUNK):
     Same placement as ``ModelBuilder.add_jelly``: the lattice centred on the origin, rotated, then
     moved to ``center``.
     """
-    from .model import rotation_matrix  # noqa: PLC0415
+    from ..core.model import rotation_matrix  # noqa: PLC0415
 
     shape = [int(n) for n in jelly["resolution"]]
     size = jelly["size"]

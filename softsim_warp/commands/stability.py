@@ -26,7 +26,7 @@ scene's dt) and bisected in log(dt) to a relative width of ``rtol``. It is measu
 * the **lattice**: a jelly of at most 4 particles per axis (``--lattice``) with the spacing, particle
   mass and springs of the scene's first jelly (``--jelly``),
   free (no gravity, no terrain), at rest, for ``steps`` steps. This is
-  the system the linear analysis of :mod:`~softsim_warp.stability_analysis` describes, so the two
+  the system the linear analysis of :mod:`~softsim_warp.core.stability_analysis` describes, so the two
   columns should agree; a finite run cannot see a growth slower than about ``ln(GROWTH)/steps``
   per step, so an instability that weak (euler on a nearly undamped mode) is reported as stable
   by the run.
@@ -46,8 +46,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .common import ALL_INTEGRATORS, check_positive, load_for_cli, parse_methods, parse_positive_list, resolve_device
+
 COMMAND = "stability"
-ALL_INTEGRATORS = ("euler", "symplectic", "midpoint", "rk4", "implicit")
 R_MAX = 100.0
 GROWTH = 2.0
 PERTURBATION = 1.0e-3
@@ -85,7 +86,7 @@ def small_lattice(jelly: dict, ks=None, undamped=False, max_n=LATTICE_MAX) -> di
 
 def predict(jelly_small: dict, methods) -> dict:
     """Linear prediction ``{method: dt}`` for a small-lattice jelly dict (see :func:`small_lattice`)."""
-    from .stability_analysis import predict_lattice_dt  # noqa: PLC0415
+    from ..core.stability_analysis import predict_lattice_dt  # noqa: PLC0415
 
     springs = jelly_small["springs"]
     return predict_lattice_dt(
@@ -96,7 +97,7 @@ def predict(jelly_small: dict, methods) -> dict:
 
 def lattice_model(jelly_small: dict, device, precision):
     """Model of the free small lattice: no gravity, no terrain."""
-    from .model import ModelBuilder  # noqa: PLC0415
+    from ..core.model import ModelBuilder  # noqa: PLC0415
 
     b = ModelBuilder(gravity=(0.0, 0.0, 0.0))
     size = [s if s > 0 else 1.0 for s in jelly_small["size"]]  # an axis of one particle has no extent
@@ -106,7 +107,7 @@ def lattice_model(jelly_small: dict, device, precision):
 
 def scene_model(scene, device, precision, undamped=False):
     """Model of the scene as given (with every kd set to 0 when ``undamped``)."""
-    from .model import build_model  # noqa: PLC0415
+    from ..core.model import build_model  # noqa: PLC0415
 
     if undamped:
         scene = copy.copy(scene)
@@ -153,7 +154,7 @@ def probe(model, integrator, dt, steps, *, displacement=None, samples=SAMPLES, u
     """
     import warp as wp  # noqa: PLC0415
 
-    from .simulate import Simulator  # noqa: PLC0415
+    from ..io.simulate import Simulator  # noqa: PLC0415
 
     t_start = time.perf_counter()
     chunk = max(1, math.ceil(steps / samples))
@@ -162,7 +163,7 @@ def probe(model, integrator, dt, steps, *, displacement=None, samples=SAMPLES, u
                     max_speed=math.inf)
     if displacement is not None:
         q0 = model.particle_q_host + displacement
-        from .model import NUMPY_SCALARS  # noqa: PLC0415
+        from ..core.model import NUMPY_SCALARS  # noqa: PLC0415
 
         sim.states[0].particle_q.assign(q0.astype(NUMPY_SCALARS[model.precision]))
     m0 = sim.probe.measure(sim.state, 0, 0.0)
@@ -245,12 +246,12 @@ def measure_limit(model, method, *, guess, steps=None, duration=None, max_dt, mi
     Raises:
         ImportError: when the integrator is not available.
     """
-    from .integrators import make_integrator  # noqa: PLC0415
+    from ..core.stepper import make_integrator  # noqa: PLC0415
 
     integ = make_integrator(method, model, options)
     disp = perturbation(model)
     # Compile once outside the timed probes.
-    from .simulate import Simulator  # noqa: PLC0415
+    from ..io.simulate import Simulator  # noqa: PLC0415
 
     Simulator(model, integ, guess, 1.0, 1, use_graph=False).warm_up()
     notes = []
@@ -312,7 +313,7 @@ def analyse(scene, integrators=ALL_INTEGRATORS, *, ks_values=DEFAULT_KS, device=
     available = []
     for method in integrators:
         try:
-            from .integrators import make_integrator  # noqa: PLC0415
+            from ..core.stepper import make_integrator  # noqa: PLC0415
 
             make_integrator(method, lattice_model(small_lattice(jelly, max_n=lattice_max), dev, precision), options)
             available.append(method)
@@ -373,7 +374,7 @@ def analyse(scene, integrators=ALL_INTEGRATORS, *, ks_values=DEFAULT_KS, device=
             f"lattice runs: {steps} steps of the free small lattice at rest; scene runs: {duration:g} s of the scene "
             f"as given; 'none' damping: every kd = 0"
         ),
-        "prediction": "linear stability analysis of the small lattice at rest (softsim_warp.stability_analysis)",
+        "prediction": "linear stability analysis of the small lattice at rest (softsim_warp.core.stability_analysis)",
         "limits": rows,
         "ks_map": ks_map,
         "skipped": skipped,
@@ -550,17 +551,15 @@ def add_parser(subparsers, add_common):
 
 
 def run(args) -> int:
-    from .accuracy import _check_positive, _parse_methods, _parse_positive_list  # noqa: PLC0415
-    from .cli import load_for_cli, resolve_device  # noqa: PLC0415
-    from .errors import CommandLineError  # noqa: PLC0415
-    from .outputs import check_writable, save_report  # noqa: PLC0415
+    from ..core.errors import CommandLineError  # noqa: PLC0415
+    from ..io.outputs import check_writable, save_report  # noqa: PLC0415
 
-    methods = _parse_methods(args.integrators)
+    methods = parse_methods(args.integrators)
     ks = () if args.ks and args.ks.strip().lower() == "none" else (
-        _parse_positive_list(args.ks, "--ks") if args.ks else DEFAULT_KS)
+        parse_positive_list(args.ks, "--ks") if args.ks else DEFAULT_KS)
     if args.steps < 10:
         raise CommandLineError("--steps", "must be an integer >= 10", args.steps)
-    _check_positive(args.duration, "--duration")
+    check_positive(args.duration, "--duration")
     if not 2 <= args.lattice <= 8:
         raise CommandLineError("--lattice", "must be an integer from 2 to 8", args.lattice)
     if not (0 < args.rtol < 1):

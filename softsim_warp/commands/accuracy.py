@@ -35,8 +35,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from .common import ALL_INTEGRATORS, check_positive, load_for_cli, parse_methods, parse_positive_list, resolve_device
+
 COMMAND = "accuracy"
-ALL_INTEGRATORS = ("euler", "symplectic", "midpoint", "rk4", "implicit")
 REFERENCE_METHOD = "rk4"
 REFERENCE_PRECISION = "float64"
 # Default reference step relative to the smallest step measured (see the module docstring).
@@ -117,7 +118,7 @@ def run_trajectory(scene, integrator, dt, *, device=None, precision=None, fps=No
     """Run ``scene`` with ``integrator`` at (frame-rounded) ``dt`` and keep every frame's positions.
 
     Args:
-        scene: a validated :class:`~softsim_warp.scene.Scene`.
+        scene: a validated :class:`~softsim_warp.io.scene.Scene`.
         integrator: method name (``make_integrator`` name).
         dt: requested step [s]; rounded with :func:`frame_dt`.
         device: Warp device.
@@ -135,9 +136,9 @@ def run_trajectory(scene, integrator, dt, *, device=None, precision=None, fps=No
     """
     import warp as wp  # noqa: PLC0415
 
-    from .integrators import make_integrator  # noqa: PLC0415
-    from .model import build_model  # noqa: PLC0415
-    from .simulate import Simulator  # noqa: PLC0415
+    from ..core.stepper import make_integrator  # noqa: PLC0415
+    from ..core.model import build_model  # noqa: PLC0415
+    from ..io.simulate import Simulator  # noqa: PLC0415
 
     fps = float(fps or scene.sim["fps"])
     frames = int(frames if frames is not None else scene.frame_count())
@@ -541,14 +542,6 @@ def plot_report(report: dict, path, title=None):
 # CLI
 
 
-def _float_list(text):
-    try:
-        values = [float(v) for v in text.replace(",", " ").split()]
-    except ValueError:
-        raise ValueError(text) from None
-    return values
-
-
 def add_parser(subparsers, add_common):
     p = subparsers.add_parser("accuracy", help="error against a float64 rk4 reference and wall time, per integrator and dt")
     p.add_argument("scene", help="scene file (.toml) or built-in scene name")
@@ -565,46 +558,14 @@ def add_parser(subparsers, add_common):
     add_common(p)
 
 
-def _parse_methods(text, flag="--integrators"):
-    from .errors import CommandLineError  # noqa: PLC0415
-
-    names = [n.strip() for n in text.split(",") if n.strip()]
-    for n in names:
-        if n not in ALL_INTEGRATORS:
-            raise CommandLineError(flag, f"unknown integrator; choose from {', '.join(ALL_INTEGRATORS)}", n)
-    if not names:
-        raise CommandLineError(flag, "needs at least one integrator", text)
-    return names
-
-
-def _parse_positive_list(text, flag):
-    from .errors import CommandLineError  # noqa: PLC0415
-
-    try:
-        values = _float_list(text)
-    except ValueError:
-        raise CommandLineError(flag, "must be a comma-separated list of numbers", text) from None
-    if not values or any(not math.isfinite(v) or v <= 0 for v in values):
-        raise CommandLineError(flag, "values must be finite and > 0", text)
-    return values
-
-
-def _check_positive(value, flag):
-    from .errors import CommandLineError  # noqa: PLC0415
-
-    if value is not None and (not math.isfinite(value) or value <= 0):
-        raise CommandLineError(flag, "must be finite and > 0", value)
-
-
 def run(args) -> int:
-    from .cli import load_for_cli, resolve_device  # noqa: PLC0415
-    from .errors import CommandLineError  # noqa: PLC0415
-    from .outputs import check_writable, save_report  # noqa: PLC0415
+    from ..core.errors import CommandLineError  # noqa: PLC0415
+    from ..io.outputs import check_writable, save_report  # noqa: PLC0415
 
-    methods = _parse_methods(args.integrators)
-    dts = _parse_positive_list(args.dts, "--dts") if args.dts else None
+    methods = parse_methods(args.integrators)
+    dts = parse_positive_list(args.dts, "--dts") if args.dts else None
     for flag in ("duration", "reference_dt", "fps"):
-        _check_positive(getattr(args, flag), "--" + flag.replace("_", "-"))
+        check_positive(getattr(args, flag), "--" + flag.replace("_", "-"))
     if args.out:
         check_writable(args.out, "--out")
     if args.plot:

@@ -66,7 +66,7 @@ def predicted_stable_dt(scene, method, jelly=0) -> float | None:
     and spring constants: the stiffest modes are local, so a small lattice predicts the limit.
     """
     try:
-        from .stability_analysis import predict_lattice_dt  # noqa: PLC0415
+        from ..core.stability_analysis import predict_lattice_dt  # noqa: PLC0415
     except ImportError:
         return None
     j = scene.jellies[jelly]

@@ -38,7 +38,7 @@ block matrix for the same loop and ``"warp_cg"`` hands that matrix to ``warp.opt
 the device and runs under ``wp.capture_while``: on CUDA the loop is a conditional graph node (no
 host synchronisation), on the CPU the condition is read directly from memory.
 
-Contact: the shared post-step response (:func:`~softsim_warp.integrators.apply_contacts`:
+Contact: the shared post-step response (:func:`~softsim_warp.core.integrators.apply_contacts`:
 collision, resting contact, Coulomb friction) decides which particles touch and what happens to
 them, as for the explicit integrators; but on its own it breaks a stiff jelly at a large step.
 A stiff jelly is nearly rigid within one step, yet the response changes only the particles that
@@ -84,15 +84,17 @@ import warp as wp
 import warp.optim.linear
 import warp.sparse
 
-from .integrators import Integrator, apply_contacts, eval_forces
-from .kernels import implicit as ki
+from .contact import apply_contacts
+from .forces import eval_forces
+from .integrators import Integrator
+from ..kernels import implicit as ki
 from .model import Model, State
 
 PRECONDITIONERS = ("block_jacobi", "jacobi")
 LINEARIZATIONS = ("predictor", "baraff_witkin")
 SOLVERS = ("matrix_free", "bsr", "warp_cg")
 
-# Defaults; the scene's optional [implicit] table overrides them (softsim_warp/scene.py).
+# Defaults; the scene's optional [implicit] table overrides them (softsim_warp/io/scene.py).
 DEFAULT_NEWTON_ITERATIONS = 1
 DEFAULT_CG_TOLERANCE = 1.0e-4
 DEFAULT_CG_MAX_ITERATIONS = 200

@@ -12,7 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
-from . import lattice
+from ..core import lattice
 
 SPRING_COLORS = {  # the seed's colours: structural blue, shear yellow, bending green
     "structural": (0.2, 0.4, 1.0),

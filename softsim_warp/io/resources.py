@@ -6,10 +6,10 @@ nothing to count). :func:`estimate` turns the counts into bytes, split into host
 builder and the USD time samples, which a USD layer keeps in memory until the run ends) and device
 memory (model, states, integrator stage buffers); on the CPU device both live in host RAM.
 :func:`check_fits` compares that with what is available and raises a one-line
-:class:`~softsim_warp.errors.SceneError` naming the estimate and the space available.
+:class:`~softsim_warp.core.errors.SceneError` naming the estimate and the space available.
 
-The per-item byte counts below follow the arrays that ``model.py``, ``integrators.py``,
-``simulate.py`` and ``usd_io.py`` allocate; the builder's peak was measured with ``tracemalloc``
+The per-item byte counts below follow the arrays that ``model.py``, ``softsim_warp/core/integrators.py``,
+``softsim_warp/io/simulate.py`` and ``softsim_warp/io/usd.py`` allocate; the builder's peak was measured with ``tracemalloc``
 (about 87 bytes per spring while the lattice stencils are expanded in int64 and the builder's
 float64 copies exist side by side) and is rounded up here.
 """
@@ -67,7 +67,7 @@ class Counts:
 
 def lattice_spring_count(shape, types=("structural", "shear", "bending")) -> int:
     """Springs of a lattice of ``shape`` for the given types, counted from the stencils alone."""
-    from . import lattice  # noqa: PLC0415
+    from ..core import lattice  # noqa: PLC0415
 
     total = 0
     for t, stencil in lattice.STENCILS.items():
@@ -174,7 +174,7 @@ def _largest_jelly_key(c: Counts) -> tuple[str, list]:
 
 def check_host_build(data: dict, source: str, available=None):
     """Refuse a scene whose builder alone would not fit in host memory (called by validation)."""
-    from .errors import SceneError  # noqa: PLC0415
+    from ..core.errors import SceneError  # noqa: PLC0415
 
     est = estimate(data)
     need = est.host_build
@@ -204,7 +204,7 @@ def check_fits(
 
     ``host_available`` and ``device_free`` override what is measured (for tests).
     """
-    from .errors import SceneError  # noqa: PLC0415
+    from ..core.errors import SceneError  # noqa: PLC0415
 
     est = estimate(scene.data, integrator, frames, usd_springs, deterministic)
     host_need, device_need = est.on(device.is_cuda)

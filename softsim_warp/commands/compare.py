@@ -1,7 +1,7 @@
 """``softsim compare``: one scene under several integrators or parameter values, side by side.
 
 Every variant becomes one *world* (a copy) of a single model, so one launch of each kernel
-advances all copies: :class:`~softsim_warp.integrators.ExplicitIntegrator` takes one method per
+advances all copies: :class:`~softsim_warp.core.integrators.ExplicitIntegrator` takes one method per
 world, and springs and contacts only ever join particles and terrain of the same world. The
 copies are laid out in a grid in one USD stage, each under ``/World/<variant>``, in the order
 given (four variants make the report's 2x2: explicit Euler, implicit Euler / midpoint, RK4).
@@ -30,7 +30,8 @@ from pathlib import Path
 
 import numpy as np
 
-from .errors import CommandLineError, SceneError, UserError
+from ..core.errors import CommandLineError, SceneError, UserError
+from . import common
 
 COMMAND = "compare"
 DEFAULT_INTEGRATORS = ("euler", "implicit", "midpoint", "rk4")  # the report's 2x2
@@ -74,8 +75,7 @@ def add_parser(subparsers, add_common):
 
 
 def run(args) -> int:
-    from . import cli  # noqa: PLC0415 - shared helpers of the run command
-    from .outputs import check_writable  # noqa: PLC0415
+    from ..io.outputs import check_writable  # noqa: PLC0415
 
     plan = plan_variants(args)
     out = check_writable(args.out or f"{Path(plan.source).stem}_compare.usdc", "--out", suffixes=(".usdc", ".usda", ".usd"))
@@ -87,7 +87,7 @@ def run(args) -> int:
         raise CommandLineError("--columns", "must be an integer >= 1", args.columns)
     if args.gap is not None and not (math.isfinite(args.gap) and args.gap >= 0):
         raise CommandLineError("--gap", "must be a finite number >= 0", args.gap)
-    device = cli.resolve_device(args.device)
+    device = common.resolve_device(args.device)
 
     progress = None
     if not args.quiet:
@@ -96,7 +96,8 @@ def run(args) -> int:
         progress = tqdm(total=plan.frames + 1, unit="frame", desc=f"{plan.name} x{len(plan.variants)}",
                         file=sys.stderr, leave=False)
     try:
-        with cli._Signals() as signals:
+        with common.Signals() as signals:
+            common.ACTIVE_SIGNALS = signals
             result = run_comparison(plan, device, out, metrics_path=args.metrics, plot_path=args.plot,
                                     columns=args.columns, gap=args.gap, springs=args.springs,
                                     use_graph=None if not args.no_graph else False, progress=progress,
@@ -115,7 +116,7 @@ def run(args) -> int:
     if exploded:
         print(f"error: {plan.source}: copies exploded: {', '.join(exploded)}; the others ran to the end and every "
               "frame was kept (an exploded copy stays at its last finite frame)", file=sys.stderr)
-        return cli.EXIT_EXPLODED
+        return common.EXIT_EXPLODED
     return 0
 
 
@@ -199,7 +200,7 @@ def short_keys(keys: list[str]) -> dict:
 
 
 def _parse_vary(items) -> list[tuple[str, list]]:
-    from .scene import parse_override  # noqa: PLC0415
+    from ..io.scene import parse_override  # noqa: PLC0415
 
     varies = []
     for item in items:
@@ -228,11 +229,10 @@ def _parse_vary(items) -> list[tuple[str, list]]:
 
 def plan_variants(args) -> Plan:
     """Load the scene (with --set and flags), expand --integrators x --vary and validate every copy."""
-    from . import cli  # noqa: PLC0415
-    from . import scene as scene_mod  # noqa: PLC0415
+    from ..io import scene as scene_mod  # noqa: PLC0415
 
     path, source, base = scene_mod.read_scene_data(args.scene)
-    items = [scene_mod.parse_override(item) for item in args.overrides] + cli._flag_overrides(args)
+    items = [scene_mod.parse_override(item) for item in args.overrides] + common.flag_overrides(args)
     scene_mod.apply_overrides(base, items)
 
     varies = _parse_vary(args.vary)
@@ -382,8 +382,9 @@ class _Group:
     """Variants advanced by one model and one integrator (the explicit batch, or one implicit copy)."""
 
     def __init__(self, variants, builder_fn, device, precision, dt, fps, frames, use_graph, max_speed):
-        from .integrators import ExplicitIntegrator, make_integrator  # noqa: PLC0415
-        from .simulate import Simulator  # noqa: PLC0415
+        from ..core.integrators import ExplicitIntegrator  # noqa: PLC0415
+        from ..core.stepper import make_integrator  # noqa: PLC0415
+        from ..io.simulate import Simulator  # noqa: PLC0415
 
         self.variants = variants
         self.model = builder_fn([v.data for v in variants]).finalize(device, precision)
@@ -403,7 +404,7 @@ class _Group:
 
 
 def _make_builder(datas):
-    from .model import ModelBuilder, populate  # noqa: PLC0415
+    from ..core.model import ModelBuilder, populate  # noqa: PLC0415
 
     builder = ModelBuilder(datas[0]["simulation"]["gravity"])
     for w, data in enumerate(datas):
@@ -413,8 +414,8 @@ def _make_builder(datas):
 
 def _variant_speed_bound(model, start, end, world):
     """The explosion speed bound a single run of this copy would use (see simulate.speed_bound)."""
-    from .model import terrain_anchors  # noqa: PLC0415
-    from .simulate import speed_bound  # noqa: PLC0415
+    from ..core.model import terrain_anchors  # noqa: PLC0415
+    from ..io.metrics import speed_bound  # noqa: PLC0415
 
     qd = model.particle_qd.numpy()[start:end]
     # speed_bound reads only these host-side fields; this view holds one world's share of them.
@@ -456,8 +457,8 @@ def run_comparison(plan: Plan, device, out, metrics_path=None, plot_path=None, c
     import warp as wp  # noqa: PLC0415
 
     wp.config.quiet = True
-    from .outputs import write_json_atomic  # noqa: PLC0415
-    from .usd_io import UsdWriter  # noqa: PLC0415
+    from ..io.outputs import write_json_atomic  # noqa: PLC0415
+    from ..io.usd import UsdWriter  # noqa: PLC0415
 
     variants = plan.variants
     precision = plan.sim["precision"]

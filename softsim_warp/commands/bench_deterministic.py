@@ -2,8 +2,8 @@
 
 Run::
 
-    python -m softsim_warp.bench_deterministic --device cpu --json bench_det_cpu.json
-    python -m softsim_warp.bench_deterministic --device cuda:0 --res 10 40 100 --json bench_det_cuda.json
+    python -m softsim_warp.commands.bench_deterministic --device cpu --json bench_det_cpu.json
+    python -m softsim_warp.commands.bench_deterministic --device cuda:0 --res 10 40 100 --json bench_det_cuda.json
 
 For each lattice resolution and integrator it builds the jelly_drop scene three times: the spring
 list with atomic adds (``atomic``), the spring list with the fixed-order CSR gather
@@ -31,9 +31,9 @@ class Case:
     def __init__(self, device, res, integrator, deterministic, steps, dt=1e-4, force_path="springs"):
         import warp as wp  # noqa: PLC0415
 
-        from .integrators import make_integrator  # noqa: PLC0415
-        from .model import build_model  # noqa: PLC0415
-        from .scene import load_scene  # noqa: PLC0415
+        from ..core.stepper import make_integrator  # noqa: PLC0415
+        from ..core.model import build_model  # noqa: PLC0415
+        from ..io.scene import load_scene  # noqa: PLC0415
 
         self.wp, self.device, self.steps, self.dt = wp, device, steps, dt
         scene = load_scene("jelly_drop", [f"jelly.0.resolution=[{res},{res},{res}]"])
@@ -103,7 +103,7 @@ def compare(device, res, integrator, steps, repeats) -> dict:
 
 
 def main(argv=None) -> int:
-    p = argparse.ArgumentParser(prog="python -m softsim_warp.bench_deterministic", description=__doc__.splitlines()[0])
+    p = argparse.ArgumentParser(prog="python -m softsim_warp.commands.bench_deterministic", description=__doc__.splitlines()[0])
     p.add_argument("--device", default="cpu")
     p.add_argument("--res", type=int, nargs="+", default=[10, 20, 30], help="particles per axis")
     p.add_argument("--integrators", nargs="+", default=["symplectic", "rk4"])

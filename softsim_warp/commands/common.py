@@ -1,0 +1,186 @@
+"""What every ``softsim`` subcommand shares: Warp start-up, the device, the scene with overrides,
+signal handling and the parsing of list-valued flags.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import re
+import signal
+import sys
+import tempfile
+
+from ..core.errors import CommandLineError, SceneError
+from ..io import scene as scene_mod
+
+EXIT_EXPLODED = 3
+ALL_INTEGRATORS = ("euler", "symplectic", "midpoint", "rk4", "implicit")
+
+
+def add_common(p: argparse.ArgumentParser):
+    p.add_argument("--device", default="cpu", help="Warp device: cpu or cuda:N (default cpu)")
+    p.add_argument("--set", dest="overrides", action="append", default=[], metavar="KEY=VALUE",
+                   help="override a scene value by dotted key, e.g. jelly.0.springs.shear.ks=500 (repeatable)")
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.add_argument("--debug", action="store_true", help="show tracebacks for errors and Warp's start-up messages")
+
+
+def _number(text: str):
+    """A flag's text as an int or float when it reads as one (nan and inf included), else the text."""
+    if not isinstance(text, str):  # already parsed by argparse (type=float)
+        return text
+    for kind in (int, float):
+        try:
+            return kind(text)
+        except ValueError:
+            pass
+    return text
+
+
+def flag_overrides(args) -> list:
+    """Command-line flags become scene overrides, so they are validated like the file's values."""
+    out = []
+    for flag, key in (("integrator", "simulation.integrator"), ("dt", "simulation.dt"), ("fps", "simulation.fps"),
+                      ("precision", "simulation.precision"), ("duration", "simulation.duration"),
+                      ("frames", "simulation.frames")):
+        value = getattr(args, flag, None)
+        if value is not None:
+            out.append((key, value if flag in ("integrator", "precision") else _number(value)))
+    return out
+
+
+def load_for_cli(args):
+    """Load the scene named on the command line with --set and flag overrides applied and validated."""
+    path, source, data = scene_mod.read_scene_data(args.scene)
+    items = [scene_mod.parse_override(item) for item in args.overrides] + flag_overrides(args)
+    scene_mod.apply_overrides(data, items)
+    validated = scene_mod.validate(data, source)
+    sim = validated["simulation"]
+    if sim["dt"] > 1.0 / sim["fps"]:
+        raise SceneError(source, "simulation.dt", f"must not exceed the frame interval 1/fps = {1.0 / sim['fps']:g} s", sim["dt"])
+    return scene_mod.Scene(validated, source=source, name=validated.get("name", path.stem))
+
+
+def init_warp(debug=False):
+    """Import and initialise Warp without its banner, module-load lines or missing-driver notice.
+
+    A user error must read as one line; Warp prints a start-up banner and, on a machine without a
+    CUDA driver, a notice from native code straight to file descriptor 2. Both are held back
+    unless ``debug``.
+    """
+    import warp as wp  # noqa: PLC0415
+
+    if debug:
+        wp.init()
+        return wp
+    wp.config.log_level = wp.LOG_WARNING
+    sys.stderr.flush()
+    saved = os.dup(2)
+    with tempfile.TemporaryFile() as held:
+        os.dup2(held.fileno(), 2)
+        try:
+            wp.init()
+        finally:
+            os.dup2(saved, 2)
+            os.close(saved)
+    return wp
+
+
+def resolve_device(name: str, debug=False):
+    """The Warp device called ``name``; an unknown or absent one is a one-line user error."""
+    wp = init_warp(debug)
+    if not re.fullmatch(r"cpu|cuda(:\d+)?", name or ""):
+        names = ", ".join(d.alias for d in wp.get_devices())
+        raise CommandLineError("--device", f"unknown device name; use cpu or cuda:N (available here: {names})", name)
+    try:
+        return wp.get_device(name)
+    except (RuntimeError, ValueError, TypeError):
+        names = ", ".join(d.alias for d in wp.get_devices())
+        raise CommandLineError("--device", f"device not available here; available: {names}", name) from None
+
+
+def check_deterministic(integrator: str, device):
+    """--deterministic covers force and metric sums; the implicit solver's own sums use atomics.
+
+    On the CPU every run is deterministic anyway; on CUDA the combination is refused rather than
+    promised and not kept.
+    """
+    if device.is_cuda and integrator == "implicit":
+        raise CommandLineError(
+            "--deterministic",
+            "not available with the implicit integrator on CUDA (its solver sums with atomics); "
+            "use an explicit integrator, or --device cpu",
+            integrator,
+        )
+
+
+class Signals:
+    """Turns SIGINT/SIGTERM into a request to stop after the current frame.
+
+    A second signal stops at once (KeyboardInterrupt) while frames are computed, but not while
+    the output is being closed: a file half renamed is worse than waiting a moment.
+    """
+
+    def __init__(self):
+        self.received = None
+        self.closing = False
+        self.busy = lambda: False  # True while a frame is being written: a stop-now waits for it
+
+    def __enter__(self):
+        self._old = {}
+        for sig in (signal.SIGINT, signal.SIGTERM):
+            self._old[sig] = signal.signal(sig, self._handle)
+        return self
+
+    def _handle(self, signum, frame):
+        if self.received is not None and not self.closing and not self.busy():  # a second signal: stop now
+            raise KeyboardInterrupt
+        if self.received is None:
+            self.received = signum
+
+    def __exit__(self, *exc):
+        for sig, old in self._old.items():
+            signal.signal(sig, old)
+        return False
+
+
+ACTIVE_SIGNALS = None  # the running command's Signals, for main's exit code after a stop-now
+
+
+def received_signal() -> int:
+    """The signal that stopped the running command (SIGINT when none was recorded)."""
+    return int(getattr(ACTIVE_SIGNALS, "received", None) or signal.SIGINT)
+
+
+def float_list(text):
+    try:
+        values = [float(v) for v in text.replace(",", " ").split()]
+    except ValueError:
+        raise ValueError(text) from None
+    return values
+
+
+def parse_methods(text, flag="--integrators"):
+    names = [n.strip() for n in text.split(",") if n.strip()]
+    for n in names:
+        if n not in ALL_INTEGRATORS:
+            raise CommandLineError(flag, f"unknown integrator; choose from {', '.join(ALL_INTEGRATORS)}", n)
+    if not names:
+        raise CommandLineError(flag, "needs at least one integrator", text)
+    return names
+
+
+def parse_positive_list(text, flag):
+    try:
+        values = float_list(text)
+    except ValueError:
+        raise CommandLineError(flag, "must be a comma-separated list of numbers", text) from None
+    if not values or any(not math.isfinite(v) or v <= 0 for v in values):
+        raise CommandLineError(flag, "values must be finite and > 0", text)
+    return values
+
+
+def check_positive(value, flag):
+    if value is not None and (not math.isfinite(value) or value <= 0):
+        raise CommandLineError(flag, "must be finite and > 0", value)

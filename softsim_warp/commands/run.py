@@ -1,0 +1,119 @@
+"""``softsim run``: simulate a scene and write its USD animation (and metrics, and a preview GIF).
+
+User errors (bad scene values, unknown names, unwritable outputs) print one line and exit with 2;
+an exploded run exits with 3, an interrupted one with 130 (SIGINT) or 143 (SIGTERM); the files
+written up to that point stay valid.
+"""
+
+from __future__ import annotations
+
+import signal
+import sys
+from pathlib import Path
+
+from ..core.model import build_model
+from ..core.stepper import make_integrator
+from ..io.outputs import check_outputs, check_writable, write_json_atomic
+from ..io.resources import check_fits
+from ..io.runinfo import explosion_message, summary_dict, summary_line
+from ..io.simulate import Simulator
+from ..io.usd import UsdWriter
+from . import common
+from .common import EXIT_EXPLODED, Signals, check_deterministic, load_for_cli, resolve_device
+
+COMMAND = "run"
+
+
+def add_parser(subparsers, add_common):
+    run = subparsers.add_parser("run", help="simulate a scene and write a USD animation")
+    run.add_argument("scene", help="scene file (.toml) or built-in scene name (see `softsim scenes`)")
+    # Scene-valued flags are taken as text and validated by the scene schema, so `--dt -1` and
+    # `--set simulation.dt=-1` get the same message.
+    run.add_argument("--integrator", help="euler, symplectic, midpoint, rk4 or implicit")
+    run.add_argument("--dt", help="step size [s]")
+    g = run.add_mutually_exclusive_group()
+    g.add_argument("--duration", help="simulated seconds")
+    g.add_argument("--frames", help="output frames after frame 0")
+    run.add_argument("--fps", help="output frames per second")
+    run.add_argument("--precision", help="scalar type of every kernel: float32 or float64")
+    run.add_argument("--deterministic", action="store_true",
+                     help="atomic-free force and metric sums: bitwise-identical runs on CUDA too (CPU runs always are)")
+    run.add_argument("--out", default=None, help="USD output (.usdc or .usda; default <scene>.usdc)")
+    run.add_argument("--metrics", help="write per-frame metrics as JSON")
+    run.add_argument("--springs", action="store_true", help="also write springs as BasisCurves")
+    run.add_argument("--no-graph", action="store_true", help="launch kernels one by one instead of replaying a captured graph")
+    run.add_argument("--preview", metavar="GIF", help="also render the written USD to this animated GIF (softsim preview)")
+    add_common(run)
+
+
+
+def run(args) -> int:
+    # Signals are caught from the start: one that arrives before the first frame ends the run
+    # with 128 + signum and leaves no output, one during the run stops it after that frame.
+    with Signals() as signals:
+        common.ACTIVE_SIGNALS = signals
+        return _run(args, signals)
+
+
+def _run(args, signals) -> int:
+    scene = load_for_cli(args)
+    out, metrics_path = check_outputs(
+        args.out or f"{Path(scene.source).stem}.usdc", args.metrics, scene_path=scene.source
+    )
+    if args.preview:
+        check_writable(args.preview, "--preview", suffixes=(".gif",))
+    device = resolve_device(args.device, args.debug)
+    sim = scene.sim
+    if args.deterministic:
+        check_deterministic(sim["integrator"], device)
+    frames = scene.frame_count()
+    check_fits(scene, device, sim["integrator"], frames, usd_springs=args.springs, deterministic=args.deterministic)
+
+    model = build_model(scene, device=device, deterministic=args.deterministic)
+    integrator = make_integrator(sim["integrator"], model, scene.data.get("implicit"))
+    simulator = Simulator(model, integrator, sim["dt"], sim["fps"], frames, use_graph=None if not args.no_graph else False,
+                          max_speed=sim.get("max_speed"))
+    if signals.received is not None:
+        return 128 + int(signals.received)
+    writer = UsdWriter(out, model, sim["fps"], springs=args.springs,
+                       metadata={"softsim:scene": scene.name, "softsim:integrator": sim["integrator"], "softsim:dt": sim["dt"],
+                                 "softsim:deterministic": bool(args.deterministic)})
+    progress = None
+    if not args.quiet:
+        from tqdm import tqdm  # noqa: PLC0415
+
+        progress = tqdm(total=frames + 1, unit="frame", desc=f"{scene.name} {sim['integrator']}", file=sys.stderr, leave=False)
+    simulator.stop_requested = lambda: signals.received
+    signals.busy = lambda: simulator.writing
+    try:
+        result = simulator.run([writer], progress=progress)
+    except BaseException as exc:
+        signals.closing = True
+        writer.close(status="interrupted" if isinstance(exc, KeyboardInterrupt) else "failed",
+                     extra={"softsim:frames": writer.last_frame + 1})
+        raise
+    finally:
+        if progress is not None:
+            progress.close()
+    signals.closing = True
+    status = "exploded" if result.exploded else ("interrupted" if result.interrupted else "complete")
+    summary = summary_dict(scene, model, integrator, simulator, result, device)
+    summary["status"] = status
+    summary["deterministic"] = bool(args.deterministic)
+    if result.exploded:
+        message = explosion_message(scene, model, result)
+        summary["explosion"]["message"] = message
+    writer.close(status=status, extra={"softsim:frames": result.frames_written})
+    if metrics_path is not None:
+        write_json_atomic(metrics_path, {"summary": summary, "frames": [m.as_dict() for m in result.metrics]})
+    print(summary_line(summary, out), file=sys.stderr)
+    if args.preview and result.frames_written:
+        from .preview import render_gif_or_error  # noqa: PLC0415
+
+        render_gif_or_error(out, args.preview)
+    if result.exploded:
+        print("error: " + message, file=sys.stderr)
+        return EXIT_EXPLODED
+    if result.interrupted:
+        return 128 + int(signals.received or signal.SIGINT)
+    return 0

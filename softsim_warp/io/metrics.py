@@ -1,0 +1,248 @@
+"""Per-frame metrics: energies, centre of mass, peak speed and non-finite counts, reduced on the device.
+
+:class:`MetricsProbe` sums with atomics; :class:`DeterministicMetricsProbe` (``--deterministic``
+runs) sums in a fixed order, chunks of particles and then jellies, so the metrics of two runs
+agree bit for bit on CUDA too. :func:`make_probe` picks the one the model asks for.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+import warp as wp
+
+from ..core.model import Model, State
+
+
+@dataclass
+class FrameMetrics:
+    """Whole-scene quantities of one output frame (SI units)."""
+
+    frame: int
+    time: float
+    com: list
+    kinetic_energy: float
+    spring_energy: float
+    gravity_energy: float
+    total_energy: float
+    max_speed: float
+    nonfinite: int
+    jellies: list = field(default_factory=list)
+
+    def as_dict(self) -> dict:
+        d = {
+            "frame": self.frame,
+            "time": self.time,
+            "com": self.com,
+            "kinetic_energy": self.kinetic_energy,
+            "spring_energy": self.spring_energy,
+            "gravity_energy": self.gravity_energy,
+            "total_energy": self.total_energy,
+            "max_speed": self.max_speed,
+        }
+        if len(self.jellies) > 1:
+            d["jellies"] = [{k: v for k, v in j.items() if k != "nonfinite"} for j in self.jellies]
+        return d
+
+
+class MetricsProbe:
+    """Reduces a state to :class:`FrameMetrics` on the device; one small device-to-host copy per call."""
+
+    def __init__(self, model: Model):
+        self.model = model
+        j = max(len(model.jellies), 1)
+        dev = model.device
+        self.kinetic = wp.zeros(j, dtype=model.scalar, device=dev)
+        self.gravity_energy = wp.zeros(j, dtype=model.scalar, device=dev)
+        self.spring_energy = wp.zeros(j, dtype=model.scalar, device=dev)
+        self.moment = wp.zeros(j, dtype=model.vec3, device=dev)
+        self.max_speed = wp.zeros(j, dtype=model.scalar, device=dev)
+        self.nonfinite = wp.zeros(j, dtype=wp.int32, device=dev)
+        masses = np.zeros(j)
+        for k, info in enumerate(model.jellies):
+            masses[k] = model.particle_mass_host[info.particle_start : info.particle_start + info.particle_count].sum()
+        self.jelly_mass = masses
+
+    def _reduce(self, state: State):
+        """Fill the per-jelly arrays for ``state`` (atomics; see DeterministicMetricsProbe for fixed order)."""
+        m = self.model
+        for a in (self.kinetic, self.gravity_energy, self.spring_energy, self.moment, self.max_speed, self.nonfinite):
+            a.zero_()
+        wp.launch(
+            m.kernels.reduce_particles,
+            dim=m.particle_count,
+            inputs=[m.particle_mass, m.particle_jelly, m.gravity, state.particle_q, state.particle_qd],
+            outputs=[self.kinetic, self.gravity_energy, self.moment, self.max_speed, self.nonfinite],
+            device=m.device,
+        )
+        if m.spring_count and m.lattice is not None:
+            # Lattice path: the same energy from the stencil, without making the spring arrays.
+            lat = m.lattice
+            wp.launch(
+                m.kernels.reduce_lattice_springs,
+                dim=m.particle_count,
+                inputs=[m.particle_jelly, lat.jelly_start, lat.jelly_shape, lat.jelly_types, lat.jelly_rest, lat.jelly_ks,
+                        state.particle_q],
+                outputs=[self.spring_energy],
+                device=m.device,
+            )
+        elif m.spring_count:
+            wp.launch(
+                m.kernels.reduce_springs,
+                dim=m.spring_count,
+                inputs=[m.spring_indices, m.spring_rest_length, m.spring_stiffness, m.particle_jelly, state.particle_q],
+                outputs=[self.spring_energy],
+                device=m.device,
+            )
+
+    def measure(self, state: State, frame: int, t: float) -> FrameMetrics:
+        self._reduce(state)
+        ke = self.kinetic.numpy().astype(np.float64)
+        ge = self.gravity_energy.numpy().astype(np.float64)
+        se = self.spring_energy.numpy().astype(np.float64)
+        mom = self.moment.numpy().astype(np.float64)
+        vmax = self.max_speed.numpy().astype(np.float64)
+        bad = self.nonfinite.numpy()
+        total_mass = self.jelly_mass.sum()
+        com = (mom.sum(axis=0) / total_mass).tolist() if total_mass > 0 else [0.0, 0.0, 0.0]
+        jellies = []
+        for k in range(len(ke)):
+            mk = self.jelly_mass[k]
+            jellies.append(
+                {
+                    "com": (mom[k] / mk).tolist() if mk > 0 else [0.0, 0.0, 0.0],
+                    "kinetic_energy": float(ke[k]),
+                    "spring_energy": float(se[k]),
+                    "gravity_energy": float(ge[k]),
+                    "total_energy": float(ke[k] + se[k] + ge[k]),
+                    "max_speed": float(vmax[k]),
+                    "nonfinite": int(bad[k]),
+                }
+            )
+        return FrameMetrics(
+            frame=frame,
+            time=t,
+            com=com,
+            kinetic_energy=float(ke.sum()),
+            spring_energy=float(se.sum()),
+            gravity_energy=float(ge.sum()),
+            total_energy=float(ke.sum() + se.sum() + ge.sum()),
+            max_speed=float(vmax.max()) if len(vmax) else 0.0,
+            nonfinite=int(bad.sum()),
+            jellies=jellies,
+        )
+
+
+def speed_bound(model: Model) -> float:
+    """Speed above which a run is called exploded [m/s].
+
+    Ten times the largest speed the scene can reach by falling: its initial particle speed plus
+    sqrt(2 |g| D), D the diagonal of the box holding the initial particles and the terrain
+    anchors, plus 1 m/s so that a scene at rest has a sensible bound.
+    """
+    pts = [model.particle_q_host]
+    pts += [np.atleast_2d(p["point"]) for p in model.planes]
+    pts += [np.atleast_2d(np.asarray(p)) for p in getattr(model, "terrain_anchor_points", [])]
+    allp = np.concatenate(pts)
+    diag = float(np.linalg.norm(allp.max(axis=0) - allp.min(axis=0)))
+    v0 = float(np.linalg.norm(model.particle_qd.numpy(), axis=1).max()) if model.particle_count else 0.0
+    g = float(np.linalg.norm(model.gravity_host))
+    return 10.0 * (v0 + math.sqrt(2.0 * g * diag) + 1.0)
+
+
+CHUNK = 256
+"""Consecutive particles (springs) summed by one thread of a deterministic metrics reduction."""
+
+
+def _chunks(owner: np.ndarray, jelly_count: int, chunk: int = CHUNK):
+    """Split indices 0..len(owner) into runs of one owner (jelly) of at most ``chunk``; group them by owner.
+
+    Returns:
+        ``(start, end, jelly_chunk_start)`` int32 arrays: chunk c covers [start[c], end[c]); the
+        chunks of jelly j are jelly_chunk_start[j]:jelly_chunk_start[j + 1], in ascending index order.
+    """
+    n = owner.shape[0]
+    if n == 0:
+        return np.zeros(0, np.int32), np.zeros(0, np.int32), np.zeros(jelly_count + 1, np.int32)
+    breaks = np.flatnonzero(np.diff(owner)) + 1
+    run_start = np.concatenate([[0], breaks])
+    run_end = np.concatenate([breaks, [n]])
+    starts, ends = [], []
+    for a, b in zip(run_start, run_end):
+        s = np.arange(a, b, chunk)
+        starts.append(s)
+        ends.append(np.minimum(s + chunk, b))
+    start = np.concatenate(starts)
+    end = np.concatenate(ends)
+    jelly = owner[start]
+    order = np.argsort(jelly, kind="stable")
+    start, end, jelly = start[order], end[order], jelly[order]
+    jelly_chunk_start = np.searchsorted(jelly, np.arange(jelly_count + 1), side="left")
+    return start.astype(np.int32), end.astype(np.int32), jelly_chunk_start.astype(np.int32)
+
+
+class DeterministicMetricsProbe(MetricsProbe):
+    """:class:`MetricsProbe` with fixed-order sums (chunks, then jellies)."""
+
+    def __init__(self, model):
+        super().__init__(model)
+        dev = model.device
+        j = max(len(model.jellies), 1)
+        jelly_of = model.particle_jelly.numpy()
+        ps, pe, pj = _chunks(jelly_of, j)
+        self._p_chunks = [wp.array(a, dtype=wp.int32, device=dev) for a in (ps, pe, pj)]
+        n = ps.shape[0]
+        self._p_partial = [
+            wp.zeros(n, dtype=model.scalar, device=dev),
+            wp.zeros(n, dtype=model.scalar, device=dev),
+            wp.zeros(n, dtype=model.vec3, device=dev),
+            wp.zeros(n, dtype=model.scalar, device=dev),
+            wp.zeros(n, dtype=wp.int32, device=dev),
+        ]
+        spring_owner = jelly_of[model.spring_indices_host[:, 0]] if model.spring_count else np.zeros(0, np.int32)
+        ss, se, sj = _chunks(spring_owner, j)
+        self._s_chunks = [wp.array(a, dtype=wp.int32, device=dev) for a in (ss, se, sj)]
+        self._s_partial = wp.zeros(ss.shape[0], dtype=model.scalar, device=dev)
+
+    def _reduce(self, state):
+        m = self.model
+        k = m.kernels
+        start, end, jelly_start = self._p_chunks
+        if start.shape[0]:
+            wp.launch(
+                k.reduce_particle_chunks,
+                dim=start.shape[0],
+                inputs=[start, end, m.particle_mass, m.gravity, state.particle_q, state.particle_qd],
+                outputs=self._p_partial,
+                device=m.device,
+            )
+        wp.launch(
+            k.combine_particle_chunks,
+            dim=jelly_start.shape[0] - 1,
+            inputs=[jelly_start, *self._p_partial],
+            outputs=[self.kinetic, self.gravity_energy, self.moment, self.max_speed, self.nonfinite],
+            device=m.device,
+        )
+        start, end, jelly_start = self._s_chunks
+        if start.shape[0]:
+            wp.launch(
+                k.reduce_spring_chunks,
+                dim=start.shape[0],
+                inputs=[start, end, m.spring_indices, m.spring_rest_length, m.spring_stiffness, state.particle_q],
+                outputs=[self._s_partial],
+                device=m.device,
+            )
+        wp.launch(
+            k.combine_spring_chunks,
+            dim=jelly_start.shape[0] - 1,
+            inputs=[jelly_start, self._s_partial],
+            outputs=[self.spring_energy],
+            device=m.device,
+        )
+
+
+def make_probe(model: Model) -> MetricsProbe:
+    """The metrics probe for ``model``: fixed-order sums when the model is deterministic."""
+    return DeterministicMetricsProbe(model) if model.deterministic else MetricsProbe(model)
