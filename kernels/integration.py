@@ -43,7 +43,7 @@ def build(scalar):
         Warp's ``a[i]`` wraps a negative index and multiplies by the array's run-time 64-bit stride
         (about 8 instructions an access on an H200); here the element size is a constant, so a
         neighbour's address is the particle's plus an offset the compiler folds into the load (the
-        bare gather measured 1.24x faster on an H200, benchmarks/layout_probe.py), and the fused
+        bare gather measured 1.24x faster on an H200), and the fused
         lattice stage's own loads and stores cost one address computation. Only for arrays the
         caller knows to be contiguous (``LatticeData.check_contiguous``).
         """

@@ -7,19 +7,21 @@ standard stencil (structural: +-1 along an axis, 6; shear: face and body diagona
 length per offset (table ``jelly_rest[j, slot]``, see :func:`rest_slot`) and one ks/kd per spring
 type, so a step reads no per-spring data at all.
 
-Two kernels evaluate the same forces:
+Three kernels evaluate the same forces:
 
-* ``eval_lattice_springs`` (the GPU path): one thread per particle gathers its up-to-32
-  neighbours and writes its own force once. Each spring is evaluated twice (once from each end),
-  there are no atomics, and the sum order per particle is fixed, so the result is deterministic.
-  ``integrate_lattice_stage`` fuses the same gather with an integrator stage (and, on the last
-  stage, plane contact): one kernel per stage. The gather itself (``gather_native``) is
-  straight-line C++ generated per stencil (:func:`_gather_snippet`, the same text on CPU and
-  CUDA): 1.45x faster at 100^3 on an H200 than the same sums written as Warp loops
-  (``gather_lattice_force``, kept as the readable reference and as the lattice kernel "stencil";
-  the two give the same bits on the CPU). Over padded state arrays (``Model.particle_array``)
-  ``integrate_lattice_stage_padded`` runs the same gather with unconditional neighbour loads
-  (1.05x faster again); ``integrate_lattice_stage`` keeps bounds-checked loads for other arrays.
+* ``eval_lattice_springs`` (``eval_forces`` on CUDA: the implicit integrator, unfused stepping):
+  one thread per particle gathers its up-to-32 neighbours (``gather_lattice_force``, Warp loops)
+  and writes its own force once. Each spring is evaluated twice (once from each end), there are
+  no atomics, and the sum order per particle is fixed, so the result is deterministic. It stays
+  in Warp loops because the implicit solve at ks = 1e6 on CUDA needs forces without the fused
+  multiply-adds the compiler puts into the native gather (docs/PERFORMANCE.md).
+* ``integrate_lattice_stage`` (the explicit methods on CUDA) fuses the gather with an integrator
+  stage and, on the last stage, plane contact: one kernel per stage. Its gather
+  (``gather_native``) is straight-line C++ generated per stencil (:func:`_gather_snippet`, the
+  same text on CPU and CUDA), 1.26x faster than the Warp loops at 100^3 on an H200, the same
+  bits on the CPU. ``single_stage`` is the same kernel compiled for one jelly's shape, with its
+  coefficients as a kernel argument and unconditional loads from padded state arrays
+  (``Model.particle_array``): the stage of a one-jelly model from 2^18 particles on.
 * ``eval_lattice_rows`` (the CPU path): Warp's CPU backend runs a kernel's threads as one scalar
   call each (about 5.5 ns per spring on the development machine), so a thread-per-particle
   kernel cannot use the CPU's vector units. This kernel runs one thread per jelly and does the
@@ -171,7 +173,7 @@ def _gather_snippet(ctype, padded=False, uniform=False, shape=None, types=None, 
     gather needs two base pointers instead of one per lattice row (42), the lattice coordinate
     divisions become multiplications, and the springs of absent types are not compiled at all. The
     sm_90 build takes 48 registers instead of 64 and 1904 instructions instead of 2032
-    (``benchmarks/sass_probe.py``; 48 registers on the H200 too). Same arithmetic, same bits.
+    (``cuobjdump -res-usage``; 48 registers on the H200 too). Same arithmetic, same bits.
     """
     tiny = "1.17549435e-38f" if ctype == "float" else "2.2250738585072014e-308"
     rsqrt = (
@@ -603,7 +605,7 @@ return 1.0f / wp::sqrt(x);
     eval_lattice_springs = make_eval_lattice_springs(gather_lattice_force)
 
     def make_integrate_lattice_stage(gather, direct=True, single=False):
-        """The fused stage kernel around a per-particle gather (``gather_native`` or ``gather_lattice_force``).
+        """The fused stage kernel around a per-particle native gather (``make_gather_native``).
 
         The kernel passes the gather both the per-jelly tables and ``stencil_coef``, the jellies'
         common coefficients (a kernel argument); a uniform gather reads the latter.
@@ -629,7 +631,6 @@ return 1.0f / wp::sqrt(x);
             stage: int,
             h: scalar,
             with_contact: int,
-            reverse: int,
             # Model:
             particle_inv_mass: wp.array(dtype=scalar),
             particle_world: wp.array(dtype=wp.int32),
@@ -676,10 +677,6 @@ return 1.0f / wp::sqrt(x);
             # the stage state y_s and writes only its own particle into other buffers, so no thread
             # depends on another's output within the launch.
             i = wp.tid()
-            if reverse != 0:
-                # Sweep the particles last to first: what the previous launch wrote last (a forward
-                # sweep) is what this one reads first, while it is still in L2 (fastpath.step_fused).
-                i = q_n.shape[0] - 1 - i
             # The particle whose jelly, world and mass are read: itself, or 0 for all in a single jelly.
             p = i
             j = int(0)
@@ -768,29 +765,19 @@ return 1.0f / wp::sqrt(x);
 
         return integrate_lattice_stage
 
-    # Lattice kernel "gather": the native gather (the CUDA default); "stencil": the same gather as
-    # Warp loops, the readable reference the native one is tested against bit for bit
-    # (tests/test_perf_paths.py). The plain force kernel above (eval_forces: the implicit
-    # integrator, unfused stepping) keeps the Warp loops; docs/PERFORMANCE.md says why.
+    # The fused stage (CUDA): the native gather with bounds-checked loads, for any lattice model.
     integrate_lattice_stage = make_integrate_lattice_stage(gather_native)
-    # For state arrays inside padded allocations (Model.particle_array); step_fused checks.
-    integrate_lattice_stage_padded = make_integrate_lattice_stage(make_gather_native(padded=True))
-    # The same when every jelly has the same coefficients (LatticeData.uniform): they come as a kernel argument.
-    integrate_lattice_stage_padded_uniform = make_integrate_lattice_stage(make_gather_native(padded=True, uniform=True))
-    # And when the model is one jelly of one particle mass (LatticeData.single): no per-particle tables.
-    integrate_lattice_stage_single = make_integrate_lattice_stage(
-        make_gather_native(padded=True, uniform=True), single=True
-    )
-    integrate_lattice_stage_stencil = make_integrate_lattice_stage(gather_lattice_force)
 
     # The one-jelly stage compiled for a jelly's shape and spring types, one kernel per pair.
     single_stages = {}
 
     def single_stage(shape, types):
-        """``integrate_lattice_stage_single`` with the jelly's lattice shape, spring-type mask and
-        first particle (0) compiled in (``_gather_snippet``'s ``shape``, ``types``, ``start``): what a
-        model of one jelly of one mass steps with. Built once per (shape, types) and compiled on first
-        launch (Warp caches the build on disk)."""
+        """The fused stage for a model of one jelly of one particle mass with padded states
+        (``LatticeData.single``, ``Model.particle_array``): the jelly's lattice shape, spring-type mask,
+        first particle (0) and coefficients compiled in or passed as a kernel argument, unconditional
+        neighbour loads, no per-particle jelly, world or mass read. 1.25x (symplectic) and 1.27x (rk4)
+        over ``integrate_lattice_stage`` at 100^3 on an H200 (docs/PERFORMANCE.md). Built once per
+        (shape, types) and compiled on first launch (Warp caches the build on disk)."""
         key = (tuple(int(n) for n in shape), int(types))
         if key not in single_stages:
             gather = make_gather_native(padded=True, uniform=True, shape=key[0], types=key[1], start=0)
@@ -1003,10 +990,6 @@ return 1.0f / wp::sqrt(x);
         "eval_lattice_springs": eval_lattice_springs,
         "make_eval_lattice_springs": make_eval_lattice_springs,
         "integrate_lattice_stage": integrate_lattice_stage,
-        "integrate_lattice_stage_stencil": integrate_lattice_stage_stencil,
-        "integrate_lattice_stage_padded": integrate_lattice_stage_padded,
-        "integrate_lattice_stage_padded_uniform": integrate_lattice_stage_padded_uniform,
-        "integrate_lattice_stage_single": integrate_lattice_stage_single,
         "single_stage": single_stage,
         "gather_native": gather_native,
         "make_gather_native": make_gather_native,

@@ -124,32 +124,6 @@ def test_lattice_forces_float64(device):
         assert np.all(np.linalg.norm(f.numpy() - f_ref, axis=1) <= EPS64 * scale)
 
 
-@pytest.mark.parametrize("method", ["symplectic", "rk4"])
-@pytest.mark.parametrize("precision", ["float32", "float64"])
-def test_native_gather_equals_stencil_gather(device, method, precision):
-    """The fused stage's straight-line native gather (the CUDA kernel) does the Warp stencil loops'
-    arithmetic in their order: on the CPU the same bits, over 100 steps of several jellies of
-    different shapes, spring types and worlds dropped onto a plane (boundaries, absent spring
-    types, jelly-to-jelly borders and contact all exercised). On CUDA its reciprocal square root
-    and FMA contractions differ in the last bits; there test_lattice_trajectories_match holds it
-    to the float64 spring list.
-    """
-    if not device.is_cpu:
-        pytest.skip("bitwise on the CPU only")
-    b = _dropping(_builder())
-    b.add_jelly((3, 7, 2), (0.2, 0.6, 0.1), 0.02, SPRINGS, center=(1.0, 0.0, 0.0), world=1)
-    b.add_jelly((6, 1, 5), (0.5, 0.0, 0.4), 0.01, {"bending": {"ks": 300.0, "kd": 0.1}}, center=(0.0, 0.5, 0.0))
-    b.add_jelly((4, 3, 3), (0.3, 0.2, 0.2), 0.01, {"shear": {"ks": 700.0, "kd": 0.2}}, center=(0.0, 1.0, 0.0))
-    runs = {}
-    for kernel in ("gather", "stencil"):
-        model = b.finalize(device, precision, force_path="lattice")
-        model.lattice.set_kernel(kernel)
-        runs[kernel] = _run(model, method, 100, 1.0e-4, fused=True)
-    assert np.abs(runs["gather"][1]).max() > 0.0
-    assert np.array_equal(runs["gather"][0], runs["stencil"][0])
-    assert np.array_equal(runs["gather"][1], runs["stencil"][1])
-
-
 def test_model_states_are_padded_for_the_gather():
     """States and stage buffers sit inside allocations reaching ``lattice.pad`` past both ends; a
     clone, a plain array or a view with too little room is not padded (and gets the checked gather)."""
@@ -191,7 +165,7 @@ def test_step_bytes_lists_each_array_once():
     ids = 4 + 4 + 4  # jelly, world, inverse mass
     model.lattice.set_kernel("gather")
     expected = {
-        # (method, uniform -> the one-jelly stage): bytes a particle
+        # (method, the one-jelly stage): bytes a particle
         # symplectic: the state read (it is y_n) and y_{n+1} written
         ("symplectic", True): 2 * v + 2 * v,
         ("symplectic", False): 2 * v + ids + 2 * v,
@@ -205,7 +179,7 @@ def test_step_bytes_lists_each_array_once():
     }
     expected[("rk4", False)] = expected[("rk4", True)] + 4 * ids
     for (method, uniform), per_particle in expected.items():
-        integrator = ExplicitIntegrator(model, method, fused=True, uniform=uniform)
+        integrator = ExplicitIntegrator(model, method, fused=True, single=uniform)
         assert integrator.single == uniform and integrator.fuse_contact
         assert step_bytes(model, integrator) == n * per_particle, (method, uniform)
     assert expected[("symplectic", True)] == 48 and expected[("rk4", True)] == 384
@@ -256,20 +230,16 @@ def test_clock_monitor_reads_nvidia_smi(tmp_path, monkeypatch):
 
 
 @pytest.mark.parametrize("method", ["symplectic", "rk4"])
-def test_padded_gather_equals_checked_gather(device, method):
-    """The padded gather (unconditional loads, predicated adds) and the checked one (predicated
-    loads) compute the same sums in the same order: on the CPU the same bits, the model's padded
-    states against unpadded copies. On CUDA the compiler contracts multiply-adds differently in
-    the two kernels, so there they agree to float32 rounding (the bound of
-    test_lattice_trajectories_match: 4 ulps of the largest coordinate per step)."""
+def test_unpadded_states_fall_back_to_the_checked_stage(device, method):
+    """The one-jelly stage loads neighbours without bounds checks, so it needs padded states
+    (``Model.particle_array``); over states a user made otherwise (``wp.clone``) the step takes the
+    generic, bounds-checked stage: on the CPU the same bits (the same sums in the same order); on
+    CUDA, where the compiler contracts multiply-adds differently in the two kernels, within 4 ulps
+    of the largest coordinate per step."""
     steps = 100
-    b = _dropping(_builder())
-    b.add_jelly((3, 7, 2), (0.2, 0.6, 0.1), 0.02, SPRINGS, center=(1.0, 0.0, 0.0), world=1)
     finals = {}
     for padded in (True, False):
-        model = b.finalize(device, force_path="lattice")
-        model.lattice.set_kernel("gather")
-        integrator = ExplicitIntegrator(model, method, fused=True)
+        model, integrator = _gather_integrator(device, method, _dropping(_builder(degrees=0.0, second=False)), single=True)
         states = [model.state(), model.state()]
         if not padded:
             for s in states:
@@ -299,23 +269,21 @@ def _assert_same_run(device, run, reference, steps, eps):
         assert np.abs(run[0] - reference[0]).max() <= bound
 
 
-@pytest.mark.parametrize("kernel", ["gather", "stencil", "uniform"])
+@pytest.mark.parametrize("kernel", ["gather", "rows"])
 def test_blown_up_world_does_not_reach_its_neighbour(device, kernel):
     """A world whose state is NaN leaves the next world in memory untouched, bit for bit.
 
-    The padded gather loads invalid neighbours from wherever their addresses point (here the NaN
-    jelly next door) and must drop them by predication, not by multiplying by zero. The run is the
-    side-by-side comparison's situation: one method blows up, the others must not notice.
+    The gather must not read a neighbour outside the jelly (here the NaN jelly next door), nor
+    drop it by multiplying by zero. The run is the side-by-side comparison's situation: one method
+    blows up, the others must not notice.
     """
     finals = []
     for poison in (False, True):
-        # "uniform": the gather with the coefficients as a kernel argument (unrotated jellies of one
-        # spacing share them).
-        b = _builder(second=False, world=0, degrees=0.0 if kernel == "uniform" else 30.0)
+        b = _builder(second=False, world=0)
         b.add_jelly((4, 3, 5), (0.3, 0.2, 0.4), 0.01, SPRINGS, center=(1.0, 0.3, 0.0), world=1)
         model = _dropping(b).finalize(device, force_path="lattice")
-        model.lattice.set_kernel("gather" if kernel == "uniform" else kernel)
-        integrator = ExplicitIntegrator(model, "rk4", fused=True, uniform=kernel == "uniform" or None)
+        model.lattice.set_kernel(kernel)
+        integrator = ExplicitIntegrator(model, "rk4", fused=True)
         states = [model.state(), model.state()]
         n0 = 4 * 5 * 6
         if poison:
@@ -377,7 +345,7 @@ def test_lattice_trajectories_match(device, method):
 
 
 @pytest.mark.parametrize("method", ["symplectic", "rk4"])
-@pytest.mark.parametrize("kernel", ["gather", "stencil", "rows"])
+@pytest.mark.parametrize("kernel", ["gather", "rows"])
 def test_fused_matches_unfused(device, method, kernel):
     """The fused stage kernels do the same arithmetic as eval_forces + integrate_stage + collide_planes."""
     steps, dt = 100, 1.0e-4
@@ -604,89 +572,36 @@ def _shared_coefficient_jellies(copies=False):
     return _dropping(b)
 
 
-@pytest.mark.parametrize("method", ["symplectic", "rk4"])
-@pytest.mark.parametrize("precision", ["float32", "float64"])
-def test_uniform_gather_equals_table_gather(device, method, precision):
-    """With the coefficients as a kernel argument (``integrate_lattice_stage_padded_uniform``) the
-    padded gather computes what it computes from the per-jelly tables: on the CPU the same bits over
-    100 steps with impacts (``common_coefficients`` rounds ks r as the table gather does); on CUDA
-    to float32 rounding (4 ulps of the largest coordinate per step, as test_padded_gather_equals_checked_gather)."""
-    steps = 100
-    b = _shared_coefficient_jellies(copies=precision == "float64")
-    finals = {}
-    for uniform in (True, False):
-        model = b.finalize(device, precision, force_path="lattice")
-        model.lattice.set_kernel("gather")
-        assert model.lattice.uniform
-        integrator = ExplicitIntegrator(model, method, fused=True, uniform=uniform)
-        assert integrator.uniform == uniform
-        finals[uniform] = _step_states(integrator, [model.state(), model.state()], steps)
-    _assert_same_run(device, finals[True], finals[False], steps, EPS32 if precision == "float32" else EPS64)
-
-
 @pytest.mark.parametrize("method", ["symplectic", "midpoint", "rk4"])
-def test_single_jelly_stage_equals_table_stage(device, method):
-    """One jelly of one particle mass (``integrate_lattice_stage_single``: no per-particle jelly,
-    world or mass read) steps as the per-jelly-table stage does: on the CPU the same bits over 100
-    steps with an impact; on CUDA within 4 ulps of the largest coordinate per step. A second jelly,
-    or one particle of another mass, and the model is not single."""
+@pytest.mark.parametrize("shear", [True, False])
+def test_one_jelly_stage_equals_generic_stage(device, method, shear):
+    """One jelly of one particle mass steps with the stage compiled for its shape and spring types
+    (``single_stage``: coefficients as a kernel argument, no per-particle jelly, world or mass read,
+    the springs of absent types not compiled) as with the generic stage that reads them at run time:
+    on the CPU the same bits over 100 steps with an impact; on CUDA within 4 ulps of the largest
+    coordinate per step. A second jelly, or one particle of another mass, and the model is not single;
+    asking for the one-jelly stage then is an error. One compiled kernel per (shape, types)."""
+    springs = SPRINGS if shear else {k: v for k, v in SPRINGS.items() if k != "shear"}
     steps = 100
     finals = {}
-    for uniform in (True, False):
-        builder = _dropping(_builder(degrees=0.0, second=False))
-        model, integrator = _gather_integrator(device, method, builder, uniform=uniform)
+    for single in (True, False):
+        builder = _dropping(_builder(shape=(5, 4, 7), springs=springs, degrees=0.0, second=False))
+        model, integrator = _gather_integrator(device, method, builder, single=single)
         assert model.lattice.single
-        assert integrator.single == uniform
-        finals[uniform] = _step_states(integrator, [model.state(), model.state()], steps)
+        finals[single] = _step_states(integrator, [model.state(), model.state()], steps)
     _assert_same_run(device, finals[True], finals[False], steps, EPS32)
-    assert not _dropping(_builder(degrees=0.0)).finalize(device, force_path="lattice").lattice.single
+    two = _dropping(_builder(degrees=0.0)).finalize(device, force_path="lattice")
+    assert not two.lattice.single
+    with pytest.raises(ValueError, match="one-jelly stage"):
+        ExplicitIntegrator(two, method, fused=True, single=True)
     for mass in (0.02, 0.0):  # heavier, or fixed
         b = _dropping(_builder(degrees=0.0, second=False))
         b._mass[0][5] = mass
         assert not b.finalize(device, force_path="lattice").lattice.single
-
-
-@pytest.mark.parametrize("method", ["symplectic", "rk4"])
-@pytest.mark.parametrize("shear", [True, False])
-def test_shape_compiled_stage_equals_generic_stage(device, method, shear):
-    """A one-jelly model steps with the one-jelly stage compiled for its jelly's shape and spring
-    types (``single_stage``): the same bits as the stage that reads them at run time
-    (``integrate_lattice_stage_single``) on the CPU, within 4 ulps per step on CUDA, with and without
-    shear springs (whose springs the compiled stage then leaves out), over an impact. One kernel per
-    (shape, types)."""
-    springs = SPRINGS if shear else {k: v for k, v in SPRINGS.items() if k != "shear"}
-    steps = 60
-    finals = {}
-    for compiled in (True, False):
-        builder = _dropping(_builder(shape=(5, 4, 7), springs=springs, degrees=0.0, second=False))
-        model = builder.finalize(device, force_path="lattice")
-        model.lattice.set_kernel("gather")
-        if not compiled:
-            model.kernels = types.SimpleNamespace(**vars(model.kernels))
-            model.kernels.single_stage = lambda shape, mask, k=model.kernels: k.integrate_lattice_stage_single
-        integrator = ExplicitIntegrator(model, method, fused=True, uniform=True)
-        assert integrator.single
-        finals[compiled] = _step_states(integrator, [model.state(), model.state()], steps)
-    _assert_same_run(device, finals[True], finals[False], steps, EPS32)
     kernels = get_kernels(wp.float32)
     assert kernels.single_stage((5, 4, 7), 7) is kernels.single_stage(np.array([5, 4, 7]), np.int32(7))
     assert kernels.single_stage((5, 4, 7), 7) is not kernels.single_stage((5, 4, 8), 7)
     assert kernels.single_stage((5, 4, 7), 7) is not kernels.single_stage((5, 4, 7), 5)
-
-
-@pytest.mark.parametrize("method", ["symplectic", "rk4"])
-def test_alternating_sweeps_change_nothing(device, method):
-    """The fused gather stages visit the particles in alternating directions (for L2 reuse): the
-    same bits as sweeping forward every time, since no particle's arithmetic depends on the order."""
-    finals = {}
-    for alternate in (True, False):
-        model, integrator = _gather_integrator(device, method, alternate=alternate)
-        finals[alternate] = _step_states(integrator, [model.state(), model.state()], 51)
-        # 51 steps of 1 or 4 stages: the next launch's direction.
-        assert integrator._reverse == (int(51 * integrator.stage_count % 2) if alternate else 0)
-    assert np.abs(finals[True][1]).max() > 0.0
-    for got, want in zip(finals[True], finals[False]):
-        assert np.array_equal(got, want)
 
 
 def test_common_coefficients():
@@ -707,8 +622,7 @@ def test_common_coefficients():
     n = UNIFORM_SLOTS.index(rest_slot(0, 0, 2))
     assert coef[n] == rest[rest_slot(0, 0, 2)] * ks[2]
     assert list(coef[16:]) == [-1000.0, -700.0, -300.0, 1.0, 0.5, np.float32(0.2)]
-    # A rest length or a stiffness that differs in a type two jellies have: no sharing, and asking
-    # for the uniform kernel is an error.
+    # A rest length or a stiffness that differs in a type two jellies have: no sharing.
     for key, spacing in (("ks", 0.1), ("rest", 0.11)):
         springs = dict(SPRINGS, bending={"ks": 301.0 if key == "ks" else 300.0, "kd": 0.2})
         b = _builder(degrees=0.0, second=False)
@@ -717,7 +631,5 @@ def test_common_coefficients():
         other = b.finalize("cpu", force_path="lattice")
         assert not other.lattice.uniform
         assert not np.any(np.array(other.lattice.stencil_coef))
-        with pytest.raises(ValueError, match="uniform coefficients"):
-            ExplicitIntegrator(other, "symplectic", fused=True, uniform=True)
         lay = other.lattice.layout
         assert common_coefficients(lay.rest, lay.ks, lay.kd, lay.types, np.float32) is None

@@ -35,6 +35,11 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from ..core.errors import CommandLineError
+from ..core.model import build_model
+from ..core.stepper import make_integrator
+from ..io.outputs import check_writable, save_report
+from ..io.simulate import Simulator
 from .common import ALL_INTEGRATORS, check_positive, load_for_cli, parse_methods, parse_positive_list, resolve_device
 
 COMMAND = "accuracy"
@@ -135,10 +140,6 @@ def run_trajectory(scene, integrator, dt, *, device=None, precision=None, fps=No
         ImportError: when the integrator's module is not available (``implicit`` before it lands).
     """
     import warp as wp  # noqa: PLC0415
-
-    from ..core.stepper import make_integrator  # noqa: PLC0415
-    from ..core.model import build_model  # noqa: PLC0415
-    from ..io.simulate import Simulator  # noqa: PLC0415
 
     fps = float(fps or scene.sim["fps"])
     frames = int(frames if frames is not None else scene.frame_count())
@@ -559,9 +560,6 @@ def add_parser(subparsers, add_common):
 
 
 def run(args) -> int:
-    from ..core.errors import CommandLineError  # noqa: PLC0415
-    from ..io.outputs import check_writable, save_report  # noqa: PLC0415
-
     methods = parse_methods(args.integrators)
     dts = parse_positive_list(args.dts, "--dts") if args.dts else None
     for flag in ("duration", "reference_dt", "fps"):

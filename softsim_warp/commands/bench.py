@@ -31,6 +31,12 @@ from dataclasses import asdict, dataclass
 import numpy as np
 
 from ..core.errors import CommandLineError, UserError
+from ..core.integrators import ExplicitIntegrator
+from ..core.model import ModelBuilder, build_model
+from ..core.stepper import make_integrator
+from ..io.outputs import check_writable, save_report
+from ..io.scene import load_scene
+from .bench_newton import NewtonJelly, newton_version
 from .common import resolve_device
 
 COMMAND = "bench"
@@ -63,8 +69,6 @@ class JellySpec:
 
 def build_jelly_model(size: int, spec: JellySpec, device, force_path="auto", precision="float32", copies=1):
     """The benchmark jelly (``copies`` of it, one per world, each on its own ground plane) as a Model."""
-    from ..core.model import ModelBuilder  # noqa: PLC0415
-
     builder = ModelBuilder((0.0, spec.gravity, 0.0))
     edge = spec.spacing * (size - 1)
     springs = {t: {"ks": spec.ks, "kd": spec.kd} for t in ("structural", "shear", "bending")}
@@ -120,7 +124,7 @@ def step_bytes(model, integrator) -> int:
       the force buffer written and read 2 N v, inverse mass N s, plus the stage I/O;
     * lattice gather (CUDA), per stage: x, v of the stage state 2 N v, jelly and world 8 N,
       inverse mass N s (none of these three for one jelly of one mass,
-      ``integrate_lattice_stage_single``), plus the stage I/O (contact fused into the last stage
+      ``single_stage``), plus the stage I/O (contact fused into the last stage
       moves nothing more);
     * stage I/O: y_n 2 N v on stages after the first (on the first it is the stage state, which
       the unfused ``integrate_stage`` reads the velocity of only: x_n N v more); the velocity
@@ -315,18 +319,10 @@ class _Case:
 
 
 class _OurCase(_Case):
-    """Our integrator on one model; ``options`` (fused, fuse_contact, block_dim, uniform) go to ExplicitIntegrator.
-
-    ``unpadded_states`` in the options steps copies of the states made by ``wp.clone`` (not padded),
-    so the fused stage takes the gather with bounds-checked loads (``Model.particle_array``).
-    """
+    """Our integrator on one model; ``options`` (fused, fuse_contact, single) go to ExplicitIntegrator."""
 
     def __init__(self, model, method, dt, steps, use_graph, options=None):
-        from ..core.integrators import ExplicitIntegrator  # noqa: PLC0415
-        from ..core.stepper import make_integrator  # noqa: PLC0415
-
         options = dict(options or {})
-        unpadded = options.pop("unpadded_states", False)
         self.model = model
         self.method = method
         try:
@@ -336,11 +332,6 @@ class _OurCase(_Case):
         except ImportError as exc:  # the implicit integrator lives in its own module
             raise CommandLineError("--integrators", f"{method} is not available here ({exc})", method) from None
         self.states = [model.state(), model.state()]
-        if unpadded:
-            import warp as wp  # noqa: PLC0415
-
-            for state in self.states:
-                state.particle_q, state.particle_qd = wp.clone(state.particle_q), wp.clone(state.particle_qd)
 
         def step(count):
             for k in range(count):
@@ -370,8 +361,6 @@ class _SeparateCase(_Case):
 
 class _NewtonCase(_Case):
     def __init__(self, model, spec: JellySpec, steps, use_graph):
-        from .bench_newton import NewtonJelly  # noqa: PLC0415
-
         t0 = time.perf_counter()
         self.jelly = NewtonJelly(
             model.particle_q_host,
@@ -452,7 +441,6 @@ def _versions(peer):
         "python": platform.python_version(),
     }
     if peer:
-        from .bench_newton import newton_version  # noqa: PLC0415
 
         versions["newton"] = newton_version()
     return versions
@@ -474,7 +462,6 @@ def _device_name(device) -> str:
 
 
 def run(args) -> int:
-    from ..io.outputs import check_writable, save_report  # noqa: PLC0415
 
     sizes = _parse_list(args.sizes, "--sizes", convert=int)
     if any(n < 2 for n in sizes):
@@ -492,7 +479,6 @@ def run(args) -> int:
         check_writable(args.plot, "--plot", suffixes=(".png",))
     device = resolve_device(args.device)
     if args.peer:
-        from .bench_newton import newton_version  # noqa: PLC0415
 
         try:
             newton_version()
@@ -509,8 +495,6 @@ def run(args) -> int:
     results, peers, gpu_clocks = [], [], []
 
     if args.scene:
-        from ..core.model import build_model  # noqa: PLC0415
-        from ..io.scene import load_scene  # noqa: PLC0415
 
         scene = load_scene(args.scene, args.overrides)
         groups = [
@@ -641,31 +625,10 @@ def fast_path_variants(device):
         ("lattice gather, unfused, graph", "lattice", "gather", {"fused": False}, True),
         ("lattice gather, fused, graph", "lattice", "gather", {"fused": True, "fuse_contact": False}, True),
         (
-            "lattice gather, fused+contact, 128 threads/block, graph",
+            "lattice gather, fused+contact, generic stage, graph",
             "lattice",
             "gather",
-            {"fused": True, "fuse_contact": True, "block_dim": 128},
-            True,
-        ),
-        (
-            "lattice stencil (Warp loops), fused+contact, graph",
-            "lattice",
-            "stencil",
-            {"fused": True, "fuse_contact": True},
-            True,
-        ),
-        (
-            "lattice gather, checked loads (unpadded states), fused+contact, graph",
-            "lattice",
-            "gather",
-            {"fused": True, "fuse_contact": True, "unpadded_states": True},
-            True,
-        ),
-        (
-            "lattice gather, per-jelly coefficient tables, fused+contact, graph",
-            "lattice",
-            "gather",
-            {"fused": True, "fuse_contact": True, "uniform": False},
+            {"fused": True, "fuse_contact": True, "single": False},
             True,
         ),
         ("lattice gather, fused+contact, graph", "lattice", "gather", {"fused": True, "fuse_contact": True}, True),
@@ -768,8 +731,7 @@ def _result_row(case, bandwidth, peer_row, use_graph, copies) -> dict:
             "copies": copies,
             "graph": use_graph,
             "fused": bool(getattr(integrator, "fused", False)),
-            "block_dim": getattr(integrator, "block_dim", None) if getattr(integrator, "fused", False) else None,
-            "uniform": bool(getattr(integrator, "uniform", False)),
+            "single_stage": bool(getattr(integrator, "single", False)),
             "ms_per_step": ms,
             "cpu_ms_per_step": case.cpu_ms_per_step() if case.device.is_cpu else None,
             "steps_per_s": 1e3 / ms,

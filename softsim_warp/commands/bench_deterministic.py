@@ -24,16 +24,16 @@ import statistics
 import sys
 import time
 
+from ..core.model import build_model
+from ..core.stepper import make_integrator
+from ..io.scene import load_scene
+
 
 class Case:
     """One model and integrator, warmed up, that times ``steps`` steps (a captured graph on CUDA)."""
 
     def __init__(self, device, res, integrator, deterministic, steps, dt=1e-4, force_path="springs"):
         import warp as wp  # noqa: PLC0415
-
-        from ..core.stepper import make_integrator  # noqa: PLC0415
-        from ..core.model import build_model  # noqa: PLC0415
-        from ..io.scene import load_scene  # noqa: PLC0415
 
         self.wp, self.device, self.steps, self.dt = wp, device, steps, dt
         scene = load_scene("jelly_drop", [f"jelly.0.resolution=[{res},{res},{res}]"])

@@ -31,6 +31,15 @@ from pathlib import Path
 import numpy as np
 
 from ..core.errors import CommandLineError, SceneError, UserError
+from ..core.integrators import ExplicitIntegrator
+from ..core.model import ModelBuilder, populate, terrain_anchors
+from ..core.stepper import make_integrator
+from ..io import scene as scene_mod
+from ..io.metrics import speed_bound
+from ..io.outputs import check_writable, write_json_atomic
+from ..io.scene import parse_override
+from ..io.simulate import Simulator
+from ..io.usd import UsdWriter
 from . import common
 
 COMMAND = "compare"
@@ -75,8 +84,6 @@ def add_parser(subparsers, add_common):
 
 
 def run(args) -> int:
-    from ..io.outputs import check_writable  # noqa: PLC0415
-
     plan = plan_variants(args)
     out = check_writable(args.out or f"{Path(plan.source).stem}_compare.usdc", "--out", suffixes=(".usdc", ".usda", ".usd"))
     if args.metrics:
@@ -200,8 +207,6 @@ def short_keys(keys: list[str]) -> dict:
 
 
 def _parse_vary(items) -> list[tuple[str, list]]:
-    from ..io.scene import parse_override  # noqa: PLC0415
-
     varies = []
     for item in items:
         if "=" not in item:
@@ -229,7 +234,6 @@ def _parse_vary(items) -> list[tuple[str, list]]:
 
 def plan_variants(args) -> Plan:
     """Load the scene (with --set and flags), expand --integrators x --vary and validate every copy."""
-    from ..io import scene as scene_mod  # noqa: PLC0415
 
     path, source, base = scene_mod.read_scene_data(args.scene)
     items = [scene_mod.parse_override(item) for item in args.overrides] + common.flag_overrides(args)
@@ -382,10 +386,6 @@ class _Group:
     """Variants advanced by one model and one integrator (the explicit batch, or one implicit copy)."""
 
     def __init__(self, variants, builder_fn, device, precision, dt, fps, frames, use_graph, max_speed):
-        from ..core.integrators import ExplicitIntegrator  # noqa: PLC0415
-        from ..core.stepper import make_integrator  # noqa: PLC0415
-        from ..io.simulate import Simulator  # noqa: PLC0415
-
         self.variants = variants
         self.model = builder_fn([v.data for v in variants]).finalize(device, precision)
         if all(v.integrator != "implicit" for v in variants):
@@ -404,8 +404,6 @@ class _Group:
 
 
 def _make_builder(datas):
-    from ..core.model import ModelBuilder, populate  # noqa: PLC0415
-
     builder = ModelBuilder(datas[0]["simulation"]["gravity"])
     for w, data in enumerate(datas):
         populate(builder, data, world=w)
@@ -414,8 +412,6 @@ def _make_builder(datas):
 
 def _variant_speed_bound(model, start, end, world):
     """The explosion speed bound a single run of this copy would use (see simulate.speed_bound)."""
-    from ..core.model import terrain_anchors  # noqa: PLC0415
-    from ..io.metrics import speed_bound  # noqa: PLC0415
 
     qd = model.particle_qd.numpy()[start:end]
     # speed_bound reads only these host-side fields; this view holds one world's share of them.
@@ -457,8 +453,6 @@ def run_comparison(plan: Plan, device, out, metrics_path=None, plot_path=None, c
     import warp as wp  # noqa: PLC0415
 
     wp.config.quiet = True
-    from ..io.outputs import write_json_atomic  # noqa: PLC0415
-    from ..io.usd import UsdWriter  # noqa: PLC0415
 
     variants = plan.variants
     precision = plan.sim["precision"]

@@ -8,6 +8,8 @@ from __future__ import annotations
 import sys
 
 from ..core.errors import CommandLineError, UserError
+from ..io import preview
+from ..io.outputs import check_writable
 
 COMMAND = "preview"
 
@@ -44,8 +46,6 @@ def _size(text):
 
 
 def run(args) -> int:
-    from ..io.outputs import check_writable  # noqa: PLC0415
-
     if not args.png and not args.gif:
         raise CommandLineError("softsim preview", "give --png FILE and/or --gif FILE")
     if (args.frame is not None or args.time is not None) and not args.png:
@@ -59,7 +59,6 @@ def run(args) -> int:
     if args.gif:
         check_writable(args.gif, "--gif", suffixes=(".gif",))
     size = _size(args.size)
-    from ..io import preview  # noqa: PLC0415
 
     try:
         if args.png and args.split:
@@ -82,7 +81,6 @@ def run(args) -> int:
 
 def render_gif_or_error(usd_path, gif_path, fps=None):
     """``softsim run --preview``: the GIF of a finished run; bad input becomes a one-line UserError."""
-    from ..io import preview  # noqa: PLC0415
 
     try:
         count = preview.render_gif(usd_path, gif_path, fps=fps)
@@ -122,8 +120,6 @@ def render_split_png(usd_path, png_path, frame=None, time=None, size=None):
 
     import numpy as np  # noqa: PLC0415
     from pxr import Sdf, Usd, UsdGeom  # noqa: PLC0415
-
-    from ..io import preview  # noqa: PLC0415
 
     path = os.path.abspath(os.fspath(usd_path))
     if not os.path.isfile(path):

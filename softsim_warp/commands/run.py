@@ -20,6 +20,7 @@ from ..io.simulate import Simulator
 from ..io.usd import UsdWriter
 from . import common
 from .common import EXIT_EXPLODED, Signals, check_deterministic, load_for_cli, resolve_device
+from .preview import render_gif_or_error
 
 COMMAND = "run"
 
@@ -108,8 +109,6 @@ def _run(args, signals) -> int:
         write_json_atomic(metrics_path, {"summary": summary, "frames": [m.as_dict() for m in result.metrics]})
     print(summary_line(summary, out), file=sys.stderr)
     if args.preview and result.frames_written:
-        from .preview import render_gif_or_error  # noqa: PLC0415
-
         render_gif_or_error(out, args.preview)
     if result.exploded:
         print("error: " + message, file=sys.stderr)

@@ -46,6 +46,12 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..core.errors import CommandLineError
+from ..core.model import NUMPY_SCALARS, ModelBuilder, build_model
+from ..core.stability_analysis import predict_lattice_dt
+from ..core.stepper import make_integrator
+from ..io.outputs import check_writable, save_report
+from ..io.simulate import Simulator
 from .common import ALL_INTEGRATORS, check_positive, load_for_cli, parse_methods, parse_positive_list, resolve_device
 
 COMMAND = "stability"
@@ -86,7 +92,6 @@ def small_lattice(jelly: dict, ks=None, undamped=False, max_n=LATTICE_MAX) -> di
 
 def predict(jelly_small: dict, methods) -> dict:
     """Linear prediction ``{method: dt}`` for a small-lattice jelly dict (see :func:`small_lattice`)."""
-    from ..core.stability_analysis import predict_lattice_dt  # noqa: PLC0415
 
     springs = jelly_small["springs"]
     return predict_lattice_dt(
@@ -97,7 +102,6 @@ def predict(jelly_small: dict, methods) -> dict:
 
 def lattice_model(jelly_small: dict, device, precision):
     """Model of the free small lattice: no gravity, no terrain."""
-    from ..core.model import ModelBuilder  # noqa: PLC0415
 
     b = ModelBuilder(gravity=(0.0, 0.0, 0.0))
     size = [s if s > 0 else 1.0 for s in jelly_small["size"]]  # an axis of one particle has no extent
@@ -107,7 +111,6 @@ def lattice_model(jelly_small: dict, device, precision):
 
 def scene_model(scene, device, precision, undamped=False):
     """Model of the scene as given (with every kd set to 0 when ``undamped``)."""
-    from ..core.model import build_model  # noqa: PLC0415
 
     if undamped:
         scene = copy.copy(scene)
@@ -154,8 +157,6 @@ def probe(model, integrator, dt, steps, *, displacement=None, samples=SAMPLES, u
     """
     import warp as wp  # noqa: PLC0415
 
-    from ..io.simulate import Simulator  # noqa: PLC0415
-
     t_start = time.perf_counter()
     chunk = max(1, math.ceil(steps / samples))
     n_chunks = math.ceil(steps / chunk)
@@ -163,7 +164,6 @@ def probe(model, integrator, dt, steps, *, displacement=None, samples=SAMPLES, u
                     max_speed=math.inf)
     if displacement is not None:
         q0 = model.particle_q_host + displacement
-        from ..core.model import NUMPY_SCALARS  # noqa: PLC0415
 
         sim.states[0].particle_q.assign(q0.astype(NUMPY_SCALARS[model.precision]))
     m0 = sim.probe.measure(sim.state, 0, 0.0)
@@ -246,12 +246,10 @@ def measure_limit(model, method, *, guess, steps=None, duration=None, max_dt, mi
     Raises:
         ImportError: when the integrator is not available.
     """
-    from ..core.stepper import make_integrator  # noqa: PLC0415
 
     integ = make_integrator(method, model, options)
     disp = perturbation(model)
     # Compile once outside the timed probes.
-    from ..io.simulate import Simulator  # noqa: PLC0415
 
     Simulator(model, integ, guess, 1.0, 1, use_graph=False).warm_up()
     notes = []
@@ -313,8 +311,6 @@ def analyse(scene, integrators=ALL_INTEGRATORS, *, ks_values=DEFAULT_KS, device=
     available = []
     for method in integrators:
         try:
-            from ..core.stepper import make_integrator  # noqa: PLC0415
-
             make_integrator(method, lattice_model(small_lattice(jelly, max_n=lattice_max), dev, precision), options)
             available.append(method)
         except ImportError as e:
@@ -551,9 +547,6 @@ def add_parser(subparsers, add_common):
 
 
 def run(args) -> int:
-    from ..core.errors import CommandLineError  # noqa: PLC0415
-    from ..io.outputs import check_writable, save_report  # noqa: PLC0415
-
     methods = parse_methods(args.integrators)
     ks = () if args.ks and args.ks.strip().lower() == "none" else (
         parse_positive_list(args.ks, "--ks") if args.ks else DEFAULT_KS)

@@ -61,7 +61,7 @@ class ExplicitIntegrator(Integrator):
         model: the model to advance.
         method: a method name for every world, or a list with one name per world (the copies of
             a side-by-side comparison advance in the same launches).
-        fused, fuse_contact, block_dim, uniform, alternate: the lattice fast path's options
+        fused, fuse_contact, single: the lattice fast path's options
             (:func:`softsim_warp.core.fused.configure_fused`); None picks what pays.
     """
 
@@ -71,9 +71,7 @@ class ExplicitIntegrator(Integrator):
         method="symplectic",
         fused=None,
         fuse_contact=None,
-        block_dim=None,
-        uniform=None,
-        alternate=None,
+        single=None,
     ):
         super().__init__(model)
         methods = [method] * model.world_count if isinstance(method, str) else list(method)
@@ -106,9 +104,7 @@ class ExplicitIntegrator(Integrator):
         )
         # Lattice fast path: one fused kernel per stage (forces + stage update, plane contact on the
         # last stage) where it pays; see softsim_warp/core/fused.py and docs/PERFORMANCE.md.
-        from .fused import configure_fused  # noqa: PLC0415
-
-        configure_fused(self, fused, fuse_contact, block_dim, uniform, alternate)
+        configure_fused(self, fused, fuse_contact, single)
         # Stage buffers, allocated once: forces, the stage state and the RK accumulators.
         n = model.particle_count
         # A fused gather stage keeps forces in registers; the row kernel and the plain path need f.
@@ -121,14 +117,10 @@ class ExplicitIntegrator(Integrator):
         self.acc_q = wp.zeros(n if multi else 0, dtype=model.vec3, device=device)
         self.acc_qd = wp.zeros(n if multi else 0, dtype=model.vec3, device=device)
         if self.fused:
-            from .fused import stage_buffers  # noqa: PLC0415
-
             stage_buffers(self)
 
     def step(self, state_in: State, state_out: State, dt: float):
         if self.fused:
-            from .fused import step_fused  # noqa: PLC0415
-
             step_fused(self, state_in, state_out, dt)
             return
         model = self.model

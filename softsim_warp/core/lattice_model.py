@@ -122,26 +122,23 @@ class LatticeData:
         jelly_kd: damping per spring type [N s/m], shape [J, 3], scalar.
         jelly_world: world of each jelly, shape [J], int32.
         uniform: whether every jelly that has a spring type has the same ks, kd and rest lengths for
-            it (copies of one jelly in several worlds, the benchmark's single jelly); then large
-            models step with ``integrate_lattice_stage_padded_uniform``.
+            it (copies of one jelly in several worlds, the benchmark's single jelly).
         stencil_coef: those shared coefficients as one vector (``kernels.lattice.common_coefficients``),
-            passed by value to the fused stage kernels; zeros when not ``uniform``.
+            passed by value to the fused stage kernels (read by ``single_stage``); zeros when not ``uniform``.
         single: whether the model is one jelly whose particles all have one mass (the benchmark's
-            jelly, a one-jelly scene); then the uniform stage need not read a per-particle jelly,
-            world or mass (``integrate_lattice_stage_single``, compiled for the jelly's shape by
-            ``kernels.single_stage``).
+            jelly, a one-jelly scene) with shared coefficients; then large models step with
+            ``kernels.single_stage``, which reads no per-particle jelly, world or mass.
         particle_coord_k: third lattice coordinate k of each particle, shape [particle_count],
             int32; allocated only for the CPU row kernel, which reads it.
         scratch: workspace of the row kernel, shape [particle_count], vec3; allocated with
             ``particle_coord_k``.
-        kernel: "rows" (CPU: one vectorised native loop per jelly), "gather" (one thread per
-            particle; the fused stages gather with straight-line native code; the CUDA default) or
-            "stencil" (the fused stages gather with Warp loops, the reference the native gather is
-            tested against); chosen by device, overridable for tests and benchmarks. The plain
-            force kernel of both per-particle kernels is the Warp-loop gather.
+        kernel: "rows" (CPU: one vectorised native loop per jelly) or "gather" (one thread per
+            particle; the fused stages gather with straight-line native code; the CUDA default);
+            chosen by device, overridable for tests and benchmarks. The plain force kernel of the
+            gather is the Warp-loop gather (``eval_lattice_springs``).
         layout: the host :class:`LatticeLayout`.
         pad: elements a state array's allocation must reach past both its ends for the padded
-            gather (``integrate_lattice_stage_padded``) to read every stencil address of every
+            one-jelly stage (``single_stage``) to read every stencil address of every
             particle: 2 ny nz + nz + 2 of the largest jelly, a bound on |di ny nz + dj nz + dk|
             over the stencil. ``Model.particle_array`` allocates that way.
     """
@@ -184,12 +181,12 @@ class LatticeData:
         self.set_kernel(kernel or ("rows" if device.is_cpu else "gather"))
 
     def set_kernel(self, kernel: str):
-        """Choose the force kernel: "rows" (native CPU loop), "gather" or "stencil" (thread per particle).
+        """Choose the force kernel: "rows" (native CPU loop) or "gather" (thread per particle).
 
         Choose before making integrators: they size their buffers for the kernel in use.
         """
-        if kernel not in ("rows", "gather", "stencil"):
-            raise ValueError(f"lattice kernel must be 'rows', 'gather' or 'stencil' (got {kernel!r})")
+        if kernel not in ("rows", "gather"):
+            raise ValueError(f"lattice kernel must be 'rows' or 'gather' (got {kernel!r})")
         if kernel == "rows" and self.particle_coord_k is None:
             coord_k = np.zeros(self._particle_count, dtype=np.int32)
             for start, shape in zip(self.layout.start, self.layout.shape):
@@ -201,7 +198,7 @@ class LatticeData:
 
     @property
     def per_particle(self) -> bool:
-        """Whether the kernel runs one thread per particle (gather or stencil), so contact can fuse."""
+        """Whether the kernel runs one thread per particle (gather), so contact can fuse."""
         return self.kernel != "rows"
 
     def padded(self, *arrays) -> bool:
@@ -209,7 +206,8 @@ class LatticeData:
 
         Only views made by slicing a 1-D array (``Model.particle_array``) qualify: their parent
         (``_ref``) is the allocation, so its extent is known. Anything else (a user's own array, a
-        clone) is not padded, and the fused stage uses the gather that never reads outside the array.
+        clone) is not padded, and the fused stage uses the gather that never reads outside the array
+        (``integrate_lattice_stage``).
         """
         for a in arrays:
             parent = getattr(a, "_ref", None)

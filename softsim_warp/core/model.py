@@ -448,7 +448,7 @@ class Model:
 
         On the lattice path it is a view into an allocation ``lattice.pad`` elements longer at both
         ends (zeroed), so the fused stage can read every stencil neighbour without bounds-checked
-        loads (``integrate_lattice_stage_padded``); an array made any other way still works, through
+        loads (``single_stage``); an array made any other way still works, through
         the checked gather.
         """
         pad = self.lattice.pad if self.lattice is not None else 0

@@ -16,6 +16,7 @@ import math
 
 import numpy as np
 
+from ..core.model import rotation_matrix
 from .resources import check_host_build
 
 # Normal range of each precision: a non-zero value outside it becomes 0 or inf on the device.
@@ -75,7 +76,6 @@ def jelly_points(jelly: dict, chunk: int = _CHUNK):
     Same placement as ``ModelBuilder.add_jelly``: the lattice centred on the origin, rotated, then
     moved to ``center``.
     """
-    from ..core.model import rotation_matrix  # noqa: PLC0415
 
     shape = [int(n) for n in jelly["resolution"]]
     size = jelly["size"]

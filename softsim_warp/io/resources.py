@@ -20,6 +20,9 @@ import math
 import os
 from dataclasses import dataclass, field
 
+from ..core import lattice
+from ..core.errors import SceneError
+
 # Bytes per item. S: scalar size (4 for float32, 8 for float64).
 HOST_BUILD_PER_SPRING = 192  # the above plus the lattice-path detection in finalize (per-spring offsets and checks; measured ~179)
 HOST_BUILD_PER_PARTICLE = 96  # float64 q, qd, mass, int32 jelly/world, lattice meshgrids
@@ -67,7 +70,6 @@ class Counts:
 
 def lattice_spring_count(shape, types=("structural", "shear", "bending")) -> int:
     """Springs of a lattice of ``shape`` for the given types, counted from the stencils alone."""
-    from ..core import lattice  # noqa: PLC0415
 
     total = 0
     for t, stencil in lattice.STENCILS.items():
@@ -174,7 +176,6 @@ def _largest_jelly_key(c: Counts) -> tuple[str, list]:
 
 def check_host_build(data: dict, source: str, available=None):
     """Refuse a scene whose builder alone would not fit in host memory (called by validation)."""
-    from ..core.errors import SceneError  # noqa: PLC0415
 
     est = estimate(data)
     need = est.host_build
@@ -204,7 +205,6 @@ def check_fits(
 
     ``host_available`` and ``device_free`` override what is measured (for tests).
     """
-    from ..core.errors import SceneError  # noqa: PLC0415
 
     est = estimate(scene.data, integrator, frames, usd_springs, deterministic)
     host_need, device_need = est.on(device.is_cuda)

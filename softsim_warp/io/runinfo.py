@@ -5,6 +5,8 @@ from __future__ import annotations
 import numpy as np
 import warp as wp
 
+from ..core.stability_analysis import predict_lattice_dt
+
 
 def energy_drift(metrics) -> tuple[float, float]:
     """(E_end - E_0 [J], that change relative to the energy available above the lowest state reached).
@@ -65,10 +67,6 @@ def predicted_stable_dt(scene, method, jelly=0) -> float | None:
     The analysis runs on a lattice of at most 4 particles per axis with the jelly's spacing, masses
     and spring constants: the stiffest modes are local, so a small lattice predicts the limit.
     """
-    try:
-        from ..core.stability_analysis import predict_lattice_dt  # noqa: PLC0415
-    except ImportError:
-        return None
     j = scene.jellies[jelly]
     res = j["resolution"]
     small = [min(n, 4) for n in res]

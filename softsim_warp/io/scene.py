@@ -18,6 +18,7 @@ from importlib import resources
 from pathlib import Path
 
 from ..core.errors import COMMAND_LINE, SceneError
+from .checks import check_scene
 
 INTEGRATORS = ("euler", "symplectic", "midpoint", "rk4", "implicit")
 PRECISIONS = ("float32", "float64")
@@ -525,7 +526,6 @@ def validate(data: dict, source: str) -> dict:
                      bowl["cut_height"])
     # Checks of the scene as a whole (sizes, precision range, a jelly starting inside terrain);
     # see checks.py.
-    from .checks import check_scene  # noqa: PLC0415
 
     check_scene(out, ctx)
     return out

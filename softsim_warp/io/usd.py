@@ -13,6 +13,7 @@ from pathlib import Path
 import numpy as np
 
 from ..core import lattice
+from .outputs import partial_path
 
 SPRING_COLORS = {  # the seed's colours: structural blue, shear yellow, bending green
     "structural": (0.2, 0.4, 1.0),
@@ -25,7 +26,6 @@ TERRAIN_COLOR = (0.6, 0.6, 0.6)
 
 def temp_path_for(path: Path) -> Path:
     """A sibling of ``path`` that keeps its extension (USD picks the format from it) and is unique per process."""
-    from .outputs import partial_path  # noqa: PLC0415
 
     return partial_path(path)
 
