@@ -1,4 +1,14 @@
-"""Spring and damper forces: one thread per spring, accumulated with atomic adds."""
+"""Spring and damper forces over a spring list: atomic adds, or a fixed-order gather.
+
+* ``eval_springs``: one thread per spring adds its force to both particles with atomic adds. On
+  CUDA the order in which contributions land on one particle changes from launch to launch, so the
+  forces differ in the last bits from run to run.
+* ``eval_spring_forces`` + ``gather_spring_forces`` (``--deterministic``): each spring writes its
+  force on its first particle to its own slot; then each particle sums the forces of its incident
+  springs in ascending spring order, read from a CSR list built once on the host
+  (``core/forces.attach``). On the CPU, Warp runs a launch's threads in ``tid`` order, so the atomic
+  kernel already adds in that order, starting from zero: the gather reproduces it bit for bit.
+"""
 
 import functools
 
@@ -83,9 +93,51 @@ def build(scalar):
         wp.atomic_add(particle_f_out, a, f)
         wp.atomic_sub(particle_f_out, b, f)
 
+    @wp.kernel(module="unique")
+    def eval_spring_forces(
+        # Model:
+        spring_indices: wp.array(dtype=wp.vec2i),
+        spring_rest_length: wp.array(dtype=scalar),
+        spring_stiffness: wp.array(dtype=scalar),
+        spring_damping: wp.array(dtype=scalar),
+        # State in:
+        particle_q: wp.array(dtype=vec3),
+        particle_qd: wp.array(dtype=vec3),
+        # Out: force of each spring on its first particle (the second gets the negative)
+        spring_f_out: wp.array(dtype=vec3),
+    ):
+        tid = wp.tid()
+        _a, _b, f = spring_of(
+            tid, spring_indices, spring_rest_length, spring_stiffness, spring_damping, particle_q, particle_qd
+        )
+        spring_f_out[tid] = f
+
+    @wp.kernel(module="unique")
+    def gather_spring_forces(
+        # Model: incident springs of particle i are csr_springs[csr_offsets[i]:csr_offsets[i + 1]],
+        # ascending; entry s >= 0 means i is the spring's first particle, -(s + 1) its second.
+        csr_offsets: wp.array(dtype=wp.int32),
+        csr_springs: wp.array(dtype=wp.int32),
+        # In:
+        spring_f: wp.array(dtype=vec3),
+        # Out:
+        particle_f_out: wp.array(dtype=vec3),
+    ):
+        i = wp.tid()
+        f = vec3(scalar(0.0))
+        for k in range(csr_offsets[i], csr_offsets[i + 1]):
+            e = csr_springs[k]
+            if e >= 0:
+                f = f + spring_f[e]
+            else:
+                f = f - spring_f[-e - 1]
+        particle_f_out[i] = f
+
     return {
         "spring_force": spring_force,
         "spring_of": spring_of,
         "spring_energy": spring_energy,
         "eval_springs": eval_springs,
+        "eval_spring_forces": eval_spring_forces,
+        "gather_spring_forces": gather_spring_forces,
     }

@@ -102,12 +102,12 @@ def test_sphere_and_bowl_distances_match_the_contact_kernels():
         sphere[i] = phi_s
         bowl[i] = phi_b
 
-    sphere = wp.zeros(len(pts), dtype=wp.float64)
-    bowl = wp.zeros(len(pts), dtype=wp.float64)
+    sphere = wp.zeros(len(pts), dtype=wp.float64, device="cpu")
+    bowl = wp.zeros(len(pts), dtype=wp.float64, device="cpu")
     wp.launch(
         distances,
         dim=len(pts),
-        inputs=[wp.array(pts, dtype=wp.vec3d), wp.vec3d(*center), radius, cut],
+        inputs=[wp.array(pts, dtype=wp.vec3d, device="cpu"), wp.vec3d(*center), radius, cut],
         outputs=[sphere, bowl],
         device="cpu",
     )

@@ -8,6 +8,8 @@ frame, on CUDA and on the CPU (Warp replays a CPU graph in C++), as fast as ``so
 
 from __future__ import annotations
 
+import time
+
 import warp as wp
 
 from .implicit import ImplicitIntegrator
@@ -33,7 +35,9 @@ class Stepper:
 
     ``state`` is the current state; ``advance(n)`` takes ``n`` steps. Between calls the state may be
     read (``state.particle_q.numpy()``) or written; a captured graph reads whichever of the two
-    state buffers is current, so writes to ``state`` take effect on the next call.
+    state buffers is current, so writes to ``state`` take effect on the next call. Before the first
+    capture, :meth:`warm_up` takes one step into a spare state, so every kernel is compiled and
+    loaded outside the capture (the implicit integrator's conditional graph nodes need that).
     """
 
     def __init__(self, model: Model, integrator: Integrator, dt: float, use_graph=None):
@@ -44,6 +48,19 @@ class Stepper:
         self.states = [model.state(), model.state()]
         self.current = 0
         self._graphs = {}
+        self.warmed_up = False
+
+    def warm_up(self) -> float:
+        """Compile and load every kernel a step launches (one step into a spare state, which leaves
+        ``state`` as it was); returns the seconds it took."""
+        t0 = time.perf_counter()
+        self.integrator.step(self.state, self.model.state(), self.dt)
+        wp.synchronize_device(self.model.device)
+        reset_stats = getattr(self.integrator, "reset_stats", None)  # the warm-up step is not part of the run
+        if reset_stats is not None:
+            reset_stats()
+        self.warmed_up = True
+        return time.perf_counter() - t0
 
     @property
     def state(self) -> State:
@@ -64,6 +81,8 @@ class Stepper:
         key = (n, self.current)
         graph = self._graphs.get(key)
         if graph is None:
+            if not self.warmed_up:
+                self.warm_up()
             start = self.current
             with wp.ScopedCapture(device=self.model.device, force_module_load=False) as capture:
                 self._advance_plain(n)

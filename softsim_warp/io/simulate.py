@@ -58,15 +58,10 @@ class Simulator(Stepper):
         return round(k / (self.fps * self.dt))
 
     def warm_up(self) -> float:
-        """Compile and load every kernel a run needs; returns the seconds it took."""
+        """Compile and load every kernel a run needs, the metrics' too; returns the seconds it took."""
         t0 = time.perf_counter()
-        spare = self.model.state()
-        self.integrator.step(self.states[self.current], spare, self.dt)
-        self.probe.measure(spare, 0, 0.0)
-        wp.synchronize_device(self.model.device)
-        reset_stats = getattr(self.integrator, "reset_stats", None)  # the warm-up step is not part of the run
-        if reset_stats is not None:
-            reset_stats()
+        super().warm_up()
+        self.probe.measure(self.state, 0, 0.0)
         return time.perf_counter() - t0
 
     def run(self, writers=(), progress=None, label="") -> RunResult:

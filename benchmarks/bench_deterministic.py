@@ -2,8 +2,8 @@
 
 Run::
 
-    python -m softsim_warp.commands.bench_deterministic --device cpu --json bench_det_cpu.json
-    python -m softsim_warp.commands.bench_deterministic --device cuda:0 --res 10 40 100 --json bench_det_cuda.json
+    python benchmarks/bench_deterministic.py --device cpu --json bench_det_cpu.json
+    python benchmarks/bench_deterministic.py --device cuda:0 --res 10 40 100 --json bench_det_cuda.json
 
 For each lattice resolution and integrator it builds the jelly_drop scene three times: the spring
 list with atomic adds (``atomic``), the spring list with the fixed-order CSR gather
@@ -24,9 +24,9 @@ import statistics
 import sys
 import time
 
-from ..core.model import build_model
-from ..core.stepper import make_integrator
-from ..io.scene import load_scene
+from softsim_warp.core.model import build_model
+from softsim_warp.core.stepper import make_integrator
+from softsim_warp.io.scene import load_scene
 
 
 class Case:
@@ -103,7 +103,7 @@ def compare(device, res, integrator, steps, repeats) -> dict:
 
 
 def main(argv=None) -> int:
-    p = argparse.ArgumentParser(prog="python -m softsim_warp.commands.bench_deterministic", description=__doc__.splitlines()[0])
+    p = argparse.ArgumentParser(prog="python benchmarks/bench_deterministic.py", description=__doc__.splitlines()[0])
     p.add_argument("--device", default="cpu")
     p.add_argument("--res", type=int, nargs="+", default=[10, 20, 30], help="particles per axis")
     p.add_argument("--integrators", nargs="+", default=["symplectic", "rk4"])
