@@ -18,7 +18,7 @@ Three kernels evaluate the same forces:
 * ``integrate_lattice_stage`` (the explicit methods on CUDA) fuses the gather with an integrator
   stage and, on the last stage, plane contact: one kernel per stage. Its gather
   (``gather_native``) is straight-line C++ generated per stencil (:func:`_gather_snippet`, the
-  same text on CPU and CUDA), 1.26x faster than the Warp loops at 100^3 on an H200, the same
+  same text on CPU and CUDA), 1.26x faster than the same sums as Warp loops (fused symplectic stage, 100^3, H200), the same
   bits on the CPU. ``single_stage`` is the same kernel compiled for one jelly's shape, with its
   coefficients as a kernel argument and unconditional loads from padded state arrays
   (``Model.particle_array``): the stage of a one-jelly model from 2^18 particles on.
@@ -141,7 +141,7 @@ def _gather_snippet(ctype, padded=False, uniform=False, shape=None, types=None, 
     normal number ``tiny`` (which changes no squared length above 2^-100 or so) instead of testing
     for zero keeps coincident particles (and a stand-in) at exactly zero force: d = 0 and s stays
     finite (for ks r below 3.7e19 in float32). Two instructions a spring fewer than
-    max(|d|^2, tiny) and kr / l - ks - kd (dv . d) / l^2 (eighth session, docs/PERFORMANCE.md).
+    max(|d|^2, tiny) and kr / l - ks - kd (dv . d) / l^2.
 
     Why it is faster than the Warp loops (H200, Nsight Compute, fused symplectic stage at 100^3):
     the loops' select-then-index addressing and short-circuit bounds tests cost about 34 integer
@@ -163,8 +163,7 @@ def _gather_snippet(ctype, padded=False, uniform=False, shape=None, types=None, 
     (``LatticeData.uniform``). The coefficients (``common_coefficients``) come as the kernel
     argument ``coef`` instead of per-jelly tables; on CUDA a kernel argument lives in the constant
     bank, which an instruction reads as an operand, so a spring needs no load and no multiply for
-    its coefficients (the seventh session's H200 build needed 48 registers instead of 64; with the
-    eighth session's spring factor the one-jelly stage's build takes 64). Same bits as the tables
+    its coefficients. Same bits as the tables
     (``common_coefficients`` rounds ks r as the table gather does).
 
     ``shape``, ``types``, ``start``: the jelly's lattice shape (nx, ny, nz), spring-type mask and first
@@ -520,8 +519,8 @@ return 1.0f / wp::sqrt(x);
         # Branch-free: a neighbour outside the lattice (or of an absent spring type) is replaced by
         # the particle itself, whose zero distance gives exactly zero force (stencil_spring_force).
         # Every load is then unconditional, so the compiler can issue the 64 neighbour loads
-        # together instead of one guarded load after another: 1.27x faster at 100^3 on an H200
-        # (docs/PERFORMANCE.md), same sums in the same order (x + 0 = x), so the same bits.
+        # together instead of one guarded load after another: 1.27x faster at 100^3 on an H200;
+        # same sums in the same order (x + 0 = x), so the same bits.
         row = shape[1] * shape[2]
         for di in range(-1, 2):
             for dj in range(-1, 2):
@@ -615,7 +614,7 @@ return 1.0f / wp::sqrt(x);
         address computation each, instead of through Warp's indexing (about 8 instructions an
         access: the wrap of a negative index and a 64-bit multiply by the run-time stride). These
         are the model's and the integrator's own arrays, contiguous by construction. Measured
-        1.02-1.05x at 100^3 and 40^3 on an H200 (docs/PERFORMANCE.md, seventh session).
+        1.02-1.05x at 100^3 and 40^3 on an H200 (docs/PERFORMANCE.md).
 
         ``single``: for a model that is one jelly of particles of one mass (``LatticeData.single``):
         the jelly is 0 and the world and inverse mass are particle 0's, so the kernel reads no
@@ -775,8 +774,8 @@ return 1.0f / wp::sqrt(x);
         """The fused stage for a model of one jelly of one particle mass with padded states
         (``LatticeData.single``, ``Model.particle_array``): the jelly's lattice shape, spring-type mask,
         first particle (0) and coefficients compiled in or passed as a kernel argument, unconditional
-        neighbour loads, no per-particle jelly, world or mass read. 1.25x (symplectic) and 1.27x (rk4)
-        over ``integrate_lattice_stage`` at 100^3 on an H200 (docs/PERFORMANCE.md). Built once per
+        neighbour loads, no per-particle jelly, world or mass read. 1.21x (symplectic) and 1.20x (rk4)
+        over ``integrate_lattice_stage`` at 100^3 on an H100 (docs/PERFORMANCE.md). Built once per
         (shape, types) and compiled on first launch (Warp caches the build on disk)."""
         key = (tuple(int(n) for n in shape), int(types))
         if key not in single_stages:

@@ -9,8 +9,8 @@ set, :func:`step_fused` from ``step``. The kernel follows the lattice kernel the
   single launch. A model of one jelly of one particle mass with shared coefficients, from
   ``SINGLE_FROM`` particles on, steps with ``single_stage`` instead: the same kernel compiled for
   the jelly's shape and spring types, reading no per-particle jelly, world or mass and no bounds
-  (its states are padded, ``Model.particle_array``); 1.25x symplectic, 1.27x rk4 at 100^3 on an
-  H200 (docs/PERFORMANCE.md).
+  (its states are padded, ``Model.particle_array``); 1.21x symplectic, 1.20x rk4 at 100^3 on an
+  H100 (docs/PERFORMANCE.md).
 * rows (CPU): ``integrate_lattice_rows_stage`` computes a jelly's forces with the vectorised row
   loops and then its particles' stage update; contact follows as its own kernel.
 
@@ -29,8 +29,8 @@ import warp as wp
 from .contact import apply_contacts, filter_stage_contacts
 
 # Particles from which a one-jelly model steps with the shape-compiled stage (``single_stage``).
-# Below, a few blocks per SM leave the latency to the loads each thread has in flight, and the
-# generic stage was as fast (docs/PERFORMANCE.md).
+# Below, a few blocks per SM leave the latency to the loads each thread has in flight: the
+# shared-coefficient build this stage grew from measured 0.95-0.96x at 40^3 on an H200 (docs/PERFORMANCE.md).
 SINGLE_FROM = 1 << 18
 
 
