@@ -560,8 +560,44 @@ CASES = [
     Case(
         "metrics_is_scene",
         "--metrics would overwrite the scene",
-        "command line: --metrics: would overwrite the scene file",
+        "command line: --metrics: would overwrite the input scene",
         args=(SCENE, "--metrics", SCENE),
+    ),
+    Case(
+        "symlink_metrics_is_scene",
+        "--metrics a symlink to the scene",
+        "command line: --metrics: would overwrite the input scene",
+        args=(SCENE, "--metrics", "link_to_scene.json"),
+    ),
+    Case(
+        "deep_nesting",
+        "arrays nested 101 deep (no recursion limit is reached at any depth)",
+        "nested deeper than 100 levels",
+        _e("resolution = [3, 3, 3]", "resolution = " + "[" * 101 + "1" + "]" * 101),
+    ),
+    Case(
+        "set_unicode_index",
+        "--set with a superscript digit as index",
+        "expected an index (digits 0-9)",
+        args=(SCENE, "--set", "jelly.\u00b2=1"),
+    ),
+    Case(
+        "set_arabic_index",
+        "--set with an Arabic-Indic digit as index",
+        "expected an index (digits 0-9)",
+        args=(SCENE, "--set", "jelly.\u0663.size=1"),
+    ),
+    Case(
+        "set_empty_key",
+        "--set with no key",
+        "expected a dotted key",
+        args=(SCENE, "--set", "=1"),
+    ),
+    Case(
+        "infinite_size",
+        "size = 1e999 (infinite)",
+        "must be a list of 3 finite numbers",
+        _e("size = 0.5", "size = 1e999"),
     ),
     Case(
         "metrics_is_directory",
@@ -609,6 +645,9 @@ def prepare(case: Case, workdir: Path) -> list[str]:
         (workdir / SCENE).write_text(text)
     (workdir / "afile").write_text("a regular file\n")
     (workdir / "adir.usdc").mkdir(exist_ok=True)
+    link = workdir / "link_to_scene.json"
+    if not link.is_symlink():
+        link.symlink_to(SCENE)
     args = list(case.args)
     if any("{readonly}" in a for a in args):
         ro = readonly_dir(workdir)

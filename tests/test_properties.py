@@ -1,8 +1,10 @@
 """Property-based tests (hypothesis).
 
 Scene loader: any mutation of a valid scene (keys deleted, values replaced by anything TOML can
-hold: nan, inf, huge, negative, wrong types; unknown keys added; text edits of the file; random
-``--set``) either loads or raises SceneError whose message is one line of the documented form.
+hold: nan, inf, huge, negative, wrong types; unknown keys added, odd Unicode ones (superscript and
+non-ASCII digits, combining marks) and, in a Python dict, keys that are not strings; values nested
+thousands of levels deep or cyclic; text edits of the file; random ``--set``) either loads or
+raises SceneError whose message is one line of the documented form, never another exception.
 
 Spring forces: on random lattices with random states, coincident particles, and coordinates from
 1e-6 to 1e6 m, the total internal force is zero to float32 rounding (momentum conservation: each
@@ -41,28 +43,71 @@ BASE = tomllib.loads(rc.BASE)
 
 # --- scene loader -----------------------------------------------------------------------------
 
+# Characters that look like digits or separators to one Unicode rule or another: superscripts,
+# Arabic-Indic, Devanagari, fullwidth and mathematical digits, roman numerals, fractions,
+# combining marks, zero-width and control characters, the key separators of the error line.
+ODD_CHARS = "0123456789²³¹٠١٣۴०१০߀０１𝟙Ⅻ½\u0301\u0308\u20dd\u200b\u200d\ufeff\x00\t\n.:=\"'\\ [{"
+
 scalars = st.one_of(
     st.floats(allow_nan=True, allow_infinity=True),
     st.integers(-3, 12),
-    st.sampled_from([0, -1, 2**31 - 1, 2**53, 10**12, -(2**63), 10**30]),
+    st.sampled_from([0, -1, 2**31 - 1, 2**53, 10**12, -(2**63), 10**30, 2**63, 10**400, -(10**400)]),
+    # More digits than str() converts; built on draw, since hypothesis cannot print it as a constant.
+    st.just(5000).map(lambda n: 10**n),
     st.booleans(),
     st.text(max_size=8),
     st.sampled_from(["symplectic", "rk4", "implicit", "float64", "float32", "nan"]),
 )
-values = st.recursive(
-    scalars,
-    lambda inner: st.one_of(st.lists(inner, max_size=4), st.dictionaries(st.text(max_size=6), inner, max_size=3)),
-    max_leaves=8,
+odd_text = st.text(alphabet=ODD_CHARS, min_size=1, max_size=6)
+# Keys of an in-memory scene: any hashable, not only strings.
+keys = st.one_of(
+    st.text(min_size=1, max_size=8),
+    odd_text,
+    st.integers(),
+    st.sampled_from([None, True, b"dt", ("jelly", 0), frozenset({1})]),
+    st.just(5000).map(lambda n: 10**n),
+    st.floats(),
 )
 
 
-def _paths(node, prefix=()):
-    """Every (container path, key) in a parsed TOML tree."""
+def _nest(depth, kind, leaf):
+    v = leaf
+    for i in range(depth):
+        v = [v] if kind == "list" or (kind == "mixed" and i % 2) else {"a": v}
+    return v
+
+
+def _cycle(kind):
+    v = [] if kind == "list" else {}
+    if kind == "list":
+        v.append(v)
+    else:
+        v["a"] = v
+    return v
+
+
+deep_values = st.one_of(
+    st.builds(_nest, st.integers(95, 5000), st.sampled_from(["list", "dict", "mixed"]), scalars),
+    st.builds(_cycle, st.sampled_from(["list", "dict"])),
+)
+values = st.recursive(
+    scalars,
+    lambda inner: st.one_of(st.lists(inner, max_size=4), st.dictionaries(keys, inner, max_size=3)),
+    max_leaves=8,
+)
+# Mostly ordinary values, one in ten nested deeper than any parser or copy can recurse.
+mutant_values = st.integers(0, 9).flatmap(lambda r: deep_values if r == 0 else values)
+
+
+def _paths(node, prefix=(), max_depth=8):
+    """Every (container path, key) in a parsed TOML tree, down to ``max_depth`` (values may be deep or cyclic)."""
     out = []
+    if len(prefix) >= max_depth:
+        return out
     items = node.items() if isinstance(node, dict) else enumerate(node) if isinstance(node, list) else ()
     for k, v in items:
         out.append((prefix, k))
-        out += _paths(v, prefix + (k,))
+        out += _paths(v, prefix + (k,), max_depth)
     return out
 
 
@@ -99,15 +144,28 @@ def test_mutated_scene_loads_or_gives_one_line(data):
         if op == "add" or not paths:
             tables = [()] + [p + (k,) for p, k in paths if isinstance(_at(doc, p + (k,)), dict)]
             where = data.draw(st.sampled_from(tables), label="table")
-            _at(doc, where)[data.draw(st.text(min_size=1, max_size=8), label="key")] = data.draw(values, label="value")
+            _at(doc, where)[data.draw(keys, label="key")] = data.draw(mutant_values, label="value")
             continue
         parent, key = data.draw(st.sampled_from(paths), label="path")
         container = _at(doc, parent)
         if op == "delete":
             del container[key]
         else:
-            container[key] = data.draw(values, label="value")
+            container[key] = data.draw(mutant_values, label="value")
     _load(doc)
+
+
+# Text edits: any short text, odd Unicode, nesting beyond the limit, integers of thousands of digits.
+deep_text = st.builds(
+    lambda n, opener: opener * n, st.integers(95, 5000), st.sampled_from(["[", "{a=", "[{a=", "{", "x = ["])
+)
+inserts = st.one_of(
+    st.text(max_size=6),
+    odd_text,
+    deep_text,
+    st.builds(lambda n: "9" * n, st.sampled_from([19, 400, 4301, 6000])),
+    st.sampled_from(["1e999", "-inf", "nan", "0x" + "f" * 5000, "[]", "{}"]),
+)
 
 
 @SETTINGS
@@ -118,21 +176,41 @@ def test_edited_scene_text_loads_or_gives_one_line(data):
     for _ in range(data.draw(st.integers(1, 3), label="edits")):
         i = data.draw(st.integers(0, len(text)), label="at")
         j = data.draw(st.integers(i, min(len(text), i + 12)), label="to")
-        text = text[:i] + data.draw(st.text(max_size=6), label="insert") + text[j:]
+        text = text[:i] + data.draw(inserts, label="insert") + text[j:]
     try:
         scene.validate(scene.parse_toml(text, "edited.toml"), "edited.toml")
     except SceneError as e:
         _assert_one_line(e)
 
 
+known_keys = [".".join(map(str, p + (k,))) for p, k in _paths(BASE)]
+
+
+def _replace_part(key, i, odd):
+    parts = key.split(".")
+    parts[i % len(parts)] = odd
+    return ".".join(parts)
+
+
 override_keys = st.one_of(
-    st.sampled_from([".".join(map(str, p + (k,))) for p, k in _paths(BASE)]),
+    st.sampled_from(known_keys),
     st.text(alphabet="abcdefgjklmnoprstuvxyz0123456789._", min_size=0, max_size=20),
+    # A known key with one part replaced by odd Unicode (jelly.².size, jelly.٣.size, ...).
+    st.builds(_replace_part, st.sampled_from(known_keys), st.integers(0, 5), odd_text),
+    st.text(alphabet=ODD_CHARS + "jely.s0", min_size=0, max_size=12),
+    st.builds(lambda n: ".".join(["a"] * n), st.integers(10, 200)),
+)
+override_values = st.one_of(
+    st.text(max_size=12),
+    odd_text,
+    st.builds(lambda n, o: o * n + "1" + "]}"[o == "{a="] * n, st.integers(95, 5000), st.sampled_from(["[", "{a="])),
+    deep_text,
+    st.sampled_from(["9" * 5000, "9" * 400, "1e999", "-inf", "nan", "1\nx = 2", "0x" + "f" * 5000]),
 )
 
 
 @SETTINGS
-@given(st.lists(st.tuples(override_keys, st.sampled_from(["=", "", "=="]), st.text(max_size=12)), max_size=3))
+@given(st.lists(st.tuples(override_keys, st.sampled_from(["=", "", "=="]), override_values), max_size=3))
 def test_random_overrides_load_or_give_one_line(items):
     doc = copy.deepcopy(BASE)
     try:

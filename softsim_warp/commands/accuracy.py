@@ -38,7 +38,7 @@ import numpy as np
 from ..core.errors import CommandLineError
 from ..core.model import build_model
 from ..core.stepper import make_integrator
-from ..io.outputs import check_writable, save_report
+from ..io.outputs import Outputs, save_report
 from ..io.simulate import Simulator
 from .common import ALL_INTEGRATORS, check_positive, load_for_cli, parse_methods, parse_positive_list, resolve_device
 
@@ -564,10 +564,10 @@ def run(args) -> int:
     dts = parse_positive_list(args.dts, "--dts") if args.dts else None
     for flag in ("duration", "reference_dt", "fps"):
         check_positive(getattr(args, flag), "--" + flag.replace("_", "-"))
-    if args.out:
-        check_writable(args.out, "--out")
-    if args.plot:
-        check_writable(args.plot, "--plot", suffixes=(".png", ".pdf", ".svg"))
+    outputs = Outputs()
+    outputs.add_input("scene", args.scene)
+    outputs.add("--out", args.out)
+    outputs.add("--plot", args.plot, (".png", ".pdf", ".svg"))
     scene = load_for_cli(args)
     fps = args.fps or scene.sim["fps"]
     for d in dts or ():
@@ -575,6 +575,11 @@ def run(args) -> int:
             raise CommandLineError("--dts", f"steps must not exceed the frame interval 1/fps = {1.0 / fps:g} s", d)
     device = resolve_device(args.device)
     log = None if args.quiet else (lambda line: print(line, file=sys.stderr, flush=True))
+    with outputs:
+        return _measure_and_save(args, scene, methods, dts, device, log)
+
+
+def _measure_and_save(args, scene, methods, dts, device, log) -> int:
     try:
         report = measure(scene, methods, dts, device=device, precision=args.precision, duration=args.duration,
                          reference_dt=args.reference_dt, fps=args.fps, use_graph=not args.no_graph, log=log)

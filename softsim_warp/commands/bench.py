@@ -34,7 +34,7 @@ from ..core.errors import CommandLineError, UserError
 from ..core.integrators import ExplicitIntegrator
 from ..core.model import ModelBuilder, build_model
 from ..core.stepper import make_integrator
-from ..io.outputs import check_writable, save_report
+from ..io.outputs import Outputs, save_report
 from ..io.scene import load_scene
 from .bench_newton import NewtonJelly, newton_version
 from .common import resolve_device
@@ -473,10 +473,10 @@ def run(args) -> int:
             raise CommandLineError(flag, f"must be at least {low}", value)
     if args.peer and args.scene:
         raise CommandLineError("--peer", "compares the size sweep only; leave out --scene", args.peer)
-    if args.out:
-        check_writable(args.out, "--out", suffixes=(".json",))
-    if args.plot:
-        check_writable(args.plot, "--plot", suffixes=(".png",))
+    outputs = Outputs()
+    outputs.add_input("--scene", args.scene)
+    outputs.add("--out", args.out, (".json",))
+    outputs.add("--plot", args.plot, (".png",))
     device = resolve_device(args.device)
     if args.peer:
 
@@ -587,7 +587,8 @@ def run(args) -> int:
         # nvidia-smi's samples while each size's cases were timed (ClockMonitor; empty without it).
         "gpu_clocks": gpu_clocks,
     }
-    save_report(data, args.out, args.plot, plot)
+    with outputs:
+        save_report(data, args.out, args.plot, plot)
     return 0
 
 

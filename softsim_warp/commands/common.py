@@ -125,6 +125,7 @@ class Signals:
     def __init__(self):
         self.received = None
         self.closing = False
+        self.immediate = False  # after the run (rendering --preview): a signal stops at once
         self.busy = lambda: False  # True while a frame is being written: a stop-now waits for it
 
     def __enter__(self):
@@ -134,6 +135,9 @@ class Signals:
         return self
 
     def _handle(self, signum, frame):
+        if self.immediate:
+            self.received = signum
+            raise KeyboardInterrupt
         if self.received is not None and not self.closing and not self.busy():  # a second signal: stop now
             raise KeyboardInterrupt
         if self.received is None:

@@ -36,7 +36,7 @@ from ..core.model import ModelBuilder, populate, terrain_anchors
 from ..core.stepper import make_integrator
 from ..io import scene as scene_mod
 from ..io.metrics import speed_bound
-from ..io.outputs import check_writable, write_json_atomic
+from ..io.outputs import USD_SUFFIXES, Outputs, kept_partial_path, save_atomic, write_json_atomic
 from ..io.scene import parse_override
 from ..io.simulate import Simulator
 from ..io.usd import UsdWriter
@@ -85,11 +85,11 @@ def add_parser(subparsers, add_common):
 
 def run(args) -> int:
     plan = plan_variants(args)
-    out = check_writable(args.out or f"{Path(plan.source).stem}_compare.usdc", "--out", suffixes=(".usdc", ".usda", ".usd"))
-    if args.metrics:
-        check_writable(args.metrics, "--metrics")
-    if args.plot:
-        check_writable(args.plot, "--plot", suffixes=(".png",))
+    outputs = Outputs()
+    outputs.add_input("scene", plan.source)
+    out = outputs.add("--out", args.out or f"{Path(plan.source).stem}_compare.usdc", USD_SUFFIXES)
+    outputs.add("--metrics", args.metrics)
+    outputs.add("--plot", args.plot, (".png",))
     if args.columns is not None and args.columns < 1:
         raise CommandLineError("--columns", "must be an integer >= 1", args.columns)
     if args.gap is not None and not (math.isfinite(args.gap) and args.gap >= 0):
@@ -103,7 +103,7 @@ def run(args) -> int:
         progress = tqdm(total=plan.frames + 1, unit="frame", desc=f"{plan.name} x{len(plan.variants)}",
                         file=sys.stderr, leave=False)
     try:
-        with common.Signals() as signals:
+        with common.Signals() as signals, outputs:
             common.ACTIVE_SIGNALS = signals
             result = run_comparison(plan, device, out, metrics_path=args.metrics, plot_path=args.plot,
                                     columns=args.columns, gap=args.gap, springs=args.springs,
@@ -116,7 +116,7 @@ def run(args) -> int:
         state = f"exploded at t = {v.exploded['time']:.4g} s ({v.exploded['reason']})" if v.exploded else "complete"
         print(f"{plan.name} [{v.name}]: {v.integrator}, {state}", file=sys.stderr)
     print(f"{plan.name}: {len(result.variants)} copies, {result.frames_written} frames, {result.steps} steps at "
-          f"dt={plan.dt:g} s in {result.wall_seconds:.2f} s -> {out}", file=sys.stderr)
+          f"dt={plan.dt:g} s in {result.wall_seconds:.2f} s -> {result.written_path}", file=sys.stderr)
     if result.interrupted:
         return 128 + int(signals.received)
     exploded = [v.name for v in result.variants if v.exploded]
@@ -380,6 +380,7 @@ class ComparisonResult:
     steps: int = 0
     wall_seconds: float = 0.0
     interrupted: bool = False
+    written_path: Path | None = None  # where the stage went (<stem>.partial<suffix> when it could not replace --out)
 
 
 class _Group:
@@ -555,7 +556,11 @@ def run_comparison(plan: Plan, device, out, metrics_path=None, plot_path=None, c
         for v in g.variants:
             results[v.world].stats = stats
     status = "interrupted" if result.interrupted else ("exploded" if any(r.exploded for r in results) else "complete")
-    writer.close(status=status, extra={"softsim:frames": result.frames_written})
+    written = writer.close(status=status, extra={"softsim:frames": result.frames_written})
+    result.written_path = written
+    if written != Path(out):  # did not complete and may not replace the outputs: all kept as <stem>.partial
+        metrics_path = kept_partial_path(metrics_path) if metrics_path else None
+        plot_path = kept_partial_path(plot_path) if plot_path else None
     if metrics_path:
         write_json_atomic(metrics_path, {
             "scene": plan.name,
@@ -623,4 +628,4 @@ def plot_comparison(results, path, title=""):
     if title:
         axes[0].set_title(title)
     fig.tight_layout()
-    fig.savefig(str(path), format="png")
+    save_atomic(path, lambda tmp: fig.savefig(tmp, format="png"), "--plot")

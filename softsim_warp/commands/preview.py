@@ -9,7 +9,7 @@ import sys
 
 from ..core.errors import CommandLineError, UserError
 from ..io import preview
-from ..io.outputs import check_writable
+from ..io.outputs import Outputs, save_atomic
 
 COMMAND = "preview"
 
@@ -54,12 +54,16 @@ def run(args) -> int:
         raise CommandLineError("--fps", "sets the frame rate of --gif; give --gif FILE too")
     if args.split and (args.gif or not args.png):
         raise CommandLineError("--split", "tiles one frame of each copy into --png; it does not make GIFs")
-    if args.png:
-        check_writable(args.png, "--png", suffixes=(".png",))
-    if args.gif:
-        check_writable(args.gif, "--gif", suffixes=(".gif",))
+    outputs = Outputs()
+    outputs.add_input("usd", args.usd)
+    outputs.add("--png", args.png, (".png",))
+    outputs.add("--gif", args.gif, (".gif",))
     size = _size(args.size)
+    with outputs:
+        return _render(args, size)
 
+
+def _render(args, size) -> int:
     try:
         if args.png and args.split:
             frame = render_split_png(args.usd, args.png, frame=args.frame, time=args.time, size=size)
@@ -170,5 +174,5 @@ def render_split_png(usd_path, png_path, frame=None, time=None, size=None):
             ax.set_axis_off()
             fig.text((c + 0.5) / cols, 1.0 - r / rows - 0.5 * (30 / (tile_h + 30)) / rows, name,
                      ha="center", va="center", fontsize=13, family="monospace")
-    fig.savefig(os.fspath(png_path), format="png", facecolor="white")
+    save_atomic(png_path, lambda tmp: fig.savefig(tmp, format="png", facecolor="white"), "--png")
     return rendered

@@ -13,7 +13,7 @@ from pathlib import Path
 
 from ..core.model import build_model
 from ..core.stepper import make_integrator
-from ..io.outputs import check_outputs, check_writable, write_json_atomic
+from ..io.outputs import USD_SUFFIXES, Outputs, kept_partial_path, write_json_atomic
 from ..io.resources import check_fits
 from ..io.runinfo import explosion_message, summary_dict, summary_line
 from ..io.simulate import Simulator
@@ -58,11 +58,16 @@ def run(args) -> int:
 
 def _run(args, signals) -> int:
     scene = load_for_cli(args)
-    out, metrics_path = check_outputs(
-        args.out or f"{Path(scene.source).stem}.usdc", args.metrics, scene_path=scene.source
-    )
-    if args.preview:
-        check_writable(args.preview, "--preview", suffixes=(".gif",))
+    outputs = Outputs()
+    outputs.add_input("scene", scene.source)
+    out = outputs.add("--out", args.out or f"{Path(scene.source).stem}.usdc", USD_SUFFIXES)
+    metrics_path = outputs.add("--metrics", args.metrics)
+    preview_path = outputs.add("--preview", args.preview, (".gif",))
+    with outputs:
+        return _run_locked(args, signals, scene, out, metrics_path, preview_path)
+
+
+def _run_locked(args, signals, scene, out, metrics_path, preview_path) -> int:
     device = resolve_device(args.device, args.debug)
     sim = scene.sim
     if args.deterministic:
@@ -104,12 +109,23 @@ def _run(args, signals) -> int:
     if result.exploded:
         message = explosion_message(scene, model, result)
         summary["explosion"]["message"] = message
-    writer.close(status=status, extra={"softsim:frames": result.frames_written})
+    written = writer.close(status=status, extra={"softsim:frames": result.frames_written})
+    # A run that may not replace its outputs (it did not complete, and they existed) keeps them all
+    # as <stem>.partial<suffix>, so the USD and its metrics stay a pair.
+    kept = written != out
     if metrics_path is not None:
-        write_json_atomic(metrics_path, {"summary": summary, "frames": [m.as_dict() for m in result.metrics]})
-    print(summary_line(summary, out), file=sys.stderr)
-    if args.preview and result.frames_written:
-        render_gif_or_error(out, args.preview)
+        write_json_atomic(kept_partial_path(metrics_path) if kept else metrics_path,
+                          {"summary": summary, "frames": [m.as_dict() for m in result.metrics]})
+    print(summary_line(summary, written), file=sys.stderr)
+    if kept:
+        print(f"note: {out} existed and the run did not complete: it is unchanged, the frames are in {written}",
+              file=sys.stderr)
+    if preview_path is not None and result.frames_written and signals.received is None:
+        # The outputs are in place; a signal now stops the rendering at once (nothing half-written:
+        # the GIF goes to a temporary first).
+        signals.closing = False
+        signals.immediate = True
+        render_gif_or_error(written, kept_partial_path(preview_path) if kept else preview_path)
     if result.exploded:
         print("error: " + message, file=sys.stderr)
         return EXIT_EXPLODED

@@ -50,7 +50,7 @@ from ..core.errors import CommandLineError
 from ..core.model import NUMPY_SCALARS, ModelBuilder, build_model
 from ..core.stability_analysis import predict_lattice_dt
 from ..core.stepper import make_integrator
-from ..io.outputs import check_writable, save_report
+from ..io.outputs import Outputs, save_report
 from ..io.simulate import Simulator
 from .common import ALL_INTEGRATORS, check_positive, load_for_cli, parse_methods, parse_positive_list, resolve_device
 
@@ -557,18 +557,19 @@ def run(args) -> int:
         raise CommandLineError("--lattice", "must be an integer from 2 to 8", args.lattice)
     if not (0 < args.rtol < 1):
         raise CommandLineError("--rtol", "must be > 0 and < 1", args.rtol)
-    if args.out:
-        check_writable(args.out, "--out")
-    if args.plot:
-        check_writable(args.plot, "--plot", suffixes=(".png", ".pdf", ".svg"))
+    outputs = Outputs()
+    outputs.add_input("scene", args.scene)
+    outputs.add("--out", args.out)
+    outputs.add("--plot", args.plot, (".png", ".pdf", ".svg"))
     scene = load_for_cli(args)
     if not 0 <= args.jelly < len(scene.jellies):
         raise CommandLineError("--jelly", f"this scene has jellies 0 to {len(scene.jellies) - 1}", args.jelly)
     device = resolve_device(args.device)
     log = None if args.quiet else (lambda line: print(line, file=sys.stderr, flush=True))
-    report = analyse(scene, methods, ks_values=ks, device=device, precision=args.precision, steps=args.steps,
-                     duration=args.duration, rtol=args.rtol, scene_runs=not args.no_scene,
-                     use_graph=not args.no_graph, lattice_max=args.lattice, jelly_index=args.jelly, log=log)
-    print(format_table(report))
-    save_report(report, args.out, args.plot, plot_report)
+    with outputs:
+        report = analyse(scene, methods, ks_values=ks, device=device, precision=args.precision, steps=args.steps,
+                         duration=args.duration, rtol=args.rtol, scene_runs=not args.no_scene,
+                         use_graph=not args.no_graph, lattice_max=args.lattice, jelly_index=args.jelly, log=log)
+        print(format_table(report))
+        save_report(report, args.out, args.plot, plot_report)
     return 0

@@ -36,6 +36,8 @@ import sys
 
 import numpy as np
 
+from .outputs import save_atomic
+
 __all__ = ["render_gif", "render_png"]
 
 JELLY_RGB = np.array([1.0, 0.45, 0.08])
@@ -91,7 +93,8 @@ def render_png(usd_path, png_path, frame=None, time=None, size=(800, 600)):
         frame = scene.end
     renderer = _Renderer(scene, width, height)
     renderer.draw(frame)
-    renderer.fig.savefig(os.fspath(png_path), format="png", dpi=renderer.dpi, facecolor=BACKGROUND_RGB)
+    save_atomic(png_path, lambda tmp: renderer.fig.savefig(tmp, format="png", dpi=renderer.dpi, facecolor=BACKGROUND_RGB),
+                "--png")
     return frame
 
 
@@ -147,14 +150,12 @@ def render_gif(usd_path, gif_path, fps=None, size=(640, 480), max_frames=None):
     # Frame delays in whole centiseconds (GIF's unit) whose running sum tracks real time.
     ends = np.round(np.arange(1, len(frames) + 1) * step / scene.fps * 100.0).astype(int)
     delays_ms = (np.diff(ends, prepend=0) * 10).tolist()
-    images[0].save(
-        os.fspath(gif_path),
-        format="GIF",
-        save_all=True,
-        append_images=images[1:],
-        duration=delays_ms,
-        loop=0,
-        optimize=False,
+    save_atomic(
+        gif_path,
+        lambda tmp: images[0].save(
+            tmp, format="GIF", save_all=True, append_images=images[1:], duration=delays_ms, loop=0, optimize=False
+        ),
+        "--gif",
     )
     return len(images)
 

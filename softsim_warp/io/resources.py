@@ -6,7 +6,9 @@ nothing to count). :func:`estimate` turns the counts into bytes, split into host
 builder and the USD time samples, which a USD layer keeps in memory until the run ends) and device
 memory (model, states, integrator stage buffers); on the CPU device both live in host RAM.
 :func:`check_fits` compares that with what is available and raises a one-line
-:class:`~softsim_warp.core.errors.SceneError` naming the estimate and the space available.
+:class:`~softsim_warp.core.errors.SceneError` naming the estimate and the space available; it
+also refuses, with :func:`check_steps`, a run whose step count (frames / fps / dt) could not
+finish in :data:`MAX_RUN_DAYS` days even at a lower bound of the time a step takes.
 
 The per-item byte counts below follow the arrays that ``model.py``, ``softsim_warp/core/integrators.py``,
 ``softsim_warp/io/simulate.py`` and ``softsim_warp/io/usd.py`` allocate; the builder's peak was measured with ``tracemalloc``
@@ -30,6 +32,17 @@ HOST_MODEL_PER_SPRING = 44  # host copies kept in the Model: pairs, type, rest/k
 HOST_MODEL_PER_PARTICLE = 32  # q and mass (float64) kept in the Model
 USD_POINT_BYTES = 12  # one float32 point of one time sample
 STAGES = {"euler": 1, "symplectic": 1, "midpoint": 2, "rk4": 4}
+
+# Lower bounds of the time one step takes, for refusing a run that cannot finish (check_steps).
+# They are floors, not estimates: every step launches at least two kernels (symplectic; RK4 eight,
+# implicit fourteen) over every particle. Measured (Warp 1.19, graphs replayed, symplectic, the
+# cheapest method): on the CPU (one core) 1.0 us a step for 8 particles and 17-20 ns a particle
+# for 10^3 to 8000 particles, hence 0.5 us and 5 ns; on an H100 5.1 us a step for 8 to 1000
+# particles and 78 ps a particle for 216,000, hence 2 us and 10 ps (a step moves at least ~48
+# bytes a particle, q and qd read and written in float32: 10 ps at 4.8 TB/s).
+STEP_FLOOR_SECONDS = {"cpu": 0.5e-6, "cuda": 2.0e-6}
+STEP_SECONDS_PER_PARTICLE = {"cpu": 5.0e-9, "cuda": 1.0e-11}
+MAX_RUN_DAYS = 30
 
 
 def _device_per_particle(s: int, integrator: str) -> int:
@@ -191,6 +204,51 @@ def check_host_build(data: dict, source: str, available=None):
         )
 
 
+def step_seconds_floor(particles: int, is_cuda: bool) -> float:
+    """A lower bound of the seconds one step of ``particles`` particles takes on a CUDA device or the CPU."""
+    kind = "cuda" if is_cuda else "cpu"
+    return max(STEP_FLOOR_SECONDS[kind], particles * STEP_SECONDS_PER_PARTICLE[kind])
+
+
+def check_steps(scene, device, frames, max_days=MAX_RUN_DAYS, counts=None):
+    """Refuse a run of ``frames`` frames after frame 0 whose steps (frames / fps / dt) would take more
+    than ``max_days`` days on ``device`` even at :func:`step_seconds_floor` a step.
+
+    The error names ``simulation.dt`` and its value, the step count and the least time it would take.
+    Returns the step count (a float: a tiny dt gives more steps than an int should hold).
+    """
+    sim = scene.data["simulation"]
+    dt, fps = float(sim["dt"]), float(sim["fps"])
+    steps = float(frames) / fps / dt  # not frames / (fps * dt): fps * dt may round to 0
+    if not steps > 0:
+        return 0.0
+    counts = counts or scene_counts(scene.data)
+    floor = step_seconds_floor(counts.particles, device.is_cuda)
+    days = steps * floor / 86400.0
+    if days > max_days:
+        raise SceneError(
+            scene.source,
+            "simulation.dt",
+            f"too many steps: {frames} frames at {fps:g} fps are {_steps(steps)} steps, which would take at least "
+            f"{_days(days)} on {device} at <= {1.0 / floor:.3g} steps/s (at most {max_days:g} days allowed); "
+            f"raise simulation.dt or shorten the run",
+            sim["dt"],
+        )
+    return steps
+
+
+def _days(days: float) -> str:
+    if not math.isfinite(days):
+        return "more than 1e300 days"
+    return f"{days:,.0f} days" if days < 1e9 else f"{days:.3g} days"
+
+
+def _steps(steps: float) -> str:
+    if not math.isfinite(steps):
+        return "more than 1e300"
+    return f"{steps:,.0f}" if steps < 1e15 else f"{steps:.3g}"
+
+
 def check_fits(
     scene,
     device,
@@ -201,7 +259,8 @@ def check_fits(
     host_available=None,
     device_free=None,
 ):
-    """Refuse a run that would not fit on ``device`` (a ``wp.Device`` or anything with ``is_cuda``).
+    """Refuse a run that would not fit on ``device`` (a ``wp.Device`` or anything with ``is_cuda``),
+    or whose ``frames`` frames take too many steps to finish (:func:`check_steps`).
 
     ``host_available`` and ``device_free`` override what is measured (for tests).
     """
@@ -231,4 +290,5 @@ def check_fits(
                 f"{format_bytes(free)} free of {format_bytes(device.total_memory)}",
                 value,
             )
+    check_steps(scene, device, frames, counts=est.counts)
     return est

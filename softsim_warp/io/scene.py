@@ -12,6 +12,7 @@ import difflib
 import json
 import math
 import re
+import sys
 import tomllib
 from dataclasses import dataclass, field
 from importlib import resources
@@ -22,6 +23,86 @@ from .checks import check_scene
 
 INTEGRATORS = ("euler", "symplectic", "midpoint", "rk4", "implicit")
 PRECISIONS = ("float32", "float64")
+
+# Arrays and tables nested deeper than this are refused before anything recursive sees them (the
+# TOML parser, copying, validation and the error message all recurse; a scene needs 4 levels).
+MAX_NESTING = 100
+# Integers must fit in a signed 64-bit integer (counts and frame numbers are sized by it).
+INT_MAX = 2**63 - 1
+# A scene file is a few kilobytes of settings; a larger one is a mistake (and would take long to parse).
+MAX_SCENE_BYTES = 16 * 2**20
+
+
+# ---------------------------------------------------------------------------------------------
+# Values shown in error messages: bounded in depth, length and digits, so that formatting them
+# (which recurses) cannot fail whatever the value is, a cyclic Python structure included.
+
+
+class _Shown:
+    """A stand-in that prints as the given text (``errors.format_value`` uses ``str`` for it)."""
+
+    def __init__(self, text):
+        self.text = text
+
+    def __str__(self):
+        return self.text
+
+    __repr__ = __str__
+
+
+def _safe_str(value) -> str:
+    try:
+        return str(value)
+    except ValueError:  # an int beyond sys.get_int_max_str_digits()
+        if isinstance(value, int):
+            return f"<integer of {value.bit_length()} bits>"
+        return f"<{type(value).__name__}>"
+    except Exception:  # noqa: BLE001 - an object of the Python API whose __str__ fails
+        return f"<{type(value).__name__}>"
+
+
+_SHOW_DEPTH = 64
+_SHOW_ITEMS = 100
+_SHOW_NODES = 500
+
+
+def shown(value):
+    """``value`` made safe to format: nesting cut at 64 levels, containers at 100 items, 500 nodes in all.
+
+    The message is cut to 200 characters anyway, so ordinary values print exactly as before.
+    """
+    budget = [_SHOW_NODES]
+
+    def walk(v, depth):
+        budget[0] -= 1
+        if budget[0] < 0 or depth > _SHOW_DEPTH:
+            return _Shown("...")
+        if isinstance(v, (str, bool, float)) or v is None:
+            return v
+        if isinstance(v, int):
+            text = _safe_str(v)
+            return v if text[:1] != "<" else _Shown(text)
+        if isinstance(v, (list, tuple)):
+            items = [walk(x, depth + 1) for x, _ in zip(v, range(_SHOW_ITEMS))]
+            if len(v) > _SHOW_ITEMS:
+                items.append(_Shown("..."))
+            return items if isinstance(v, list) else tuple(items)
+        if isinstance(v, dict):
+            out = {}
+            for i, (k, x) in enumerate(v.items()):
+                if i >= _SHOW_ITEMS:
+                    out[_Shown("...")] = _Shown("...")
+                    break
+                out[k if isinstance(k, str) else _Shown(_safe_str(k))] = walk(x, depth + 1)
+            return out
+        return _Shown(_safe_str(v))
+
+    return walk(value, 0)
+
+
+def _fail(source, key, message, *value):
+    """Raise the one-line :class:`SceneError`, with the value made safe to print."""
+    raise SceneError(source, key, message, *(shown(v) for v in value))
 
 
 # ---------------------------------------------------------------------------------------------
@@ -42,6 +123,14 @@ def _is_number(value):
     return isinstance(value, (int, float)) and not isinstance(value, bool)
 
 
+def _finite(value) -> bool:
+    """``math.isfinite`` for a number; an integer too large for a float is not finite."""
+    try:
+        return math.isfinite(value)
+    except OverflowError:
+        return False
+
+
 class Float(Field):
     def __init__(self, default=None, lo=None, hi=None, lo_open=False, hi_open=False, **kw):
         super().__init__(default, **kw)
@@ -56,7 +145,7 @@ class Float(Field):
         return "a finite number" + (" " + " and ".join(parts) if parts else "")
 
     def check(self, value, key, ctx):
-        if not _is_number(value) or not math.isfinite(value):
+        if not _is_number(value) or not _finite(value):
             ctx.fail(key, f"must be {self.allowed()}", value)
         v = float(value)
         if self.lo is not None and (v < self.lo or (self.lo_open and v == self.lo)):
@@ -75,8 +164,11 @@ class Int(Field):
         # 3.0 reads as 3; a float beyond 2^53 is not an exact integer and stays a float (rejected).
         if isinstance(value, float) and value.is_integer() and abs(value) <= 2.0**53:
             value = int(value)
+        what = "must be an integer" + (f" >= {self.lo}" if self.lo is not None else "")
         if not isinstance(value, int) or isinstance(value, bool) or (self.lo is not None and value < self.lo):
-            ctx.fail(key, "must be an integer" + (f" >= {self.lo}" if self.lo is not None else ""), value)
+            ctx.fail(key, what, value)
+        if abs(value) > INT_MAX:
+            ctx.fail(key, f"{what} and below 2^63", value)
         return int(value)
 
 
@@ -86,7 +178,7 @@ class Choice(Field):
         self.choices = tuple(choices)
 
     def check(self, value, key, ctx):
-        if value not in self.choices:
+        if not isinstance(value, str) or value not in self.choices:
             ctx.fail(key, "must be one of " + ", ".join(self.choices), value)
         return value
 
@@ -95,6 +187,10 @@ class Text(Field):
     def check(self, value, key, ctx):
         if not isinstance(value, str):
             ctx.fail(key, "must be a string", value)
+        try:
+            value.encode("utf-8")
+        except UnicodeEncodeError:  # a lone surrogate: undecodable bytes of a command-line argument
+            ctx.fail(key, "must be valid Unicode text (it holds bytes that are not UTF-8)", value)
         return value
 
 
@@ -109,7 +205,7 @@ class Vec3(Field):
         what = "a list of 3 finite numbers" + (" or one number" if self.scalar_ok else "")
         if not isinstance(value, list) or len(value) != 3 or not all(_is_number(c) for c in value):
             ctx.fail(key, f"must be {what}", value)
-        if not all(math.isfinite(c) for c in value):
+        if not all(_finite(c) for c in value):
             ctx.fail(key, f"must be {what}", value)
         if self.lo is not None and any(c < self.lo or (self.lo_open and c == self.lo) for c in value):
             ctx.fail(key, f"components must be {'>' if self.lo_open else '>='} {self.lo:g}", value)
@@ -130,6 +226,8 @@ class Int3(Field):
             or min(value) < 1
         ):
             ctx.fail(key, "must be an integer >= 1 or a list of 3 such integers", given)
+        if max(value) > INT_MAX:
+            ctx.fail(key, "must be an integer >= 1 or a list of 3 such integers, each below 2^63", given)
         return list(value)
 
 
@@ -145,7 +243,8 @@ class Table(Field):
         out = {}
         for name in value:
             if name not in self.fields:
-                near = difflib.get_close_matches(name, list(self.fields), n=1)
+                # Keys of an in-memory scene need not be strings; only strings can be near a field name.
+                near = difflib.get_close_matches(name, list(self.fields), n=1) if isinstance(name, str) else []
                 hint = f"; did you mean '{near[0]}'?" if near else f"; allowed: {', '.join(self.fields)}"
                 ctx.fail(_join(key, name), "unknown key" + hint, value[name])
         for name, spec in self.fields.items():
@@ -178,15 +277,19 @@ class TableList(Field):
 
 
 _BARE_KEY = re.compile(r"[A-Za-z0-9_-]+")
+_KEY_PART_CHARS = 64
 
 
 def key_part(name) -> str:
     """One part of a dotted key as TOML writes it: bare if it can be, else quoted.
 
     Inside quotes ':' is written as the TOML escape \\u003a, so that the ': ' separators of an
-    error line stay unambiguous whatever a misspelt key contains.
+    error line stay unambiguous whatever a misspelt key contains. A part longer than 64 characters
+    is cut, ending in "..." (so quoted).
     """
-    name = str(name)
+    name = name if isinstance(name, str) else _safe_str(name)
+    if len(name) > _KEY_PART_CHARS:  # a key of a megabyte makes a line nobody reads
+        name = name[: _KEY_PART_CHARS - 3] + "..."
     if _BARE_KEY.fullmatch(name):
         return name
     return '"' + json.dumps(name)[1:-1].replace(":", "\\u003a") + '"'
@@ -313,7 +416,7 @@ class _Context:
         self.source = source
 
     def fail(self, key, message, *value):
-        raise SceneError(self.source, key, message, *value)
+        _fail(self.source, key, message, *value)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -362,21 +465,43 @@ def builtin_scenes() -> dict:
     return out
 
 
+def _scene_file(p: Path, shown_as: str):
+    """``(path, read)`` of a scene file on disk, refused unless it is a regular file of sane size."""
+    if p.is_dir():
+        raise SceneError(shown_as, "scene", "is a directory, not a scene file", shown_as)
+    if not p.exists():
+        raise SceneError(shown_as, "scene", "no such scene file", shown_as)
+    if not p.is_file():
+        # A FIFO or device would block or never end when read.
+        raise SceneError(
+            shown_as, "scene", "is not a regular file (a pipe, socket or device); give a scene file", shown_as
+        )
+    size = p.stat().st_size
+    if size > MAX_SCENE_BYTES:
+        raise SceneError(
+            shown_as, "scene", f"file too large for a scene: {size} B, at most {MAX_SCENE_BYTES // 2**20} MiB", shown_as
+        )
+    return p, p.read_bytes
+
+
 def resolve_scene_path(name_or_path: str):
     """A scene argument is a path if it names an existing file or ends in .toml, else a built-in name.
 
     Returns:
         ``(path, read)``: the path shown in messages and a callable returning the file's bytes.
     """
+    if "\0" in name_or_path:
+        shown_as = name_or_path.replace("\0", "\\0")
+        raise SceneError(shown_as, "scene", "a file name cannot contain a NUL character", name_or_path)
     p = Path(name_or_path)
-    if p.suffix == ".toml" or p.exists() or "/" in name_or_path:
-        if p.is_dir():
-            raise SceneError(name_or_path, "scene", "is a directory, not a scene file", name_or_path)
-        if not p.is_file():
-            raise SceneError(name_or_path, "scene", "no such scene file", name_or_path)
-        return p, p.read_bytes
-    entry = builtin_dir() / f"{name_or_path}.toml"
-    if not entry.is_file():
+    try:
+        if p.suffix == ".toml" or p.exists() or "/" in name_or_path:
+            return _scene_file(p, name_or_path)
+        entry = builtin_dir() / f"{name_or_path}.toml"
+        found = entry.is_file()
+    except OSError as e:  # a name too long, a directory without search permission
+        raise SceneError(name_or_path, "scene", f"cannot read the file: {e.strerror or e}", name_or_path) from None
+    if not found:
         names = list(builtin_scenes())
         near = difflib.get_close_matches(name_or_path, names, n=1)
         hint = f"; did you mean '{near[0]}'?" if near else ""
@@ -404,9 +529,68 @@ def read_scene_data(name_or_path: str) -> tuple[Path, str, dict]:
 
 _TOML_POSITION = re.compile(r"^(.*) \(at (line (\d+), column \d+|end of document)\)$", re.S)
 
+# What can hold '[' or '{' without opening an array or table: strings (four kinds) and comments;
+# everything else is skipped. Used only to measure nesting, so it need not validate anything.
+_NEST_TOKENS = re.compile(
+    '"""(?:[^"\\\\]|\\\\.|"(?!""))*(?:"{3,5}|\\Z)'  # multi-line basic string
+    "|'''(?:[^']|'(?!''))*(?:'{3,5}|\\Z)"  # multi-line literal string
+    '|"(?:[^"\\\\\\n]|\\\\.)*"?'  # basic string
+    "|'[^'\\n]*'?"  # literal string
+    "|#[^\\n]*"  # comment
+    "|[\\[\\]{}]",
+    re.S,
+)
+
+
+def nesting_overflow(text: str, limit: int = MAX_NESTING):
+    """Offset in TOML ``text`` of the first '[' or '{' opening level ``limit + 1``; None if none does.
+
+    Python's TOML parser recurses once or more per level and fails with RecursionError some
+    hundreds of levels down; this finds such nesting without recursing.
+    """
+    if text.count("[") + text.count("{") <= limit:
+        return None
+    depth = 0
+    for m in _NEST_TOKENS.finditer(text):
+        c = m.group()
+        if c == "[" or c == "{":
+            depth += 1
+            if depth > limit:
+                return m.start()
+        elif c == "]" or c == "}":
+            depth = max(depth - 1, 0)
+    return None
+
+
+def _position(text: str, pos: int) -> tuple[str, str]:
+    """``("line L, column C", the text of that line)`` for offset ``pos``."""
+    start = text.rfind("\n", 0, pos) + 1
+    end = text.find("\n", pos)
+    line = text.count("\n", 0, pos) + 1
+    return f"line {line}, column {pos - start + 1}", text[start : len(text) if end < 0 else end]
+
+
+def _long_number(text: str):
+    """Offset of the first run of digits longer than Python reads as an integer; None if none."""
+    limit = sys.get_int_max_str_digits()
+    m = re.search("[0-9][0-9A-Fa-fxob_]{%d,}" % limit, text) if limit else None
+    return m.start() if m else None
+
+
+_TOO_DEEP = f"arrays and inline tables nested deeper than {MAX_NESTING} levels"
+_TOO_DEEP_FOR_PARSER = "arrays and inline tables nested too deeply for the TOML parser"
+
+
+def _too_long_message() -> str:
+    return f"number too long: an integer may have at most {sys.get_int_max_str_digits()} digits"
+
 
 def parse_toml(text: str, source: str) -> dict:
     """Parse TOML; a syntax error names its line and column and shows that line."""
+    pos = nesting_overflow(text)
+    if pos is not None:
+        where, line = _position(text, pos)
+        raise SceneError(source, where, _TOO_DEEP, line)
     try:
         return tomllib.loads(text)
     except tomllib.TOMLDecodeError as e:
@@ -415,52 +599,115 @@ def parse_toml(text: str, source: str) -> dict:
         if m is None:  # a message without a position: name the whole file
             raise SceneError(source, "(file)", f"TOML syntax error: {e}", lines[-1]) from None
         what, where, line = m.group(1), m.group(2), m.group(3)
-        shown = lines[min(int(line), len(lines)) - 1] if line else lines[-1]
-        raise SceneError(source, where, f"TOML syntax error: {what[:1].lower()}{what[1:]}", shown) from None
+        shown_line = lines[min(int(line), len(lines)) - 1] if line else lines[-1]
+        raise SceneError(source, where, f"TOML syntax error: {what[:1].lower()}{what[1:]}", shown_line) from None
+    except RecursionError:  # not expected below MAX_NESTING levels; the parser's own limit
+        deepest = max(text.split("\n"), key=lambda s: s.count("[") + s.count("{"))
+        raise SceneError(source, "(file)", _TOO_DEEP_FOR_PARSER, deepest) from None
+    except ValueError as e:  # an integer literal of more digits than Python converts
+        pos = _long_number(text)
+        if pos is None:
+            raise SceneError(source, "(file)", f"TOML cannot be read: {e}", text.split("\n")[-1]) from None
+        where, line = _position(text, pos)
+        raise SceneError(source, where, _too_long_message(), line) from None
+
+
+MAX_KEY_PARTS = 16
+_INDEX = re.compile(r"[0-9]+")
+
+
+def _index(part: str):
+    """A list index written in ASCII digits as an int (an absurdly long one as 2^63), else None.
+
+    ``str.isdigit`` is no test: it holds for '²' and for Arabic-Indic digits, which ``int`` then
+    reads or refuses.
+    """
+    if not _INDEX.fullmatch(part):
+        return None
+    digits = part.lstrip("0") or "0"
+    return int(digits) if len(digits) <= 18 else 2**63
+
+
+def _set_key(parts) -> str:
+    return "--set " + ".".join(key_part(p) for p in parts)
 
 
 def parse_override(item: str, source=COMMAND_LINE):
     """Split ``a.b.0.c=VALUE``; VALUE is read as a TOML value, or as a bare string if it is not one."""
+    if not isinstance(item, str):  # the Python API's load_scene(name, overrides)
+        raise SceneError(source, "--set", "expected KEY=VALUE text, such as simulation.dt=0.001", shown(item))
     if "=" not in item:
         raise SceneError(source, "--set", "expected KEY=VALUE, such as simulation.dt=0.001", item)
     key, raw = item.split("=", 1)
     key = key.strip()
-    if not key or any(not part for part in key.split(".")):
+    parts = key.split(".")
+    if not key or any(not part for part in parts):
         raise SceneError(source, "--set", "expected a dotted key such as simulation.dt before '='", item)
+    if len(parts) > MAX_KEY_PARTS:
+        raise SceneError(source, "--set", f"expected a dotted key of at most {MAX_KEY_PARTS} parts", item)
+    if nesting_overflow(raw) is not None:
+        raise SceneError(source, _set_key(parts), _TOO_DEEP, raw)
     try:
-        value = tomllib.loads(f"v = {raw}")["v"]
+        doc = tomllib.loads(f"v = {raw}")
     except tomllib.TOMLDecodeError:
-        value = raw.strip()
+        doc = None
+    except RecursionError:  # not expected below MAX_NESTING levels
+        raise SceneError(source, _set_key(parts), _TOO_DEEP_FOR_PARSER, raw) from None
+    except ValueError:  # an integer literal of more digits than Python converts
+        raise SceneError(source, _set_key(parts), _too_long_message(), raw) from None
+    # One value only: "1\nx = 2" is not the number 1.
+    value = doc["v"] if doc is not None and list(doc) == ["v"] else raw.strip()
+    try:
+        repr(value)  # a hexadecimal integer of thousands of digits is read, but Python cannot print it
+    except ValueError:
+        raise SceneError(source, _set_key(parts), _too_long_message(), raw) from None
     return key, value
 
 
 def apply_override(data: dict, key: str, value, source=COMMAND_LINE):
-    """Set ``data[a][b][0][c] = value`` for the dotted key ``a.b.0.c``; creates missing tables."""
-    parts = key.split(".")
+    """Set ``data[a][b][0][c] = value`` for the dotted key ``a.b.0.c``; creates missing tables.
+
+    A list index is ASCII digits. Keys come from ``parse_override``; a key given here directly is
+    held to the same rules.
+    """
+    parts = key.split(".") if isinstance(key, str) else []
+    if not parts or any(not part for part in parts) or len(parts) > MAX_KEY_PARTS:
+        raise SceneError(
+            source, "--set", f"expected a dotted key such as simulation.dt of at most {MAX_KEY_PARTS} parts", shown(key)
+        )
     node = data
     for depth, part in enumerate(parts):
         last = depth == len(parts) - 1
-        here = ".".join(key_part(p) for p in parts[: depth + 1])
         if isinstance(node, list):
-            if not part.isdigit() or int(part) >= len(node):
+            index = _index(part)
+            if index is None or index >= len(node):
                 n = len(node)
-                what = f"{n} {parts[depth - 1]} table{'' if n == 1 else 's'}" if depth else f"{n} entries"
-                raise SceneError(source, f"--set {here}", f"index out of range; the scene has {what}", part)
+                if depth and all(isinstance(v, dict) for v in node):
+                    what = f"the scene has {n} {key_part(parts[depth - 1])} table{'' if n == 1 else 's'}"
+                else:
+                    what = f"the list has {n} entr{'y' if n == 1 else 'ies'}"
+                message = "expected an index (digits 0-9)" if index is None else "index out of range"
+                raise SceneError(source, _set_key(parts[: depth + 1]), f"{message}; {what}", part)
             if last:
-                node[int(part)] = value
+                node[index] = value
             else:
-                node = node[int(part)]
+                node = node[index]
             continue
         if not isinstance(node, dict):
-            raise SceneError(source, f"--set {here}", "cannot set a key inside a value that is not a table", node)
+            raise SceneError(
+                source, _set_key(parts[: depth + 1]), "cannot set a key inside a value that is not a table", shown(node)
+            )
         if last:
             node[part] = value
         else:
             if part not in node:
                 # "jelly.0..." on a scene without jellies cannot be created; a new table can.
-                if parts[depth + 1].isdigit():
+                if _index(parts[depth + 1]) is not None:
                     raise SceneError(
-                        source, f"--set {here}", f"index out of range; the scene has no {part} tables", parts[depth + 1]
+                        source,
+                        _set_key(parts[: depth + 1]),
+                        f"index out of range; the scene has no {key_part(part)} tables",
+                        parts[depth + 1],
                     )
                 node[part] = {}
             node = node[part]
@@ -473,7 +720,7 @@ EXCLUSIVE = {"simulation.duration": "simulation.frames", "simulation.frames": "s
 def apply_overrides(data: dict, items, source=COMMAND_LINE):
     """Apply ``[(dotted_key, value), ...]`` in order; returns the list applied."""
     for key, value in items:
-        other = EXCLUSIVE.get(key)
+        other = EXCLUSIVE.get(key) if isinstance(key, str) else None
         if other:
             table, _, name = other.rpartition(".")
             node = data.get(table)
@@ -539,7 +786,20 @@ def load_scene(name_or_path: str, overrides=()) -> Scene:
     return Scene(validated, source=source, name=validated.get("name", path.stem), overrides=applied)
 
 
+def _copy_tree(value, source, path=()):
+    """A copy of the dicts and lists in ``value`` (other values shared); nesting beyond MAX_NESTING,
+    a cycle included, is a :class:`SceneError` (``copy.deepcopy`` would raise RecursionError)."""
+    if isinstance(value, (dict, list)) and len(path) >= MAX_NESTING:
+        key = ".".join(key_part(p) for p in path[:8]) + ("..." if len(path) > 8 else "")
+        _fail(source, key, f"nested deeper than {MAX_NESTING} levels", value)
+    if isinstance(value, dict):
+        return {k: _copy_tree(v, source, path + (k,)) for k, v in value.items()}
+    if isinstance(value, list):
+        return [_copy_tree(v, source, path + (i,)) for i, v in enumerate(value)]
+    return value
+
+
 def scene_from_dict(data: dict, source="<dict>") -> Scene:
     """Validate an in-memory scene (the Python API's way to make one without a file)."""
-    validated = validate(copy.deepcopy(data), source)
+    validated = validate(_copy_tree(data, source), source)
     return Scene(validated, source=source, name=validated.get("name", "scene"))

@@ -1,4 +1,4 @@
-"""USD output: one stage per run, written as the run goes and renamed into place when closed.
+"""USD output: one stage per run, written as the run goes and moved into place when closed.
 
 ``pxr`` is imported lazily so that benchmarks run where usd-core is not installed.
 """
@@ -7,13 +7,13 @@ from __future__ import annotations
 
 import math
 import os
-import time
 from pathlib import Path
 
 import numpy as np
 
 from ..core import lattice
-from .outputs import partial_path
+from ..core.errors import CommandLineError
+from .outputs import commit, discard, kept_partial_path, partial_path, target_of
 
 SPRING_COLORS = {  # the seed's colours: structural blue, shear yellow, bending green
     "structural": (0.2, 0.4, 1.0),
@@ -22,12 +22,6 @@ SPRING_COLORS = {  # the seed's colours: structural blue, shear yellow, bending 
 }
 JELLY_COLOR = (0.95, 0.35, 0.25)
 TERRAIN_COLOR = (0.6, 0.6, 0.6)
-
-
-def temp_path_for(path: Path) -> Path:
-    """A sibling of ``path`` that keeps its extension (USD picks the format from it) and is unique per process."""
-
-    return partial_path(path)
 
 
 def plane_mesh(point, normal, size, hole_center=None, hole_radius=0.0, segments=64):
@@ -69,9 +63,14 @@ def plane_mesh(point, normal, size, hole_center=None, hole_radius=0.0, segments=
 class UsdWriter:
     """Writes a model's frames to a USD stage (``.usdc`` by default, ``.usda`` by extension).
 
-    The stage is written to a temporary sibling and renamed over ``path`` by :meth:`close`, so an
-    existing file is never replaced by an incomplete one; the temporary file is saved every
-    ``save_every_seconds`` so memory stays bounded on long runs.
+    The stage is written to a hidden temporary beside ``path``'s target and moved into place by
+    :meth:`close` (``outputs.commit``: flushed, renamed, the directory synced). A run that did not
+    complete replaces ``path`` only when no file was there before it; otherwise, and always for a
+    run that failed, its frames are kept as ``<stem>.partial<suffix>`` (``written_path`` says
+    where), so a good output is never replaced by a worse one. The temporary is saved every
+    ``save_every_frames`` frames, by simulated frames, so identical runs write identical bytes. A
+    frame with a non-finite position is written as it is, and the file is then never marked
+    complete (status ``nonfinite``).
 
     Args:
         path: output file.
@@ -82,19 +81,21 @@ class UsdWriter:
             with a translation (side-by-side comparisons).
     """
 
-    def __init__(self, path, model, fps, springs=False, groups=None, save_every_seconds=5.0, metadata=None):
+    def __init__(self, path, model, fps, springs=False, groups=None, save_every_frames=600, metadata=None):
         from pxr import Gf, Sdf, Usd, UsdGeom, Vt  # noqa: PLC0415 - usd-core is optional on GPU hosts
 
         self._pxr = (Gf, Sdf, Usd, UsdGeom, Vt)
         self.path = Path(path)
-        self.tmp = temp_path_for(self.path)
+        target = target_of(self.path)
+        self.replaces = target.is_file()  # a file is there already: only a complete run may replace it
+        self.tmp = partial_path(self.path)
+        self.written_path = None
         self.model = model
         self.fps = float(fps)
-        self.save_every = save_every_seconds
-        self._last_save = time.perf_counter()
+        self.save_every = max(int(save_every_frames), 1)
         self.last_frame = -1
-        if self.tmp.exists():
-            self.tmp.unlink()
+        self.nonfinite_frames = 0
+        discard(self.tmp)
         layer = Sdf.Layer.CreateNew(str(self.tmp))
         stage = Usd.Stage.Open(layer)
         self.stage = stage
@@ -184,6 +185,8 @@ class UsdWriter:
         """Write all jellies' positions (float32, as simulated in float32) at time code ``frame``."""
         Gf, Sdf, Usd, UsdGeom, Vt = self._pxr
         pos32 = np.ascontiguousarray(positions, dtype=np.float32)
+        if not np.isfinite(pos32).all():
+            self.nonfinite_frames += 1
         for info, pts, mesh, used, curves in self.jelly_prims:
             x = pos32[info.particle_start : info.particle_start + info.particle_count]
             arr = Vt.Vec3fArray.FromNumpy(x)
@@ -199,24 +202,62 @@ class UsdWriter:
                 c.GetPointsAttr().Set(seg, frame)
         self.last_frame = frame
         self.stage.SetEndTimeCode(max(frame, 0))
-        if time.perf_counter() - self._last_save > self.save_every:
+        if frame > 0 and frame % self.save_every == 0:
             self.save()
 
     def save(self):
-        self.stage.GetRootLayer().Save()
-        self._last_save = time.perf_counter()
+        """Write the stage to the temporary; a write error (a full disk) is a one-line error naming the file."""
+        from pxr import Tf  # noqa: PLC0415
 
-    def close(self, status="complete", extra=None):
-        """Record ``status`` in the layer's custom data, save, and move the file into place."""
+        try:
+            ok = self.stage.GetRootLayer().Save()
+        except Tf.ErrorException:
+            ok = False
+        if not ok:
+            reason = "the write failed (a full disk, a quota or a file size limit)"
+            # A layer whose save failed is not touched again (USD may crash on it): the run's frames
+            # are lost, the previous output stays as it was.
+            self.discard()
+            free = _free_bytes(self.tmp.parent)
+            raise CommandLineError(
+                "--out", f"cannot write '{target_of(self.path)}': {reason}"
+                + (f" ({free / 1e6:.0f} MB free)" if free is not None else ""), str(self.path)
+            )
+
+    def close(self, status="complete", extra=None) -> Path:
+        """Record ``status`` in the layer's custom data, save, and move the file into place (see the
+        class docstring); returns the path the frames went to (``written_path``)."""
+        if self.stage is None:  # discarded after a failed save: nothing to move into place
+            return None
+        if status == "complete" and self.nonfinite_frames:
+            status = "nonfinite"
         self._metadata["softsim:status"] = status
         self._metadata.update(extra or {})
         self.stage.GetRootLayer().customLayerData = self._metadata
-        self.save()
-        del self.stage
-        os.replace(self.tmp, self.path)
+        try:
+            self.save()
+        except BaseException:
+            self.discard()
+            raise
+        self.stage = None
+        if status == "complete" or (status != "failed" and not self.replaces):
+            commit(self.tmp, self.path, "--out")
+            self.written_path = self.path
+        else:
+            kept = kept_partial_path(self.path)
+            commit(self.tmp, kept, "--out")
+            self.written_path = kept
+        return self.written_path
 
     def discard(self):
         """Drop the temporary file (used when nothing worth keeping was written)."""
         self.stage = None
-        if self.tmp.exists():
-            self.tmp.unlink()
+        discard(self.tmp)
+
+
+def _free_bytes(directory) -> int | None:
+    try:
+        st = os.statvfs(directory)
+    except OSError:
+        return None
+    return st.f_bavail * st.f_frsize
