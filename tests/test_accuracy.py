@@ -169,3 +169,11 @@ def test_find_limit_brackets_a_known_threshold():
     assert lim["dt"] <= 0.0123 < lim["unstable_dt"] <= lim["dt"] * 1.01
     assert stability.find_limit(lambda h: True, guess=0.01, max_dt=0.05)["bound"] == ">="
     assert stability.find_limit(lambda h: False, guess=0.01, min_dt=1e-4)["bound"] == "<"
+
+
+def test_accuracy_refuses_a_reference_run_that_cannot_finish(capsys):
+    """A step of 1e-13 s makes the reference run 5e11 steps: refused up front with how long it would take."""
+    assert main(["accuracy", "free_flight", "--dts", "1e-13", "--quiet"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("error: command line: --dts: the reference run of"), err
+    assert "days" in err[0] and "(got '1e-13')" in err[0]

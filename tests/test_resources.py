@@ -133,3 +133,27 @@ def test_fake_cpu_device_counts_everything_on_host():
     with pytest.raises(SceneError, match="of memory on"):
         resources.check_fits(scene, cpu, frames=100, host_available=host - 1)
     resources.check_fits(scene, cpu, frames=100, host_available=host)
+
+
+def test_compare_checks_all_copies_together(monkeypatch, tmp_path, capsys):
+    """Each copy alone fits, all of them at once do not: compare refuses before building anything."""
+    monkeypatch.chdir(tmp_path)
+    scene = load_scene("jelly_drop", ["jelly.0.resolution=[20,20,20]"])
+    one = resources.estimate(scene.data, frames=scene.frame_count())
+    need = one.host_build + one.device + one.host_model + one.usd  # what one copy can need at most on the CPU
+    monkeypatch.setattr(resources, "available_host_bytes", lambda: int(1.5 * need))
+    code = cli.main(["compare", "jelly_drop", "--set", "jelly.0.resolution=[20,20,20]", "--integrators",
+                     "euler,symplectic,rk4", "--quiet", "--out", "c.usdc"])
+    assert code == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "scene too large: 3 copies with 24,000 particles" in err[0], err
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_bench_refuses_sizes_that_cannot_fit(monkeypatch, capsys):
+    """A benchmark size whose jelly would not fit is refused with its flag and value, before building."""
+    code = cli.main(["bench", "--sizes", "10,2000", "--quiet"])
+    assert code == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("error: command line: --sizes: too large: 8,000,000,000 particles"), err
+    assert "(got 2000)" in err[0]

@@ -39,6 +39,7 @@ from ..core.errors import CommandLineError
 from ..core.model import build_model
 from ..core.stepper import make_integrator
 from ..io.outputs import Outputs, save_report
+from ..io.resources import MAX_RUN_DAYS, scene_counts, step_seconds_floor
 from ..io.simulate import Simulator
 from .common import ALL_INTEGRATORS, check_positive, load_for_cli, parse_methods, parse_positive_list, resolve_device
 
@@ -574,6 +575,15 @@ def run(args) -> int:
         if d > 1.0 / fps:
             raise CommandLineError("--dts", f"steps must not exceed the frame interval 1/fps = {1.0 / fps:g} s", d)
     device = resolve_device(args.device)
+    # The reference run takes the most steps: refuse it up front when it could not finish.
+    duration = args.duration or scene.frame_count() / scene.sim["fps"]
+    reference = args.reference_dt or min(dts or [scene.sim["dt"] * 0.125]) / REFERENCE_DIVISOR
+    floor = step_seconds_floor(scene_counts(scene.data).particles, device.is_cuda)
+    if duration / reference * floor > MAX_RUN_DAYS * 86400.0:
+        flag, value = ("--reference-dt", args.reference_dt) if args.reference_dt else ("--dts", args.dts or scene.sim["dt"])
+        raise CommandLineError(flag, f"the reference run of {duration / reference:.3g} steps would take at least "
+                               f"{duration / reference * floor / 86400.0:.3g} days on {device} "
+                               f"(at most {MAX_RUN_DAYS} days allowed)", value)
     log = None if args.quiet else (lambda line: print(line, file=sys.stderr, flush=True))
     with outputs:
         return _measure_and_save(args, scene, methods, dts, device, log)

@@ -35,6 +35,7 @@ from ..core.integrators import ExplicitIntegrator
 from ..core.model import ModelBuilder, build_model
 from ..core.stepper import make_integrator
 from ..io.outputs import Outputs, save_report
+from ..io.resources import check_counts, lattice_spring_count
 from ..io.scene import load_scene
 from .bench_newton import NewtonJelly, newton_version
 from .common import resolve_device
@@ -505,6 +506,11 @@ def run(args) -> int:
             )
         ]
     else:
+        # Each size must fit before anything is built (the largest method's buffers, all copies).
+        heaviest = "implicit" if "implicit" in methods else ("rk4" if "rk4" in methods else methods[0])
+        for n in sizes:
+            count = max(args.copies, 8 if args.variants else 1)
+            check_counts(count * n**3, count * lattice_spring_count((n, n, n)), device, heaviest, "--sizes", n)
         groups = [
             (
                 f"{n}^3",

@@ -37,6 +37,7 @@ from ..core.stepper import make_integrator
 from ..io import scene as scene_mod
 from ..io.metrics import speed_bound
 from ..io.outputs import USD_SUFFIXES, Outputs, kept_partial_path, save_atomic, write_json_atomic
+from ..io.resources import check_fits
 from ..io.scene import parse_override
 from ..io.simulate import Simulator
 from ..io.usd import UsdWriter
@@ -95,6 +96,9 @@ def run(args) -> int:
     if args.gap is not None and not (math.isfinite(args.gap) and args.gap >= 0):
         raise CommandLineError("--gap", "must be a finite number >= 0", args.gap)
     device = common.resolve_device(args.device)
+    # Every copy runs at once: their memory together must fit, and the steps must be able to finish.
+    copies = [scene_mod.Scene(v.data, source=plan.source) for v in plan.variants]
+    check_fits(copies[0], device, frames=plan.frames, usd_springs=args.springs, copies=copies)
 
     progress = None
     if not args.quiet:

@@ -23,7 +23,7 @@ import os
 from dataclasses import dataclass, field
 
 from ..core import lattice
-from ..core.errors import SceneError
+from ..core.errors import CommandLineError, SceneError
 
 # Bytes per item. S: scalar size (4 for float32, 8 for float64).
 HOST_BUILD_PER_SPRING = 192  # the above plus the lattice-path detection in finalize (per-spring offsets and checks; measured ~179)
@@ -204,6 +204,25 @@ def check_host_build(data: dict, source: str, available=None):
         )
 
 
+def check_counts(particles, springs, device, integrator, flag, value, host_available=None, device_free=None):
+    """Refuse ``particles`` and ``springs`` (a benchmark size, say) that would not fit on ``device``:
+    a one-line :class:`CommandLineError` naming ``flag`` and ``value``."""
+    s = 4
+    device_bytes = _device_per_particle(s, integrator) * particles + _device_per_spring(s, integrator, False) * springs
+    host_bytes = HOST_BUILD_PER_SPRING * springs + HOST_BUILD_PER_PARTICLE * particles
+    if not device.is_cuda:
+        host_bytes += device_bytes
+    host_available = available_host_bytes() if host_available is None else host_available
+    if host_available is not None and host_bytes > host_available:
+        raise CommandLineError(flag, f"too large: {_count(particles)} particles and {_count(springs)} springs need about "
+                               f"{format_bytes(host_bytes)} of host memory, {format_bytes(host_available)} available", value)
+    if device.is_cuda:
+        free = device.free_memory if device_free is None else device_free
+        if device_bytes > free:
+            raise CommandLineError(flag, f"too large: {_count(particles)} particles and {_count(springs)} springs need "
+                                   f"about {format_bytes(device_bytes)} on {device}, {format_bytes(free)} free", value)
+
+
 def step_seconds_floor(particles: int, is_cuda: bool) -> float:
     """A lower bound of the seconds one step of ``particles`` particles takes on a CUDA device or the CPU."""
     kind = "cuda" if is_cuda else "cpu"
@@ -258,18 +277,30 @@ def check_fits(
     deterministic=False,
     host_available=None,
     device_free=None,
+    copies=None,
 ):
     """Refuse a run that would not fit on ``device`` (a ``wp.Device`` or anything with ``is_cuda``),
     or whose ``frames`` frames take too many steps to finish (:func:`check_steps`).
 
-    ``host_available`` and ``device_free`` override what is measured (for tests).
+    ``copies``: the scenes of a side-by-side comparison (``softsim compare``), run at once: their
+    memory is summed, and ``scene`` names the file in the message. ``host_available`` and
+    ``device_free`` override what is measured (for tests).
     """
-
-    est = estimate(scene.data, integrator, frames, usd_springs, deterministic)
+    parts = [(c, c.sim["integrator"]) for c in copies] if copies else [(scene, integrator)]
+    ests = [estimate(s.data, m, frames, usd_springs, deterministic) for s, m in parts]
+    est = ests[0]
+    if len(ests) > 1:
+        total = Counts(
+            sum(e.counts.particles for e in ests), sum(e.counts.springs for e in ests), sum(e.counts.surface for e in ests),
+            [j for e in ests for j in e.counts.jellies],
+        )
+        est = Estimate(total, *(sum(getattr(e, f) for e in ests) for f in ("host_build", "host_model", "usd", "device")))
     host_need, device_need = est.on(device.is_cuda)
-    key, k = _largest_jelly_key(est.counts)
+    key, k = _largest_jelly_key(ests[0].counts)
     value = scene.data["jelly"][k]["resolution"]
     what = f"{_count(est.counts.particles)} particles, {_count(est.counts.springs)} springs and {_count(frames + 1)} USD frames"
+    if len(ests) > 1:
+        what = f"{len(ests)} copies with {what}"
     host_available = available_host_bytes() if host_available is None else host_available
     if host_available is not None and host_need > host_available:
         where = "host memory" if device.is_cuda else f"memory on {device}"
