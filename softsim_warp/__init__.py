@@ -27,14 +27,35 @@ _root = _os.path.dirname(_here)
 if not _os.path.isdir(_os.path.join(_here, "kernels")) and _os.path.isfile(_os.path.join(_root, "kernels", "__init__.py")):
     __path__.append(_root)
 
-from .core.errors import ExplosionError, SceneError, UserError  # noqa: E402
-from .core.forces import eval_forces  # noqa: E402
-from .core.integrators import ExplicitIntegrator, Integrator  # noqa: E402
-from .core.model import Model, ModelBuilder, State, build_model  # noqa: E402
-from .core.stepper import Stepper, make_integrator  # noqa: E402
-from .io.scene import INTEGRATORS, Scene, builtin_scenes, load_scene, scene_from_dict  # noqa: E402
-from .io.simulate import FrameMetrics, RunResult, Simulator  # noqa: E402
-from .io.usd import UsdWriter  # noqa: E402
+# The public API, imported on first use (PEP 562): ``import softsim_warp`` stays cheap, and the
+# command line can install its signal handlers before Warp loads (``__main__.entry``).
+_API = {
+    "ExplosionError": "core.errors", "SceneError": "core.errors", "UserError": "core.errors",
+    "eval_forces": "core.forces",
+    "ExplicitIntegrator": "core.integrators", "Integrator": "core.integrators",
+    "Model": "core.model", "ModelBuilder": "core.model", "State": "core.model", "build_model": "core.model",
+    "Stepper": "core.stepper", "make_integrator": "core.stepper",
+    "INTEGRATORS": "io.scene", "Scene": "io.scene", "builtin_scenes": "io.scene", "load_scene": "io.scene",
+    "scene_from_dict": "io.scene",
+    "FrameMetrics": "io.simulate", "RunResult": "io.simulate", "Simulator": "io.simulate",
+    "UsdWriter": "io.usd",
+}  # fmt: skip
+
+
+def __getattr__(name):
+    module = _API.get(name)
+    if module is None:
+        raise AttributeError(f"module 'softsim_warp' has no attribute {name!r}")
+    import importlib  # noqa: PLC0415
+
+    value = getattr(importlib.import_module(f".{module}", __name__), name)
+    globals()[name] = value
+    return value
+
+
+def __dir__():
+    return sorted(set(globals()) | set(_API))
+
 
 from importlib.metadata import PackageNotFoundError as _NotFound, version as _version  # noqa: E402
 

@@ -1,5 +1,34 @@
+"""``python -m softsim_warp``: the ``softsim`` command line (``commands.cli.main``)."""
+
+import os
+import signal
 import sys
+import time
 
-from .commands.cli import main
 
-sys.exit(main())
+def _stop(signum, frame):
+    """SIGINT or SIGTERM while the command line's modules load: end with 128 + signum, no traceback
+    (nothing is written yet). ``cli.main`` installs its own handlers when it starts."""
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, signal.SIG_IGN)
+    sys.exit(128 + signum)
+
+
+def entry() -> int:
+    """Catch SIGINT and SIGTERM first, then import the command line (Warp with it) and run it.
+
+    The package's own ``__init__`` runs before this (it imports Warp too): a signal during that
+    import still gets Python's defaults.
+    """
+    for sig in (signal.SIGINT, signal.SIGTERM):
+        signal.signal(sig, _stop)
+    if "import" in os.environ.get("SOFTSIM_TEST_PAUSE", "").split(","):  # test seam, see commands/common.py
+        print("softsim-test: paused at import", file=sys.stderr, flush=True)
+        time.sleep(60)
+    from .commands.cli import main  # noqa: PLC0415
+
+    return main()
+
+
+if __name__ == "__main__":
+    sys.exit(entry())

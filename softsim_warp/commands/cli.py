@@ -4,13 +4,22 @@ Each subcommand module has ``COMMAND`` (its name), ``add_parser(subparsers, add_
 ``run(args) -> int``. A user error (bad scene value, unknown name, unwritable output) prints
 ``error: <file>: <key>: <what is wrong> (got <value>)`` and exits with 2; ``--debug`` shows the
 traceback instead.
+
+SIGINT and SIGTERM end any command with 128 + signum (130, 143) and no traceback: a command may
+catch them itself while it works (``softsim run`` stops after the frame in progress, see
+``common.Signals``); everywhere else in ``main`` the first one stops at once, as a
+``KeyboardInterrupt`` whose cleanup (temporaries removed, locks released) later signals do not
+interrupt. A signal before ``main`` runs, while Python imports the package (and Warp with it),
+still gets Python's defaults.
 """
 
 from __future__ import annotations
 
 import argparse
 import re
+import signal
 import sys
+import threading
 import traceback
 
 from ..core.errors import CommandLineError, UserError
@@ -54,9 +63,65 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+class _Stop:
+    """main's own SIGINT/SIGTERM handler: the first signal raises ``KeyboardInterrupt`` (while
+    ``armed``), later ones are only recorded, so the cleanup the first one starts runs to the end."""
+
+    def __init__(self):
+        self.received = None
+        self.armed = True
+
+    def __call__(self, signum, frame):
+        if self.received is None:
+            self.received = signum
+        if self.armed:
+            self.armed = False
+            raise KeyboardInterrupt
+
+
+def _install(handler) -> dict:
+    """Point SIGINT and SIGTERM at ``handler``; returns the previous handlers ({} off the main thread)."""
+    if threading.current_thread() is not threading.main_thread():
+        return {}
+    return {sig: signal.signal(sig, handler) for sig in (signal.SIGINT, signal.SIGTERM)}
+
+
+def _received_signal(stop: _Stop) -> int:
+    """The signal that stopped the command: the one its ``common.Signals`` recorded, else main's."""
+    return int(getattr(common.ACTIVE_SIGNALS, "received", None) or stop.received or signal.SIGINT)
+
+
 def main(argv=None) -> int:
+    """Run the command in ``argv`` (default ``sys.argv[1:]``); returns the exit code.
+
+    Called without ``argv`` (the process's entry point), SIGINT and SIGTERM are ignored after it
+    returns, while the process exits; called with ``argv`` (in-process, tests), the previous
+    handlers are restored.
+    """
+    entry = argv is None
     argv = sys.argv[1:] if argv is None else list(argv)
+    stop = _Stop()
+    previous = _install(stop)
+    try:
+        try:
+            code = _main(argv)
+        finally:
+            stop.armed = False  # from here on a signal is only recorded
+    except KeyboardInterrupt:
+        code = 128 + _received_signal(stop)
+    finally:
+        for sig, old in previous.items():
+            # In-process, the caller's handlers come back. At the process's end signals are ignored:
+            # Python resets its own handlers to the default while it shuts down, and a signal then
+            # would kill the process (exit status -signum) after the command ended with its code.
+            signal.signal(sig, signal.SIG_IGN if entry else old)
+    return code
+
+
+def _main(argv) -> int:
     args = None
+    common.ACTIVE_SIGNALS = None  # main may run more than once in a process
+    common.pause_for_test("start")  # test seam: the first signal raises KeyboardInterrupt here
     try:
         parser = build_parser()
         args = parser.parse_args(argv)
@@ -67,5 +132,3 @@ def main(argv=None) -> int:
             traceback.print_exc()
         print(f"error: {e.line()}", file=sys.stderr)
         return e.exit_code
-    except KeyboardInterrupt:
-        return 128 + common.received_signal()

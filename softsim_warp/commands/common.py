@@ -4,12 +4,14 @@ signal handling and the parsing of list-valued flags.
 
 from __future__ import annotations
 
+import contextlib
 import math
 import os
 import re
 import signal
 import sys
 import tempfile
+import time
 
 from ..core.errors import CommandLineError, SceneError
 from ..io import scene as scene_mod
@@ -118,15 +120,28 @@ def check_deterministic(integrator: str, device):
 class Signals:
     """Turns SIGINT/SIGTERM into a request to stop after the current frame.
 
-    A second signal stops at once (KeyboardInterrupt) while frames are computed, but not while
-    the output is being closed: a file half renamed is worse than waiting a moment.
+    The first signal is recorded (``received``) and the command stops at its next check; a second
+    one stops at once (``KeyboardInterrupt``). At most one ``KeyboardInterrupt`` is ever raised:
+    after it, signals are only recorded, so the cleanup it starts (temporaries removed, files
+    closed, locks released) is never cut short by another one.
+
+    Where a second signal may stop at once: by default (``softsim compare``) anywhere except while
+    ``closing`` or ``busy()``; with ``regions=True`` (``softsim run``) only inside
+    ``with signals.stoppable():`` blocks, the parts whose ``KeyboardInterrupt`` the command
+    handles, and not while ``busy()`` (a frame is being written: a file half written is worse than
+    waiting a moment). ``stoppable(immediate=True)`` lets the first signal stop at once too (after
+    the run, while ``--preview`` renders).
     """
 
-    def __init__(self):
-        self.received = None
+    def __init__(self, regions=False):
+        self.received = None  # the first signal
+        self.count = 0  # signals received
+        self.stopped = False  # the KeyboardInterrupt was raised
         self.closing = False
-        self.immediate = False  # after the run (rendering --preview): a signal stops at once
         self.busy = lambda: False  # True while a frame is being written: a stop-now waits for it
+        self._regions = regions
+        self._stoppable = 0
+        self._immediate = 0
 
     def __enter__(self):
         self._old = {}
@@ -134,14 +149,34 @@ class Signals:
             self._old[sig] = signal.signal(sig, self._handle)
         return self
 
+    @contextlib.contextmanager
+    def stoppable(self, immediate=False):
+        """A block a signal may stop at once with a ``KeyboardInterrupt`` (see the class)."""
+        self._stoppable += 1
+        self._immediate += bool(immediate)
+        try:
+            yield self
+        finally:
+            self._stoppable -= 1
+            self._immediate -= bool(immediate)
+
     def _handle(self, signum, frame):
-        if self.immediate:
+        self.count += 1
+        first = self.received is None
+        if first:
             self.received = signum
-            raise KeyboardInterrupt
-        if self.received is not None and not self.closing and not self.busy():  # a second signal: stop now
-            raise KeyboardInterrupt
-        if self.received is None:
-            self.received = signum
+        if self.stopped or self.closing or self.busy():
+            return
+        if self._regions and not self._stoppable:
+            return
+        if first and not self._immediate:
+            return
+        self.stopped = True
+        raise KeyboardInterrupt
+
+    def exit_code(self) -> int:
+        """128 + the first signal (130 for SIGINT, 143 for SIGTERM)."""
+        return 128 + int(self.received or signal.SIGINT)
 
     def __exit__(self, *exc):
         for sig, old in self._old.items():
@@ -155,6 +190,36 @@ ACTIVE_SIGNALS = None  # the running command's Signals, for main's exit code aft
 def received_signal() -> int:
     """The signal that stopped the running command (SIGINT when none was recorded)."""
     return int(getattr(ACTIVE_SIGNALS, "received", None) or signal.SIGINT)
+
+
+def _test_pauses(text: str) -> dict:
+    out = {}
+    for item in text.split(","):
+        name, _, count = item.strip().partition(":")
+        if name:
+            out[name] = int(count or 1)
+    return out
+
+
+# Test seam (tests/test_signals.py): SOFTSIM_TEST_PAUSE="phase[:n],..." makes a command stop at each
+# named phase, write "softsim-test: paused at <phase>" to stderr and wait there until n signals
+# (default 1) have come (60 s at most), so a test can signal a process that sits in that phase.
+# Unset, a pause point costs a dict lookup. Phases: import (``python -m softsim_warp`` before it
+# imports the command line), start (cli.main before the command), and in ``softsim run``: scene,
+# build, writer, compile, run (after frame 2), save, cleanup (a run ended by an exception), preview.
+TEST_PAUSES = _test_pauses(os.environ.get("SOFTSIM_TEST_PAUSE", ""))
+
+
+def pause_for_test(phase: str, signals: Signals | None = None):
+    """Wait at ``phase`` when SOFTSIM_TEST_PAUSE names it (see TEST_PAUSES)."""
+    wanted = TEST_PAUSES.get(phase)
+    if wanted is None:
+        return
+    print(f"softsim-test: paused at {phase}", file=sys.stderr, flush=True)
+    start = signals.count if signals is not None else 0
+    deadline = time.monotonic() + 60
+    while time.monotonic() < deadline and (signals is None or signals.count - start < wanted):
+        time.sleep(0.01)
 
 
 def float_list(text):

@@ -19,6 +19,7 @@ its keys is refused with a one-line error (run those values as separate ``softsi
 
 from __future__ import annotations
 
+import contextlib
 import copy
 import itertools
 import math
@@ -107,12 +108,12 @@ def run(args) -> int:
         progress = tqdm(total=plan.frames + 1, unit="frame", desc=f"{plan.name} x{len(plan.variants)}",
                         file=sys.stderr, leave=False)
     try:
-        with common.Signals() as signals, outputs:
+        with common.Signals(regions=True) as signals, outputs:
             common.ACTIVE_SIGNALS = signals
             result = run_comparison(plan, device, out, metrics_path=args.metrics, plot_path=args.plot,
                                     columns=args.columns, gap=args.gap, springs=args.springs,
                                     use_graph=None if not args.no_graph else False, progress=progress,
-                                    stop_requested=lambda: signals.received)
+                                    stop_requested=lambda: signals.received, stoppable=signals.stoppable)
     finally:
         if progress is not None:
             progress.close()
@@ -451,8 +452,12 @@ def rigid_deviation(rest: np.ndarray, current: np.ndarray, mass: np.ndarray) -> 
 
 
 def run_comparison(plan: Plan, device, out, metrics_path=None, plot_path=None, columns=None, gap=None,
-                   springs=False, use_graph=None, progress=None, stop_requested=None) -> ComparisonResult:
-    """Run every variant of ``plan`` and write the stage (and metrics / plot when asked)."""
+                   springs=False, use_graph=None, progress=None, stop_requested=None, stoppable=None) -> ComparisonResult:
+    """Run every variant of ``plan`` and write the stage (and metrics / plot when asked).
+
+    ``stoppable()``: a context manager around the steps, the only place a stop-now signal may
+    interrupt (``common.Signals(regions=True).stoppable``); writing and closing are never cut short.
+    """
     import time  # noqa: PLC0415
 
     import warp as wp  # noqa: PLC0415
@@ -509,14 +514,17 @@ def run_comparison(plan: Plan, device, out, metrics_path=None, plot_path=None, c
     result = ComparisonResult(results)
     positions = display.particle_q_host.copy()
     try:
-        for g in groups:
-            g.sim.warm_up()
+        stoppable = stoppable or contextlib.nullcontext
+        with stoppable():
+            for g in groups:
+                g.sim.warm_up()
         t0 = time.perf_counter()
         for k in range(plan.frames + 1):
             target = groups[0].sim.step_of_frame(k)
-            for g in groups:
-                g.sim.advance(target - g.done_steps)
-                g.done_steps = target
+            with stoppable():
+                for g in groups:
+                    g.sim.advance(target - g.done_steps)
+                    g.done_steps = target
             t_frame = target * plan.dt
             per_group = {}
             for g in groups:
@@ -552,8 +560,8 @@ def run_comparison(plan: Plan, device, out, metrics_path=None, plot_path=None, c
                 result.interrupted = True
                 break
         result.wall_seconds = time.perf_counter() - t0
-    except BaseException:
-        writer.close(status="failed")
+    except BaseException as exc:
+        writer.close(status="interrupted" if isinstance(exc, KeyboardInterrupt) else "failed")
         raise
     for g in groups:
         stats = g.integrator.stats()

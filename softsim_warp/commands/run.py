@@ -19,7 +19,8 @@ from ..io.runinfo import explosion_message, summary_dict, summary_line
 from ..io.simulate import Simulator
 from ..io.usd import UsdWriter
 from . import common
-from .common import EXIT_EXPLODED, Signals, check_deterministic, load_for_cli, resolve_device
+from .common import (EXIT_EXPLODED, TEST_PAUSES, Signals, check_deterministic, load_for_cli, pause_for_test,
+                     resolve_device)
 from .preview import render_gif_or_error
 
 COMMAND = "run"
@@ -49,25 +50,31 @@ def add_parser(subparsers, add_common):
 
 
 def run(args) -> int:
-    # Signals are caught from the start: one that arrives before the first frame ends the run
-    # with 128 + signum and leaves no output, one during the run stops it after that frame.
-    with Signals() as signals:
+    # Signals are caught from the start (common.Signals with regions): the first one ends the run at
+    # its next check -- before the first frame with no output, during the run after the frame in
+    # progress, with every frame written -- and a second one stops at once, but only inside the
+    # ``signals.stoppable()`` blocks below, whose KeyboardInterrupt this module cleans up after.
+    with Signals(regions=True) as signals:
         common.ACTIVE_SIGNALS = signals
         return _run(args, signals)
 
 
 def _run(args, signals) -> int:
+    pause_for_test("scene", signals)
     scene = load_for_cli(args)
     outputs = Outputs()
     outputs.add_input("scene", scene.source)
     out = outputs.add("--out", args.out or f"{Path(scene.source).stem}.usdc", USD_SUFFIXES)
     metrics_path = outputs.add("--metrics", args.metrics)
     preview_path = outputs.add("--preview", args.preview, (".gif",))
+    if signals.received is not None:
+        return signals.exit_code()
     with outputs:
         return _run_locked(args, signals, scene, out, metrics_path, preview_path)
 
 
 def _run_locked(args, signals, scene, out, metrics_path, preview_path) -> int:
+    pause_for_test("build", signals)
     device = resolve_device(args.device, args.debug)
     sim = scene.sim
     if args.deterministic:
@@ -75,33 +82,58 @@ def _run_locked(args, signals, scene, out, metrics_path, preview_path) -> int:
     frames = scene.frame_count()
     check_fits(scene, device, sim["integrator"], frames, usd_springs=args.springs, deterministic=args.deterministic)
 
-    model = build_model(scene, device=device, deterministic=args.deterministic)
-    integrator = make_integrator(sim["integrator"], model, scene.data.get("implicit"))
-    simulator = Simulator(model, integrator, sim["dt"], sim["fps"], frames, use_graph=None if not args.no_graph else False,
-                          max_speed=sim.get("max_speed"))
+    with signals.stoppable():  # a large model takes a while to build; nothing is written yet
+        model = build_model(scene, device=device, deterministic=args.deterministic)
+        integrator = make_integrator(sim["integrator"], model, scene.data.get("implicit"))
+        simulator = Simulator(model, integrator, sim["dt"], sim["fps"], frames,
+                              use_graph=None if not args.no_graph else False, max_speed=sim.get("max_speed"))
     if signals.received is not None:
-        return 128 + int(signals.received)
+        return signals.exit_code()
     writer = UsdWriter(out, model, sim["fps"], springs=args.springs,
                        metadata={"softsim:scene": scene.name, "softsim:integrator": sim["integrator"], "softsim:dt": sim["dt"],
                                  "softsim:deterministic": bool(args.deterministic)})
     progress = None
-    if not args.quiet:
-        from tqdm import tqdm  # noqa: PLC0415
-
-        progress = tqdm(total=frames + 1, unit="frame", desc=f"{scene.name} {sim['integrator']}", file=sys.stderr, leave=False)
-    simulator.stop_requested = lambda: signals.received
-    signals.busy = lambda: simulator.writing
     try:
-        result = simulator.run([writer], progress=progress)
+        pause_for_test("writer", signals)
+        if signals.received is not None:  # nothing simulated: no output
+            writer.discard()
+            return signals.exit_code()
+        if not args.quiet:
+            from tqdm import tqdm  # noqa: PLC0415
+
+            progress = tqdm(total=frames + 1, unit="frame", desc=f"{scene.name} {sim['integrator']}", file=sys.stderr,
+                            leave=False)
+        simulator.stop_requested = lambda: signals.received
+        if "run" in TEST_PAUSES:
+            def stop_requested():
+                if writer.last_frame == 2:
+                    pause_for_test("run", signals)
+                return signals.received
+
+            simulator.stop_requested = stop_requested
+        signals.busy = lambda: simulator.writing
+        # A signal during kernel compilation (the warm-up, first in Simulator.run) lets frame 0 be
+        # written first; a second one stops it with no output.
+        pause_for_test("compile", signals)
+        with signals.stoppable():
+            result = simulator.run([writer], progress=progress)
     except BaseException as exc:
-        signals.closing = True
-        writer.close(status="interrupted" if isinstance(exc, KeyboardInterrupt) else "failed",
-                     extra={"softsim:frames": writer.last_frame + 1})
+        # A stop-now outside the steps, or an error: keep the frames written (a signal now is only recorded).
+        pause_for_test("cleanup", signals)
+        if writer.last_frame < 0:
+            writer.discard()
+        else:
+            writer.close(status="interrupted" if isinstance(exc, KeyboardInterrupt) else "failed",
+                         extra={"softsim:frames": writer.last_frame + 1})
         raise
     finally:
         if progress is not None:
             progress.close()
-    signals.closing = True
+    if result.interrupted and not result.frames_written:  # stopped during the warm-up: no output
+        writer.discard()
+        return signals.exit_code()
+    # From here on the outputs are written whole: a signal is recorded, and reported by the exit code.
+    pause_for_test("save", signals)
     status = "exploded" if result.exploded else ("interrupted" if result.interrupted else "complete")
     summary = summary_dict(scene, model, integrator, simulator, result, device)
     summary["status"] = status
@@ -120,15 +152,21 @@ def _run_locked(args, signals, scene, out, metrics_path, preview_path) -> int:
     if kept:
         print(f"note: {out} existed and the run did not complete: it is unchanged, the frames are in {written}",
               file=sys.stderr)
+    if signals.received is not None and status == "complete":
+        print(f"note: {signal.Signals(signals.received).name} came after the last frame: the outputs are complete"
+              + ("; --preview was not rendered" if preview_path is not None else ""), file=sys.stderr)
     if preview_path is not None and result.frames_written and signals.received is None:
         # The outputs are in place; a signal now stops the rendering at once (nothing half-written:
         # the GIF goes to a temporary first).
-        signals.closing = False
-        signals.immediate = True
-        render_gif_or_error(written, kept_partial_path(preview_path) if kept else preview_path)
+        with signals.stoppable(immediate=True):
+            pause_for_test("preview", signals)
+            render_gif_or_error(written, kept_partial_path(preview_path) if kept else preview_path)
     if result.exploded:
         print("error: " + message, file=sys.stderr)
+    if signals.received is not None:
+        return signals.exit_code()
+    if result.exploded:
         return EXIT_EXPLODED
     if result.interrupted:
-        return 128 + int(signals.received or signal.SIGINT)
+        return 128 + int(signal.SIGINT)
     return 0

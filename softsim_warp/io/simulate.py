@@ -109,7 +109,7 @@ class Simulator(Stepper):
                 }
                 break
             positions = self.state.particle_q.numpy()
-            # A frame is written whole: a stop-now request waits until it is (see cli._Signals).
+            # A frame is written whole: a stop-now request waits until it is (see commands/common.Signals).
             self.writing = True
             try:
                 for w in writers:
