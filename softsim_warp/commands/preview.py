@@ -5,6 +5,7 @@
 
 from __future__ import annotations
 
+import re
 import sys
 
 from ..core.errors import CommandLineError, UserError
@@ -78,9 +79,27 @@ def _render(args, size) -> int:
             print(f"{args.usd}: {count} frames -> {args.gif}", file=sys.stderr)
     except ValueError as e:
         # preview.py reports bad input as one line "<file>: <what is wrong> (got <value>)".
-        source, _, message = str(e).partition(": ")
-        raise UserError(source, None, message or "cannot render") from None
+        raise _user_error(e) from None
     return 0
+
+
+class _Shown:
+    """A value already written as the message shows it (``format_value`` prints it as it is)."""
+
+    def __init__(self, text):
+        self.text = text
+
+    def __str__(self):
+        return self.text
+
+
+def _user_error(e: ValueError) -> UserError:
+    """preview.py's ``"<file>: <what is wrong> (got <value>)"`` as a one-line UserError with its parts."""
+    source, _, message = str(e).partition(": ")
+    m = re.match(r"^(.*) \(got (.*)\)$", message, re.S)
+    if m:
+        return UserError(source, "preview", m.group(1), _Shown(m.group(2)), has_value=True)
+    return UserError(source, "preview", message or "cannot render")
 
 
 def render_gif_or_error(usd_path, gif_path, fps=None):
@@ -89,8 +108,7 @@ def render_gif_or_error(usd_path, gif_path, fps=None):
     try:
         count = preview.render_gif(usd_path, gif_path, fps=fps)
     except ValueError as e:
-        source, _, message = str(e).partition(": ")
-        raise UserError(source, None, message or "cannot render") from None
+        raise _user_error(e) from None
     print(f"{usd_path}: {count} frames -> {gif_path}", file=sys.stderr)
 
 
@@ -126,9 +144,7 @@ def render_split_png(usd_path, png_path, frame=None, time=None, size=None):
     from pxr import Sdf, Usd, UsdGeom  # noqa: PLC0415
 
     path = os.path.abspath(os.fspath(usd_path))
-    if not os.path.isfile(path):
-        raise ValueError(f"{usd_path}: USD file not found")
-    stage = Usd.Stage.Open(path)
+    stage = preview.open_stage(path)
     copies = _copies(stage)
     if len(copies) < 2:
         raise ValueError(f"{usd_path}: --split needs a stage written by `softsim compare`, with copies side by side")

@@ -3,12 +3,14 @@
 The renderer is a small software pipeline on top of matplotlib's Agg backend (no mplot3d, no GPU):
 
 * every ``UsdGeom.Mesh`` is put in world space with ``UsdGeom.XformCache``; a mesh whose ``points``
-  have more than one time sample is *jelly* (deforming; so is a ``Jelly_*/Surface`` with one sample,
-  a run that has written only frame 0), every other mesh is static *terrain*. ``UsdGeom.Points``
-  are drawn (as small squares) only when there is no deforming mesh at all; ``BasisCurves`` and
-  other prims are ignored; invisible, guide and proxy prims are skipped;
-* a fixed perspective camera looks at the bounding box of the jelly over *all* frames from an
-  elevated 3/4 view, so a PNG of any frame and every frame of a GIF share one camera;
+  have more than one time sample is *jelly* (deforming; so is a mesh under a ``Jelly_*`` prim with
+  one sample or none, a run that has written only frame 0), every other mesh is static *terrain*.
+  ``UsdGeom.Points`` are drawn (as small squares) only when there is no deforming mesh at all (the
+  deforming ones, or all of them when none deforms); ``BasisCurves`` and other prims are ignored;
+  invisible, guide and proxy prims are skipped, and so are prims with malformed points or faces;
+* a fixed perspective camera looks at the bounding box of the jelly over all frames (at most
+  ``BBOX_SAMPLES`` time samples per prim) from an elevated 3/4 view, so a PNG of any frame and
+  every frame of a GIF share one camera;
 * terrain is clipped to a horizontal neighbourhood of that box (a 60 m plane does not dominate the
   view), subdivided near the jelly (so the painter's algorithm orders ground and jelly correctly),
   shaded once (two-sided Lambert, ``primvars:displayColor`` or grey) and projected once;
@@ -21,9 +23,34 @@ The renderer is a small software pipeline on top of matplotlib's Agg backend (no
 * GIF frames are blitted: the terrain-only picture is drawn once and restored, and only the jelly,
   its shadow and the terrain triangles that may cover them are painted again (same picture).
 
+GIFs are streamed: each frame is rendered, mapped to the GIF's one palette and written to the file
+before the next is rendered (only the previous frame's palette indices are kept, to write the
+changed rectangle), so memory does not grow with the number of frames. A GIF has at most
+``max_frames`` frames (default :data:`MAX_GIF_FRAMES`): a longer clip is stepped evenly, and the
+frames to draw are computed arithmetically (a stage whose ``endTimeCode`` is 1e9 costs no more than
+a short one).
+
+Unusual stages (decisions):
+
+* a stage with no time samples at all (static) renders its one frame, as a PNG or as a one-frame
+  GIF; meshes under a ``Jelly_*`` prim are drawn as jelly even then;
+* any layout is read: every ``UsdGeom.Mesh`` and ``UsdGeom.Points`` anywhere in the stage (a moving
+  mesh at ``/Root/Thing`` is drawn as jelly; static points are drawn when nothing moves but them);
+  a stage with nothing drawable is refused, saying what it holds;
+* the time range is ``startTimeCode..endTimeCode``; one that is not authored comes from the time
+  samples; a non-finite or inverted authored range, and a ``timeCodesPerSecond`` that is not a
+  finite number > 0, are refused;
+* at most :data:`BBOX_SAMPLES` time samples per prim are read to frame the camera (evenly spaced),
+  so a file with 10^6 samples opens as fast as a short one;
+* coordinates that are NaN, inf or beyond :data:`COORD_LIMIT` are not drawn (the frame's label
+  says how many points were left out); a jelly with no finite point in any frame read is drawn
+  as missing over the terrain, or refused when there is no terrain;
+* a file that is not USD (text, truncated or empty, a folder, a FIFO) is refused with "cannot open
+  as USD".
+
 Public API: :func:`render_png` and :func:`render_gif`. Bad input (missing or unreadable file,
-frame or time out of range, bad fps/size) raises ``ValueError`` with a one-line message naming
-the file and the value and saying what is allowed.
+unusual stage as above, frame or time out of range, bad fps/size) raises ``ValueError`` with a
+one-line message naming the file and the value and saying what is allowed.
 
 matplotlib and pxr are imported lazily, inside the functions that need them.
 """
@@ -32,13 +59,15 @@ from __future__ import annotations
 
 import math
 import os
+import stat
+import struct
 import sys
 
 import numpy as np
 
 from .outputs import save_atomic
 
-__all__ = ["render_gif", "render_png"]
+__all__ = ["open_stage", "render_gif", "render_png"]
 
 JELLY_RGB = np.array([1.0, 0.45, 0.08])
 TERRAIN_RGB = np.array([0.70, 0.70, 0.70])
@@ -49,6 +78,10 @@ TEXT_RGB = (0.2, 0.2, 0.25)
 AMBIENT, DIFFUSE = 0.38, 0.62
 ELEVATION_DEG, AZIMUTH_DEG, HALF_FOV_DEG = 27.0, 35.0, 16.0
 MAX_GIF_FPS = 30.0  # default cap on the GIF frame rate
+MAX_GIF_FRAMES = 2000  # default cap on the number of GIF frames (a longer clip is stepped evenly)
+MAX_GIF_DELAY_CS = 65535  # the longest delay a GIF frame can hold (16 bits of centiseconds)
+BBOX_SAMPLES = 512  # at most this many time samples per prim are read to frame the camera
+COORD_LIMIT = 1e30  # coordinates beyond this (or NaN, inf) are not drawn
 MIN_GIF_FRAME_MS = 20  # browsers play GIF frames shorter than 20 ms at 100 ms
 TERRAIN_TRIANGLE_BUDGET = 5000
 SHADOW = 0.35  # darkening of the terrain right under a jelly at rest
@@ -71,30 +104,35 @@ def render_png(usd_path, png_path, frame=None, time=None, size=(800, 600)):
         time: alternatively, the time in seconds (``frame = time * timeCodesPerSecond``).
         size: image size ``(width, height)`` in pixels.
 
-    Default (neither ``frame`` nor ``time``): the last frame. Returns the frame (time code) rendered.
+    Default (neither ``frame`` nor ``time``): the last frame (the only one of a static stage).
+    Returns the frame (time code) rendered.
     """
     width, height = _check_size(usd_path, size)
     _check_out_dir(png_path)
-    scene = _Scene(usd_path)
-    if frame is not None and time is not None:
-        raise ValueError(f"{scene.path}: give frame or time, not both (got frame={frame}, time={time})")
-    if time is not None:
-        t = _as_number(scene.path, "time", time)
-        lo, hi = scene.start / scene.fps, scene.end / scene.fps
-        if not (lo - 1e-9 <= t <= hi + 1e-9):
-            raise ValueError(f"{scene.path}: time {t:g} s out of range, allowed {lo:g}..{hi:g} s")
-        frame = min(max(t * scene.fps, scene.start), scene.end)
-    elif frame is not None:
-        f = _as_number(scene.path, "frame", frame)
-        if not (scene.start - 1e-9 <= f <= scene.end + 1e-9):
-            raise ValueError(f"{scene.path}: frame {frame} out of range, allowed {scene.start:g}..{scene.end:g}")
-        frame = min(max(f, scene.start), scene.end)
-    else:
-        frame = scene.end
-    renderer = _Renderer(scene, width, height)
-    renderer.draw(frame)
-    save_atomic(png_path, lambda tmp: renderer.fig.savefig(tmp, format="png", dpi=renderer.dpi, facecolor=BACKGROUND_RGB),
-                "--png")
+    with np.errstate(all="ignore"):  # NaN and inf points are dropped, not warned about
+        scene = _Scene(usd_path)
+        if frame is not None and time is not None:
+            raise ValueError(f"{scene.path}: give frame or time, not both (got frame={frame}, time={time})")
+        if time is not None:
+            t = _as_number(scene.path, "time", time)
+            lo, hi = scene.start / scene.fps, scene.end / scene.fps
+            if not (lo - 1e-9 <= t <= hi + 1e-9):
+                raise ValueError(f"{scene.path}: time {t:g} s out of range, allowed {lo:g}..{hi:g} s")
+            frame = min(max(t * scene.fps, scene.start), scene.end)
+        elif frame is not None:
+            f = _as_number(scene.path, "frame", frame)
+            if not (scene.start - 1e-9 <= f <= scene.end + 1e-9):
+                raise ValueError(f"{scene.path}: frame {frame} out of range, allowed {scene.start:g}..{scene.end:g}")
+            frame = min(max(f, scene.start), scene.end)
+        else:
+            frame = scene.end
+        renderer = _Renderer(scene, width, height)
+        renderer.draw(frame)
+        save_atomic(
+            png_path,
+            lambda tmp: renderer.fig.savefig(tmp, format="png", dpi=renderer.dpi, facecolor=BACKGROUND_RGB),
+            "--png",
+        )
     return frame
 
 
@@ -110,54 +148,140 @@ def render_gif(usd_path, gif_path, fps=None, size=(640, 480), max_frames=None):
             frame lasts ``step / stage_fps`` s, so the GIF's duration matches simulated time.
             (With a non-integer ratio the actual rate is ``stage_fps / step``.)
         size: image size ``(width, height)`` in pixels.
-        max_frames: at most this many GIF frames; if the clip needs more, the step is increased
-            (frames are skipped evenly, still covering the whole clip in real time).
+        max_frames: at most this many GIF frames (default :data:`MAX_GIF_FRAMES`); if the clip
+            needs more, the step is increased (frames are skipped evenly, still covering the whole
+            clip in real time, up to GIF's longest frame delay of 655.35 s).
 
-    Returns the number of frames written.
+    A static stage (no time samples) gives a one-frame GIF. Frames are rendered and written one
+    at a time (see the module docstring). Returns the number of frames written.
     """
     width, height = _check_size(usd_path, size)
     _check_out_dir(gif_path)
-    scene = _Scene(usd_path)
-    if fps is None:
-        fps = min(scene.fps, MAX_GIF_FPS)
+    if max_frames is None:
+        max_frames = MAX_GIF_FRAMES
     else:
-        fps = _as_number(scene.path, "fps", fps)
-        if not fps > 0:
-            raise ValueError(f"{scene.path}: fps must be > 0 (got {fps:g})")
-    if max_frames is not None:
         try:
             ok = not isinstance(max_frames, bool) and int(max_frames) == max_frames and max_frames >= 1
-        except (TypeError, ValueError):
+        except (TypeError, ValueError, OverflowError):
             ok = False
         if not ok:
-            raise ValueError(f"{scene.path}: max_frames must be an integer >= 1 (got {max_frames!r})")
+            raise ValueError(f"{os.fspath(usd_path)}: max_frames must be an integer >= 1 (got {max_frames!r})")
         max_frames = int(max_frames)
-    all_frames = scene.frame_codes()
-    step = max(1, round(scene.fps / fps), math.ceil(scene.fps * MIN_GIF_FRAME_MS / 1000.0 - 1e-9))
-    if max_frames is not None and math.ceil(len(all_frames) / step) > max_frames:
-        step = math.ceil(len(all_frames) / max_frames)
-    frames = all_frames[::step]
+    with np.errstate(all="ignore"):  # NaN and inf points are dropped, not warned about
+        scene = _Scene(usd_path)
+        if fps is None:
+            fps = min(scene.fps, MAX_GIF_FPS)
+        else:
+            fps = _as_number(scene.path, "fps", fps)
+            if not fps > 0:
+                raise ValueError(f"{scene.path}: fps must be > 0 (got {fps:g})")
+        frames, step = _gif_frames(scene.start, scene.end, scene.fps, fps, max_frames)
 
-    from PIL import Image
+        from PIL import Image
 
-    renderer = _Renderer(scene, width, height)
-    # One palette for the whole GIF, from the first, middle and last frames (no flicker, fast mapping).
-    samples = [renderer.render_rgb(frames[i]) for i in sorted({0, len(frames) // 2, len(frames) - 1})]
-    mediancut = getattr(Image, "Quantize", Image).MEDIANCUT  # enums since Pillow 9.1
-    no_dither = getattr(Image, "Dither", Image).NONE
-    palette = Image.fromarray(np.concatenate(samples, axis=0)).quantize(colors=255, method=mediancut, dither=no_dither)
-    images = [Image.fromarray(renderer.render_rgb(f)).quantize(palette=palette, dither=no_dither) for f in frames]
-    # Frame delays in whole centiseconds (GIF's unit) whose running sum tracks real time.
-    ends = np.round(np.arange(1, len(frames) + 1) * step / scene.fps * 100.0).astype(int)
-    delays_ms = (np.diff(ends, prepend=0) * 10).tolist()
-    save_atomic(
-        gif_path,
-        lambda tmp: images[0].save(
-            tmp, format="GIF", save_all=True, append_images=images[1:], duration=delays_ms, loop=0, optimize=False
-        ),
-        "--gif",
-    )
-    return len(images)
+        renderer = _Renderer(scene, width, height)
+        # One palette for the whole GIF, from the first, middle and last frames (no flicker, fast mapping).
+        samples = [renderer.render_rgb(frames[i]) for i in sorted({0, len(frames) // 2, len(frames) - 1})]
+        mediancut = getattr(Image, "Quantize", Image).MEDIANCUT  # enums since Pillow 9.1
+        no_dither = getattr(Image, "Dither", Image).NONE
+        palette = Image.fromarray(np.concatenate(samples, axis=0)).quantize(
+            colors=255, method=mediancut, dither=no_dither
+        )
+        del samples
+        indexed = (
+            np.asarray(Image.fromarray(renderer.render_rgb(f)).quantize(palette=palette, dither=no_dither))
+            for f in frames
+        )
+        delays = _gif_delays(len(frames), step, scene.fps)
+        written = []
+        save_atomic(
+            gif_path,
+            lambda tmp: written.append(_write_gif(tmp, (width, height), palette.getpalette(), indexed, delays)),
+            "--gif",
+        )
+    return written[0]
+
+
+def _gif_frames(start, end, stage_fps, fps, max_frames):
+    """The time codes a GIF draws and the step between them, computed arithmetically.
+
+    The integer time codes in ``start..end`` (``[start]`` when there is none), every ``step``-th:
+    ``step = round(stage_fps / fps)``, at least 1 and enough for frames of >= 20 ms, increased so
+    that there are at most ``max_frames``. Returns ``(frames, step)``; ``frames`` is a ``range``
+    (or a one-element list), never a list of every time code, however long the clip."""
+    first, last = math.ceil(start - 1e-9), math.floor(end + 1e-9)
+    if last < first:
+        return [start], 1
+    count = last - first + 1
+    ratio = min(stage_fps / fps, count)  # fps may be tiny: no overflow in round()
+    step = max(1, round(ratio), math.ceil(stage_fps * MIN_GIF_FRAME_MS / 1000.0 - 1e-9))
+    step = min(step, count)
+    if max_frames is not None and -(-count // step) > max_frames:
+        step = -(-count // max_frames)
+    return range(first, last + 1, step), step
+
+
+def _gif_delays(count, step, stage_fps):
+    """Frame delays in whole centiseconds (GIF's unit) whose running sum tracks real time
+    (``step / stage_fps`` s per frame); each at most :data:`MAX_GIF_DELAY_CS`. A generator."""
+    try:
+        seconds = step / stage_fps
+    except OverflowError:
+        seconds = math.inf
+    done = 0
+    for i in range(1, count + 1):
+        end = i * seconds * 100.0
+        if not math.isfinite(end):
+            yield MAX_GIF_DELAY_CS
+            continue
+        end = round(end)
+        yield min(max(end - done, 0), MAX_GIF_DELAY_CS)
+        done = end
+
+
+def _write_gif(path, size, palette, frames, delays):
+    """Write an animated GIF frame by frame; returns the number of frames written.
+
+    ``palette``: the global colour table (``[r, g, b, ...]``, at most 256 colours); ``frames``: an
+    iterable of ``(height, width)`` uint8 palette indices, consumed one at a time; ``delays``: an
+    iterable of centiseconds. Pillow's ``save(save_all=True, append_images=...)`` keeps every frame
+    in memory until the end (it merges identical frames), so the file is assembled here: the header,
+    global colour table and loop extension, then per frame the rectangle that changed since the
+    previous frame (a 1x1 unchanged pixel for an identical frame, so every frame and its delay are
+    kept) encoded by Pillow's ``GifImagePlugin.getdata`` (graphic control extension with the delay,
+    image descriptor, LZW data), then the trailer.
+    """
+    from PIL import GifImagePlugin, Image
+
+    width, height = size
+    table = bytes(int(v) for v in list(palette)[:768]).ljust(768, b"\0")
+    count = 0
+    previous = None
+    with open(path, "wb") as f:
+        # Logical screen: global colour table of 256 entries (flag, 8-bit colour resolution, size 2^8).
+        f.write(b"GIF89a" + struct.pack("<HHBBB", width, height, 0xF7, 0, 0) + table)
+        f.write(b"!\xff\x0bNETSCAPE2.0\x03\x01" + struct.pack("<H", 0) + b"\0")  # loop forever
+        for index, delay in zip(frames, delays):
+            index = np.asarray(index, dtype=np.uint8)
+            if index.shape != (height, width):
+                raise RuntimeError(f"GIF frame of shape {index.shape}, expected {(height, width)}")
+            if previous is None:
+                x0, y0, x1, y1 = 0, 0, width, height
+            else:
+                changed = index != previous
+                rows = np.flatnonzero(changed.any(axis=1))
+                if len(rows) == 0:
+                    x0, y0, x1, y1 = 0, 0, 1, 1
+                else:
+                    cols = np.flatnonzero(changed.any(axis=0))
+                    x0, y0, x1, y1 = int(cols[0]), int(rows[0]), int(cols[-1]) + 1, int(rows[-1]) + 1
+            tile = Image.fromarray(np.ascontiguousarray(index[y0:y1, x0:x1]))
+            for chunk in GifImagePlugin.getdata(tile, offset=(x0, y0), duration=10 * int(delay)):
+                f.write(chunk)
+            previous = index
+            count += 1
+        f.write(b";")
+    return count
 
 
 # --------------------------------------------------------------------------------------------------
@@ -233,15 +357,67 @@ def _transform(points, matrix):
 
 
 def _points_array(value):
+    """``(N, 3)`` float64 points from an attribute value; empty for a missing or malformed value."""
     if value is None:
         return np.zeros((0, 3))
-    return np.asarray(value, dtype=np.float64).reshape(-1, 3)
+    try:
+        out = np.asarray(value, dtype=np.float64)
+    except (TypeError, ValueError):
+        return np.zeros((0, 3))
+    if out.size % 3 or (out.ndim > 1 and out.shape[-1] != 3):
+        return np.zeros((0, 3))
+    return out.reshape(-1, 3)
+
+
+def _sane(points):
+    """Mask of the rows of ``(N, 3)`` points that can be drawn: finite and within :data:`COORD_LIMIT`."""
+    return np.all(np.abs(points) < COORD_LIMIT, axis=-1)  # False for NaN and inf too
+
+
+def _read(path, attr, time, what="points"):
+    """``attr.Get(time)``; a read error of a damaged file becomes a one-line ``ValueError``."""
+    from pxr import Tf
+
+    try:
+        return attr.Get(time)
+    except Tf.ErrorException as exc:
+        raise ValueError(f"{path}: cannot read the {what} of {attr.GetPrim().GetPath()} ({_one_line(exc)})") from None
+
+
+def _bbox_times(attr, start, end):
+    """The time samples of ``attr`` in ``start..end`` to frame the camera with: all of them, or at most
+    :data:`BBOX_SAMPLES` evenly spaced ones (found by bracketing, never by listing every sample)."""
+    from pxr import Gf
+
+    n = attr.GetNumTimeSamples()
+    if n == 0:
+        return [start]
+    if n <= BBOX_SAMPLES:
+        times = attr.GetTimeSamplesInInterval(Gf.Interval(start - 1e-9, end + 1e-9))
+    else:
+        times = set()
+        for t in np.linspace(start, end, BBOX_SAMPLES):
+            times.update(v for v in attr.GetBracketingTimeSamples(float(t)) if start - 1e-9 <= v <= end + 1e-9)
+        times = sorted(times)
+    return list(times) or [start]  # no sample in range: the value held at the start
+
+
+def _sample_range(attr):
+    """``(first, last)`` time sample of ``attr`` (by bracketing), or None."""
+    from pxr import Usd
+
+    lo = attr.GetBracketingTimeSamples(Usd.TimeCode.EarliestTime().GetValue())
+    hi = attr.GetBracketingTimeSamples(float(np.finfo(np.float64).max))
+    if not lo or not hi:
+        return None
+    return float(lo[0]), float(hi[1])
 
 
 class _Deforming:
     """A deforming mesh (jelly) or, as a fallback, a point cloud."""
 
-    def __init__(self, attr, matrix, tri=None, cull=False, flip=False, radius=0.0):
+    def __init__(self, path, attr, matrix, tri=None, cull=False, flip=False, radius=0.0):
+        self.path = path
         self.attr = attr
         self.matrix = matrix
         self.tri = tri
@@ -253,109 +429,203 @@ class _Deforming:
     def points(self, frame):
         from pxr import Usd
 
-        return _transform(_points_array(self.attr.Get(Usd.TimeCode(float(frame)))), self.matrix)
+        return _transform(_points_array(_read(self.path, self.attr, Usd.TimeCode(float(frame)))), self.matrix)
+
+
+def open_stage(path):
+    """``Usd.Stage`` of ``path``, or a one-line ``ValueError`` saying why it cannot be opened."""
+    from pxr import Tf, Usd
+
+    try:
+        st = os.stat(path)
+    except FileNotFoundError:
+        raise ValueError(f"{path}: USD file not found") from None
+    except OSError as e:
+        raise ValueError(f"{path}: cannot open as USD ({e.strerror or e})") from None
+    if stat.S_ISDIR(st.st_mode):
+        raise ValueError(f"{path}: cannot open as USD (it is a folder, not a file)")
+    if not stat.S_ISREG(st.st_mode):  # a FIFO or a device: USD would block on it or fail to map it
+        raise ValueError(f"{path}: cannot open as USD (not a regular file)")
+    if st.st_size == 0:
+        raise ValueError(f"{path}: cannot open as USD (the file is empty)")
+    try:
+        with open(path, "rb"):
+            pass
+    except OSError as e:
+        raise ValueError(f"{path}: cannot open as USD ({e.strerror or e})") from None
+    try:
+        stage = Usd.Stage.Open(path)
+    except (Tf.ErrorException, RuntimeError) as exc:
+        raise ValueError(f"{path}: cannot open as USD ({_one_line(exc)})") from None
+    if stage is None:
+        raise ValueError(f"{path}: cannot open as USD")
+    return stage
 
 
 class _Scene:
     """Everything the renderer needs from the stage, in world space."""
 
     def __init__(self, usd_path):
-        from pxr import Tf, Usd, UsdGeom
+        from pxr import Tf
 
         self.path = os.fspath(usd_path)
-        if not os.path.isfile(self.path):
-            what = "is a folder, not a USD file" if os.path.isdir(self.path) else "USD file not found"
-            raise ValueError(f"{self.path}: {what}")
-        try:
-            stage = Usd.Stage.Open(self.path)
-        except (Tf.ErrorException, RuntimeError) as exc:
-            raise ValueError(f"{self.path}: cannot read USD file ({_one_line(exc)})") from None
-        if stage is None:
-            raise ValueError(f"{self.path}: cannot read USD file")
+        stage = open_stage(self.path)
         self.stage = stage
-        self.fps = float(stage.GetTimeCodesPerSecond()) or 24.0
+        try:
+            self._read(stage)
+        except Tf.ErrorException as exc:  # a damaged file that opened: reading a value failed
+            raise ValueError(f"{self.path}: cannot read the stage ({_one_line(exc)})") from None
+
+    def _read(self, stage):
+        from pxr import Usd, UsdGeom
+
+        fps = float(stage.GetTimeCodesPerSecond())
+        if not (math.isfinite(fps) and fps > 0):
+            raise ValueError(f"{self.path}: timeCodesPerSecond must be a finite number > 0 (got {fps:g})")
+        self.fps = fps
         self.up = 2 if UsdGeom.GetStageUpAxis(stage) == UsdGeom.Tokens.z else 1
+        authored = {}
+        for key, get in (("startTimeCode", stage.GetStartTimeCode), ("endTimeCode", stage.GetEndTimeCode)):
+            if stage.HasAuthoredMetadata(key):
+                authored[key] = float(get())
+                if not math.isfinite(authored[key]):
+                    raise ValueError(f"{self.path}: {key} must be a finite number (got {authored[key]:g})")
+        if "startTimeCode" in authored and "endTimeCode" in authored:
+            if authored["startTimeCode"] > authored["endTimeCode"]:
+                raise ValueError(
+                    f"{self.path}: startTimeCode is after endTimeCode "
+                    f"(got {authored['startTimeCode']:g}..{authored['endTimeCode']:g})"
+                )
 
         jelly, clouds, terrain_tris, terrain_cols = [], [], [], []
-        sample_times = set()
-        t0 = Usd.TimeCode(stage.GetStartTimeCode()) if stage.HasAuthoredTimeCodeRange() else Usd.TimeCode.EarliestTime()
+        skipped, others = [], {}  # what was not drawn, for the message of a stage with nothing to draw
+        sample_lo, sample_hi = math.inf, -math.inf
+        t0 = Usd.TimeCode(authored["startTimeCode"]) if "startTimeCode" in authored else Usd.TimeCode.EarliestTime()
         xcache = UsdGeom.XformCache(t0)
         for prim in stage.Traverse():
             is_mesh, is_points = prim.IsA(UsdGeom.Mesh), prim.IsA(UsdGeom.Points)
             if not (is_mesh or is_points):
+                if prim.IsA(UsdGeom.Gprim):
+                    others[prim.GetTypeName()] = others.get(prim.GetTypeName(), 0) + 1
                 continue
             imageable = UsdGeom.Imageable(prim)
             if imageable.ComputeVisibility(t0) == UsdGeom.Tokens.invisible:
+                skipped.append(f"{prim.GetPath()} is invisible")
                 continue
             if imageable.ComputePurpose() in (UsdGeom.Tokens.guide, UsdGeom.Tokens.proxy):
+                skipped.append(f"{prim.GetPath()} is a {imageable.ComputePurpose()}")
                 continue
             matrix = np.array(xcache.GetLocalToWorldTransform(prim), dtype=np.float64)
+            if not np.all(np.isfinite(matrix)):
+                skipped.append(f"{prim.GetPath()} has a non-finite transform")
+                continue
             attr = UsdGeom.PointBased(prim).GetPointsAttr()
+            if not attr.HasValue():
+                skipped.append(f"{prim.GetPath()} has no points")
+                continue
+            first = _read(self.path, attr, Usd.TimeCode.EarliestTime())
+            if type(first).__name__ not in ("Vec3fArray", "Vec3dArray", "Vec3hArray"):
+                skipped.append(f"{prim.GetPath()}.points holds {type(first).__name__}, not an array of 3D points")
+                continue
             samples = attr.GetNumTimeSamples()
             # Deforming: more than one time sample; also a softsim jelly (``Jelly_*/Surface`` or
-            # ``Particles``) of a run that has written only its first frame so far.
-            deforming = samples > 1 or (samples == 1 and prim.GetParent().GetName().startswith("Jelly"))
+            # ``Particles``), whether its run has written one frame so far or the stage is static.
+            deforming = samples > 1 or prim.GetParent().GetName().startswith("Jelly")
+            if deforming and samples:
+                lo_hi = _sample_range(attr)
+                if lo_hi:
+                    sample_lo, sample_hi = min(sample_lo, lo_hi[0]), max(sample_hi, lo_hi[1])
             if is_points:
-                if deforming:
-                    clouds.append((prim, attr, matrix))
-                    sample_times.update(attr.GetTimeSamples())
+                clouds.append((prim, attr, matrix, deforming))
                 continue
             mesh = UsdGeom.Mesh(prim)
-            counts = np.asarray(mesh.GetFaceVertexCountsAttr().Get() or [], dtype=np.int64)
-            indices = np.asarray(mesh.GetFaceVertexIndicesAttr().Get() or [], dtype=np.int64)
-            if len(counts) == 0 or counts.sum() != len(indices) or np.any(counts < 0):
+            try:
+                counts = np.asarray(mesh.GetFaceVertexCountsAttr().Get() or [], dtype=np.int64).ravel()
+                indices = np.asarray(mesh.GetFaceVertexIndicesAttr().Get() or [], dtype=np.int64).ravel()
+            except (TypeError, ValueError, OverflowError):
+                skipped.append(f"{prim.GetPath()} has malformed faces")
+                continue
+            if (
+                len(counts) == 0
+                or np.any(counts < 0)
+                or counts.sum() != len(indices)
+                or (len(indices) and indices.min() < 0)
+            ):
+                skipped.append(f"{prim.GetPath()} has no faces or malformed ones")
                 continue
             tri, corner, face = _fan_triangulate(counts, indices)
             if len(tri) == 0:
+                skipped.append(f"{prim.GetPath()} has no faces with 3 or more corners")
                 continue
             if deforming:
-                sample_times.update(attr.GetTimeSamples())
                 flip = mesh.GetOrientationAttr().Get() == UsdGeom.Tokens.leftHanded
-                jelly.append(_Deforming(attr, matrix, tri=tri, flip=flip))
+                jelly.append(_Deforming(self.path, attr, matrix, tri=tri, flip=flip))
                 jelly[-1].topology = (counts, indices)
             else:
-                pts = _transform(_points_array(attr.Get(Usd.TimeCode.EarliestTime())), matrix)
+                pts = _transform(_points_array(_read(self.path, attr, Usd.TimeCode.EarliestTime())), matrix)
                 if len(pts) == 0 or tri.max() >= len(pts):
+                    skipped.append(f"{prim.GetPath()} has faces that index missing points")
                     continue
-                terrain_tris.append(pts[tri])
-                terrain_cols.append(_face_colors(prim, tri, corner, face, len(counts), len(pts)))
+                cols = _face_colors(prim, tri, corner, face, len(counts), len(pts))
+                ok = np.all(_sane(pts[tri]), axis=1)
+                if not ok.any():
+                    skipped.append(f"{prim.GetPath()} has no finite points")
+                    continue
+                terrain_tris.append(pts[tri][ok])
+                terrain_cols.append(cols[ok])
 
-        if stage.HasAuthoredTimeCodeRange():
-            self.start, self.end = float(stage.GetStartTimeCode()), float(stage.GetEndTimeCode())
-        elif sample_times:
-            self.start, self.end = float(min(sample_times)), float(max(sample_times))
-        else:
-            self.start = self.end = 0.0
+        # Time range: the authored one; an end not authored comes from the deforming prims' samples.
+        has_samples = sample_lo <= sample_hi
+        start, end = authored.get("startTimeCode"), authored.get("endTimeCode")
+        if start is None:
+            start = sample_lo if has_samples else (end if end is not None else 0.0)
+            if end is not None:
+                start = min(start, end)
+        if end is None:
+            end = max(sample_hi if has_samples else start, start)
+        self.start, self.end = float(start), float(end)
 
-        if not jelly:  # fall back to deforming point clouds
-            for prim, attr, matrix in clouds:
-                widths = UsdGeom.Points(prim).GetWidthsAttr().Get(Usd.TimeCode.EarliestTime())
-                radius = 0.5 * float(np.median(np.asarray(widths))) if widths is not None and len(widths) else 0.0
-                jelly.append(_Deforming(attr, matrix, radius=radius))
+        if not jelly:  # fall back to point clouds: the deforming ones, else (a static stage) all
+            moving = [c for c in clouds if c[3]]
+            for prim, attr, matrix, _ in moving or clouds:
+                try:
+                    widths = UsdGeom.Points(prim).GetWidthsAttr().Get(Usd.TimeCode.EarliestTime())
+                    widths = np.asarray(widths if widths is not None else [], dtype=np.float64).ravel()
+                except (TypeError, ValueError):
+                    widths = np.zeros(0)
+                widths = widths[np.isfinite(widths) & (widths > 0)]
+                radius = 0.5 * float(np.median(widths)) if len(widths) else 0.0
+                jelly.append(_Deforming(self.path, attr, matrix, radius=radius))
         self.jelly = jelly
         self.terrain = np.concatenate(terrain_tris) if terrain_tris else np.zeros((0, 3, 3))
         self.terrain_rgb = np.concatenate(terrain_cols) if terrain_cols else np.zeros((0, 3))
         if not jelly and len(self.terrain) == 0:
-            raise ValueError(f"{self.path}: nothing to render (no UsdGeom.Mesh or deforming UsdGeom.Points)")
+            found = skipped[:3] + [f"{n} {t or 'untyped'}" for t, n in sorted(others.items())][:3]
+            raise ValueError(
+                f"{self.path}: nothing to draw: no UsdGeom.Mesh or UsdGeom.Points with usable points "
+                f"(got {'; '.join(found) if found else 'no geometry'})"
+            )
 
-        # Bounding box of the jelly over all frames (in range), typical jelly edge length.
+        # Bounding box of the jelly over the frames (at most BBOX_SAMPLES per prim), typical edge length.
         lo, hi = np.full(3, np.inf), np.full(3, -np.inf)
         edges = []
         for body in jelly:
-            times = [t for t in body.attr.GetTimeSamples() if self.start - 1e-9 <= t <= self.end + 1e-9]
-            for t in times or [self.start]:
+            for t in _bbox_times(body.attr, self.start, self.end):
                 p = body.points(t)
                 if body.used is not None:
                     if len(p) <= body.used[-1]:
                         continue
                     p = p[body.used]
-                p = p[np.all(np.isfinite(p), axis=1)]  # an exploded run may hold NaN or inf
+                p = p[_sane(p)]  # an exploded run may hold NaN or inf
                 if len(p):
                     lo, hi = np.minimum(lo, p.min(axis=0)), np.maximum(hi, p.max(axis=0))
             self._setup_body(body, edges)
         if not np.all(np.isfinite(lo)):
             if len(self.terrain) == 0:
-                raise ValueError(f"{self.path}: the deforming meshes have no points")
+                raise ValueError(
+                    f"{self.path}: nothing to draw: the points are NaN, inf or beyond 1e30 in every frame read "
+                    f"(got {len(jelly)} moving prim(s), no terrain)"
+                )
             lo, hi = self.terrain.reshape(-1, 3).min(axis=0), self.terrain.reshape(-1, 3).max(axis=0)
             self.has_jelly_box = False
         else:
@@ -373,9 +643,16 @@ class _Scene:
     def _setup_body(self, body, edges):
         """Orientation and culling of a jelly mesh from its first frame; typical edge lengths."""
         p = body.points(self.start)
-        if body.tri is None:  # point cloud: spacing ~ extent / cbrt(n)
+        if body.tri is None:  # point cloud: spacing = median nearest-neighbour distance (of <= 1000 points)
+            p = p[_sane(p)]
             if len(p) > 1:
-                edges.append(np.array([np.max(np.ptp(p, axis=0)) / max(len(p) ** (1 / 3) - 1, 1)]))
+                q = p[:: -(-len(p) // 1000)]
+                d = np.linalg.norm(q[:, None] - q[None], axis=2)
+                np.fill_diagonal(d, np.inf)
+                nearest = d.min(axis=1)
+                nearest = nearest[np.isfinite(nearest) & (nearest > 0)]
+                if len(nearest):  # a subsample's spacing is wider: scale back as for a volume
+                    edges.append(np.array([np.median(nearest) * (len(q) / len(p)) ** (1 / 3)]))
             return
         if len(p) <= body.used[-1]:
             body.tri = body.tri[:0]
@@ -393,13 +670,6 @@ class _Scene:
             body.cull = True
             body.flip = volume < 0  # make normals point out whatever the authored winding
         del body.topology
-
-    def frame_codes(self):
-        """The integer time codes (frames) in start..end."""
-        first, last = math.ceil(self.start - 1e-9), math.floor(self.end + 1e-9)
-        if last < first:
-            return [self.start]
-        return list(range(first, last + 1))
 
 
 def _one_line(exc):
@@ -422,9 +692,13 @@ def _face_colors(prim, tri, corner, face, n_faces, n_points):
     if not primvar or not primvar.HasValue():
         return out
     values = primvar.ComputeFlattened(Usd.TimeCode.EarliestTime())
-    if values is None or len(values) == 0:
+    try:
+        values = np.asarray(values if values is not None else [], dtype=np.float64)
+    except (TypeError, ValueError):
         return out
-    values = np.clip(np.asarray(values, dtype=np.float64).reshape(-1, 3), 0.0, 1.0)
+    if values.size == 0 or values.size % 3:
+        return out
+    values = np.clip(np.nan_to_num(values.reshape(-1, 3), nan=0.5), 0.0, 1.0)
     interp = primvar.GetInterpolation()
     if len(values) == 1 or interp == UsdGeom.Tokens.constant:
         return np.tile(values[0], (len(tri), 1))
@@ -711,10 +985,14 @@ class _Renderer:
         """Per body: ``(xy (n, 3, 2), depth (n,), rgb (n, 3), shadow_idx, shadow_factor)``."""
         cam = self.cam
         out = []
+        self.left_out = 0  # points not drawn (NaN, inf, absurd), for the label
         for body in self.scene.jelly:
             p = body.points(frame)
             if body.tri is None:  # point cloud: a camera-facing square (2 triangles) per point
-                cp = cam.to_camera(p[np.all(np.isfinite(p), axis=1)])
+                sane = _sane(p)
+                self.left_out += int(len(p) - sane.sum())
+                p = p[sane]
+                cp = cam.to_camera(p)
                 cp = cp[cp[:, 2] > cam.near]
                 r = body.radius
                 quad = np.array([[-r, -r], [r, -r], [r, r], [-r, r]])
@@ -728,8 +1006,10 @@ class _Renderer:
                 continue
             if len(body.tri) == 0 or len(p) <= body.used[-1]:
                 continue
+            sane = _sane(p)
+            self.left_out += int(len(body.used) - sane[body.used].sum())
             v = p[body.tri]
-            v = v[np.all(np.isfinite(v), axis=(1, 2))]
+            v = v[np.all(sane[body.tri], axis=1)]
             normals = np.cross(v[:, 1] - v[:, 0], v[:, 2] - v[:, 0])
             if body.flip:
                 normals = -normals
@@ -743,7 +1023,7 @@ class _Renderer:
             cv, normals = cv[ok], normals[ok]
             out.append(
                 (cam.project(cv), cv[..., 2].mean(axis=1), _shade(normals, JELLY_RGB, cam.light))
-                + self._shadow(p[body.used])
+                + self._shadow(p[body.used][sane[body.used]])
             )
         return out
 
@@ -790,7 +1070,10 @@ class _Renderer:
         self.coll.set_clip_box(clip_box)
 
     def _set_label(self, frame):
-        self.label.set_text(f"t = {frame / self.scene.fps:.2f} s")
+        text = f"t = {frame / self.scene.fps:.2f} s"
+        if getattr(self, "left_out", 0):
+            text += f"  ({self.left_out} non-finite points not drawn)"
+        self.label.set_text(text)
 
     def draw(self, frame):
         """Draw a frame the plain way: every triangle, one painter's pass, full canvas draw."""
