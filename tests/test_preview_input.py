@@ -195,15 +195,25 @@ def test_broken_time_codes_per_second(capfd, tmp_path, small, tcps):
     assert_refused(capfd, tmp_path, small, "timeCodesPerSecond must be a finite number > 0")
 
 
+def _poison_points(stage, change):
+    """Apply ``change`` (in place, to a NumPy copy) to the jelly's points at every time sample."""
+    from pxr import Vt
+
+    attr = _jelly_points(stage)
+    for t in attr.GetTimeSamples():
+        v = np.array(attr.Get(t))
+        change(v)
+        attr.Set(Vt.Vec3fArray.FromNumpy(v.astype(np.float32)), t)
+
+
 def test_points_never_finite_and_no_terrain(capfd, tmp_path, small):
-    from pxr import Sdf, Vt
+    from pxr import Sdf
+
+    def change(v):
+        v[::2], v[1::2] = np.nan, np.inf
 
     def poison(stage):
-        attr = _jelly_points(stage)
-        for t in attr.GetTimeSamples():
-            v = np.array(attr.Get(t))
-            v[::2], v[1::2] = np.nan, np.inf
-            attr.Set(Vt.Vec3fArray.FromNumpy(v.astype(np.float32)), t)
+        _poison_points(stage, change)
         stage.RemovePrim(Sdf.Path("/World/Plane_0"))
 
     _edit(small, poison)
@@ -310,15 +320,12 @@ def test_other_prim_layout_renders(capfd, tmp_path):
 
 
 def test_nonfinite_points_are_left_out(capfd, tmp_path, small):
-    from pxr import Vt
+    def change(v):
+        v[::7], v[3::11] = np.nan, np.inf
+        v[5] = 3e38  # finite, absurd
 
     def poison(stage):
-        attr = _jelly_points(stage)
-        for t in attr.GetTimeSamples():
-            v = np.array(attr.Get(t))
-            v[::7], v[3::11] = np.nan, np.inf
-            v[5] = 3e38  # finite, absurd
-            attr.Set(Vt.Vec3fArray.FromNumpy(v.astype(np.float32)), t)
+        _poison_points(stage, change)
 
     _edit(small, poison)
     png, _ = assert_rendered(capfd, tmp_path, small, frames=3)  # one line each: no RuntimeWarning
