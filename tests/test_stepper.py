@@ -45,3 +45,22 @@ def test_stepper_state_can_be_written_between_calls():
     stepper.state.particle_qd.zero_()
     stepper.advance(100)
     assert stepper.state.particle_q.numpy()[0, 1] == pytest.approx(5.0 - 9.8 * 1.0e-6 * 100 * 101 / 2, abs=1e-5)
+
+
+@pytest.mark.parametrize("method", ["symplectic", "implicit"])
+def test_states_of_another_device_or_size_are_refused(method):
+    """A state whose arrays live elsewhere than the model, or hold another particle count, is a clear
+    error, not a launch that reads out of place (a CPU launch on CUDA arrays crashed the process)."""
+    from types import SimpleNamespace
+
+    model = ss.build_model(ss.load_scene("jelly_drop", ["jelly.0.resolution=[3,3,3]"]), device="cpu")
+    integrator = ss.make_integrator(method, model)
+    good = model.state()
+    elsewhere = SimpleNamespace(
+        particle_q=SimpleNamespace(device="cuda:0", shape=(27,)), particle_qd=SimpleNamespace(device="cuda:0", shape=(27,))
+    )
+    with pytest.raises(ValueError, match=r"state_out.particle_q is on cuda:0, the model on cpu"):
+        integrator.step(good, elsewhere, 1e-3)
+    small = ss.build_model(ss.load_scene("jelly_drop", ["jelly.0.resolution=[2,2,2]"]), device="cpu").state()
+    with pytest.raises(ValueError, match="state_in.particle_q has 8 particles, the model 27"):
+        integrator.step(small, good, 1e-3)

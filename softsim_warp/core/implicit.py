@@ -548,6 +548,7 @@ class ImplicitIntegrator(Integrator):
         self._update(h, state_in, qd, state_out, first)
 
     def step(self, state_in: State, state_out: State, dt: float):
+        self.check_states(state_in, state_out)
         model = self.model
         h = model.scalar(dt)
         baraff_witkin = self.linearization == "baraff_witkin"

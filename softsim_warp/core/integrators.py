@@ -53,6 +53,20 @@ class Integrator:
         """Per-run statistics for the metrics file (e.g. linear-solver iterations)."""
         return {}
 
+    def check_states(self, state_in: State, state_out: State):
+        """Refuse states whose arrays live on another device than the model's, or have another
+        particle count: Warp would launch on them anyway and read or write out of place (a crash on
+        the CPU with CUDA arrays)."""
+        model = self.model
+        for name, state in (("state_in", state_in), ("state_out", state_out)):
+            for attr in ("particle_q", "particle_qd"):
+                a = getattr(state, attr)
+                if str(a.device) != str(model.device):
+                    raise ValueError(f"{name}.{attr} is on {a.device}, the model on {model.device}; make states "
+                                     "with model.state()")
+                if a.shape[0] != model.particle_count:
+                    raise ValueError(f"{name}.{attr} has {a.shape[0]} particles, the model {model.particle_count}")
+
 
 class ExplicitIntegrator(Integrator):
     """Explicit Euler, symplectic Euler, midpoint or RK4, one method per world.
@@ -120,6 +134,7 @@ class ExplicitIntegrator(Integrator):
             stage_buffers(self)
 
     def step(self, state_in: State, state_out: State, dt: float):
+        self.check_states(state_in, state_out)
         if self.fused:
             step_fused(self, state_in, state_out, dt)
             return
