@@ -77,3 +77,11 @@ def test_user_errors_are_one_line(tmp_path):
 def test_scenes_lists_builtins():
     r = softsim("scenes")
     assert r.returncode == 0 and r.stdout.startswith("jelly_drop") or "jelly_drop " in r.stdout
+
+
+def test_bare_softsim_prints_usage_and_exits_2(capsys):
+    from softsim_warp.commands import cli
+
+    assert cli.main([]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("usage: softsim") and "softsim -h" in err and "error" not in err

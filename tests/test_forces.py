@@ -1,5 +1,7 @@
 """Spring forces against a float64 NumPy reference; lattice topology counts."""
 
+import re
+
 import numpy as np
 import pytest
 import warp as wp
@@ -67,3 +69,19 @@ def test_zero_length_spring_gives_no_nan(device):
     assert np.isfinite(out).all()
     # Newton's third law holds for every other spring, so the total force is still zero.
     np.testing.assert_allclose(out.sum(axis=0), 0.0, atol=1e-4)
+
+
+@pytest.mark.parametrize(
+    "springs, needle",
+    [
+        ({"structral": {"ks": 10.0, "kd": 0.1}}, "unknown spring type 'structral'"),
+        ({"shear": {"kd": 0.1}}, "springs['shear'] takes ks"),
+        ({"shear": {"ks": 1.0, "kb": 0.1}}, "springs['shear'] takes ks"),
+    ],
+)
+def test_add_jelly_rejects_misspelt_springs(springs, needle):
+    """The API refuses what the scene loader refuses: a misspelt type built no springs at all before."""
+    from softsim_warp import ModelBuilder
+
+    with pytest.raises(ValueError, match=re.escape(needle)):
+        ModelBuilder().add_jelly((3, 3, 3), 0.2, 0.01, springs)

@@ -124,6 +124,10 @@ def _main(argv) -> int:
     common.pause_for_test("start")  # test seam: the first signal raises KeyboardInterrupt here
     try:
         parser = build_parser()
+        if not argv:  # bare `softsim`: what it can do, not an error line
+            parser.print_usage(sys.stderr)
+            print("run `softsim -h` for the commands, `softsim <command> -h` for one of them", file=sys.stderr)
+            return 2
         args = parser.parse_args(argv)
         commands = {m.COMMAND: m.run for m in SUBCOMMANDS}
         return commands[args.command](args)

@@ -119,7 +119,10 @@ class ModelBuilder:
         Args:
             resolution: particles per axis (nx, ny, nz).
             size: edge lengths [m]; a scalar means a cube.
-            particle_mass: mass of each particle [kg].
+            particle_mass: mass of each particle [kg], one value or one per particle (lattice order,
+                ``lattice.lattice_index``). A particle of mass 0 has infinite mass: no force
+                accelerates it, so it keeps its initial velocity (zero: it stays pinned where it is)
+                while its springs pull on the others (examples/example_pinned_and_custom_force.py).
             springs: ``{"structural"|"shear"|"bending": {"ks": N/m, "kd": N s/m}}``; a type that is
                 absent gets no springs at all.
             center, axis, degrees: placement: the lattice is centred on ``center`` and rotated about
@@ -130,6 +133,13 @@ class ModelBuilder:
                 unscaled lattice, so the jelly starts stretched (> 1), crushed (< 1) or mirrored
                 (negative on one axis). Components must be nonzero.
         """
+        unknown = sorted(set(springs) - set(lattice.SPRING_TYPE_NAMES))
+        if unknown:
+            raise ValueError(f"unknown spring type {unknown[0]!r}; use {', '.join(lattice.SPRING_TYPE_NAMES)}")
+        for type_name, params in springs.items():
+            unknown = sorted(set(params) - {"ks", "kd"})
+            if "ks" not in params or unknown:
+                raise ValueError(f"springs[{type_name!r}] takes ks [N/m] and optionally kd [N s/m] (got {dict(params)})")
         shape = tuple(int(n) for n in resolution)
         size = np.broadcast_to(np.asarray(size, dtype=np.float64), (3,))
         local = lattice.lattice_points(shape, size)
