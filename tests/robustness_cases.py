@@ -424,32 +424,32 @@ CASES = [
     Case(
         "flag_integrator_unknown",
         "--integrator verlet",
-        "simulation.integrator: must be one of euler, symplectic",
+        "command line: --integrator: must be one of euler, symplectic",
         args=(SCENE, "--integrator", "verlet"),
     ),
     Case(
         "flag_dt_text",
         "--dt abc",
-        "simulation.dt: must be a finite number > 0 (got 'abc')",
+        "command line: --dt: must be a finite number > 0 (got 'abc')",
         args=(SCENE, "--dt", "abc"),
     ),
-    Case("flag_dt_negative", "--dt -1", "simulation.dt: must be a finite number > 0 (got -1)", args=(SCENE, "--dt=-1")),
+    Case("flag_dt_negative", "--dt -1", "command line: --dt: must be a finite number > 0 (got -1)", args=(SCENE, "--dt=-1")),
     Case(
         "flag_frames_fraction",
         "--frames 2.5",
-        "simulation.frames: must be an integer >= 1 (got 2.5)",
+        "command line: --frames: must be an integer >= 1 (got 2.5)",
         args=(SCENE, "--frames", "2.5"),
     ),
     Case(
         "flag_fps_nan",
         "--fps nan",
-        "simulation.fps: must be a finite number > 0 (got nan)",
+        "command line: --fps: must be a finite number > 0 (got nan)",
         args=(SCENE, "--fps", "nan"),
     ),
     Case(
         "flag_precision",
         "--precision float16",
-        "simulation.precision: must be one of float32, float64",
+        "command line: --precision: must be one of float32, float64",
         args=(SCENE, "--precision", "float16"),
     ),
     Case(

@@ -4,6 +4,8 @@ import json
 import subprocess
 import sys
 
+import pytest
+
 from pxr import Usd, UsdGeom
 
 TINY = """
@@ -85,3 +87,22 @@ def test_bare_softsim_prints_usage_and_exits_2(capsys):
     assert cli.main([]) == 2
     err = capsys.readouterr().err
     assert err.startswith("usage: softsim") and "softsim -h" in err and "error" not in err
+
+
+@pytest.mark.parametrize(
+    "argv, line",
+    [
+        (["run", "jelly_drop", "--dt", "-1"], "error: command line: --dt: must be a finite number > 0 (got -1)"),
+        (["run", "jelly_drop", "--fps", "0"], "error: command line: --fps: "),
+        (["compare", "jelly_drop", "--dt", "0"], "error: command line: --dt: must be a finite number > 0 (got 0"),
+        (["run", "jelly_drop", "--set", "simulation.dt=-1"], "error: jelly_drop.toml: simulation.dt: must be a finite"),
+    ],
+)
+def test_a_bad_flag_is_named_not_the_scene_file(argv, line, capsys, tmp_path, monkeypatch):
+    """A value a flag set is reported under the flag; one set by --set or the file under its key."""
+    from softsim_warp.commands import cli
+
+    monkeypatch.chdir(tmp_path)
+    assert cli.main(argv + ["--quiet"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith(line), err

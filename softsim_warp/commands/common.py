@@ -13,7 +13,7 @@ import sys
 import tempfile
 import time
 
-from ..core.errors import CommandLineError, SceneError
+from ..core.errors import CommandLineError, SceneError, UserError
 from ..io import scene as scene_mod
 
 EXIT_EXPLODED = 3
@@ -40,27 +40,44 @@ def _number(text: str):
     return text
 
 
+# Flags that set a scene value: validated as an override of the key, reported under the flag.
+FLAG_KEYS = (("integrator", "simulation.integrator"), ("dt", "simulation.dt"), ("fps", "simulation.fps"),
+             ("precision", "simulation.precision"), ("duration", "simulation.duration"),
+             ("frames", "simulation.frames"))
+
+
 def flag_overrides(args) -> list:
     """Command-line flags become scene overrides, so they are validated like the file's values."""
     out = []
-    for flag, key in (("integrator", "simulation.integrator"), ("dt", "simulation.dt"), ("fps", "simulation.fps"),
-                      ("precision", "simulation.precision"), ("duration", "simulation.duration"),
-                      ("frames", "simulation.frames")):
+    for flag, key in FLAG_KEYS:
         value = getattr(args, flag, None)
         if value is not None:
             out.append((key, value if flag in ("integrator", "precision") else _number(value)))
     return out
 
 
+def blame_flag(error: SceneError, args) -> UserError:
+    """A scene error about a value that a flag set, as an error of that flag (``--dt``, not the scene file)."""
+    for flag, key in FLAG_KEYS:
+        if error.key == key and getattr(args, flag, None) is not None:
+            return CommandLineError("--" + flag, error.message, error.value) if error.has_value else CommandLineError(
+                "--" + flag, error.message)
+    return error
+
+
 def load_for_cli(args):
     """Load the scene named on the command line with --set and flag overrides applied and validated."""
     path, source, data = scene_mod.read_scene_data(args.scene)
     items = [scene_mod.parse_override(item) for item in args.overrides] + flag_overrides(args)
-    scene_mod.apply_overrides(data, items)
-    validated = scene_mod.validate(data, source)
-    sim = validated["simulation"]
-    if sim["dt"] > 1.0 / sim["fps"]:
-        raise SceneError(source, "simulation.dt", f"must not exceed the frame interval 1/fps = {1.0 / sim['fps']:g} s", sim["dt"])
+    try:
+        scene_mod.apply_overrides(data, items)
+        validated = scene_mod.validate(data, source)
+        sim = validated["simulation"]
+        if sim["dt"] > 1.0 / sim["fps"]:
+            raise SceneError(source, "simulation.dt", f"must not exceed the frame interval 1/fps = {1.0 / sim['fps']:g} s",
+                             sim["dt"])
+    except SceneError as e:
+        raise blame_flag(e, args) from None
     return scene_mod.Scene(validated, source=source, name=validated.get("name", path.stem))
 
 

@@ -278,7 +278,10 @@ def plan_variants(args) -> Plan:
             scene_mod.apply_override(data, key, value, source="--vary")
             overrides[key] = value
             parts.append(prim_token(value) if key == "simulation.integrator" else f"{labels[key]}_{prim_token(value)}")
-        validated = scene_mod.validate(data, source)
+        try:
+            validated = scene_mod.validate(data, source)
+        except SceneError as e:
+            raise common.blame_flag(e, args) from None
         name = "_".join(parts) or validated["simulation"]["integrator"]
         if not re.match(r"[A-Za-z_]", name):
             name = "v_" + name
