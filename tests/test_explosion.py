@@ -119,3 +119,16 @@ def test_speed_bound_is_an_explosion(device):
     first_over = next(k for k in range(31) if 9.8 * round(k / (60 * 4e-4)) * 4e-4 > 1.0)
     assert result.explosion["frame"] == first_over
     assert "exceeds the bound 1 m/s" in result.explosion["reason"]
+
+
+def test_end_of_run_line_says_how_the_run_ended(tmp_path, monkeypatch, capsys):
+    """The summary of an exploded run says so, with the steps really done (not 0); a damped run says
+    its energy was dissipated, an undamped explicit Euler run that it gained energy."""
+    monkeypatch.chdir(tmp_path)
+    assert cli.main(["run", "hard_undamped", "--integrator", "euler", "--frames", "6", "--quiet", "--out", "u.usdc"]) == 3
+    line = capsys.readouterr().err.splitlines()[0]
+    assert line.startswith("EXPLODED: hard_undamped: 6 frames, 100 steps of euler") and "energy GAINED" in line
+    assert cli.main(["run", "jelly_drop", "--frames", "30", "--quiet", "--out", "d.usdc",
+                     "--set", "jelly.0.resolution=[3,3,3]"]) == 0
+    line = capsys.readouterr().err.splitlines()[0]
+    assert line.startswith("jelly_drop: 31 frames, 1250 steps") and "dissipated by damping, friction and contact" in line

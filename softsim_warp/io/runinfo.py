@@ -54,10 +54,23 @@ def summary_dict(scene, model, integrator, simulator, result, device) -> dict:
 
 
 def summary_line(s: dict, out) -> str:
+    """The end-of-run line: how the run ended, what it did, how fast, and where the energy went.
+
+    Energy lost is what damping, friction and inelastic contact take (expected in a damped scene);
+    energy gained is the warning sign of a step too large for the method."""
+    status = s.get("status", "complete")
+    ended = "" if status == "complete" else f"{status.upper()}: "
+    drift, rel = s["energy_drift"], 100 * s["energy_drift_relative"]
+    if s["frames"] < 2:
+        energy = ""  # one frame: no change to report
+    elif drift <= 0:
+        energy = f"; {abs(drift):.4g} J ({abs(rel):.1f}% of the energy available) dissipated by damping, friction and contact"
+    else:
+        energy = f"; energy GAINED {drift:.4g} J ({rel:+.1f}%): the integrator adds energy, try a smaller dt"
+    frames = f"{s['frames']} frame" + ("" if s["frames"] == 1 else "s")
     return (
-        f"{s['scene']}: {s['frames']} frames, {s['steps']} steps of {s['integrator']} at dt={s['dt']:g} s in "
-        f"{s['wall_seconds']:.2f} s ({s['particle_steps_per_second']:.3g} particle-steps/s), "
-        f"energy drift {s['energy_drift']:+.4g} J ({100 * s['energy_drift_relative']:+.2f}%) -> {out}"
+        f"{ended}{s['scene']}: {frames}, {s['steps']} steps of {s['integrator']} at dt={s['dt']:g} s in "
+        f"{s['wall_seconds']:.2f} s ({s['particle_steps_per_second']:.3g} particle-steps/s){energy} -> {out}"
     )
 
 

@@ -95,6 +95,7 @@ class Simulator(Stepper):
             sim_seconds += time.perf_counter() - ts
             prev_step += n
             if metrics.nonfinite or metrics.max_speed > self.max_speed:
+                result.steps = prev_step  # the steps done, up to the frame that exploded
                 result.exploded = True
                 bad = [i for i, j in enumerate(metrics.jellies) if j["nonfinite"] or j["max_speed"] > self.max_speed]
                 result.explosion = {
