@@ -144,7 +144,6 @@ def build(scalar):
         return stage_values
 
     stage_values = make_stage_values(load_indexed, store_indexed)
-    stage_values_contiguous = make_stage_values(load_contiguous, store_contiguous)
     stage_values_direct = make_stage_values(load_contiguous, store_contiguous, entry_contiguous, int_contiguous)
 
     @wp.kernel(module="unique")
@@ -202,7 +201,6 @@ def build(scalar):
     return {
         "acceleration": acceleration,
         "stage_values": stage_values,
-        "stage_values_contiguous": stage_values_contiguous,
         "stage_values_direct": stage_values_direct,
         "int_contiguous": int_contiguous,
         "entry_contiguous": entry_contiguous,

@@ -419,9 +419,7 @@ _ROWS_FORCES = """
 def build(scalar):
     vec3 = wp.types.vector(3, scalar)
     contact_funcs = contact.build(scalar)
-    contact_planes = contact_funcs["contact_planes"]
     integration_funcs = integration.build(scalar)
-    stage_values = integration_funcs["stage_values_contiguous"]
     contact_planes_direct = contact_funcs["make_contact_planes"](
         integration_funcs["int_contiguous"], integration_funcs["load_contiguous"]
     )
@@ -603,13 +601,13 @@ return 1.0f / wp::sqrt(x);
 
     eval_lattice_springs = make_eval_lattice_springs(gather_lattice_force)
 
-    def make_integrate_lattice_stage(gather, direct=True, single=False):
+    def make_integrate_lattice_stage(gather, single=False):
         """The fused stage kernel around a per-particle native gather (``make_gather_native``).
 
         The kernel passes the gather both the per-jelly tables and ``stencil_coef``, the jellies'
         common coefficients (a kernel argument); a uniform gather reads the latter.
 
-        ``direct`` (the default): the particle's jelly, world and inverse mass, the per-world
+        The particle's jelly, world and inverse mass, the per-world
         tableau and the plane range, point and normal are read from the arrays' data pointers, one
         address computation each, instead of through Warp's indexing (about 8 instructions an
         access: the wrap of a negative index and a 64-bit multiply by the run-time stride). These
@@ -620,10 +618,10 @@ return 1.0f / wp::sqrt(x);
         the jelly is 0 and the world and inverse mass are particle 0's, so the kernel reads no
         per-particle jelly, world or mass (12 of a symplectic stage's 60 bytes a particle).
         """
-        sv = integration_funcs["stage_values_direct"] if direct else stage_values
-        planes = contact_planes_direct if direct else contact_planes
-        int_at = integration_funcs["int_contiguous" if direct else "int_indexed"]
-        scalar_at = integration_funcs["scalar_contiguous" if direct else "scalar_indexed"]
+        sv = integration_funcs["stage_values_direct"]
+        planes = contact_planes_direct
+        int_at = integration_funcs["int_contiguous"]
+        scalar_at = integration_funcs["scalar_contiguous"]
 
         @wp.kernel(module="unique")
         def integrate_lattice_stage(

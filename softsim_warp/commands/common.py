@@ -204,11 +204,6 @@ class Signals:
 ACTIVE_SIGNALS = None  # the running command's Signals, for main's exit code after a stop-now
 
 
-def received_signal() -> int:
-    """The signal that stopped the running command (SIGINT when none was recorded)."""
-    return int(getattr(ACTIVE_SIGNALS, "received", None) or signal.SIGINT)
-
-
 def _test_pauses(text: str) -> dict:
     out = {}
     for item in text.split(","):

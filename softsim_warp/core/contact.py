@@ -44,21 +44,26 @@ def filter_stage_contacts(
     _launch_contacts(model, state_in, q_s, qd_s, model.scalar(0.0), world_contact_beta, planes, 1)
 
 
+def plane_arrays(model) -> tuple:
+    """The planes' arrays in the order every plane-contact kernel takes them (``collide_planes``, the fused stage)."""
+    return (
+        model.plane_first,
+        model.plane_point,
+        model.plane_normal,
+        model.plane_hole_center,
+        model.plane_hole_radius,
+        model.plane_restitution,
+        model.plane_friction,
+    )
+
+
 def _launch_contacts(model: Model, state_in: State, q_out, qd_out, h, world_contact_beta, planes, stage):
     # (count, kernel, the kind's arrays): every collide_* kernel takes the same arguments around them.
     kinds = (
         (
             model.plane_count if planes else 0,
             model.kernels.collide_planes,
-            (
-                model.plane_first,
-                model.plane_point,
-                model.plane_normal,
-                model.plane_hole_center,
-                model.plane_hole_radius,
-                model.plane_restitution,
-                model.plane_friction,
-            ),
+            plane_arrays(model),
         ),
         (
             model.bowl_count,

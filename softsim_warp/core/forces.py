@@ -74,6 +74,11 @@ def attach(model) -> None:
     model.deterministic = True
 
 
+def _spring_inputs(model, q: wp.array, qd: wp.array) -> list:
+    """The spring list and the state, in the order both spring-force kernels take them."""
+    return [model.spring_indices, model.spring_rest_length, model.spring_stiffness, model.spring_damping, q, qd]
+
+
 def _eval_spring_forces_gathered(model, q: wp.array, qd: wp.array, f_out: wp.array):
     """Spring and damper forces of (q, qd) into ``f_out`` without atomics; every entry is written."""
     k = model.kernels
@@ -81,14 +86,7 @@ def _eval_spring_forces_gathered(model, q: wp.array, qd: wp.array, f_out: wp.arr
         wp.launch(
             k.eval_spring_forces,
             dim=model.spring_count,
-            inputs=[
-                model.spring_indices,
-                model.spring_rest_length,
-                model.spring_stiffness,
-                model.spring_damping,
-                q,
-                qd,
-            ],
+            inputs=_spring_inputs(model, q, qd),
             outputs=[model.spring_force_work],
             device=model.device,
         )
@@ -116,14 +114,7 @@ def eval_forces(model, q: wp.array, qd: wp.array, f_out: wp.array):
         wp.launch(
             model.kernels.eval_springs,
             dim=model.spring_count,
-            inputs=[
-                model.spring_indices,
-                model.spring_rest_length,
-                model.spring_stiffness,
-                model.spring_damping,
-                q,
-                qd,
-            ],
+            inputs=_spring_inputs(model, q, qd),
             outputs=[f_out],
             device=model.device,
         )

@@ -26,7 +26,7 @@ from __future__ import annotations
 
 import warp as wp
 
-from .contact import apply_contacts, filter_stage_contacts
+from .contact import apply_contacts, filter_stage_contacts, plane_arrays
 
 # Particles from which a one-jelly model steps with the shape-compiled stage (``single_stage``).
 # Below, a few blocks per SM leave the latency to the loads each thread has in flight: the
@@ -152,13 +152,7 @@ def step_fused(integrator, state_in, state_out, dt):
                     integrator.world_symplectic,
                     integrator.world_stage_c,
                     integrator.world_stage_b,
-                    model.plane_first,
-                    model.plane_point,
-                    model.plane_normal,
-                    model.plane_hole_center,
-                    model.plane_hole_radius,
-                    model.plane_restitution,
-                    model.plane_friction,
+                    *plane_arrays(model),
                     model.contact_epsilon,
                     model.contact_velocity_epsilon,
                     model.restitution_threshold_steps,

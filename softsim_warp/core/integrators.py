@@ -61,7 +61,7 @@ class Integrator:
         for name, state in (("state_in", state_in), ("state_out", state_out)):
             for attr in ("particle_q", "particle_qd"):
                 a = getattr(state, attr)
-                if str(a.device) != str(model.device):
+                if a.device != model.device:
                     raise ValueError(f"{name}.{attr} is on {a.device}, the model on {model.device}; make states "
                                      "with model.state()")
                 if a.shape[0] != model.particle_count:

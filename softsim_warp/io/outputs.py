@@ -124,11 +124,11 @@ def save_atomic(path, save, flag="output"):
     commit(tmp, path, flag)
 
 
-def write_atomic(path, write, flag="output", binary=False):
-    """Like :func:`save_atomic` for ``write(file)`` on an open file."""
+def write_atomic(path, write, flag="output"):
+    """Like :func:`save_atomic` for ``write(file)`` on a text file."""
 
     def save(tmp):
-        with open(tmp, "wb" if binary else "w") as f:
+        with open(tmp, "w") as f:
             write(f)
 
     save_atomic(path, save, flag)
@@ -312,12 +312,3 @@ class Outputs:
                 pass
             os.close(fd)
         self._locks = []
-
-
-def check_outputs(out, metrics=None, scene_path=None):
-    """The USD path and optional metrics path of a run, checked against each other and the scene."""
-    outputs = Outputs()
-    outputs.add_input("scene", scene_path)
-    out = outputs.add("--out", out, USD_SUFFIXES)
-    metrics = outputs.add("--metrics", metrics)
-    return out, metrics
