@@ -84,7 +84,7 @@ def test_free_flight_centre_of_mass_is_a_parabola():
 @pytest.mark.parametrize("method", ["euler", "midpoint", "rk4"])
 def test_stability_limit_matches_linear_prediction(method):
     scene = load_scene("free_flight", SMALL)
-    js = stability.small_lattice(scene.jellies[0])
+    js = stability.free_jelly(scene.jellies[0])
     assert js["resolution"] == [4, 4, 4]
     predicted = stability.predict(js, [method])[method]
     model = stability.lattice_model(js, "cpu", "float64")
@@ -161,6 +161,23 @@ def test_stability_cli(tmp_path, capsys):
     assert report["ks_map"][0]["ks"] == 1e3
     assert plot.stat().st_size > 10_000
     assert "predicted" in capsys.readouterr().out
+
+
+def test_stability_without_ks_map_draws_one_panel(tmp_path):
+    """`--ks none`: no map, so no empty right-hand panel and no matplotlib warning about a legend
+    without entries."""
+    import warnings  # noqa: PLC0415
+
+    from PIL import Image  # noqa: PLC0415
+
+    plot = tmp_path / "st.png"
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        rc = main(["stability", "free_flight", "--set", "jelly.0.resolution=3", "--integrators", "symplectic",
+                   "--ks", "none", "--steps", "200", "--no-scene", "--rtol", "0.1", "--plot", str(plot), "--quiet"])
+    assert rc == 0
+    width, height = Image.open(plot).size
+    assert width < 1.5 * height  # one 7 x 5.5 in panel, not the 13 x 5.5 in pair
 
 
 def test_find_limit_brackets_a_known_threshold():

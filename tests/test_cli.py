@@ -106,3 +106,25 @@ def test_a_bad_flag_is_named_not_the_scene_file(argv, line, capsys, tmp_path, mo
     assert cli.main(argv + ["--quiet"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and err[0].startswith(line), err
+
+
+def test_compile_notice_only_for_a_slow_warm_up(capsys):
+    """The one-line notice appears when a warm-up outlasts its threshold (a compile), once per
+    process, never with --quiet, and not for a fast one (cached kernels)."""
+    import time  # noqa: PLC0415
+
+    from softsim_warp.commands import common  # noqa: PLC0415
+
+    common.compile_notice.shown = False
+    with common.compile_notice(after=0.5):
+        pass
+    with common.compile_notice(quiet=True, after=0.01):
+        time.sleep(0.1)
+    assert capsys.readouterr().err == ""
+    with common.compile_notice(after=0.01):
+        time.sleep(0.1)
+    with common.compile_notice(after=0.01):
+        time.sleep(0.1)
+    err = capsys.readouterr().err.splitlines()
+    assert len(err) == 1 and err[0].startswith("compiling kernels (first run only; cached in ")
+    common.compile_notice.shown = False

@@ -68,8 +68,8 @@ def cell_volumes(q, shape):
     return np.einsum("...i,...i", a, np.cross(b, c)).ravel()
 
 
-def small_prediction(jelly, method):
-    return stability.predict(stability.small_lattice(jelly), [method])[method]
+def jelly_prediction(jelly, method):
+    return stability.predict(stability.free_jelly(jelly), [method])[method]
 
 
 def angular_momentum(model, q, v):
@@ -126,7 +126,7 @@ def test_stiff_euler_stops_cleanly_through_the_cli(name, tmp_path, capsys):
     assert rc == 3
     err = capsys.readouterr().err
     scene = load_scene(name, ["jelly.0.resolution=4"])
-    pred = small_prediction(scene.jellies[0], "euler")
+    pred = jelly_prediction(scene.jellies[0], "euler")
     assert "simulation exploded" in err and f"largest dt predicted stable for this jelly: {pred:.3g} s" in err
     summary = json.loads(metrics.read_text())["summary"]
     assert summary["exploded"] and summary["frames"] < 7
@@ -150,7 +150,7 @@ def test_stiff_explodes_iff_the_default_dt_is_over_the_prediction(name, method):
     keeping only finite frames; implicit (limit: none) runs on."""
     sets = ["jelly.0.resolution=4", "simulation.duration=0.1"]
     scene, model, sim, result, frames = run_scene(name, method, sets)
-    pred = small_prediction(scene.jellies[0], method)
+    pred = jelly_prediction(scene.jellies[0], method)
     dt = scene.sim["dt"]
     assert dt > 1.25 * pred or pred == math.inf
     assert result.exploded == (dt > pred)
@@ -161,7 +161,7 @@ def test_stiff_explodes_iff_the_default_dt_is_over_the_prediction(name, method):
 def test_stiff_runs_stably_below_the_prediction(method):
     # Half the predicted step: the stability criterion of `softsim stability` holds over 300 steps.
     scene = load_scene("hard_stiff_1e6", ["jelly.0.resolution=4"])
-    pred = small_prediction(scene.jellies[0], method)
+    pred = jelly_prediction(scene.jellies[0], method)
     model = build_model(scene, "cpu")
     integ = make_integrator(method, model)
     p = stability.probe(model, integ, 0.5 * pred, 300, displacement=stability.perturbation(model))
@@ -174,7 +174,7 @@ def test_stiff_runs_stably_below_the_prediction(method):
 
 def highest_frequency(jelly):
     """Largest |lambda| [rad/s] of the jelly's linearised, undamped lattice at rest."""
-    js = stability.small_lattice(jelly, undamped=True)
+    js = stability.free_jelly(jelly, undamped=True, max_n=4)
     ks = {k: v["ks"] for k, v in js["springs"].items()}
     K, C, m = lattice_jacobians(js["resolution"], js["size"], js["particle_mass"], ks, 0.0)
     return float(np.abs(system_eigenvalues(K, C, m)).max())
@@ -248,8 +248,8 @@ def test_impact_at_20_m_per_s(method):
 def test_mass_ratio_default_dt_explodes_on_the_light_jelly(tmp_path, capsys):
     sets = ["jelly.0.resolution=4", "jelly.1.resolution=4"]
     scene = load_scene("hard_mass_ratio", sets)
-    heavy = small_prediction(scene.jellies[0], "symplectic")
-    light = small_prediction(scene.jellies[1], "symplectic")
+    heavy = jelly_prediction(scene.jellies[0], "symplectic")
+    light = jelly_prediction(scene.jellies[1], "symplectic")
     dt = scene.sim["dt"]
     # Same springs, 1000x lighter particles: sqrt(1000) ~ 32x higher frequencies. The step that suits
     # the heavy jelly is far over the light one's limit.
@@ -266,7 +266,7 @@ def test_mass_ratio_default_dt_explodes_on_the_light_jelly(tmp_path, capsys):
 @pytest.mark.parametrize("method", ["symplectic", "rk4"])
 def test_mass_ratio_stable_below_the_light_jellys_limit(method):
     scene = load_scene("hard_mass_ratio", ["jelly.0.resolution=4", "jelly.1.resolution=4"])
-    pred = min(small_prediction(j, method) for j in scene.jellies)
+    pred = min(jelly_prediction(j, method) for j in scene.jellies)
     model = build_model(scene, "cpu")
     p = stability.probe(model, make_integrator(method, model), 0.5 * pred, 300,
                         displacement=stability.perturbation(model))
@@ -304,7 +304,7 @@ def test_sheet_linear_prediction_holds(method):
     """A one-particle-thick lattice has zero-stiffness out-of-plane mechanisms; the analysis deflates
     them with the rigid modes, and its limit still matches a measured one within 15%."""
     scene = load_scene("hard_sheet", ["jelly.0.resolution=[4,1,4]"])
-    js = stability.small_lattice(scene.jellies[0])
+    js = stability.free_jelly(scene.jellies[0])
     pred = stability.predict(js, [method])[method]
     assert 0 < pred < math.inf
     lim = stability.measure_limit(stability.lattice_model(js, "cpu", "float64"), method, guess=pred, steps=1000,

@@ -41,7 +41,8 @@ from ..core.stepper import make_integrator
 from ..io.outputs import Outputs, save_report
 from ..io.resources import MAX_RUN_DAYS, scene_counts, step_seconds_floor
 from ..io.simulate import Simulator
-from .common import ALL_INTEGRATORS, check_positive, load_for_cli, parse_methods, parse_positive_list, resolve_device
+from .common import (ALL_INTEGRATORS, ProgressLog, check_positive, load_for_cli, parse_methods, parse_positive_list,
+                     resolve_device)
 
 COMMAND = "accuracy"
 REFERENCE_METHOD = "rk4"
@@ -277,7 +278,7 @@ def pairwise_orders(dts, errors):
 
 
 def measure(scene, integrators=ALL_INTEGRATORS, dts=None, *, device=None, precision=None, duration=None,
-            reference_dt=None, fps=None, use_graph=True, log=None) -> dict:
+            reference_dt=None, fps=None, use_graph=True, log=None, progress=None) -> dict:
     """Run every integrator at every step against the reference; return the report as a dict.
 
     Args:
@@ -293,6 +294,8 @@ def measure(scene, integrators=ALL_INTEGRATORS, dts=None, *, device=None, precis
         fps: frame rate of the comparison (default the scene's).
         use_graph: allow captured-graph replay.
         log: callable taking a progress line, or None.
+        progress: callable ``progress(total)`` returning a bar with ``update()`` and ``close()``,
+            advanced once per run (the two reference runs included), or None.
 
     Returns:
         A JSON-ready dict (see ``docs/ACCURACY.md`` for the fields).
@@ -313,11 +316,15 @@ def measure(scene, integrators=ALL_INTEGRATORS, dts=None, *, device=None, precis
     ref_dt = frame_dt(reference_dt if reference_dt else smallest_dt / REFERENCE_DIVISOR, fps)
     dev = wp.get_device(device)
 
+    bar = progress(2 + sum(len(v) for v in per_method.values())) if progress else None
+    tick = bar.update if bar else (lambda: None)
     say(f"reference: {REFERENCE_METHOD} {REFERENCE_PRECISION} at dt={ref_dt:.4g} s and {ref_dt / 2:.4g} s")
     ref_coarse = run_trajectory(scene, REFERENCE_METHOD, ref_dt, device=dev, precision=REFERENCE_PRECISION,
                                 fps=fps, frames=frames, use_graph=use_graph)
+    tick()
     ref = run_trajectory(scene, REFERENCE_METHOD, ref_dt / 2, device=dev, precision=REFERENCE_PRECISION,
                          fps=fps, frames=frames, use_graph=use_graph)
+    tick()
     if ref.exploded or ref_coarse.exploded:
         raise RuntimeError(
             f"the reference run ({REFERENCE_METHOD}, {REFERENCE_PRECISION}, dt={ref_dt:g} s) exploded: "
@@ -359,6 +366,7 @@ def measure(scene, integrators=ALL_INTEGRATORS, dts=None, *, device=None, precis
             runs.append(row)
             status = "ok" if row["stable"] else f"UNSTABLE at t={tr.explosion['time']:.3g} s"
             say(f"{name:>10} dt={tr.dt:.4g}  {row['wall_per_sim_second']:.3g} s/s  err={rms:.3g}  {status}")
+            tick()
 
     finite = [r["rms_error"] for r in runs if math.isfinite(r["rms_error"]) and r["rms_error"] > 0]
     smallest = min(finite) if finite else math.nan
@@ -584,15 +592,20 @@ def run(args) -> int:
         raise CommandLineError(flag, f"the reference run of {duration / reference:.3g} steps would take at least "
                                f"{duration / reference * floor / 86400.0:.3g} days on {device} "
                                f"(at most {MAX_RUN_DAYS} days allowed)", value)
-    log = None if args.quiet else (lambda line: print(line, file=sys.stderr, flush=True))
+    shown = ProgressLog(f"{scene.name} accuracy", unit="run", quiet=args.quiet)
     with outputs:
-        return _measure_and_save(args, scene, methods, dts, device, log)
+        try:
+            return _measure_and_save(args, scene, methods, dts, device, shown)
+        finally:
+            if shown.bar is not None:
+                shown.bar.close()
 
 
-def _measure_and_save(args, scene, methods, dts, device, log) -> int:
+def _measure_and_save(args, scene, methods, dts, device, shown) -> int:
     try:
         report = measure(scene, methods, dts, device=device, precision=args.precision, duration=args.duration,
-                         reference_dt=args.reference_dt, fps=args.fps, use_graph=not args.no_graph, log=log)
+                         reference_dt=args.reference_dt, fps=args.fps, use_graph=not args.no_graph, log=shown.log,
+                         progress=shown.progress)
     except RuntimeError as e:
         if "reference run" in str(e):
             given = (args.reference_dt,) if args.reference_dt else ()

@@ -38,7 +38,7 @@ from ..io.outputs import Outputs, save_report
 from ..io.resources import check_counts, lattice_spring_count
 from ..io.scene import load_scene
 from .bench_newton import NewtonJelly, newton_version
-from .common import resolve_device
+from .common import ProgressLog, resolve_device
 
 COMMAND = "bench"
 DEFAULT_INTEGRATORS = ("euler", "symplectic", "midpoint", "rk4")
@@ -520,7 +520,11 @@ def run(args) -> int:
             for n in sizes
         ]
 
+    shown = ProgressLog("bench", unit="size", quiet=args.quiet)
+    bar = shown.progress(len(groups))
     for label, make_model, dt in groups:
+        if bar is not None:
+            bar.set_description(f"bench {label}")
         if args.variants:
             cases = _variant_cases(label, make_model, dt, methods, args, device, use_graph)
         else:
@@ -562,6 +566,10 @@ def run(args) -> int:
         if args.variants:
             _relative_speeds(rows)
         results += rows
+        if bar is not None:
+            bar.update()
+    if bar is not None:
+        bar.close()
 
     _print_table(results, bandwidth, device)
     for c in gpu_clocks:

@@ -16,12 +16,14 @@ still gets Python's defaults.
 from __future__ import annotations
 
 import argparse
+import functools
 import re
 import signal
 import sys
 import threading
 import traceback
 
+from ..core import stepper
 from ..core.errors import CommandLineError, UserError
 from . import accuracy, bench, common, compare, preview, run, scenes, stability
 
@@ -130,7 +132,12 @@ def _main(argv) -> int:
             return 2
         args = parser.parse_args(argv)
         commands = {m.COMMAND: m.run for m in SUBCOMMANDS}
-        return commands[args.command](args)
+        notice = functools.partial(common.compile_notice, getattr(args, "quiet", False))
+        stepper.WARM_UP_HOOKS.append(notice)
+        try:
+            return commands[args.command](args)
+        finally:
+            stepper.WARM_UP_HOOKS.remove(notice)
     except UserError as e:
         if getattr(args, "debug", False) or (args is None and "--debug" in argv):
             traceback.print_exc()

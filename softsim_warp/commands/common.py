@@ -1,5 +1,5 @@
 """What every ``softsim`` subcommand shares: Warp start-up, the device, the scene with overrides,
-signal handling and the parsing of list-valued flags.
+signal handling, progress display and the parsing of list-valued flags.
 """
 
 from __future__ import annotations
@@ -11,6 +11,7 @@ import re
 import signal
 import sys
 import tempfile
+import threading
 import time
 
 from ..core.errors import CommandLineError, SceneError, UserError
@@ -104,6 +105,65 @@ def init_warp(debug=False):
             os.dup2(saved, 2)
             os.close(saved)
     return wp
+
+
+COMPILE_NOTICE_AFTER = 1.0  # seconds; loading cached kernels takes milliseconds
+
+
+@contextlib.contextmanager
+def compile_notice(quiet=False, after=COMPILE_NOTICE_AFTER):
+    """Say once, on stderr, that Warp is compiling kernels, when the block (a warm-up:
+    ``core.stepper.WARM_UP_HOOKS``, which ``cli.main`` fills) takes longer than ``after`` seconds:
+    only the first run compiles (minutes on the CPU), later runs load the cached kernels in
+    milliseconds."""
+    if quiet or getattr(compile_notice, "shown", False):
+        yield
+        return
+    import warp as wp  # noqa: PLC0415
+
+    def notice():
+        compile_notice.shown = True
+        print(f"compiling kernels (first run only; cached in {wp.config.kernel_cache_dir}) ...", file=sys.stderr,
+              flush=True)
+
+    timer = threading.Timer(after, notice)
+    timer.daemon = True
+    timer.start()
+    try:
+        yield
+    finally:
+        timer.cancel()
+
+
+def progress_bar(total, desc, unit="run", quiet=False):
+    """A tqdm bar on stderr that disappears when done; None with ``quiet``, and drawn only on a
+    terminal (a log file or a pipe gets the command's lines, not the bar's redraws)."""
+    if quiet:
+        return None
+    from tqdm import tqdm  # noqa: PLC0415
+
+    return tqdm(total=total, desc=desc, unit=unit, file=sys.stderr, leave=False, dynamic_ncols=True, disable=None)
+
+
+class ProgressLog:
+    """A command's progress: ``progress(total)`` opens a bar (what the measuring functions take as
+    ``progress``), ``log(line)`` prints a line above it; both silent with ``quiet``."""
+
+    def __init__(self, desc, unit="run", quiet=False):
+        self.desc, self.unit, self.quiet = desc, unit, quiet
+        self.bar = None
+
+    def progress(self, total):
+        self.bar = progress_bar(total, self.desc, self.unit, self.quiet)
+        return self.bar
+
+    def log(self, line):
+        if self.quiet:
+            return
+        if self.bar is not None:
+            self.bar.write(line, file=sys.stderr)
+        else:
+            print(line, file=sys.stderr, flush=True)
 
 
 def resolve_device(name: str, debug=False):

@@ -7,10 +7,12 @@ from __future__ import annotations
 
 import re
 import sys
+from pathlib import Path
 
 from ..core.errors import CommandLineError, UserError
 from ..io import preview
 from ..io.outputs import Outputs, save_atomic
+from .common import ProgressLog
 
 COMMAND = "preview"
 
@@ -75,7 +77,12 @@ def _render(args, size) -> int:
             print(f"{args.usd}: frame {frame:g} -> {args.png}", file=sys.stderr)
         if args.gif:
             kw = {"size": size} if size else {}
-            count = preview.render_gif(args.usd, args.gif, fps=args.fps, **kw)
+            shown = ProgressLog(f"{Path(args.gif).name}", unit="frame", quiet=args.quiet)
+            try:
+                count = preview.render_gif(args.usd, args.gif, fps=args.fps, progress=shown.progress, **kw)
+            finally:
+                if shown.bar is not None:
+                    shown.bar.close()
             print(f"{args.usd}: {count} frames -> {args.gif}", file=sys.stderr)
     except ValueError as e:
         # preview.py reports bad input as one line "<file>: <what is wrong> (got <value>)".

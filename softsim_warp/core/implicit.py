@@ -89,6 +89,7 @@ from .forces import eval_forces
 from .integrators import Integrator
 from ..kernels import implicit as ki
 from .model import Model, State
+from .pins import drive
 
 PRECONDITIONERS = ("block_jacobi", "jacobi")
 LINEARIZATIONS = ("predictor", "baraff_witkin")
@@ -228,6 +229,8 @@ class ImplicitIntegrator(Integrator):
             self.body_data = wp.zeros((body_count, ki.BODY_SLOTS), dtype=scalar, device=device)
             self.contact_restitution = wp.zeros(n, dtype=scalar, device=device)
             self.contact_approach = vectors()
+            self.q_contact = vectors()  # the contact response's positions
+            self.contact_normal = vectors()  # the normal of each held particle's surface (0: none)
             self.energy_gained = wp.zeros(1, dtype=wp.int32, device=device)
         # Mass plus the contact friction damper per particle (kernels/implicit.py: constrain_contacts);
         # the plain mass outside the contact solve.
@@ -549,6 +552,7 @@ class ImplicitIntegrator(Integrator):
 
     def step(self, state_in: State, state_out: State, dt: float):
         self.check_states(state_in, state_out)
+        drive(self.model, state_in, dt)
         model = self.model
         h = model.scalar(dt)
         baraff_witkin = self.linearization == "baraff_witkin"
@@ -571,6 +575,7 @@ class ImplicitIntegrator(Integrator):
         wp.copy(self.q_free, state_out.particle_q)
         wp.copy(self.qd_free, state_out.particle_qd)
         apply_contacts(model, state_in, state_out, dt, self.world_contact_beta)
+        wp.copy(self.q_contact, state_out.particle_q)
         self.any_contact.zero_()
         wp.launch(
             model.kernels.constrain_contacts,
@@ -607,6 +612,7 @@ class ImplicitIntegrator(Integrator):
                 self.contact_restitution,
                 self.contact_approach,
                 self.mass_eff,
+                self.contact_normal,
             ],
             device=model.device,
         )
@@ -654,6 +660,9 @@ class ImplicitIntegrator(Integrator):
             for _ in range(EXTRA_CONTACT_ITERATIONS):
                 wp.capture_if(self.energy_gained, extra_iteration)
             self._apply_restitution(state_out)
+            wp.launch(model.kernels.settle_contacts, dim=n,
+                      inputs=[self.contact_normal, self.q_free, self.q_contact, state_out.particle_qd],
+                      outputs=[state_out.particle_q], device=model.device)
 
         # Skipped on the device when nothing touched (a conditional graph node on CUDA).
         wp.capture_if(self.any_contact, constrained_iterations)

@@ -15,6 +15,7 @@ from .contact import apply_contacts, filter_stage_contacts
 from .forces import eval_forces
 from .fused import configure_fused, stage_buffers, step_fused
 from .model import NUMPY_SCALARS, Model, State
+from .pins import drive
 
 # Butcher tableaux of the explicit methods, as (c, b): stage s is evaluated at
 # y_n + h c_s k_{s-1}, and y_{n+1} = y_n + h sum_s b_s k_s. All of them have a_{s,j} = 0 except the
@@ -47,6 +48,8 @@ class Integrator:
         self.model = model
 
     def step(self, state_in: State, state_out: State, dt: float):
+        """Advance ``state_in`` by ``dt`` into ``state_out``. Implementations start with
+        ``pins.drive(model, state_in, dt)`` (driven pins) and end with ``apply_contacts``."""
         raise NotImplementedError
 
     def stats(self) -> dict:
@@ -135,6 +138,7 @@ class ExplicitIntegrator(Integrator):
 
     def step(self, state_in: State, state_out: State, dt: float):
         self.check_states(state_in, state_out)
+        drive(self.model, state_in, dt)
         if self.fused:
             step_fused(self, state_in, state_out, dt)
             return

@@ -16,6 +16,7 @@ from . import lattice
 from ..kernels import get_kernels
 from .forces import attach
 from .lattice_model import LatticeData, detect_lattice
+from .pins import PinDrive, path_position
 from .terrain import bowl_mesh, sphere_mesh
 
 SCALARS = {"float32": wp.float32, "float64": wp.float64}
@@ -29,6 +30,18 @@ def rotation_matrix(axis, degrees) -> np.ndarray:
     t = math.radians(degrees)
     k = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
     return np.eye(3) + math.sin(t) * k + (1 - math.cos(t)) * (k @ k)
+
+
+def jelly_points(shape, size, center, axis, degrees, initial_scale=None) -> np.ndarray:
+    """Start positions ``(N, 3)`` [m] of a jelly lattice (``ModelBuilder.add_jelly``'s placement):
+    the lattice of ``size`` scaled by ``initial_scale`` in its own frame, rotated by ``degrees``
+    about ``axis`` and centred on ``center``."""
+    shape = tuple(int(n) for n in shape)
+    local = lattice.lattice_points(shape, np.broadcast_to(np.asarray(size, dtype=np.float64), (3,)))
+    scale = np.ones(3) if initial_scale is None else np.broadcast_to(np.asarray(initial_scale, dtype=np.float64), (3,))
+    if np.any(scale == 0.0):
+        raise ValueError(f"initial_scale components must be nonzero (got {scale.tolist()})")
+    return (local * scale) @ rotation_matrix(axis, degrees).T + np.asarray(center, dtype=np.float64)
 
 
 @dataclass
@@ -64,6 +77,7 @@ class ModelBuilder:
         self.planes: list[dict] = []
         self.bowls: list[dict] = []
         self.spheres: list[dict] = []
+        self.pins: list[dict] = []
         self.world_count = 1
         self._particle_count = 0
         self._spring_count = 0
@@ -142,16 +156,9 @@ class ModelBuilder:
                 raise ValueError(f"springs[{type_name!r}] takes ks [N/m] and optionally kd [N s/m] (got {dict(params)})")
         shape = tuple(int(n) for n in resolution)
         size = np.broadcast_to(np.asarray(size, dtype=np.float64), (3,))
-        local = lattice.lattice_points(shape, size)
-        rot = rotation_matrix(axis, degrees)
         center = np.asarray(center, dtype=np.float64)
-        scale = (
-            np.ones(3) if initial_scale is None else np.broadcast_to(np.asarray(initial_scale, dtype=np.float64), (3,))
-        )
-        if np.any(scale == 0.0):
-            raise ValueError(f"initial_scale components must be nonzero (got {scale.tolist()})")
-        rest_pose = local @ rot.T + center
-        q = (local * scale) @ rot.T + center
+        rest_pose = jelly_points(shape, size, center, axis, degrees)
+        q = jelly_points(shape, size, center, axis, degrees, initial_scale)
         qd = np.asarray(velocity, dtype=np.float64) + np.cross(
             np.asarray(angular_velocity, dtype=np.float64), q - center
         )
@@ -184,6 +191,51 @@ class ModelBuilder:
         )
         self.jellies.append(info)
         return info
+
+    def add_pin(self, particles, velocity=(0.0, 0.0, 0.0), spin=(0.0, 0.0, 0.0), center=None, key_times=(),
+                key_offsets=(), interpolation="linear") -> int:
+        """Hold or drive particles (global indices); returns the pin's index.
+
+        The particles get mass 0 (no force accelerates them, terrain contact skips them; their
+        springs still pull the others). Without motion they are held where they are, at rest. With
+        motion they follow ``P(t) = c + velocity t + d(t) + R(spin t) (x0 - c)`` exactly at every
+        step (``kernels/pins.py``), whatever the integrator.
+
+        Args:
+            particles: global particle indices.
+            velocity: [m/s].
+            spin: angular velocity [rad/s] about ``center`` (which moves with ``velocity``).
+            center: centre of the spin [m]; default the particles' mean start position.
+            key_times: keyframe times [s], strictly increasing.
+            key_offsets: offsets ``d`` [m] at the key times, one 3-vector each.
+            interpolation: "linear" or "smooth" (Catmull-Rom) between keys.
+        """
+        idx = np.unique(np.asarray(particles, dtype=np.int64).ravel())
+        if idx.size == 0:
+            raise ValueError("a pin needs at least one particle")
+        if idx.min() < 0 or idx.max() >= self._particle_count:
+            raise ValueError(f"pin particle indices must be in [0, {self._particle_count}) (got {idx.min()}..{idx.max()})")
+        times = np.asarray(key_times, dtype=np.float64).ravel()
+        offsets = np.asarray(key_offsets, dtype=np.float64).reshape(-1, 3)
+        if times.size != offsets.shape[0]:
+            raise ValueError(f"key_times has {times.size} entries, key_offsets {offsets.shape[0]}")
+        if times.size > 1 and np.any(np.diff(times) <= 0):
+            raise ValueError(f"key_times must be strictly increasing (got {times.tolist()})")
+        if interpolation not in ("linear", "smooth"):
+            raise ValueError(f"interpolation must be linear or smooth (got {interpolation!r})")
+        q = np.concatenate(self._q)
+        pin = {
+            "particles": idx,
+            "velocity": np.asarray(velocity, dtype=np.float64),
+            "spin": np.asarray(spin, dtype=np.float64),
+            "center": q[idx].mean(axis=0) if center is None else np.asarray(center, dtype=np.float64),
+            "key_times": times.tolist(),
+            "key_offsets": offsets.tolist(),
+            "interpolation": interpolation,
+        }
+        pin["driven"] = bool(np.any(pin["velocity"]) or np.any(pin["spin"]) or times.size)
+        self.pins.append(pin)
+        return len(self.pins) - 1
 
     # -- terrain --------------------------------------------------------------------------------
 
@@ -266,18 +318,29 @@ class ModelBuilder:
         m.kernels = kernels
         m.world_count = self.world_count
         m.jellies = list(self.jellies)
+        driven = [p for p in self.pins if p["driven"]]
+        m.pinned_count = int(sum(len(p["particles"]) for p in self.pins))
 
         q = np.concatenate(self._q) if self._q else np.zeros((0, 3))
         m.particle_count = q.shape[0]
         mass = np.concatenate(self._mass) if self._mass else np.zeros(0)
+        qd = np.concatenate(self._qd) if self._qd else np.zeros((0, 3))
+        for pin in self.pins:  # pinned: mass 0, and the path's velocity at t = 0 (0 when held)
+            idx = pin["particles"]
+            mass[idx] = 0.0
+            qd[idx] = 0.0
+            if pin["driven"]:
+                h = 1e-6
+                qd[idx] = (path_position(pin, q[idx], h) - path_position(pin, q[idx], 0.0)) / h
         inv_mass = np.where(mass > 0, 1.0 / np.where(mass > 0, mass, 1.0), 0.0)
         m.particle_q_host = q.copy()
         m.particle_mass_host = mass.copy()
         m.particle_q = arr(q, vec3, np_scalar)
-        m.particle_qd = arr(np.concatenate(self._qd) if self._qd else np.zeros((0, 3)), vec3, np_scalar)
+        m.particle_qd = arr(qd, vec3, np_scalar)
         m.particle_mass = arr(mass, scalar, np_scalar)
         m.particle_inv_mass = arr(inv_mass, scalar, np_scalar)
         m.particle_jelly = arr(np.concatenate(self._jelly_of) if self._jelly_of else np.zeros(0), wp.int32, np.int32)
+        m.pins = PinDrive(driven, q, device, scalar, vec3) if driven else None
         m.particle_world = arr(np.concatenate(self._world_of) if self._world_of else np.zeros(0), wp.int32, np.int32)
 
         m.spring_count = self._spring_count
@@ -367,6 +430,9 @@ class Model:
         particle_mass: mass [kg], shape [particle_count], scalar.
         particle_inv_mass: 1/mass [1/kg] (0 for a fixed particle), shape [particle_count], scalar.
         particle_jelly: jelly index, shape [particle_count], int32.
+        pins: the driven pins' arrays (:class:`~softsim_warp.core.pins.PinDrive`), or None; held pins
+            need none (their particles have mass 0 and start at rest).
+        pinned_count: particles held or driven by pins.
         particle_world: world (copy in a comparison) index, shape [particle_count], int32.
         spring_indices: particle pair (a, b), shape [spring_count], vec2i.
         spring_rest_length: rest length [m], shape [spring_count], scalar.
@@ -525,8 +591,9 @@ def populate(builder: ModelBuilder, data: dict, world=0):
     builder.contact_epsilon = sim["contact_epsilon"]
     builder.contact_velocity_epsilon = sim["contact_velocity_epsilon"]
     builder.restitution_threshold_steps = sim["restitution_threshold_steps"]
+    infos = []
     for i, j in enumerate(data["jelly"]):
-        builder.add_jelly(
+        info = builder.add_jelly(
             j["resolution"],
             j["size"],
             j["particle_mass"],
@@ -540,6 +607,7 @@ def populate(builder: ModelBuilder, data: dict, world=0):
             name=f"Jelly_{i}",
             initial_scale=j.get("initial_scale"),
         )
+        infos.append(info)
     for p in data.get("plane", []):
         hole = p.get("hole")
         builder.add_plane(
@@ -556,3 +624,15 @@ def populate(builder: ModelBuilder, data: dict, world=0):
         builder.add_bowl(b["center"], b["radius"], b.get("cut_height"), b["restitution"], b["friction"], world=world)
     for s in data.get("sphere", []):
         builder.add_sphere(s["center"], s["radius"], s["restitution"], s["friction"], world=world)
+    for p in data.get("pin", []):
+        spin = p.get("spin")
+        keys = p.get("keyframes", [])
+        builder.add_pin(
+            np.asarray(p["indices"]) + infos[p["jelly"]].particle_start,
+            velocity=p["velocity"],
+            spin=np.asarray(spin["axis"]) * math.radians(spin["degrees_per_second"]) if spin else (0.0, 0.0, 0.0),
+            center=spin.get("center") if spin else None,
+            key_times=[k["time"] for k in keys],
+            key_offsets=[k["offset"] for k in keys],
+            interpolation=p["interpolation"],
+        )

@@ -13,6 +13,8 @@ process in ``std::bad_alloc``).
 
 from __future__ import annotations
 
+import contextlib
+
 import time
 
 import warp as wp
@@ -46,6 +48,10 @@ def make_integrator(name, model: Model, options: dict | None = None) -> Integrat
     return ExplicitIntegrator(model, name)
 
 
+# Context-manager factories entered around every warm-up (the step that compiles and loads the
+# kernels): the CLI adds its "compiling kernels" notice here.
+WARM_UP_HOOKS: list = []
+
 class Stepper:
     """Advances a model's state with ``integrator`` in fixed steps of ``dt``, whole frames at a time.
 
@@ -77,13 +83,21 @@ class Stepper:
         """Compile and load every kernel a step launches (one step into a spare state, which leaves
         ``state`` as it was); returns the seconds it took."""
         t0 = time.perf_counter()
+        with contextlib.ExitStack() as hooks:
+            for hook in WARM_UP_HOOKS:
+                hooks.enter_context(hook())
+            self._warm_up_step()
+        self.warmed_up = True
+        return time.perf_counter() - t0
+
+    def _warm_up_step(self):
         self.integrator.step(self.state, self.model.state(), self.dt)
+        if self.model.pins is not None:  # the warm-up step is not part of the run: pins restart at t = 0
+            self.model.pins.reset()
         wp.synchronize_device(self.model.device)
         reset_stats = getattr(self.integrator, "reset_stats", None)  # the warm-up step is not part of the run
         if reset_stats is not None:
             reset_stats()
-        self.warmed_up = True
-        return time.perf_counter() - t0
 
     @property
     def state(self) -> State:

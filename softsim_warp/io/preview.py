@@ -136,7 +136,7 @@ def render_png(usd_path, png_path, frame=None, time=None, size=(800, 600)):
     return frame
 
 
-def render_gif(usd_path, gif_path, fps=None, size=(640, 480), max_frames=None):
+def render_gif(usd_path, gif_path, fps=None, size=(640, 480), max_frames=None, progress=None):
     """Render the whole clip of a softsim USD file to an animated GIF that plays in real time.
 
     Args:
@@ -151,6 +151,8 @@ def render_gif(usd_path, gif_path, fps=None, size=(640, 480), max_frames=None):
         max_frames: at most this many GIF frames (default :data:`MAX_GIF_FRAMES`); if the clip
             needs more, the step is increased (frames are skipped evenly, still covering the whole
             clip in real time, up to GIF's longest frame delay of 655.35 s).
+        progress: callable ``progress(total)`` returning a bar with ``update()``, advanced once per
+            frame drawn, or None.
 
     A static stage (no time samples) gives a one-frame GIF. Frames are rendered and written one
     at a time (see the module docstring). Returns the number of frames written.
@@ -188,10 +190,15 @@ def render_gif(usd_path, gif_path, fps=None, size=(640, 480), max_frames=None):
             colors=255, method=mediancut, dither=no_dither
         )
         del samples
-        indexed = (
-            np.asarray(Image.fromarray(renderer.render_rgb(f)).quantize(palette=palette, dither=no_dither))
-            for f in frames
-        )
+        bar = progress(len(frames)) if progress else None
+
+        def draw(f):
+            image = np.asarray(Image.fromarray(renderer.render_rgb(f)).quantize(palette=palette, dither=no_dither))
+            if bar is not None:
+                bar.update()
+            return image
+
+        indexed = (draw(f) for f in frames)
         delays = _gif_delays(len(frames), step, scene.fps)
         written = []
         save_atomic(

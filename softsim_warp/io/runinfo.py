@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import warp as wp
 
-from ..core.stability_analysis import predict_lattice_dt
+from ..core.stability_model import predict_jelly_dt
 
 
 def energy_drift(metrics) -> tuple[float, float]:
@@ -74,22 +74,11 @@ def summary_line(s: dict, out) -> str:
     )
 
 
-def predicted_stable_dt(scene, method, jelly=0) -> float | None:
-    """Largest dt predicted stable for jelly ``jelly`` of the scene, from a linear analysis at rest.
-
-    The analysis runs on a lattice of at most 4 particles per axis with the jelly's spacing, masses
-    and spring constants: the stiffest modes are local, so a small lattice predicts the limit.
-    """
-    j = scene.jellies[jelly]
-    res = j["resolution"]
-    small = [min(n, 4) for n in res]
-    spacing = [s / (n - 1) if n > 1 else 0.0 for s, n in zip(j["size"], res)]
-    size = [sp * (n - 1) if n > 1 else 0.0 for sp, n in zip(spacing, small)]
-    springs = j["springs"]
-    ks = {k: v["ks"] for k, v in springs.items()}
-    kd = {k: v.get("kd", 0.0) for k, v in springs.items()}
+def predicted_stable_dt(scene, method, jelly=0, device=None) -> float | None:
+    """Largest dt predicted stable for jelly ``jelly`` of the scene: a linear analysis of the whole
+    jelly, free and at rest, matrix-free on ``device`` (:mod:`softsim_warp.core.stability_model`)."""
     try:
-        return predict_lattice_dt(small, size, j["particle_mass"], ks, kd, methods=(method,))[method]
+        return predict_jelly_dt(scene.jellies[jelly], (method,), device).dt[method]
     except Exception:  # noqa: BLE001 - a prediction is advice; never let it hide the explosion itself
         return None
 
@@ -105,7 +94,7 @@ def explosion_message(scene, model, result) -> str:
         f"{scene.source}: simulation exploded at frame {e['frame']} (t = {e['time']:.4g} s) with integrator "
         f"{sim['integrator']} at dt = {sim['dt']:g} s: {e['reason']}{which}"
     )
-    pred = predicted_stable_dt(scene, sim["integrator"], k)
+    pred = predicted_stable_dt(scene, sim["integrator"], k, model.device)
     e["predicted_stable_dt"] = pred if pred is not None and np.isfinite(pred) else None
     if pred is None:
         text += "; no stability prediction is available for this jelly"

@@ -19,6 +19,8 @@ from importlib import resources
 from pathlib import Path
 
 from ..core.errors import COMMAND_LINE, SceneError
+from ..core.model import jelly_points
+from ..core.pins import FACES, INTERPOLATIONS, select_particles
 from .checks import check_scene
 
 INTEGRATORS = ("euler", "symplectic", "midpoint", "rk4", "implicit")
@@ -260,6 +262,14 @@ class Table(Field):
         return out
 
 
+class IntList(Field):
+    def check(self, value, key, ctx):
+        if (not isinstance(value, list) or not value
+                or not all(isinstance(c, int) and not isinstance(c, bool) and 0 <= c <= INT_MAX for c in value)):
+            ctx.fail(key, "must be a non-empty list of integers >= 0", value)
+        return list(value)
+
+
 class TableList(Field):
     def __init__(self, item: Table, min_len=0, **kw):
         super().__init__(None, **kw)
@@ -404,6 +414,33 @@ SCHEMA = Table(
                     "radius": Float(lo=0, lo_open=True, required=True, doc="[m]"),
                     "restitution": Float(0.5, lo=0, hi=1),
                     "friction": Float(0.3, lo=0),
+                }
+            )
+        ),
+        # Particles held fixed or driven along a path (core/pins.py); exactly one of face, box, particles.
+        "pin": TableList(
+            Table(
+                {
+                    "jelly": Int(0, lo=0, doc="the jelly whose particles are pinned"),
+                    "face": Choice(FACES, doc="a face of the jelly's lattice, along its own axes"),
+                    "box": Table(
+                        {"min": Vec3(required=True, doc="[m]"), "max": Vec3(required=True, doc="[m]")},
+                        optional=True,
+                    ),
+                    "particles": IntList(doc="lattice indices (i ny + j) nz + k"),
+                    "velocity": Vec3([0.0, 0.0, 0.0], doc="[m/s]"),
+                    "spin": Table(
+                        {
+                            "axis": Vec3([0.0, 1.0, 0.0], nonzero=True),
+                            "degrees_per_second": Float(0.0),
+                            "center": Vec3(doc="[m]; default the pinned particles' mean start position"),
+                        },
+                        optional=True,
+                    ),
+                    "keyframes": TableList(
+                        Table({"time": Float(required=True, doc="[s]"), "offset": Vec3(required=True, doc="[m]")})
+                    ),
+                    "interpolation": Choice(INTERPOLATIONS, "linear", doc="between keyframes: linear or smooth"),
                 }
             )
         ),
@@ -771,11 +808,40 @@ def validate(data: dict, source: str) -> dict:
         if "cut_height" in bowl and bowl["cut_height"] <= bottom:
             ctx.fail(f"bowl.{i}.cut_height", f"must be above the bowl's lowest point center.y - radius = {bottom:g}",
                      bowl["cut_height"])
+    for i, pin in enumerate(out.get("pin", [])):
+        _check_pin(pin, f"pin.{i}", out["jelly"], ctx)
     # Checks of the scene as a whole (sizes, precision range, a jelly starting inside terrain);
     # see checks.py.
 
     check_scene(out, ctx)
     return out
+
+
+def _check_pin(pin: dict, key: str, jellies: list, ctx):
+    """One pin: its jelly exists, exactly one selection that selects something, increasing key times;
+    stores the selected lattice indices as ``pin["indices"]``."""
+    if pin["jelly"] >= len(jellies):
+        ctx.fail(f"{key}.jelly", f"the scene has jellies 0 to {len(jellies) - 1}", pin["jelly"])
+    given = [name for name in ("face", "box", "particles") if name in pin]
+    if len(given) != 1:
+        ctx.fail(f"{key}.face", "give exactly one of face, box and particles to select the pinned particles",
+                 {name: pin[name] for name in given} if given else "none")
+    jelly = jellies[pin["jelly"]]
+    shape = jelly["resolution"]
+    count = shape[0] * shape[1] * shape[2]
+    if "particles" in pin and max(pin["particles"]) >= count:
+        ctx.fail(f"{key}.particles", f"indices must be below the jelly's {count} particles", max(pin["particles"]))
+    points = jelly_points(shape, jelly["size"], jelly["center"], jelly["rotation"]["axis"],
+                          jelly["rotation"]["degrees"], jelly.get("initial_scale"))
+    box = (pin["box"]["min"], pin["box"]["max"]) if "box" in pin else None
+    pin["indices"] = select_particles(shape, points, pin.get("face"), box, pin.get("particles")).tolist()
+    if not pin["indices"]:
+        ctx.fail(f"{key}.box", "selects no particle of the jelly at its start", pin["box"])
+    if "spin" in pin:
+        pin["spin"]["axis"] = _unit(pin["spin"]["axis"])
+    times = [k["time"] for k in pin.get("keyframes", [])]
+    if any(b <= a for a, b in zip(times, times[1:])):
+        ctx.fail(f"{key}.keyframes", "times must be strictly increasing", times)
 
 
 def load_scene(name_or_path: str, overrides=()) -> Scene:

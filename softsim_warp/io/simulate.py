@@ -59,11 +59,16 @@ class Simulator(Stepper):
         return round(k / (self.fps * self.dt))
 
     def warm_up(self) -> float:
-        """Compile and load every kernel a run needs, the metrics' too; returns the seconds it took."""
-        t0 = time.perf_counter()
-        super().warm_up()
+        """Compile and load every kernel a run needs, the metrics' too; returns the seconds it took
+        (the first warm-up's, when called again)."""
+        if self.warmed_up:
+            return getattr(self, "warm_up_seconds", 0.0)
+        self.warm_up_seconds = super().warm_up()
+        return self.warm_up_seconds
+
+    def _warm_up_step(self):
+        super()._warm_up_step()
         self.probe.measure(self.state, 0, 0.0)
-        return time.perf_counter() - t0
 
     def run(self, writers=(), progress=None, label="") -> RunResult:
         """Run all frames. Each writer gets ``write_frame(k, time, positions, metrics)``.
