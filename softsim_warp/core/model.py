@@ -16,6 +16,8 @@ from . import lattice
 from ..kernels import get_kernels
 from .forces import attach
 from .lattice_model import LatticeData, detect_lattice
+from .mesh_assets import load_mesh, transform_matrix
+from .mesh_terrain import attach_meshes, mesh_anchors, mesh_output
 from .terrain import bowl_mesh, sphere_mesh
 
 SCALARS = {"float32": wp.float32, "float64": wp.float64}
@@ -64,6 +66,8 @@ class ModelBuilder:
         self.planes: list[dict] = []
         self.bowls: list[dict] = []
         self.spheres: list[dict] = []
+        self.meshes: list[dict] = []
+        self.device = None  # where mesh jellies are voxelised (build_model sets the model's device)
         self.world_count = 1
         self._particle_count = 0
         self._spring_count = 0
@@ -235,6 +239,22 @@ class ModelBuilder:
             }
         )
 
+    def add_mesh(self, asset, restitution=0.5, friction=0.3, thickness=0.1, world=0, name="Mesh"):
+        """Add static triangle-mesh terrain (a :class:`~softsim_warp.core.mesh_assets.MeshAsset` in
+        world space). A closed mesh keeps particles outside it (its faces are turned outward if
+        they wind inward); an open sheet collides from the side its faces' normals point to and
+        pushes out particles up to ``thickness`` [m] behind it."""
+        self.meshes.append(
+            {
+                "asset": asset.outward(),
+                "restitution": float(restitution),
+                "friction": float(friction),
+                "thickness": float(thickness),
+                "world": int(world),
+                "name": name,
+            }
+        )
+
     # -- finalize -------------------------------------------------------------------------------
 
     def finalize(self, device=None, precision="float32", force_path="auto") -> Model:
@@ -355,6 +375,7 @@ class ModelBuilder:
         m.sphere_radius = arr(cols(spheres, "radius", (ns,)), scalar, np_scalar)
         m.sphere_restitution = arr(cols(spheres, "restitution", (ns,)), scalar, np_scalar)
         m.sphere_friction = arr(cols(spheres, "friction", (ns,)), scalar, np_scalar)
+        attach_meshes(m, self.meshes, arr, first)
         return m
 
 
@@ -403,7 +424,7 @@ class Model:
     @property
     def terrain_anchor_points(self) -> list:
         """Host points spanning the bowls and spheres [m] (for the explosion speed bound)."""
-        return terrain_anchors(self.bowls, self.spheres)
+        return terrain_anchors(self.bowls, self.spheres) + mesh_anchors(getattr(self, "meshes", []))
 
     def terrain_meshes(self, roots=None) -> list:
         """Static meshes of the bowls (their cap below the cut) and spheres, for the USD stage.
@@ -427,7 +448,7 @@ class Model:
                 else:
                     mesh = sphere_mesh(it["center"], it["radius"])
                 out.append((f"{roots.get(it['world'], '/World')}/{kind}_{i}", *mesh))
-        return out
+        return out + mesh_output(getattr(self, "meshes", []), roots)
 
     deterministic = False
 
@@ -511,6 +532,7 @@ def build_model(scene, device=None, precision=None, worlds=None, deterministic=F
     ``force_path``: see ``ModelBuilder.finalize``.
     """
     builder = ModelBuilder(scene.sim["gravity"])
+    builder.device = device
     populate(builder, scene.data)
     model = builder.finalize(device, precision or scene.sim["precision"], force_path=force_path)
     if deterministic:
@@ -556,3 +578,6 @@ def populate(builder: ModelBuilder, data: dict, world=0):
         builder.add_bowl(b["center"], b["radius"], b.get("cut_height"), b["restitution"], b["friction"], world=world)
     for s in data.get("sphere", []):
         builder.add_sphere(s["center"], s["radius"], s["restitution"], s["friction"], world=world)
+    for i, t in enumerate(data.get("mesh", [])):
+        asset = load_mesh(t["path"], t.get("prim"), every=True, key=f"mesh.{i}.path").transformed(*transform_matrix(t.get("transform")))
+        builder.add_mesh(asset, t["restitution"], t["friction"], t["thickness"], world=world)

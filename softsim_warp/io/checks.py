@@ -17,6 +17,7 @@ import math
 import numpy as np
 
 from ..core.model import rotation_matrix
+from .mesh_scene import mesh_signed_distance_entry
 from .resources import check_host_build
 
 # Normal range of each precision: a non-zero value outside it becomes 0 or inf on the device.
@@ -64,7 +65,8 @@ def bowl_signed_distance(bowl: dict, points: np.ndarray) -> np.ndarray:
 
 # Scene key of each terrain type -> signed distance of points to one entry (positive = free space,
 # +inf where the entry does not collide). A new terrain type adds its function here.
-TERRAIN_SDF = {"plane": plane_signed_distance, "sphere": sphere_signed_distance, "bowl": bowl_signed_distance}
+TERRAIN_SDF = {"plane": plane_signed_distance, "sphere": sphere_signed_distance, "bowl": bowl_signed_distance,
+               "mesh": mesh_signed_distance_entry}
 # Terrain types that are thin shells: particles behind them (phi < 0) pass through, so a jelly is
 # wrong only when the shell cuts it, some particles in front and some behind.
 SHELLS = {"bowl"}

@@ -20,6 +20,7 @@ from pathlib import Path
 
 from ..core.errors import COMMAND_LINE, SceneError
 from .checks import check_scene
+from .mesh_scene import resolve_meshes
 
 INTEGRATORS = ("euler", "symplectic", "midpoint", "rk4", "implicit")
 PRECISIONS = ("float32", "float64")
@@ -307,6 +308,15 @@ SPRING = Table(
     optional=True,
 )
 
+MESH_TRANSFORM = Table(
+    {
+        "translate": Vec3([0.0, 0.0, 0.0], doc="[m]"),
+        "rotation": Table({"axis": Vec3([0.0, 1.0, 0.0], nonzero=True), "degrees": Float(0.0)}),
+        "scale": Vec3([1.0, 1.0, 1.0], lo=0, lo_open=True, scalar_ok=True, doc="per-axis factor, applied first"),
+    },
+    optional=True,
+)
+
 SCHEMA = Table(
     {
         "name": Text(doc="scene name"),
@@ -331,8 +341,11 @@ SCHEMA = Table(
         "jelly": TableList(
             Table(
                 {
-                    "resolution": Int3(required=True, doc="particles per axis"),
-                    "size": Vec3(required=True, lo=0, lo_open=True, scalar_ok=True, doc="edge lengths [m]"),
+                    "resolution": Int3(doc="particles per axis; a mesh jelly: cells along its longest side"),
+                    "size": Vec3(lo=0, lo_open=True, scalar_ok=True, doc="edge lengths [m]; a mesh jelly: its longest side"),
+                    "mesh": Text(doc="a closed mesh file (USD, OBJ, STL, PLY) voxelised into the jelly, relative to the scene file"),
+                    "mesh_prim": Text(doc="Mesh prim path in a USD file (default: the first Mesh)"),
+                    "spacing": Float(lo=0, lo_open=True, doc="a mesh jelly's lattice spacing [m] (instead of resolution)"),
                     "center": Vec3([0.0, 0.0, 0.0], doc="[m]"),
                     "rotation": Table(
                         {
@@ -404,6 +417,19 @@ SCHEMA = Table(
                     "radius": Float(lo=0, lo_open=True, required=True, doc="[m]"),
                     "restitution": Float(0.5, lo=0, hi=1),
                     "friction": Float(0.3, lo=0),
+                }
+            )
+        ),
+        # Triangle-mesh terrain from a file (core/mesh_terrain.py, io/mesh_scene.py).
+        "mesh": TableList(
+            Table(
+                {
+                    "path": Text(required=True, doc="USD, OBJ, STL or PLY file, relative to the scene file"),
+                    "prim": Text(doc="Mesh prim path in a USD file; default: every Mesh with CollisionAPI, else every Mesh"),
+                    "restitution": Float(0.5, lo=0, hi=1),
+                    "friction": Float(0.3, lo=0),
+                    "thickness": Float(0.1, lo=0, lo_open=True, doc="how far behind its surface a mesh pushes particles out [m]"),
+                    "transform": MESH_TRANSFORM,
                 }
             )
         ),
@@ -738,9 +764,12 @@ def _unit(v):
     return [c / length for c in v]
 
 
-def validate(data: dict, source: str) -> dict:
+def validate(data: dict, source: str, base=None) -> dict:
+    """Check ``data`` against the schema and the whole-scene checks; ``base`` is the directory that
+    relative mesh paths start from (the scene file's; default: the working directory)."""
     ctx = _Context(source)
     out = SCHEMA.check(data, "", ctx)
+    resolve_meshes(out, ctx, base)
     sim = out["simulation"]
     if "duration" in sim and "frames" in sim:
         ctx.fail("simulation.frames", "give simulation.duration or simulation.frames, not both", sim["frames"])
@@ -748,6 +777,9 @@ def validate(data: dict, source: str) -> dict:
         ctx.fail("simulation.duration", "is required (or give simulation.frames)")
     for i, jelly in enumerate(out["jelly"]):
         key = f"jelly.{i}"
+        for name in ("resolution", "size"):
+            if name not in jelly:
+                ctx.fail(f"{key}.{name}", "is required (or give mesh)")
         count = jelly["resolution"][0] * jelly["resolution"][1] * jelly["resolution"][2]
         if count < 2:
             ctx.fail(f"{key}.resolution", "a jelly needs at least 2 particles", jelly["resolution"])
@@ -756,7 +788,7 @@ def validate(data: dict, source: str) -> dict:
             ctx.fail(f"{key}.particle_mass", "give exactly one of particle_mass and total_mass, not both", both)
         if "particle_mass" not in jelly and "total_mass" not in jelly:
             ctx.fail(f"{key}.particle_mass", "is required (or give total_mass)")
-        if "total_mass" in jelly:
+        if "total_mass" in jelly and "mesh" not in jelly:  # a mesh jelly's count is known once voxelised
             jelly["particle_mass"] = jelly.pop("total_mass") / count
         if "initial_scale" in jelly and any(c == 0.0 for c in jelly["initial_scale"]):
             # A zero axis would put particles on top of each other: springs without a direction.
@@ -782,7 +814,8 @@ def load_scene(name_or_path: str, overrides=()) -> Scene:
     """Load a scene file or a built-in scene by name, apply ``--set`` overrides and validate it."""
     path, source, data = read_scene_data(name_or_path)
     applied = apply_overrides(data, [parse_override(item) for item in overrides])
-    validated = validate(data, source)
+    base = path.parent if path.is_file() else Path(str(builtin_dir()))  # mesh paths start at the scene file
+    validated = validate(data, source, base)
     return Scene(validated, source=source, name=validated.get("name", path.stem), overrides=applied)
 
 

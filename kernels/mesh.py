@@ -1,0 +1,149 @@
+"""Triangle-mesh terrain and mesh voxelisation, through Warp's BVH queries (``wp.Mesh``).
+
+Contact with a mesh gives ``resolve_contact`` (kernels/contact.py) the same two things an analytic
+primitive does: the signed distance at the particle and the outward normal there. The BVH finds the
+closest triangle (in float32, as ``wp.Mesh`` stores it); the distance is then measured in the
+model's precision from that triangle's own vertices: over a face's interior it is the distance to
+the face's plane, so a flat mesh gives exactly what an analytic plane gives; over an edge or a vertex
+it is the distance to the closest point, signed by the winding number (closed meshes) or by the side
+the face's normal points to (open sheets, which collide from that side only).
+"""
+
+import functools
+
+import warp as wp
+
+from . import contact
+
+wp.set_module_options({"enable_backward": False})
+
+
+@functools.cache
+def build(scalar):
+    vec3 = wp.types.vector(3, scalar)
+    resolve_contact = contact.build(scalar)["resolve_contact"]
+
+    @wp.func
+    def mesh_distance(
+        x: vec3,
+        mesh: wp.uint64,
+        closed: int,
+        reach: scalar,
+        tri_start: int,
+        mesh_tris: wp.array(dtype=wp.vec3i),
+        mesh_points: wp.array(dtype=vec3),
+    ):
+        """Signed distance (positive outside / in front) and outward normal of a mesh at x:
+        (phi, normal). phi is a huge value farther than ``reach`` from every face."""
+        xf = wp.vec3(wp.float32(x[0]), wp.float32(x[1]), wp.float32(x[2]))
+        q = wp.mesh_query_point_no_sign(mesh, xf, wp.float32(reach))
+        if closed != 0:
+            q = wp.mesh_query_point_sign_winding_number(mesh, xf, wp.float32(reach))
+        up = vec3(scalar(0.0), scalar(1.0), scalar(0.0))
+        if not q.result:
+            return scalar(1.0e30), up
+        t = mesh_tris[tri_start + q.face]
+        a = mesh_points[t[0]]
+        b = mesh_points[t[1]]
+        c = mesh_points[t[2]]
+        nf = wp.cross(b - a, c - a)
+        area2 = wp.length(nf)
+        if area2 > scalar(0.0):
+            nf = nf / area2
+        u = scalar(q.u)
+        v = scalar(q.v)
+        w = scalar(1.0) - u - v
+        # Well inside the face (float32 barycentrics): the distance to the face's plane.
+        tiny = scalar(1.0e-5)
+        if u > tiny and v > tiny and w > tiny:
+            return wp.dot(x - a, nf), nf
+        # Near an edge or a vertex: the distance to the closest point (u a + v b + w c).
+        d = x - (u * a + v * b + w * c)
+        dist = wp.length(d)
+        side = scalar(1.0)
+        if closed != 0:
+            if q.sign < wp.float32(0.0):
+                side = scalar(-1.0)
+        elif wp.dot(d, nf) < scalar(0.0):
+            side = scalar(-1.0)
+        if dist > scalar(0.0):
+            return side * dist, d * (side / dist)
+        return scalar(0.0), nf
+
+    @wp.kernel(module="unique")
+    def collide_meshes(
+        # Model:
+        particle_inv_mass: wp.array(dtype=scalar),
+        particle_world: wp.array(dtype=wp.int32),
+        mesh_first: wp.array(dtype=wp.int32),
+        mesh_id: wp.array(dtype=wp.uint64),
+        mesh_closed: wp.array(dtype=wp.int32),
+        mesh_reach: wp.array(dtype=scalar),
+        mesh_tri_start: wp.array(dtype=wp.int32),
+        mesh_tris: wp.array(dtype=wp.vec3i),
+        mesh_points: wp.array(dtype=vec3),
+        mesh_restitution: wp.array(dtype=scalar),
+        mesh_friction: wp.array(dtype=scalar),
+        eps: scalar,
+        eps_v: scalar,
+        rest_steps: scalar,
+        h: scalar,
+        world_contact_beta: wp.array(dtype=scalar),
+        stage: int,
+        # State before the step:
+        q_prev: wp.array(dtype=vec3),
+        qd_prev: wp.array(dtype=vec3),
+        # State after the step, corrected in place:
+        q_out: wp.array(dtype=vec3),
+        qd_out: wp.array(dtype=vec3),
+    ):
+        i = wp.tid()
+        if particle_inv_mass[i] != scalar(0.0):
+            w = particle_world[i]
+            x = q_out[i]
+            v = qd_out[i]
+            # The meshes of world w are mesh_first[w] .. mesh_first[w + 1] - 1 (sorted by world).
+            for m in range(mesh_first[w], mesh_first[w + 1]):
+                phi, n = mesh_distance(x, mesh_id[m], mesh_closed[m], mesh_reach[m], mesh_tri_start[m], mesh_tris, mesh_points)
+                if phi < eps:
+                    x, v = resolve_contact(
+                        x,
+                        v,
+                        wp.dot(n, qd_prev[i]),
+                        phi,
+                        n,
+                        mesh_restitution[m],
+                        mesh_friction[m],
+                        eps,
+                        eps_v,
+                        rest_steps,
+                        h * world_contact_beta[w],
+                        stage,
+                    )
+            q_out[i] = x
+            qd_out[i] = v
+
+    @wp.kernel(module="unique")
+    def mark_inside_mesh(
+        mesh: wp.uint64,
+        origin: wp.vec3,
+        spacing: wp.vec3,
+        shape: wp.vec3i,
+        # out: 1 where the lattice point lies inside the closed mesh (winding number > 1/2)
+        inside_out: wp.array(dtype=wp.int32),
+    ):
+        k = wp.tid()
+        nz = shape[2]
+        ny = shape[1]
+        iz = k % nz
+        iy = (k // nz) % ny
+        ix = k // (nz * ny)
+        p = origin + wp.cw_mul(spacing, wp.vec3(float(ix), float(iy), float(iz)))
+        # The whole mesh is within reach: the winding number needs no distance bound.
+        q = wp.mesh_query_point_sign_winding_number(mesh, p, 1.0e30)
+        inside_out[k] = 0
+        if q.result:
+            if q.sign < 0.0:
+                inside_out[k] = 1
+
+    return {"mesh_distance": mesh_distance, "collide_meshes": collide_meshes, "mark_inside_mesh": mark_inside_mesh}
