@@ -18,6 +18,36 @@ from . import contact
 wp.set_module_options({"enable_backward": False})
 
 
+# Voxelisation does not depend on the model's precision: one kernel, in float32 as wp.Mesh is.
+@wp.kernel(module="unique")
+def mark_inside_mesh(
+    mesh: wp.uint64,
+    origin: wp.vec3,
+    spacing: wp.vec3,
+    shape: wp.vec3i,
+    on_surface: float,
+    # out: 1 where the lattice point lies inside the closed mesh (winding number > 1/2) or
+    # within ``on_surface`` of it (a box mesh's faces hold lattice points)
+    inside_out: wp.array(dtype=wp.int32),
+):
+    k = wp.tid()
+    nz = shape[2]
+    ny = shape[1]
+    iz = k % nz
+    iy = (k // nz) % ny
+    ix = k // (nz * ny)
+    p = origin + wp.cw_mul(spacing, wp.vec3(float(ix), float(iy), float(iz)))
+    # The whole mesh is within reach: the winding number needs no distance bound.
+    q = wp.mesh_query_point_sign_winding_number(mesh, p, 1.0e30)
+    inside = 0
+    if q.result:
+        if q.sign < 0.0:
+            inside = 1
+        elif wp.length(p - wp.mesh_eval_position(mesh, q.face, q.u, q.v)) <= on_surface:
+            inside = 1
+    inside_out[k] = inside
+
+
 @functools.cache
 def build(scalar):
     vec3 = wp.types.vector(3, scalar)
@@ -122,28 +152,5 @@ def build(scalar):
                     )
             q_out[i] = x
             qd_out[i] = v
-
-    @wp.kernel(module="unique")
-    def mark_inside_mesh(
-        mesh: wp.uint64,
-        origin: wp.vec3,
-        spacing: wp.vec3,
-        shape: wp.vec3i,
-        # out: 1 where the lattice point lies inside the closed mesh (winding number > 1/2)
-        inside_out: wp.array(dtype=wp.int32),
-    ):
-        k = wp.tid()
-        nz = shape[2]
-        ny = shape[1]
-        iz = k % nz
-        iy = (k // nz) % ny
-        ix = k // (nz * ny)
-        p = origin + wp.cw_mul(spacing, wp.vec3(float(ix), float(iy), float(iz)))
-        # The whole mesh is within reach: the winding number needs no distance bound.
-        q = wp.mesh_query_point_sign_winding_number(mesh, p, 1.0e30)
-        inside_out[k] = 0
-        if q.result:
-            if q.sign < 0.0:
-                inside_out[k] = 1
 
     return {"mesh_distance": mesh_distance, "collide_meshes": collide_meshes, "mark_inside_mesh": mark_inside_mesh}

@@ -62,21 +62,37 @@ class MeshAsset:
     def transformed(self, matrix, translate) -> MeshAsset:
         """The mesh under x -> matrix x + translate (a negative determinant reverses every face)."""
         pts = self.points @ np.asarray(matrix, dtype=np.float64).T + np.asarray(translate, dtype=np.float64)
-        indices = self.indices
-        if np.linalg.det(matrix) < 0:
-            indices = _reverse_faces(self.counts, indices)
-        return MeshAsset(pts, self.counts, indices, self.primvars, self.name)
+        out = MeshAsset(pts, self.counts, self.indices, self.primvars, self.name)
+        return out.reversed() if np.linalg.det(matrix) < 0 else out
+
+    def reversed(self) -> MeshAsset:
+        """The same surface with every face's winding reversed (face-varying primvars follow)."""
+        perm = _face_reversal(self.counts)
+        primvars = []
+        for name, type_name, interp, values, idx in self.primvars:
+            if interp == "faceVarying":
+                if idx is not None:
+                    idx = np.asarray(idx)[perm]
+                else:
+                    permuted = np.ascontiguousarray(np.asarray(values)[perm])
+                    values = permuted if isinstance(values, np.ndarray) else type(values).FromNumpy(permuted)
+            primvars.append((name, type_name, interp, values, idx))
+        return MeshAsset(self.points, self.counts, self.indices[perm], primvars, self.name)
 
     def outward(self) -> MeshAsset:
         """A closed mesh wound so that its faces point out of the volume they enclose."""
         if self.closed and self.volume() < 0:
-            return MeshAsset(self.points, self.counts, _reverse_faces(self.counts, self.indices), self.primvars, self.name)
+            return self.reversed()
         return self
 
 
-def _reverse_faces(counts, indices):
-    starts = np.concatenate([[0], np.cumsum(counts)[:-1]]).astype(np.int64)
-    return np.concatenate([indices[s : s + c][::-1] for s, c in zip(starts, counts)]) if len(counts) else indices
+def _face_reversal(counts) -> np.ndarray:
+    """The face-corner permutation that reverses every face's vertex order."""
+    counts = np.asarray(counts, dtype=np.int64)
+    starts = np.repeat(np.concatenate([[0], np.cumsum(counts)[:-1]]), counts)
+    ends = np.repeat(np.cumsum(counts) - 1, counts)
+    corner = np.arange(int(counts.sum()))
+    return starts + ends - corner
 
 
 def load_mesh(path, prim=None, every=True, source="<scene>", key="mesh.path") -> MeshAsset:
@@ -173,10 +189,8 @@ def _load_usd(path, prim_path, every, source, key):
             raise SceneError(source, key, f"the Mesh {prim.GetPath()} has faces of fewer than 3 vertices", path)
         m = np.array(cache.GetLocalToWorldTransform(prim), dtype=np.float64)  # row vectors: x' = x M
         pts = (pts @ m[:3, :3] + m[3, :3]) * meters
-        if mesh.GetOrientationAttr().Get() == UsdGeom.Tokens.leftHanded:
-            indices = _reverse_faces(counts, indices)
-        if np.linalg.det(m[:3, :3]) < 0:
-            indices = _reverse_faces(counts, indices)
+        # Faces wind right-handed in what we return: a left-handed mesh, or a mirroring xform, is reversed.
+        flips = (mesh.GetOrientationAttr().Get() == UsdGeom.Tokens.leftHanded) != (np.linalg.det(m[:3, :3]) < 0)
         primvars = []
         if len(prims) == 1:
             for pv in UsdGeom.PrimvarsAPI(prim).GetPrimvarsWithValues():
@@ -186,7 +200,8 @@ def _load_usd(path, prim_path, every, source, key):
                 interp = pv.GetInterpolation()
                 idx = np.asarray(pv.GetIndices(), dtype=np.int32) if pv.IsIndexed() else None
                 primvars.append((str(name), str(pv.GetTypeName()), str(interp), pv.GetAttr().Get(), idx))
-        parts.append(MeshAsset(pts, counts, indices, primvars, prim.GetName()))
+        part = MeshAsset(pts, counts, indices, primvars, prim.GetName())
+        parts.append(part.reversed() if flips else part)
     if len(parts) == 1:
         return parts[0]
     offsets = np.cumsum([0] + [p.points.shape[0] for p in parts[:-1]])

@@ -19,6 +19,7 @@ from .lattice_model import LatticeData, detect_lattice
 from .mesh_assets import load_mesh, transform_matrix
 from .mesh_terrain import attach_meshes, mesh_anchors, mesh_output
 from .terrain import bowl_mesh, sphere_mesh
+from .voxelize import add_mesh_jelly
 
 SCALARS = {"float32": wp.float32, "float64": wp.float64}
 NUMPY_SCALARS = {"float32": np.float32, "float64": np.float64}
@@ -50,6 +51,8 @@ class JellyInfo:
     """Boundary quads, jelly-local particle indices, shape [Q, 4], int32."""
     world: int = 0
     name: str = ""
+    embedding: object = None
+    """A mesh jelly's surface in its lattice (``core.voxelize.SurfaceEmbedding``), else None."""
 
 
 class ModelBuilder:
@@ -117,6 +120,7 @@ class ModelBuilder:
         world=0,
         name="",
         initial_scale=None,
+        mask=None,
     ) -> JellyInfo:
         """Add a lattice jelly.
 
@@ -136,6 +140,9 @@ class ModelBuilder:
                 frame before the rotation, for the start only: rest lengths stay those of the
                 unscaled lattice, so the jelly starts stretched (> 1), crushed (< 1) or mirrored
                 (negative on one axis). Components must be nonzero.
+            mask: optional bool per lattice point (lattice order): only those points become
+                particles, with the stencil springs between them (a mesh jelly, core/voxelize.py);
+                ``particle_mass`` is then one value or one per kept particle.
         """
         unknown = sorted(set(springs) - set(lattice.SPRING_TYPE_NAMES))
         if unknown:
@@ -161,11 +168,17 @@ class ModelBuilder:
         )
         start = self._particle_count
         spring_start = self._spring_count
-        self.add_particles(q, qd, particle_mass, world=world)
-        self._jelly_of[-1][:] = len(self.jellies)
         pairs, types = lattice.lattice_springs(shape)
         # Rest lengths come from the unscaled lattice, so an initial_scale starts the springs out of rest.
         rest = np.linalg.norm(rest_pose[pairs[:, 0]] - rest_pose[pairs[:, 1]], axis=1)
+        if mask is not None:
+            # Keep the masked points and the springs whose both ends are kept, renumbered.
+            mask = np.asarray(mask, dtype=bool)
+            kept = mask[pairs[:, 0]] & mask[pairs[:, 1]]
+            pairs, types, rest = (np.cumsum(mask) - 1)[pairs[kept]].astype(np.int32), types[kept], rest[kept]
+            q, qd = q[mask], qd[mask]
+        self.add_particles(q, qd, particle_mass, world=world)
+        self._jelly_of[-1][:] = len(self.jellies)
         for t, type_name in enumerate(lattice.SPRING_TYPE_NAMES):
             params = springs.get(type_name)
             sel = types == t
@@ -182,7 +195,7 @@ class ModelBuilder:
             spring_start=spring_start,
             spring_count=self._spring_count - spring_start,
             spacing=spacing,
-            surface_quads=lattice.surface_quads(shape),
+            surface_quads=lattice.surface_quads(shape) if mask is None else np.zeros((0, 4), dtype=np.int32),
             world=world,
             name=name or f"Jelly_{len(self.jellies)}",
         )
@@ -548,6 +561,9 @@ def populate(builder: ModelBuilder, data: dict, world=0):
     builder.contact_velocity_epsilon = sim["contact_velocity_epsilon"]
     builder.restitution_threshold_steps = sim["restitution_threshold_steps"]
     for i, j in enumerate(data["jelly"]):
+        if "mesh" in j:  # a closed mesh voxelised into a masked lattice
+            add_mesh_jelly(builder, j, world=world, name=f"Jelly_{i}", key=f"jelly.{i}")
+            continue
         builder.add_jelly(
             j["resolution"],
             j["size"],
