@@ -222,3 +222,32 @@ def test_bad_jelly_meshes_are_one_line_errors(tmp_path, capsys):
     assert "jelly.0.mesh_prim" in line and "/Nope" in line
     line = _error(capsys, tmp_path, 'resolution = 4\nsize = 1.0\nspacing = 0.1\n')
     assert "jelly.0.spacing" in line and "only a mesh jelly" in line
+
+
+def test_no_full_cell_is_a_one_line_error(tmp_path, capsys):
+    # The built-in mesh_pile's torus at 4 cells along its 0.5 m: the tube (0.15 m) is under 2 cells thick.
+    code = cli.main(["run", "mesh_pile", "--set", "jelly.1.resolution=4", "--frames", "1", "--quiet",
+                     "--out", str(tmp_path / "o.usdc")])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and len(err) == 1
+    assert err[0].startswith("error: mesh_pile.toml: jelly.1.resolution: ") and "finer lattice" in err[0]
+    assert err[0].endswith("(got 4)")
+
+
+def test_preview_shows_mesh_jelly_and_mesh_terrain(tmp_path):
+    # mesh_drop at a coarse lattice: the character (orange, deforming Surface) over the stairs (grey).
+    from matplotlib.colors import rgb_to_hsv
+    from matplotlib.image import imread
+
+    from softsim_warp.io.preview import render_png
+
+    out = tmp_path / "m.usdc"
+    assert cli.main(["run", "mesh_drop", "--set", "jelly.0.resolution=6", "--frames", "1", "--quiet",
+                     "--out", str(out)]) == 0
+    png = tmp_path / "m.png"
+    render_png(out, png, size=(320, 240))
+    rgb = imread(str(png))[..., :3].astype(np.float64)
+    hsv = rgb_to_hsv(rgb / rgb.max())
+    orange = (hsv[..., 0] > 0.03) & (hsv[..., 0] < 0.11) & (hsv[..., 1] > 0.5) & (hsv[..., 2] > 0.15)
+    grey = (hsv[..., 1] < 0.1) & (hsv[..., 2] > 0.2) & (hsv[..., 2] < 0.8)
+    assert orange.mean() > 0.005 and grey.mean() > 0.1

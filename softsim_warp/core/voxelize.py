@@ -147,9 +147,11 @@ def add_mesh_jelly(builder, j: dict, world=0, name="", key="jelly") -> object:
     shape, size = j["resolution"], j["size"]
     mask = voxelize(local, asset.triangles, shape, size, builder.device)
     count = int(mask.sum())
+    given_key, given = j.get("_mesh_given", ("resolution", j["resolution"]))
+    source = j.get("_source", "<scene>")
     if count < 2:
-        raise SceneError("<scene>", f"{key}.resolution", "the mesh holds fewer than 2 lattice points; use a finer lattice",
-                         j.get("resolution"))
+        raise SceneError(source, f"{key}.{given_key}", "the mesh holds fewer than 2 lattice points; use a finer lattice",
+                         given)
     mass = j["particle_mass"] if "particle_mass" in j else j["total_mass"] / count
     info = builder.add_jelly(
         shape,
@@ -169,7 +171,7 @@ def add_mesh_jelly(builder, j: dict, world=0, name="", key="jelly") -> object:
     try:
         corners, weights = embed(local, shape, size, mask)
     except ValueError as e:
-        raise SceneError("<scene>", f"{key}.resolution", f"{e}; use a finer lattice", j.get("resolution")) from None
+        raise SceneError(source, f"{key}.{given_key}", f"{e}; use a finer lattice", given) from None
     compact = np.cumsum(mask) - 1  # lattice index -> jelly particle index
     info.embedding = SurfaceEmbedding(asset.counts, asset.indices, compact[corners], weights, asset.primvars)
     return info

@@ -92,11 +92,16 @@ def _mesh_jelly(i, j, ctx, base):
                  f"({h:.4g} m) along an axis; use a finer lattice", j.get("spacing", j.get("resolution")))
     # Points per axis: the box spans the bounding box, a whole number of cells (a box mesh of k
     # cells gives exactly k + 1 points: the extent's rounding is forgiven).
+    given = ["spacing", j["spacing"]] if "spacing" in j else ["resolution", j["resolution"][0]]
     shape = [int(math.ceil(e / h - 1e-6)) + 1 for e in extent]
     j["resolution"] = shape
     j["size"] = [(n - 1) * h for n in shape]
     j["_mesh_scale"] = scale
     j["_mesh_center"] = (0.5 * (lo + hi)).tolist()
+    # For errors found when the lattice is voxelised (core/voxelize.py): the key the user wrote,
+    # its value and the scene file.
+    j["_mesh_given"] = given
+    j["_source"] = ctx.source
 
 
 def terrain_asset(t: dict, i: int, source="<scene>"):

@@ -115,6 +115,14 @@ def _author_primvars(mesh, primvars, Sdf, UsdGeom, Vt):
     api = UsdGeom.PrimvarsAPI(mesh.GetPrim())
     for name, type_name, interpolation, values, indices in primvars:
         pv = api.CreatePrimvar(name, Sdf.ValueTypeNames.Find(type_name), interpolation)
+        if indices is None and interpolation != UsdGeom.Tokens.constant:
+            # Repeated values (a UV shared by the corners around a vertex) are written once, indexed.
+            flat = np.asarray(values)
+            uniq, inverse = np.unique(flat.reshape(len(flat), -1), axis=0, return_inverse=True)
+            if len(uniq) < len(flat):
+                values = type(values).FromNumpy(np.ascontiguousarray(uniq.reshape((-1,) + flat.shape[1:]))) \
+                    if hasattr(type(values), "FromNumpy") else uniq.reshape((-1,) + flat.shape[1:])
+                indices = inverse.ravel()
         pv.Set(values)
         if indices is not None:
             pv.SetIndices(Vt.IntArray.FromNumpy(np.asarray(indices, dtype=np.int32)))
