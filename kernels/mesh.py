@@ -54,6 +54,38 @@ def build(scalar):
     resolve_contact = contact.build(scalar)["resolve_contact"]
 
     @wp.func
+    def closest_on_triangle(p: vec3, a: vec3, b: vec3, c: vec3):
+        """Closest point of triangle (a, b, c) to p (Ericson, Real-Time Collision Detection, 5.1.5)."""
+        ab = b - a
+        ac = c - a
+        ap = p - a
+        d1 = wp.dot(ab, ap)
+        d2 = wp.dot(ac, ap)
+        if d1 <= scalar(0.0) and d2 <= scalar(0.0):
+            return a
+        bp = p - b
+        d3 = wp.dot(ab, bp)
+        d4 = wp.dot(ac, bp)
+        if d3 >= scalar(0.0) and d4 <= d3:
+            return b
+        vc = d1 * d4 - d3 * d2
+        if vc <= scalar(0.0) and d1 >= scalar(0.0) and d3 <= scalar(0.0):
+            return a + ab * (d1 / (d1 - d3))
+        cp = p - c
+        d5 = wp.dot(ab, cp)
+        d6 = wp.dot(ac, cp)
+        if d6 >= scalar(0.0) and d5 <= d6:
+            return c
+        vb = d5 * d2 - d1 * d6
+        if vb <= scalar(0.0) and d2 >= scalar(0.0) and d6 <= scalar(0.0):
+            return a + ac * (d2 / (d2 - d6))
+        va = d3 * d6 - d5 * d4
+        if va <= scalar(0.0) and (d4 - d3) >= scalar(0.0) and (d5 - d6) >= scalar(0.0):
+            return b + (c - b) * ((d4 - d3) / ((d4 - d3) + (d5 - d6)))
+        denom = scalar(1.0) / (va + vb + vc)
+        return a + ab * (vb * denom) + ac * (vc * denom)
+
+    @wp.func
     def mesh_distance(
         x: vec3,
         mesh: wp.uint64,
@@ -80,25 +112,30 @@ def build(scalar):
         area2 = wp.length(nf)
         if area2 > scalar(0.0):
             nf = nf / area2
-        u = scalar(q.u)
-        v = scalar(q.v)
-        w = scalar(1.0) - u - v
-        # Well inside the face (float32 barycentrics): the distance to the face's plane.
-        tiny = scalar(1.0e-5)
-        if u > tiny and v > tiny and w > tiny:
-            return wp.dot(x - a, nf), nf
-        # Near an edge or a vertex: the distance to the closest point (u a + v b + w c).
-        d = x - (u * a + v * b + w * c)
+        # Over the face, its edges included (the point's projection on the face's plane inside the
+        # triangle, to a relative 1e-5 of its size, far above rounding): the distance to the face's
+        # plane, as an analytic plane measures it. The BVH's float32 barycentrics only chose the face.
+        phi = wp.dot(x - a, nf)
+        pp = x - phi * nf
+        tol = -scalar(1.0e-5) * area2
+        if (
+            wp.dot(wp.cross(b - a, pp - a), nf) >= tol
+            and wp.dot(wp.cross(c - b, pp - b), nf) >= tol
+            and wp.dot(wp.cross(a - c, pp - c), nf) >= tol
+        ):
+            return phi, nf
+        d = x - closest_on_triangle(x, a, b, c)
         dist = wp.length(d)
+        if dist == scalar(0.0):
+            return scalar(0.0), nf
+        # Beside an edge or a vertex: the distance to the closest point, signed.
         side = scalar(1.0)
         if closed != 0:
             if q.sign < wp.float32(0.0):
                 side = scalar(-1.0)
         elif wp.dot(d, nf) < scalar(0.0):
             side = scalar(-1.0)
-        if dist > scalar(0.0):
-            return side * dist, d * (side / dist)
-        return scalar(0.0), nf
+        return side * dist, d * (side / dist)
 
     @wp.kernel(module="unique")
     def collide_meshes(
@@ -153,4 +190,4 @@ def build(scalar):
             q_out[i] = x
             qd_out[i] = v
 
-    return {"mesh_distance": mesh_distance, "collide_meshes": collide_meshes, "mark_inside_mesh": mark_inside_mesh}
+    return {"closest_on_triangle": closest_on_triangle, "mesh_distance": mesh_distance, "collide_meshes": collide_meshes, "mark_inside_mesh": mark_inside_mesh}

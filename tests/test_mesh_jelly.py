@@ -120,6 +120,7 @@ def test_undeformed_jelly_reproduces_the_asset(ball):
     model = build_model(scene, "cpu")
     info = model.jellies[0]
     assert 0 < info.particle_count < np.prod(info.shape)
+    assert model.particle_mass_host.sum() == pytest.approx(1.0, rel=1e-12)  # total_mass over the points inside
     surface = SurfaceMap.of(info)
     x32 = model.particle_q_host.astype(np.float32)
     got = surface.points(x32).astype(np.float64)

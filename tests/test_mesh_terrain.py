@@ -77,9 +77,7 @@ def _trajectory(scene, device, method, steps, every):
     return np.array(out)
 
 
-# Explicit methods: the implicit solve has no mesh touch test (kernels/implicit.py), so it constrains
-# mesh contacts along the response's push and differs from the plane by up to 1.5 cm here.
-@pytest.mark.parametrize("method", ["symplectic", "rk4"])
+@pytest.mark.parametrize("method", ["symplectic", "rk4", "implicit"])
 def test_jelly_on_mesh_plane_follows_the_analytic_plane(tmp_path, device, method):
     # 0.4 s: the drop, the impact (restitution) and the first sliding contact with friction.
     path = write_mesh(tmp_path / "ground.usda", *quad([0, 1, 0]))
@@ -204,3 +202,7 @@ def test_mesh_terrain_transform_and_xforms(tmp_path):
     # (x, 1, z) -> scale (2x, 2, 2z) -> rotate about z by 90: (-2, 2x, 2z) -> move: (-2, 2x - 3, 2z).
     assert np.allclose(b.points[:, 0], -2.0)
     assert np.allclose(sorted(set(np.round(b.points[:, 1], 9))), [-5.0, -1.0])
+    from softsim_warp.core.model import rotation_matrix
+
+    m, _ = transform_matrix({"rotation": {"axis": [1, 2, 3], "degrees": 37.0}})
+    assert np.allclose(m, rotation_matrix([1, 2, 3], 37.0), atol=1e-15)

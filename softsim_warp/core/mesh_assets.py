@@ -10,6 +10,7 @@ lines naming the scene file, the key and the value.
 from __future__ import annotations
 
 import functools
+import math
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -216,11 +217,19 @@ def _load_usd(path, prim_path, every, source, key):
 
 def transform_matrix(transform: dict | None) -> tuple[np.ndarray, np.ndarray]:
     """``(3x3 matrix, translation)`` of a scene's ``transform = {translate, rotation, scale}``: scale, then rotate, then translate."""
-    from .model import rotation_matrix  # noqa: PLC0415 - model imports this module's users
-
     if not transform:
         return np.eye(3), np.zeros(3)
     scale = np.broadcast_to(np.asarray(transform.get("scale", 1.0), dtype=np.float64), (3,))
     rot = transform.get("rotation") or {}
-    r = rotation_matrix(rot.get("axis", (0.0, 1.0, 0.0)), rot.get("degrees", 0.0))
+    r = _rotation(rot.get("axis", (0.0, 1.0, 0.0)), rot.get("degrees", 0.0))
     return r @ np.diag(scale), np.asarray(transform.get("translate", (0.0, 0.0, 0.0)), dtype=np.float64)
+
+
+def _rotation(axis, degrees):
+    """Rotation by ``degrees`` about ``axis`` (Rodrigues' formula, as ``model.rotation_matrix``,
+    which this module cannot import: the model imports it)."""
+    a = np.asarray(axis, dtype=np.float64)
+    a = a / np.linalg.norm(a)
+    t = math.radians(degrees)
+    k = np.array([[0, -a[2], a[1]], [a[2], 0, -a[0]], [-a[1], a[0], 0]])
+    return np.eye(3) + math.sin(t) * k + (1 - math.cos(t)) * (k @ k)

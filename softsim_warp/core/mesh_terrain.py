@@ -31,9 +31,19 @@ def attach_meshes(m, meshes: list, arr, first):
     meshes = sorted(meshes, key=lambda it: it["world"])
     m.meshes = meshes
     m.mesh_count = len(meshes)
-    if not meshes:
-        return
     m.mesh_first = first(meshes)
+    if not meshes:
+        # Empty arrays (kernels that take every terrain kind, the implicit touch test, read none).
+        m.mesh_bvh = []
+        m.mesh_id = wp.zeros(0, dtype=wp.uint64, device=m.device)
+        m.mesh_closed = wp.zeros(0, dtype=wp.int32, device=m.device)
+        m.mesh_reach = wp.zeros(0, dtype=m.scalar, device=m.device)
+        m.mesh_tri_start = wp.zeros(0, dtype=wp.int32, device=m.device)
+        m.mesh_tris = wp.zeros(0, dtype=wp.vec3i, device=m.device)
+        m.mesh_points = wp.zeros(0, dtype=m.vec3, device=m.device)
+        m.mesh_restitution = wp.zeros(0, dtype=m.scalar, device=m.device)
+        m.mesh_friction = wp.zeros(0, dtype=m.scalar, device=m.device)
+        return
     m.mesh_bvh = []
     tri_start, tris, points, offset = [], [], [], 0
     for it in meshes:
@@ -75,6 +85,19 @@ def mesh_arrays(model) -> tuple:
         model.mesh_points,
         model.mesh_restitution,
         model.mesh_friction,
+    )
+
+
+def mesh_touch_arrays(model) -> tuple:
+    """The meshes' arrays that the implicit integrator's touch test takes (``constrain_contacts``)."""
+    return (
+        model.mesh_first,
+        model.mesh_id,
+        model.mesh_closed,
+        model.mesh_reach,
+        model.mesh_tri_start,
+        model.mesh_tris,
+        model.mesh_points,
     )
 
 

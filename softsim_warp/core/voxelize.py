@@ -140,22 +140,52 @@ def _nearest_full(p, cell, full, axes, ncell, radius):
     return c[rows, k], np.isfinite(gap[rows, k])
 
 
+class MeshLatticeError(ValueError):
+    """A mesh that gives no usable lattice at the asked resolution (too few points or no full cell)."""
+
+
+def mesh_lattice(j: dict, device=None) -> tuple:
+    """The masked lattice and surface embedding of a validated mesh jelly entry ``j``.
+
+    Returns ``(asset (outward), mask (bool, lattice order), corners (V, 8) jelly particle indices,
+    weights (V, 8))``. Computed once per asset and lattice (validation computes it, on the default
+    device, to count the particles; the builder then reuses it); raises :class:`MeshLatticeError`.
+    """
+    raw = load_mesh(j["mesh"], j.get("mesh_prim"), every=False)  # cached: one object per file version
+    key = (id(raw), tuple(j["resolution"]), tuple(j["size"]), float(j["_mesh_scale"]), tuple(j["_mesh_center"]))
+    hit = _LATTICES.get(key)
+    if hit is None or hit[0] is not raw:
+        asset = raw.outward()
+        local = (asset.points - np.asarray(j["_mesh_center"])) * j["_mesh_scale"]
+        shape, size = j["resolution"], j["size"]
+        mask = voxelize(local, asset.triangles, shape, size, device)
+        if mask.sum() < 2:
+            raise MeshLatticeError("the mesh holds fewer than 2 lattice points")
+        try:
+            corners, weights = embed(local, shape, size, mask)
+        except ValueError as e:
+            raise MeshLatticeError(str(e)) from None
+        compact = np.cumsum(mask) - 1  # lattice index -> jelly particle index
+        if len(_LATTICES) >= 16:
+            _LATTICES.pop(next(iter(_LATTICES)))
+        hit = _LATTICES[key] = (raw, asset, mask, compact[corners], weights)
+    return hit[1:]
+
+
+_LATTICES: dict = {}  # mesh_lattice's results (the file's asset is kept in the value, so its id stays unique)
+
+
 def add_mesh_jelly(builder, j: dict, world=0, name="", key="jelly") -> object:
     """Add a validated mesh jelly (``[[jelly]] mesh = ...``) to ``builder``; returns its JellyInfo."""
-    asset = load_mesh(j["mesh"], j.get("mesh_prim"), every=False, key=f"{key}.mesh").outward()
-    local = (asset.points - np.asarray(j["_mesh_center"])) * j["_mesh_scale"]
-    shape, size = j["resolution"], j["size"]
-    mask = voxelize(local, asset.triangles, shape, size, builder.device)
-    count = int(mask.sum())
-    given_key, given = j.get("_mesh_given", ("resolution", j["resolution"]))
-    source = j.get("_source", "<scene>")
-    if count < 2:
-        raise SceneError(source, f"{key}.{given_key}", "the mesh holds fewer than 2 lattice points; use a finer lattice",
-                         given)
-    mass = j["particle_mass"] if "particle_mass" in j else j["total_mass"] / count
+    try:
+        asset, mask, corners, weights = mesh_lattice(j, builder.device)
+    except MeshLatticeError as e:
+        given_key, given = j.get("_mesh_given", ("resolution", j["resolution"]))
+        raise SceneError(j.get("_source", "<scene>"), f"{key}.{given_key}", f"{e}; use a finer lattice", given) from None
+    mass = j["particle_mass"] if "particle_mass" in j else j["total_mass"] / int(mask.sum())
     info = builder.add_jelly(
-        shape,
-        size,
+        j["resolution"],
+        j["size"],
         mass,
         j["springs"],
         center=j["center"],
@@ -168,10 +198,5 @@ def add_mesh_jelly(builder, j: dict, world=0, name="", key="jelly") -> object:
         initial_scale=j.get("initial_scale"),
         mask=mask,
     )
-    try:
-        corners, weights = embed(local, shape, size, mask)
-    except ValueError as e:
-        raise SceneError(source, f"{key}.{given_key}", f"{e}; use a finer lattice", given) from None
-    compact = np.cumsum(mask) - 1  # lattice index -> jelly particle index
-    info.embedding = SurfaceEmbedding(asset.counts, asset.indices, compact[corners], weights, asset.primvars)
+    info.embedding = SurfaceEmbedding(asset.counts, asset.indices, corners, weights, asset.primvars)
     return info

@@ -9,18 +9,21 @@ anything is built.
 A mesh jelly's lattice is a box lattice with points missing: validation fills in the box, the
 jelly's ``resolution`` (particles per axis) and ``size`` (edge lengths [m]), centred on the asset's
 bounding box, so every whole-scene check of a box jelly (precision, memory, terrain overlap) holds
-for it too, counting the box's points as an upper bound. ``_mesh_scale`` (the asset's scale) and
+for it too, counting the box's points as an upper bound. The lattice is voxelised here too (once: the builder
+reuses it), so a ``total_mass`` becomes the per-particle mass of the points really inside. ``_mesh_scale`` (the asset's scale) and
 ``_mesh_center`` (its bounding-box centre in its own frame [m]) place the asset in the box.
 """
 
 from __future__ import annotations
 
 import math
+from importlib import resources
 from pathlib import Path
 
 import numpy as np
 
 from ..core.mesh_assets import load_mesh, transform_matrix
+from ..core.voxelize import MeshLatticeError, mesh_lattice
 
 
 def scene_base(source: str) -> Path:
@@ -28,9 +31,7 @@ def scene_base(source: str) -> Path:
     p = Path(source)
     if p.is_file():
         return p.resolve().parent
-    from .scene import builtin_dir  # noqa: PLC0415 - scene imports this module
-
-    return Path(str(builtin_dir()))
+    return Path(str(resources.files("softsim_warp.scenes")))  # as scene.builtin_dir
 
 
 def _resolve(path: str, base: Path) -> str:
@@ -102,6 +103,14 @@ def _mesh_jelly(i, j, ctx, base):
     # its value and the scene file.
     j["_mesh_given"] = given
     j["_source"] = ctx.source
+    # Voxelise now (core/voxelize.mesh_lattice, kept for the builder): the particle count gives a
+    # total_mass its per-particle mass, and a lattice too coarse for the mesh is an error here.
+    try:
+        mask = mesh_lattice(j)[1]
+    except MeshLatticeError as e:
+        ctx.fail(f"{key}.{given[0]}", f"{e}; use a finer lattice", given[1])
+    if "total_mass" in j and "particle_mass" not in j:
+        j["particle_mass"] = j.pop("total_mass") / int(mask.sum())
 
 
 def terrain_asset(t: dict, i: int, source="<scene>"):

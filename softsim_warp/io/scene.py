@@ -766,7 +766,7 @@ def _unit(v):
 
 def validate(data: dict, source: str, base=None) -> dict:
     """Check ``data`` against the schema and the whole-scene checks; ``base`` is the directory that
-    relative mesh paths start from (the scene file's; default: the working directory)."""
+    relative mesh paths start from (default: the scene file's, or the built-in scenes' folder)."""
     ctx = _Context(source)
     out = SCHEMA.check(data, "", ctx)
     resolve_meshes(out, ctx, base)
@@ -788,7 +788,7 @@ def validate(data: dict, source: str, base=None) -> dict:
             ctx.fail(f"{key}.particle_mass", "give exactly one of particle_mass and total_mass, not both", both)
         if "particle_mass" not in jelly and "total_mass" not in jelly:
             ctx.fail(f"{key}.particle_mass", "is required (or give total_mass)")
-        if "total_mass" in jelly and "mesh" not in jelly:  # a mesh jelly's count is known once voxelised
+        if "total_mass" in jelly:
             jelly["particle_mass"] = jelly.pop("total_mass") / count
         if "initial_scale" in jelly and any(c == 0.0 for c in jelly["initial_scale"]):
             # A zero axis would put particles on top of each other: springs without a direction.
@@ -814,8 +814,7 @@ def load_scene(name_or_path: str, overrides=()) -> Scene:
     """Load a scene file or a built-in scene by name, apply ``--set`` overrides and validate it."""
     path, source, data = read_scene_data(name_or_path)
     applied = apply_overrides(data, [parse_override(item) for item in overrides])
-    base = path.parent if path.is_file() else Path(str(builtin_dir()))  # mesh paths start at the scene file
-    validated = validate(data, source, base)
+    validated = validate(data, source)
     return Scene(validated, source=source, name=validated.get("name", path.stem), overrides=applied)
 
 
