@@ -85,10 +85,10 @@ def test_voxelised_sphere_and_torus_volume():
     assert v == pytest.approx(2 * math.pi**2 * 1.0 * 0.5**2, rel=0.03)
 
 
-def test_box_mesh_gives_exactly_the_box_lattice(tmp_path):
+def test_box_mesh_gives_exactly_the_box_lattice(tmp_path, device):
     size = [1.0, 0.5, 0.75]
     path = write_usd(tmp_path / "box.usda", *box_mesh(size))
-    meshed = build_model(_mesh_scene(path, resolution=4, rotation={"axis": [1, 1, 0], "degrees": 25.0}), "cpu")
+    meshed = build_model(_mesh_scene(path, resolution=4, rotation={"axis": [1, 1, 0], "degrees": 25.0}), device)
     box = scene_from_dict(
         {
             "simulation": {"dt": 1e-3, "frames": 1},

@@ -206,3 +206,43 @@ def test_mesh_terrain_transform_and_xforms(tmp_path):
 
     m, _ = transform_matrix({"rotation": {"axis": [1, 2, 3], "degrees": 37.0}})
     assert np.allclose(m, rotation_matrix([1, 2, 3], 37.0), atol=1e-15)
+
+
+def test_open_sheet_collides_from_its_front_only(tmp_path, device):
+    # Two loose particles over and under an open square facing up (thickness 0.1 m): the one above
+    # lands and rests on it; the one 0.5 m under it never comes within reach and falls freely,
+    # exactly as symplectic Euler integrates gravity: y_n = y_0 - g h^2 n (n + 1) / 2.
+    from softsim_warp.core.mesh_assets import load_mesh
+    from softsim_warp.core.model import ModelBuilder
+
+    path = write_mesh(tmp_path / "sheet.usda", *quad([0, 1, 0], size=4.0))
+    b = ModelBuilder()
+    b.add_particles([[0.3, 0.2, 0.1], [0.3, -0.5, 0.1]], [0.0, 0.0, 0.0], 1.0)
+    b.add_mesh(load_mesh(path), restitution=0.0, friction=0.5, thickness=0.1)
+    model = b.finalize(device, "float64")
+    assert model.mesh_closed.numpy().tolist() == [0]
+    integ = make_integrator("symplectic", model)
+    s0, s1 = model.state(), model.state()
+    h, n = 1e-3, 400
+    for _ in range(n):
+        integ.step(s0, s1, h)
+        s0, s1 = s1, s0
+    q = s0.particle_q.numpy()
+    assert 0.0 <= q[0, 1] <= 0.01  # resting on the sheet, within the contact layer
+    assert q[1, 1] == pytest.approx(-0.5 - 9.8 * h * h * n * (n + 1) / 2, abs=1e-12)
+
+
+def test_scene_without_meshes_launches_no_mesh_kernel(monkeypatch):
+    # Model only what a scene needs: jelly_drop's steps launch no mesh kernel.
+    import warp as wp
+
+    model = build_model(load_scene("jelly_drop", ["jelly.0.resolution=3"]), "cpu")
+    assert model.mesh_count == 0
+    launched = []
+    real = wp.launch
+    monkeypatch.setattr(wp, "launch", lambda kernel, *a, **k: (launched.append(kernel.key), real(kernel, *a, **k))[1])
+    for method in ("symplectic", "implicit"):
+        integ = make_integrator(method, model)
+        s0, s1 = model.state(), model.state()
+        integ.step(s0, s1, 1e-3)
+    assert launched and not any("mesh" in key for key in launched)

@@ -241,6 +241,7 @@ def plan_variants(args) -> Plan:
     """Load the scene (with --set and flags), expand --integrators x --vary and validate every copy."""
 
     path, source, base = scene_mod.read_scene_data(args.scene)
+    common.init_warp_for_meshes(base, args)
     items = [scene_mod.parse_override(item) for item in args.overrides] + common.flag_overrides(args)
     scene_mod.apply_overrides(base, items)
 

@@ -595,5 +595,8 @@ def populate(builder: ModelBuilder, data: dict, world=0):
     for s in data.get("sphere", []):
         builder.add_sphere(s["center"], s["radius"], s["restitution"], s["friction"], world=world)
     for i, t in enumerate(data.get("mesh", [])):
-        asset = load_mesh(t["path"], t.get("prim"), every=True, key=f"mesh.{i}.path").transformed(*transform_matrix(t.get("transform")))
-        builder.add_mesh(asset, t["restitution"], t["friction"], t["thickness"], world=world)
+        asset = load_mesh(t["path"], t.get("prim"), every=True, key=f"mesh.{i}.path")
+        asset = asset.transformed(*transform_matrix(t.get("transform")))
+        # The output prim is named after the asset's Mesh (Stairs_0); several merged Meshes: Mesh_0.
+        name = asset.name if asset.name.isidentifier() else "Mesh"
+        builder.add_mesh(asset, t["restitution"], t["friction"], t["thickness"], world=world, name=name)

@@ -17,6 +17,7 @@ import math
 import numpy as np
 
 from ..core.model import rotation_matrix
+from ..core.voxelize import mesh_lattice
 from .mesh_scene import mesh_signed_distance_entry
 from .resources import check_host_build
 
@@ -92,11 +93,13 @@ def jelly_points(jelly: dict, chunk: int = _CHUNK):
         # broadcasting (an (N, 3) @ (3, 3) product is many times slower in NumPy).
         ey = axes[1][None, :, None, None] * rot[:, 1]
         ez = axes[2][None, None, :, None] * rot[:, 2]
+    # A mesh jelly is its box lattice with the points outside the mesh left out (io/mesh_scene.py).
+    inside = mesh_lattice(jelly)[1].reshape(shape[0], -1) if "mesh" in jelly else None
     for i0 in range(0, shape[0], rows):
         with np.errstate(all="ignore"):
             ex = axes[0][i0 : i0 + rows, None, None, None] * rot[:, 0]
             pts = ((ex + center) + ey + ez).reshape(-1, 3)
-        yield pts
+        yield pts if inside is None else pts[inside[i0 : i0 + rows].ravel()]
 
 
 def _check_precision(value, key, ctx, lo, hi, precision):
