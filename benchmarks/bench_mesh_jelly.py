@@ -6,9 +6,10 @@ Run::
     python benchmarks/bench_mesh_jelly.py --device cuda:0 --res 20 40 80 --json bench_mesh_jelly_cuda.json
 
 For each resolution R a sphere mesh (and a torus) is voxelised into a jelly of R cells across
-(``[[jelly]] mesh = ...``: the masked lattice, on the spring-list path), and a box jelly with the
-nearest cube of the same particle count is built twice: on the lattice path (the default for a
-box) and on the spring-list path. Each model is compiled and warmed up, then ``--steps`` steps
+(``[[jelly]] mesh = ...``), the sphere on the masked-lattice path (the CUDA default,
+core/masked_lattice.py; forced here on the CPU too) and on the spring list, the torus on the
+masked path; and a box jelly with the nearest cube of the same particle count is built on the
+lattice path (the default for a box) and on the spring list. Each model is compiled and warmed up, then ``--steps`` steps
 of ``--integrator`` are timed ``--repeats`` times (on CUDA one captured graph, wall time; on the CPU
 launch by launch, this thread's CPU time). The table gives the median time per particle-step
 and the ratio of each case to the box on the lattice path, the issue's measure (a mesh jelly
@@ -28,7 +29,8 @@ from pathlib import Path
 
 import numpy as np
 
-from softsim_warp.core.model import build_model
+from softsim_warp.core.masked_lattice import attach_masked
+from softsim_warp.core.model import ModelBuilder, populate
 from softsim_warp.core.stepper import make_integrator
 from softsim_warp.core.terrain import sphere_mesh
 from softsim_warp.io.scene import scene_from_dict
@@ -71,13 +73,19 @@ def scene(jelly):
 class Case:
     """One model and integrator, warmed up, that times ``steps`` steps (a captured graph on CUDA)."""
 
-    def __init__(self, name, scn, device, integrator, steps, dt=1e-4, force_path="auto"):
+    def __init__(self, name, scn, device, integrator, steps, dt=1e-4, force_path="auto", gather=False):
         import warp as wp  # noqa: PLC0415
 
         self.name, self.wp, self.device, self.steps, self.dt = name, wp, device, steps, dt
-        self.model = build_model(scn, device=device, force_path=force_path)
-        self.particles = self.model.particle_count
-        self.path = "lattice" if self.model.lattice is not None else "springs"
+        builder = ModelBuilder(scn.sim["gravity"])
+        builder.device = device
+        populate(builder, scn.data)
+        self.model = builder.finalize(device, scn.sim["precision"], force_path=force_path)
+        if gather:  # the masked path on any device (finalize takes it on CUDA only)
+            attach_masked(builder, self.model, kernel="gather")
+        m = self.model
+        self.particles = m.particle_count
+        self.path = "lattice" if m.lattice is not None else "masked" if getattr(m, "masked", None) else "springs"
         self.integ = make_integrator(integrator, self.model)
         self.states = [self.model.state(), self.model.state()]
         t0 = time.perf_counter()
@@ -125,10 +133,13 @@ def main(argv=None) -> int:
         sphere = write_usd(Path(tmp) / "sphere.usda", *sphere_mesh([0, 0, 0], 1.0, rings=48, segments=96))
         torus = write_usd(Path(tmp) / "torus.usda", *torus_mesh())
         for res in args.res:
-            cases = []
-            for shape_name, path in (("sphere", sphere), ("torus", torus)):
-                cases.append(Case(f"{shape_name}_mesh", scene({"mesh": path, "resolution": res, "size": 1.0}),
-                                  args.device, args.integrator, args.steps))
+            sphere_scene = scene({"mesh": sphere, "resolution": res, "size": 1.0})
+            cases = [
+                Case("sphere_masked", sphere_scene, args.device, args.integrator, args.steps, gather=True),
+                Case("sphere_springs", sphere_scene, args.device, args.integrator, args.steps, force_path="springs"),
+                Case("torus_masked", scene({"mesh": torus, "resolution": res, "size": 1.0}), args.device,
+                     args.integrator, args.steps, gather=True),
+            ]
             n = round(cases[0].particles ** (1.0 / 3.0))
             box = scene({"resolution": [n, n, n], "size": 1.0})
             cases.append(Case("box_lattice", box, args.device, args.integrator, args.steps))
@@ -137,7 +148,7 @@ def main(argv=None) -> int:
             for _ in range(args.repeats):
                 for c in cases:  # interleaved, so drifts of the machine hit every case alike
                     times[c.name].append(c.time())
-            ref = statistics.median(times["box_lattice"]) / cases[2].particles
+            ref = statistics.median(times["box_lattice"]) / cases[3].particles
             for c in cases:
                 per = statistics.median(times[c.name]) / c.particles
                 rows.append({
@@ -145,9 +156,9 @@ def main(argv=None) -> int:
                     "seconds_per_step": statistics.median(times[c.name]), "ns_per_particle_step": per * 1e9,
                     "ratio_to_box_lattice": per / ref, "compile_seconds": c.compile_seconds,
                 })
-    print(f"{'res':>4} {'case':<12} {'path':<8} {'particles':>9} {'ns/particle-step':>17} {'x box lattice':>14}")
+    print(f"{'res':>4} {'case':<15} {'path':<8} {'particles':>9} {'ns/particle-step':>17} {'x box lattice':>14}")
     for r in rows:
-        print(f"{r['res']:>4} {r['case']:<12} {r['path']:<8} {r['particles']:>9} {r['ns_per_particle_step']:>17.2f} "
+        print(f"{r['res']:>4} {r['case']:<15} {r['path']:<8} {r['particles']:>9} {r['ns_per_particle_step']:>17.2f} "
               f"{r['ratio_to_box_lattice']:>14.2f}")
     if args.json:
         meta = {"device": str(wp.get_device(args.device)), "integrator": args.integrator, "steps": args.steps,

@@ -16,6 +16,7 @@ from . import lattice
 from ..kernels import get_kernels
 from .forces import attach
 from .lattice_model import LatticeData, detect_lattice
+from .masked_lattice import attach_masked
 from .mesh_assets import load_mesh, transform_matrix
 from .mesh_terrain import attach_meshes, mesh_anchors, mesh_output
 from .terrain import bowl_mesh, sphere_mesh
@@ -53,6 +54,8 @@ class JellyInfo:
     name: str = ""
     embedding: object = None
     """A mesh jelly's surface in its lattice (``core.voxelize.SurfaceEmbedding``), else None."""
+    lattice_index: np.ndarray = None
+    """A masked jelly's particles' indices in its box lattice, shape [particle_count], else None (all points)."""
 
 
 class ModelBuilder:
@@ -198,6 +201,7 @@ class ModelBuilder:
             surface_quads=lattice.surface_quads(shape) if mask is None else np.zeros((0, 4), dtype=np.int32),
             world=world,
             name=name or f"Jelly_{len(self.jellies)}",
+            lattice_index=None if mask is None else np.flatnonzero(mask),
         )
         self.jellies.append(info)
         return info
@@ -333,6 +337,7 @@ class ModelBuilder:
                 m.lattice = LatticeData(layout, device, scalar, np_scalar, m.particle_count, particle_mass=mass)
         if m.lattice is None:
             m._make_spring_arrays()
+        attach_masked(self, m, force_path)  # mesh jellies: the lattice stencil over present points
         # --- end lattice fast path
 
         m.gravity = vec3(*[scalar(g) for g in self.gravity])
