@@ -322,3 +322,13 @@ def test_masked_lattice_trajectory_matches_the_spring_list(device, ball):
             s0, s1 = s1, s0
         out.append(s0.particle_q.numpy())
     assert np.abs(out[0] - out[1]).max() < 1e-10
+
+
+def test_uv_seam_split_vertices_still_make_a_closed_mesh(tmp_path):
+    # An exporter splits vertices along UV seams: a cube with 24 vertices (4 per face) is closed.
+    pts, counts, idx = box_mesh([1.0, 1.0, 1.0])
+    faces = np.reshape(idx, (6, 4))
+    split = np.concatenate([pts[f] for f in faces])
+    write_usd(tmp_path / "split.usda", split, counts, np.arange(24))
+    a = load_mesh(str(tmp_path / "split.usda"))
+    assert a.points.shape == (24, 3) and a.closed and a.volume() == pytest.approx(1.0)

@@ -45,8 +45,12 @@ class MeshAsset:
 
     @functools.cached_property
     def edge_uses(self) -> tuple:
-        """``(boundary edges, non-manifold edges)``: edges with one face, edges with more than two."""
-        t = self.triangles
+        """``(boundary edges, non-manifold edges)``: edges with one face, edges with more than two.
+
+        Vertices at the same position count as one (a UV seam splits vertices, not the surface).
+        """
+        _, weld = np.unique(self.points, axis=0, return_inverse=True)
+        t = weld.ravel()[self.triangles]
         e = np.sort(np.concatenate([t[:, [0, 1]], t[:, [1, 2]], t[:, [2, 0]]]), axis=1)
         _, count = np.unique(e, axis=0, return_counts=True)
         return int((count == 1).sum()), int((count > 2).sum())
