@@ -53,6 +53,8 @@ def attach_meshes(m, meshes: list, arr, first):
             wp.Mesh(
                 points=wp.array(np.asarray(a.points, dtype=np.float32), dtype=wp.vec3, device=m.device),
                 indices=wp.array(tri.ravel(), dtype=wp.int32, device=m.device),
+                # A closed mesh tells inside from outside by winding number (else Warp casts rays).
+                support_winding_number=a.closed,
             )
         )
         tri_start.append(sum(t.shape[0] for t in tris))

@@ -60,6 +60,7 @@ def voxelize(points, triangles, shape, size, device=None) -> np.ndarray:
     bvh = wp.Mesh(
         points=wp.array(np.asarray(points, dtype=np.float32), dtype=wp.vec3, device=device),
         indices=wp.array(np.asarray(triangles, dtype=np.int32).ravel(), dtype=wp.int32, device=device),
+        support_winding_number=True,
     )
     inside = wp.zeros(int(np.prod(shape)), dtype=wp.int32, device=device)
     h = float(spacing[spacing > 0].min()) if (spacing > 0).any() else 1.0
