@@ -358,3 +358,20 @@ def test_uv_seam_split_vertices_still_make_a_closed_mesh(tmp_path):
     write_usd(tmp_path / "split.usda", split, counts, np.arange(24))
     a = load_mesh(str(tmp_path / "split.usda"))
     assert a.points.shape == (24, 3) and a.closed and a.volume() == pytest.approx(1.0)
+
+
+def test_demo_assets_are_what_the_script_makes(tmp_path):
+    # scenes/assets/*.usda are generated (assets/make_assets.py), never edited or downloaded.
+    import subprocess
+    from pathlib import Path
+
+    root = Path(__file__).resolve().parents[1]
+    subprocess.run([sys.executable, str(root / "assets" / "make_assets.py"), "--out", str(tmp_path)], check=True,
+                   capture_output=True)
+    made = sorted(p.name for p in tmp_path.glob("*.usda"))
+    assert made == sorted(p.name for p in (root / "scenes" / "assets").glob("*.usda"))
+    for name in made:
+        assert (tmp_path / name).read_bytes() == (root / "scenes" / "assets" / name).read_bytes(), name
+        asset = load_mesh(str(tmp_path / name))
+        if name != "bumpy_floor.usda":  # the floor is an open sheet facing up; the rest are closed
+            assert asset.closed and asset.volume() > 0
