@@ -46,7 +46,7 @@ reading anything back to the host and can be captured with ``wp.capture_while``.
 
 import warp as wp
 
-from . import contact
+from . import contact, mesh
 
 wp.set_module_options({"enable_backward": False})
 
@@ -102,6 +102,7 @@ def build(scalar):
     bowl_distance = contact_funcs["bowl_distance"]
     bowl_holds = contact_funcs["bowl_holds"]
     sphere_distance = contact_funcs["sphere_distance"]
+    mesh_distance = mesh.build(scalar)["mesh_distance"]
 
     @wp.func
     def spring_jacobian(d: vec3, rest: scalar, ks: scalar, kd: scalar, h: scalar):
@@ -314,6 +315,29 @@ def build(scalar):
                 normal = nrm
         return touching, normal
 
+    @wp.func
+    def touch_meshes(
+        w: int,
+        xf: vec3,
+        touching: int,
+        normal: vec3,
+        mesh_first: wp.array(dtype=wp.int32),
+        mesh_id: wp.array(dtype=wp.uint64),
+        mesh_closed: wp.array(dtype=wp.int32),
+        mesh_reach: wp.array(dtype=scalar),
+        mesh_tri_start: wp.array(dtype=wp.int32),
+        mesh_tris: wp.array(dtype=wp.vec3i),
+        mesh_points: wp.array(dtype=vec3),
+        eps: scalar,
+    ):
+        """The same for triangle-mesh terrain (as collide_meshes, kernels/mesh.py)."""
+        for m in range(mesh_first[w], mesh_first[w + 1]):
+            phi, nrm = mesh_distance(xf, mesh_id[m], mesh_closed[m], mesh_reach[m], mesh_tri_start[m], mesh_tris, mesh_points)
+            if phi < eps:
+                touching = touching + 1
+                normal = nrm
+        return touching, normal
+
     @wp.kernel(module="unique")
     def constrain_contacts(
         h: scalar,
@@ -333,6 +357,13 @@ def build(scalar):
         sphere_first: wp.array(dtype=wp.int32),
         sphere_center: wp.array(dtype=vec3),
         sphere_radius: wp.array(dtype=scalar),
+        mesh_first: wp.array(dtype=wp.int32),
+        mesh_id: wp.array(dtype=wp.uint64),
+        mesh_closed: wp.array(dtype=wp.int32),
+        mesh_reach: wp.array(dtype=scalar),
+        mesh_tri_start: wp.array(dtype=wp.int32),
+        mesh_tris: wp.array(dtype=wp.vec3i),
+        mesh_points: wp.array(dtype=vec3),
         contact_epsilon: scalar,
         # The step's start, and its result before and after the contact response:
         q_n: wp.array(dtype=vec3),
@@ -395,6 +426,10 @@ def build(scalar):
                 sphere_center,
                 sphere_radius,
                 contact_epsilon,
+            )
+            touching, nrm = touch_meshes(
+                w, xf, touching, nrm, mesh_first, mesh_id, mesh_closed, mesh_reach, mesh_tri_start, mesh_tris,
+                mesh_points, contact_epsilon,
             )
             if touching != 1:
                 # No single surface (several, or a contact hook's primitive): the direction in
@@ -957,6 +992,7 @@ def build(scalar):
         "eval_spring_jacobians": eval_spring_jacobians,
         "build_system": build_system,
         "constrain_contacts": constrain_contacts,
+        "touch_meshes": touch_meshes,
         "constrain_last_system": constrain_last_system,
         "measure_particle_restitution": measure_particle_restitution,
         "measure_spring_restitution": measure_spring_restitution,

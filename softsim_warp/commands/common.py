@@ -69,6 +69,7 @@ def blame_flag(error: SceneError, args) -> UserError:
 def load_for_cli(args):
     """Load the scene named on the command line with --set and flag overrides applied and validated."""
     path, source, data = scene_mod.read_scene_data(args.scene)
+    init_warp_for_meshes(data, args)
     items = [scene_mod.parse_override(item) for item in args.overrides] + flag_overrides(args)
     try:
         scene_mod.apply_overrides(data, items)
@@ -80,6 +81,14 @@ def load_for_cli(args):
     except SceneError as e:
         raise blame_flag(e, args) from None
     return scene_mod.Scene(validated, source=source, name=validated.get("name", path.stem))
+
+
+def init_warp_for_meshes(data, args):
+    """Initialise Warp (quietly, see :func:`init_warp`) before validating a scene with mesh jellies:
+    validation voxelises them with Warp (io/mesh_scene.py)."""
+    jellies = data.get("jelly") if isinstance(data.get("jelly"), list) else [data.get("jelly")]
+    if any(isinstance(j, dict) and "mesh" in j for j in jellies):
+        init_warp(getattr(args, "debug", False))
 
 
 def init_warp(debug=False):

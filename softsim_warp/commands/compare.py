@@ -241,6 +241,7 @@ def plan_variants(args) -> Plan:
     """Load the scene (with --set and flags), expand --integrators x --vary and validate every copy."""
 
     path, source, base = scene_mod.read_scene_data(args.scene)
+    common.init_warp_for_meshes(base, args)
     items = [scene_mod.parse_override(item) for item in args.overrides] + common.flag_overrides(args)
     scene_mod.apply_overrides(base, items)
 
@@ -516,6 +517,7 @@ def run_comparison(plan: Plan, device, out, metrics_path=None, plot_path=None, c
     writer = UsdWriter(out, display, plan.fps, springs=springs, groups=groups_usd, metadata=metadata)
     result = ComparisonResult(results)
     positions = display.particle_q_host.copy()
+    velocities = np.zeros_like(positions)  # a variant that exploded keeps its last velocities, as its positions
     try:
         stoppable = stoppable or contextlib.nullcontext
         with stoppable():
@@ -551,8 +553,9 @@ def run_comparison(plan: Plan, device, out, metrics_path=None, plot_path=None, c
                         }
                     else:
                         positions[ds:de] = q[start:end]
+                        velocities[ds:de] = qd[start:end]
                         res.frames.append(_frame_metrics(k, t_frame, jm, q[start:end], rest[v.world]))
-            writer.write_frame(k, t_frame, positions)
+            writer.write_frame(k, t_frame, positions, velocities=velocities)
             result.frames_written = k + 1
             result.steps = target
             if progress is not None:

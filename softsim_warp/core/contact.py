@@ -9,6 +9,8 @@ from __future__ import annotations
 
 import warp as wp
 
+from .mesh_terrain import mesh_arrays
+
 
 def apply_contacts(
     model: Model, state_in: State, state_out: State, dt: float, world_contact_beta: wp.array, planes=True
@@ -89,6 +91,8 @@ def _launch_contacts(model: Model, state_in: State, q_out, qd_out, h, world_cont
             ),
         ),
     )
+    if getattr(model, "mesh_count", 0):  # triangle-mesh terrain (core/mesh_terrain.py)
+        kinds += ((model.mesh_count, model.kernels.collide_meshes, mesh_arrays(model)),)
     for count, kernel, arrays in kinds:
         if count:
             wp.launch(

@@ -22,6 +22,7 @@ import numpy as np
 import warp as wp
 
 from .lattice_model import eval_lattice_forces
+from .masked_lattice import eval_masked_forces
 
 
 def incident_springs_csr(pairs: np.ndarray, particle_count: int) -> tuple[np.ndarray, np.ndarray]:
@@ -101,6 +102,10 @@ def _eval_spring_forces_gathered(model, q: wp.array, qd: wp.array, f_out: wp.arr
 
 def eval_forces(model, q: wp.array, qd: wp.array, f_out: wp.array):
     """Internal forces (springs and dampers) of the state (q, qd) into ``f_out``; gravity is added as an acceleration."""
+    if getattr(model, "masked", None) is not None:
+        # Masked lattice (mesh jellies, core/masked_lattice.py): the stencil gathered per particle.
+        eval_masked_forces(model, q, qd, f_out)
+        return
     if model.lattice is not None:
         # Regular lattice: springs implicit in the lattice, each particle's force gathered (no atomics).
         eval_lattice_forces(model, q, qd, f_out)

@@ -87,6 +87,7 @@ import warp.sparse
 from .contact import apply_contacts
 from .forces import eval_forces
 from .integrators import Integrator
+from .mesh_terrain import mesh_touch_arrays
 from ..kernels import implicit as ki
 from .model import Model, State
 from .pins import drive
@@ -208,7 +209,8 @@ class ImplicitIntegrator(Integrator):
         fixed = (model.particle_inv_mass.numpy() == 0).astype(np.int32)
         self.fixed = wp.array(fixed, dtype=wp.int32, device=device)
         self.filters = wp.zeros(n, dtype=self.mat33, device=device)
-        terrain = model.plane_count or model.bowl_count or model.sphere_count or getattr(model, "contact_hooks", ())
+        terrain = model.plane_count or model.bowl_count or model.sphere_count or getattr(model, "mesh_count", 0) or getattr(
+            model, "contact_hooks", ())
         self.contact_solve = bool(terrain) and solver != "warp_cg"
         if self.contact_solve:
             # The step's result before the contact response, and the iterate of the last solve.
@@ -597,6 +599,7 @@ class ImplicitIntegrator(Integrator):
                 model.sphere_first,
                 model.sphere_center,
                 model.sphere_radius,
+                *mesh_touch_arrays(model),
                 model.contact_epsilon,
                 state_in.particle_q,
                 self.q_free,

@@ -17,7 +17,11 @@ from ..kernels import get_kernels
 from .forces import attach
 from .lattice_model import LatticeData, detect_lattice
 from .pins import PinDrive, path_position
+from .masked_lattice import attach_masked
+from .mesh_assets import load_mesh, transform_matrix
+from .mesh_terrain import attach_meshes, mesh_anchors, mesh_output
 from .terrain import bowl_mesh, sphere_mesh
+from .voxelize import add_mesh_jelly
 
 SCALARS = {"float32": wp.float32, "float64": wp.float64}
 NUMPY_SCALARS = {"float32": np.float32, "float64": np.float64}
@@ -61,6 +65,10 @@ class JellyInfo:
     """Boundary quads, jelly-local particle indices, shape [Q, 4], int32."""
     world: int = 0
     name: str = ""
+    embedding: object = None
+    """A mesh jelly's surface in its lattice (``core.voxelize.SurfaceEmbedding``), else None."""
+    lattice_index: np.ndarray = None
+    """A masked jelly's particles' indices in its box lattice, shape [particle_count], else None (all points)."""
 
 
 class ModelBuilder:
@@ -78,6 +86,8 @@ class ModelBuilder:
         self.bowls: list[dict] = []
         self.spheres: list[dict] = []
         self.pins: list[dict] = []
+        self.meshes: list[dict] = []
+        self.device = None  # where mesh jellies are voxelised (build_model sets the model's device)
         self.world_count = 1
         self._particle_count = 0
         self._spring_count = 0
@@ -127,6 +137,7 @@ class ModelBuilder:
         world=0,
         name="",
         initial_scale=None,
+        mask=None,
     ) -> JellyInfo:
         """Add a lattice jelly.
 
@@ -146,6 +157,9 @@ class ModelBuilder:
                 frame before the rotation, for the start only: rest lengths stay those of the
                 unscaled lattice, so the jelly starts stretched (> 1), crushed (< 1) or mirrored
                 (negative on one axis). Components must be nonzero.
+            mask: optional bool per lattice point (lattice order): only those points become
+                particles, with the stencil springs between them (a mesh jelly, core/voxelize.py);
+                ``particle_mass`` is then one value or one per kept particle.
         """
         unknown = sorted(set(springs) - set(lattice.SPRING_TYPE_NAMES))
         if unknown:
@@ -164,11 +178,17 @@ class ModelBuilder:
         )
         start = self._particle_count
         spring_start = self._spring_count
-        self.add_particles(q, qd, particle_mass, world=world)
-        self._jelly_of[-1][:] = len(self.jellies)
         pairs, types = lattice.lattice_springs(shape)
         # Rest lengths come from the unscaled lattice, so an initial_scale starts the springs out of rest.
         rest = np.linalg.norm(rest_pose[pairs[:, 0]] - rest_pose[pairs[:, 1]], axis=1)
+        if mask is not None:
+            # Keep the masked points and the springs whose both ends are kept, renumbered.
+            mask = np.asarray(mask, dtype=bool)
+            kept = mask[pairs[:, 0]] & mask[pairs[:, 1]]
+            pairs, types, rest = (np.cumsum(mask) - 1)[pairs[kept]].astype(np.int32), types[kept], rest[kept]
+            q, qd = q[mask], qd[mask]
+        self.add_particles(q, qd, particle_mass, world=world)
+        self._jelly_of[-1][:] = len(self.jellies)
         for t, type_name in enumerate(lattice.SPRING_TYPE_NAMES):
             params = springs.get(type_name)
             sel = types == t
@@ -185,9 +205,10 @@ class ModelBuilder:
             spring_start=spring_start,
             spring_count=self._spring_count - spring_start,
             spacing=spacing,
-            surface_quads=lattice.surface_quads(shape),
+            surface_quads=lattice.surface_quads(shape) if mask is None else np.zeros((0, 4), dtype=np.int32),
             world=world,
             name=name or f"Jelly_{len(self.jellies)}",
+            lattice_index=None if mask is None else np.flatnonzero(mask),
         )
         self.jellies.append(info)
         return info
@@ -287,6 +308,22 @@ class ModelBuilder:
             }
         )
 
+    def add_mesh(self, asset, restitution=0.5, friction=0.3, thickness=0.1, world=0, name="Mesh"):
+        """Add static triangle-mesh terrain (a :class:`~softsim_warp.core.mesh_assets.MeshAsset` in
+        world space). A closed mesh keeps particles outside it (its faces are turned outward if
+        they wind inward); an open sheet collides from the side its faces' normals point to and
+        pushes out particles up to ``thickness`` [m] behind it."""
+        self.meshes.append(
+            {
+                "asset": asset.outward(),
+                "restitution": float(restitution),
+                "friction": float(friction),
+                "thickness": float(thickness),
+                "world": int(world),
+                "name": name,
+            }
+        )
+
     # -- finalize -------------------------------------------------------------------------------
 
     def finalize(self, device=None, precision="float32", force_path="auto") -> Model:
@@ -363,6 +400,7 @@ class ModelBuilder:
                 m.lattice = LatticeData(layout, device, scalar, np_scalar, m.particle_count, particle_mass=mass)
         if m.lattice is None:
             m._make_spring_arrays()
+        attach_masked(self, m, force_path)  # mesh jellies: the lattice stencil over present points
         # --- end lattice fast path
 
         m.gravity = vec3(*[scalar(g) for g in self.gravity])
@@ -418,6 +456,7 @@ class ModelBuilder:
         m.sphere_radius = arr(cols(spheres, "radius", (ns,)), scalar, np_scalar)
         m.sphere_restitution = arr(cols(spheres, "restitution", (ns,)), scalar, np_scalar)
         m.sphere_friction = arr(cols(spheres, "friction", (ns,)), scalar, np_scalar)
+        attach_meshes(m, self.meshes, arr, first)
         return m
 
 
@@ -469,7 +508,7 @@ class Model:
     @property
     def terrain_anchor_points(self) -> list:
         """Host points spanning the bowls and spheres [m] (for the explosion speed bound)."""
-        return terrain_anchors(self.bowls, self.spheres)
+        return terrain_anchors(self.bowls, self.spheres) + mesh_anchors(getattr(self, "meshes", []))
 
     def terrain_meshes(self, roots=None) -> list:
         """Static meshes of the bowls (their cap below the cut) and spheres, for the USD stage.
@@ -493,7 +532,7 @@ class Model:
                 else:
                     mesh = sphere_mesh(it["center"], it["radius"])
                 out.append((f"{roots.get(it['world'], '/World')}/{kind}_{i}", *mesh))
-        return out
+        return out + mesh_output(getattr(self, "meshes", []), roots)
 
     deterministic = False
 
@@ -577,6 +616,7 @@ def build_model(scene, device=None, precision=None, worlds=None, deterministic=F
     ``force_path``: see ``ModelBuilder.finalize``.
     """
     builder = ModelBuilder(scene.sim["gravity"])
+    builder.device = device
     populate(builder, scene.data)
     model = builder.finalize(device, precision or scene.sim["precision"], force_path=force_path)
     if deterministic:
@@ -593,6 +633,9 @@ def populate(builder: ModelBuilder, data: dict, world=0):
     builder.restitution_threshold_steps = sim["restitution_threshold_steps"]
     infos = []
     for i, j in enumerate(data["jelly"]):
+        if "mesh" in j:  # a closed mesh voxelised into a masked lattice
+            infos.append(add_mesh_jelly(builder, j, world=world, name=f"Jelly_{i}", key=f"jelly.{i}"))
+            continue
         info = builder.add_jelly(
             j["resolution"],
             j["size"],
@@ -624,6 +667,12 @@ def populate(builder: ModelBuilder, data: dict, world=0):
         builder.add_bowl(b["center"], b["radius"], b.get("cut_height"), b["restitution"], b["friction"], world=world)
     for s in data.get("sphere", []):
         builder.add_sphere(s["center"], s["radius"], s["restitution"], s["friction"], world=world)
+    for i, t in enumerate(data.get("mesh", [])):
+        asset = load_mesh(t["path"], t.get("prim"), every=True, key=f"mesh.{i}.path")
+        asset = asset.transformed(*transform_matrix(t.get("transform")))
+        # The output prim is named after the asset's Mesh (Stairs_0); several merged Meshes: Mesh_0.
+        name = asset.name if asset.name.isidentifier() else "Mesh"
+        builder.add_mesh(asset, t["restitution"], t["friction"], t["thickness"], world=world, name=name)
     for p in data.get("pin", []):
         spin = p.get("spin")
         keys = p.get("keyframes", [])

@@ -76,3 +76,64 @@ def bowl_mesh(center, radius, cut_height, rings=16, segments=48):
 def sphere_mesh(center, radius, rings=16, segments=32):
     """A closed sphere, normals outward. Returns ``(points (V, 3), counts (F,), indices)``."""
     return _cap(center, radius, math.pi, rings, segments, inward=False)
+
+
+def fan_triangles(counts, indices) -> np.ndarray:
+    """Triangles ``(T, 3)`` of a polygon mesh, each face split as a fan from its first vertex.
+
+    The fan keeps every face's winding, so the triangles face the way the polygons do.
+    """
+    counts = np.asarray(counts, dtype=np.int64)
+    indices = np.asarray(indices, dtype=np.int64)
+    starts = np.concatenate([[0], np.cumsum(counts)[:-1]]).astype(np.int64)
+    per_face = np.maximum(counts - 2, 0)
+    face = np.repeat(np.arange(counts.size), per_face)
+    # Within each face, triangle k is (v0, v_{k+1}, v_{k+2}).
+    k = np.arange(face.size) - (np.cumsum(per_face) - per_face)[face]
+    s = starts[face]
+    return np.stack([indices[s], indices[s + k + 1], indices[s + k + 2]], axis=1)
+
+
+def face_normals(points, counts, indices) -> np.ndarray:
+    """Unit normal of each polygon by the right-hand rule (its vector area, normalised), ``(F, 3)``."""
+    points = np.asarray(points, dtype=np.float64)
+    counts = np.asarray(counts, dtype=np.int64)
+    tris = fan_triangles(counts, indices)
+    area = np.cross(points[tris[:, 1]] - points[tris[:, 0]], points[tris[:, 2]] - points[tris[:, 0]])
+    face = np.repeat(np.arange(counts.size), np.maximum(counts - 2, 0))
+    n = np.stack([np.bincount(face, area[:, k], minlength=counts.size) for k in range(3)], axis=1)
+    return _unit(n)
+
+
+def vertex_normals(points, triangles) -> np.ndarray:
+    """Area-weighted unit vertex normals ``(V, 3)`` from fan ``triangles`` (see :func:`fan_triangles`).
+
+    A vertex no face touches with area (isolated or degenerate) gets +y, so every normal is a unit
+    vector as USD asks.
+    """
+    points = np.asarray(points, dtype=np.float64)
+    a, b, c = triangles[:, 0], triangles[:, 1], triangles[:, 2]
+    area = np.cross(points[b] - points[a], points[c] - points[a])
+    v = points.shape[0]
+    n = np.zeros((v, 3))
+    for k in range(3):
+        n[:, k] = (
+            np.bincount(a, area[:, k], minlength=v) + np.bincount(b, area[:, k], minlength=v)
+            + np.bincount(c, area[:, k], minlength=v)
+        )
+    return _unit(n)
+
+
+def signed_volume(points, triangles) -> float:
+    """Volume enclosed by a closed triangle mesh [m^3]; positive when its faces wind outward."""
+    p = np.asarray(points, dtype=np.float64)
+    t = np.asarray(triangles, dtype=np.int64)
+    return float(np.einsum("ij,ij->i", p[t[:, 0]], np.cross(p[t[:, 1]], p[t[:, 2]])).sum() / 6.0)
+
+
+def _unit(n):
+    length = np.linalg.norm(n, axis=1)
+    out = np.tile([0.0, 1.0, 0.0], (n.shape[0], 1))
+    ok = length > 0
+    out[ok] = n[ok] / length[ok, None]
+    return out

@@ -17,6 +17,8 @@ import math
 import numpy as np
 
 from ..core.model import rotation_matrix
+from ..core.voxelize import mesh_lattice
+from .mesh_scene import mesh_signed_distance_entry
 from .resources import check_host_build
 
 # Normal range of each precision: a non-zero value outside it becomes 0 or inf on the device.
@@ -64,7 +66,8 @@ def bowl_signed_distance(bowl: dict, points: np.ndarray) -> np.ndarray:
 
 # Scene key of each terrain type -> signed distance of points to one entry (positive = free space,
 # +inf where the entry does not collide). A new terrain type adds its function here.
-TERRAIN_SDF = {"plane": plane_signed_distance, "sphere": sphere_signed_distance, "bowl": bowl_signed_distance}
+TERRAIN_SDF = {"plane": plane_signed_distance, "sphere": sphere_signed_distance, "bowl": bowl_signed_distance,
+               "mesh": mesh_signed_distance_entry}
 # Terrain types that are thin shells: particles behind them (phi < 0) pass through, so a jelly is
 # wrong only when the shell cuts it, some particles in front and some behind.
 SHELLS = {"bowl"}
@@ -90,11 +93,13 @@ def jelly_points(jelly: dict, chunk: int = _CHUNK):
         # broadcasting (an (N, 3) @ (3, 3) product is many times slower in NumPy).
         ey = axes[1][None, :, None, None] * rot[:, 1]
         ez = axes[2][None, None, :, None] * rot[:, 2]
+    # A mesh jelly is its box lattice with the points outside the mesh left out (io/mesh_scene.py).
+    inside = mesh_lattice(jelly)[1].reshape(shape[0], -1) if "mesh" in jelly else None
     for i0 in range(0, shape[0], rows):
         with np.errstate(all="ignore"):
             ex = axes[0][i0 : i0 + rows, None, None, None] * rot[:, 0]
             pts = ((ex + center) + ey + ez).reshape(-1, 3)
-        yield pts
+        yield pts if inside is None else pts[inside[i0 : i0 + rows].ravel()]
 
 
 def _check_precision(value, key, ctx, lo, hi, precision):

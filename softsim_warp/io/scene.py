@@ -22,6 +22,7 @@ from ..core.errors import COMMAND_LINE, SceneError
 from ..core.model import jelly_points
 from ..core.pins import FACES, INTERPOLATIONS, select_particles
 from .checks import check_scene
+from .mesh_scene import resolve_meshes
 
 INTEGRATORS = ("euler", "symplectic", "midpoint", "rk4", "implicit")
 PRECISIONS = ("float32", "float64")
@@ -317,6 +318,15 @@ SPRING = Table(
     optional=True,
 )
 
+MESH_TRANSFORM = Table(
+    {
+        "translate": Vec3([0.0, 0.0, 0.0], doc="[m]"),
+        "rotation": Table({"axis": Vec3([0.0, 1.0, 0.0], nonzero=True), "degrees": Float(0.0)}),
+        "scale": Vec3([1.0, 1.0, 1.0], lo=0, lo_open=True, scalar_ok=True, doc="per-axis factor, applied first"),
+    },
+    optional=True,
+)
+
 SCHEMA = Table(
     {
         "name": Text(doc="scene name"),
@@ -341,8 +351,11 @@ SCHEMA = Table(
         "jelly": TableList(
             Table(
                 {
-                    "resolution": Int3(required=True, doc="particles per axis"),
-                    "size": Vec3(required=True, lo=0, lo_open=True, scalar_ok=True, doc="edge lengths [m]"),
+                    "resolution": Int3(doc="particles per axis; a mesh jelly: cells along its longest side"),
+                    "size": Vec3(lo=0, lo_open=True, scalar_ok=True, doc="edge lengths [m]; a mesh jelly: its longest side"),
+                    "mesh": Text(doc="a closed mesh file (USD, OBJ, STL, PLY) voxelised into the jelly, relative to the scene file"),
+                    "mesh_prim": Text(doc="Mesh prim path in a USD file (default: the first Mesh)"),
+                    "spacing": Float(lo=0, lo_open=True, doc="a mesh jelly's lattice spacing [m] (instead of resolution)"),
                     "center": Vec3([0.0, 0.0, 0.0], doc="[m]"),
                     "rotation": Table(
                         {
@@ -441,6 +454,19 @@ SCHEMA = Table(
                         Table({"time": Float(required=True, doc="[s]"), "offset": Vec3(required=True, doc="[m]")})
                     ),
                     "interpolation": Choice(INTERPOLATIONS, "linear", doc="between keyframes: linear or smooth"),
+                }
+            )
+        ),
+        # Triangle-mesh terrain from a file (core/mesh_terrain.py, io/mesh_scene.py).
+        "mesh": TableList(
+            Table(
+                {
+                    "path": Text(required=True, doc="USD, OBJ, STL or PLY file, relative to the scene file"),
+                    "prim": Text(doc="Mesh prim path in a USD file; default: every Mesh with CollisionAPI, else every Mesh"),
+                    "restitution": Float(0.5, lo=0, hi=1),
+                    "friction": Float(0.3, lo=0),
+                    "thickness": Float(0.1, lo=0, lo_open=True, doc="how far behind its surface a mesh pushes particles out [m]"),
+                    "transform": MESH_TRANSFORM,
                 }
             )
         ),
@@ -775,9 +801,12 @@ def _unit(v):
     return [c / length for c in v]
 
 
-def validate(data: dict, source: str) -> dict:
+def validate(data: dict, source: str, base=None) -> dict:
+    """Check ``data`` against the schema and the whole-scene checks; ``base`` is the directory that
+    relative mesh paths start from (default: the scene file's, or the built-in scenes' folder)."""
     ctx = _Context(source)
     out = SCHEMA.check(data, "", ctx)
+    resolve_meshes(out, ctx, base)
     sim = out["simulation"]
     if "duration" in sim and "frames" in sim:
         ctx.fail("simulation.frames", "give simulation.duration or simulation.frames, not both", sim["frames"])
@@ -785,6 +814,9 @@ def validate(data: dict, source: str) -> dict:
         ctx.fail("simulation.duration", "is required (or give simulation.frames)")
     for i, jelly in enumerate(out["jelly"]):
         key = f"jelly.{i}"
+        for name in ("resolution", "size"):
+            if name not in jelly:
+                ctx.fail(f"{key}.{name}", "is required (or give mesh)")
         count = jelly["resolution"][0] * jelly["resolution"][1] * jelly["resolution"][2]
         if count < 2:
             ctx.fail(f"{key}.resolution", "a jelly needs at least 2 particles", jelly["resolution"])
@@ -827,6 +859,8 @@ def _check_pin(pin: dict, key: str, jellies: list, ctx):
         ctx.fail(f"{key}.face", "give exactly one of face, box and particles to select the pinned particles",
                  {name: pin[name] for name in given} if given else "none")
     jelly = jellies[pin["jelly"]]
+    if "mesh" in jelly:
+        ctx.fail(f"{key}.jelly", "pins hold particles of box jellies only; this jelly is a mesh", pin["jelly"])
     shape = jelly["resolution"]
     count = shape[0] * shape[1] * shape[2]
     if "particles" in pin and max(pin["particles"]) >= count:

@@ -115,11 +115,16 @@ class Simulator(Stepper):
                 }
                 break
             positions = self.state.particle_q.numpy()
+            # Velocities only for writers that record them (UsdWriter: motion blur).
+            velocities = self.state.particle_qd.numpy() if any(getattr(w, "wants_velocities", False) for w in writers) else None
             # A frame is written whole: a stop-now request waits until it is (see commands/common.Signals).
             self.writing = True
             try:
                 for w in writers:
-                    w.write_frame(k, t_frame, positions, metrics)
+                    if getattr(w, "wants_velocities", False):
+                        w.write_frame(k, t_frame, positions, metrics, velocities=velocities)
+                    else:
+                        w.write_frame(k, t_frame, positions, metrics)
             finally:
                 self.writing = False
             result.metrics.append(metrics)

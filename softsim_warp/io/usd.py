@@ -12,6 +12,7 @@ from pathlib import Path
 import numpy as np
 
 from ..core import lattice
+from ..core.terrain import fan_triangles, vertex_normals
 from ..core.errors import CommandLineError
 from .outputs import commit, discard, kept_partial_path, partial_path, target_of
 
@@ -41,7 +42,7 @@ def plane_mesh(point, normal, size, hole_center=None, hole_radius=0.0, segments=
         c = point
         half = 0.5 * size
         corners = [c + half * (su * u + sv * v) for su, sv in ((-1, -1), (1, -1), (1, 1), (-1, 1))]
-        return np.array(corners), np.array([4]), np.array([0, 3, 2, 1])
+        return np.array(corners), np.array([4]), np.array([0, 1, 2, 3])  # (u, v, n) right-handed: faces n
     # Centre the square on the hole (projected onto the plane) and join the hole's circle to the
     # square's boundary with quads along rays from the centre.
     hc = np.asarray(hole_center, dtype=np.float64)
@@ -58,6 +59,73 @@ def plane_mesh(point, normal, size, hole_center=None, hole_radius=0.0, segments=
         j = (i + 1) % segments
         idx += [i, segments + i, segments + j, j]
     return pts, np.full(segments, 4), np.array(idx)
+
+
+class SurfaceMap:
+    """How a jelly's ``Surface`` mesh follows its particles.
+
+    A box jelly shows its boundary particles themselves (``take``: the particle of each surface
+    vertex). A mesh jelly shows its asset's surface embedded in the lattice (``corners``,
+    ``weights``: each vertex a trilinear combination of a cell's eight particles), with the
+    asset's topology and primvars. Velocities map the same way (the map is linear).
+    """
+
+    def __init__(self, counts, indices, take=None, corners=None, weights=None, primvars=()):
+        self.counts = np.asarray(counts, dtype=np.int64)
+        self.indices = np.asarray(indices, dtype=np.int64)
+        self.take, self.corners, self.weights = take, corners, weights
+        self.primvars = list(primvars)
+        self.double_sided = False
+        self.triangles = fan_triangles(self.counts, self.indices)
+
+    @classmethod
+    def of(cls, info):
+        """The map of a :class:`~softsim_warp.core.model.JellyInfo`, or None when it has no surface."""
+        emb = getattr(info, "embedding", None)
+        if emb is not None:
+            return cls(emb.counts, emb.indices, corners=emb.corners, weights=emb.weights, primvars=emb.primvars)
+        quads = info.surface_quads
+        if not quads.size:
+            return None
+        double_sided = min(info.shape) == 1
+        if double_sided:
+            # A one-particle-thick jelly lists each face once per side, on the same particles: keep
+            # one side (doubleSided shows both), so every vertex has one normal.
+            _, first = np.unique(np.sort(quads, axis=1), axis=0, return_index=True)
+            quads = quads[np.sort(first)]
+        used = np.unique(quads)
+        remap = np.full(info.particle_count, -1, dtype=np.int64)
+        remap[used] = np.arange(used.size)
+        surface = cls(np.full(quads.shape[0], 4), remap[quads].ravel(), take=used)
+        surface.double_sided = double_sided
+        return surface
+
+    def points(self, x) -> np.ndarray:
+        """Surface points (float32, contiguous) of the jelly's particle values ``x`` (positions or velocities)."""
+        if self.take is not None:
+            return np.ascontiguousarray(x[self.take])
+        # Sum in float64: an undeformed jelly gives back its asset's vertices to float32 rounding.
+        y = np.einsum("vk,vkj->vj", self.weights, x[self.corners].astype(np.float64))
+        return np.ascontiguousarray(y, dtype=np.float32)
+
+
+def _author_primvars(mesh, primvars, Sdf, UsdGeom, Vt):
+    """Carry an asset's primvars (UVs and others) over to the Surface: ``(name, type name,
+    interpolation, values, indices or None)`` each."""
+    api = UsdGeom.PrimvarsAPI(mesh.GetPrim())
+    for name, type_name, interpolation, values, indices in primvars:
+        pv = api.CreatePrimvar(name, Sdf.ValueTypeNames.Find(type_name), interpolation)
+        if indices is None and interpolation != UsdGeom.Tokens.constant:
+            # Repeated values (a UV shared by the corners around a vertex) are written once, indexed.
+            flat = np.asarray(values)
+            uniq, inverse = np.unique(flat.reshape(len(flat), -1), axis=0, return_inverse=True)
+            if len(uniq) < len(flat):
+                values = type(values).FromNumpy(np.ascontiguousarray(uniq.reshape((-1,) + flat.shape[1:]))) \
+                    if hasattr(type(values), "FromNumpy") else uniq.reshape((-1,) + flat.shape[1:])
+                indices = inverse.ravel()
+        pv.Set(values)
+        if indices is not None:
+            pv.SetIndices(Vt.IntArray.FromNumpy(np.asarray(indices, dtype=np.int32)))
 
 
 class UsdWriter:
@@ -109,6 +177,11 @@ class UsdWriter:
         stage.SetDefaultPrim(world.GetPrim())
         self._metadata = dict(metadata or {})
         self._metadata.setdefault("softsim:status", "running")
+        # The physics settings beside the caller's (integrator, dt): what a reader needs to rerun it.
+        self._metadata.setdefault("softsim:gravity", Gf.Vec3d(*[float(g) for g in getattr(model, "gravity_host", (0.0, -9.8, 0.0))]))
+        self._metadata.setdefault("softsim:fps", self.fps)
+        if hasattr(model, "precision"):
+            self._metadata.setdefault("softsim:precision", str(model.precision))
         layer.customLayerData = self._metadata
 
         groups = groups or {}
@@ -128,21 +201,25 @@ class UsdWriter:
             UsdGeom.Xform.Define(stage, root)
             pts = UsdGeom.Points.Define(stage, f"{root}/Particles")
             width = 0.5 * min([s for s in info.spacing if s > 0] or [0.05])
-            pts.CreateWidthsAttr(Vt.FloatArray([width] * info.particle_count))
+            widths = Vt.FloatArray([width] * info.particle_count)
+            pts.CreateWidthsAttr(widths)
             pts.SetWidthsInterpolation(UsdGeom.Tokens.vertex)
+            # A particle's id is its index in the jelly, the same in every frame.
+            pts.CreateIdsAttr(Vt.Int64Array.FromNumpy(np.arange(info.particle_count, dtype=np.int64)))
             pts.CreateDisplayColorPrimvar().Set(Vt.Vec3fArray([Gf.Vec3f(*JELLY_COLOR)]))
-            quads = info.surface_quads
-            used = np.unique(quads) if quads.size else np.zeros(0, dtype=np.int64)
-            remap = np.full(info.particle_count, -1, dtype=np.int64)
-            remap[used] = np.arange(used.size)
+            surface = SurfaceMap.of(info)
             mesh = None
-            if quads.size:
+            if surface is not None:
                 mesh = UsdGeom.Mesh.Define(stage, f"{root}/Surface")
-                mesh.CreateFaceVertexCountsAttr(Vt.IntArray([4] * quads.shape[0]))
-                mesh.CreateFaceVertexIndicesAttr(Vt.IntArray(remap[quads].ravel().tolist()))
+                mesh.CreateFaceVertexCountsAttr(Vt.IntArray.FromNumpy(surface.counts.astype(np.int32)))
+                mesh.CreateFaceVertexIndicesAttr(Vt.IntArray.FromNumpy(surface.indices.astype(np.int32)))
                 # The surface shows the simulated particles themselves, not a subdivision limit.
                 mesh.CreateSubdivisionSchemeAttr(UsdGeom.Tokens.none)
+                mesh.SetNormalsInterpolation(UsdGeom.Tokens.vertex)
+                if surface.double_sided:
+                    mesh.CreateDoubleSidedAttr(True)
                 mesh.CreateDisplayColorPrimvar().Set(Vt.Vec3fArray([Gf.Vec3f(*JELLY_COLOR)]))
+                _author_primvars(mesh, surface.primvars, Sdf, UsdGeom, Vt)
             curves = {}
             if springs:
                 for t, tname in enumerate(lattice.SPRING_TYPE_NAMES):
@@ -156,8 +233,13 @@ class UsdWriter:
                     c.CreateWidthsAttr(Vt.FloatArray([0.1 * width]))
                     c.SetWidthsInterpolation(UsdGeom.Tokens.constant)
                     c.CreateDisplayColorPrimvar().Set(Vt.Vec3fArray([Gf.Vec3f(*SPRING_COLORS[tname])]))
-                    curves[tname] = (c, model.spring_indices_host[sel].ravel())
-            self.jelly_prims.append((info, pts, mesh, used, curves))
+                    curves[tname] = (c, model.spring_indices_host[sel].ravel(), Vt.FloatArray([0.1 * width]))
+            self.jelly_prims.append((info, pts, widths, mesh, surface, curves))
+        rest = getattr(model, "particle_q_host", None)
+        if rest is not None:
+            # The initial pose as every attribute's default value: a reader that asks for no time
+            # (and validators that count normals against the default points) sees a whole mesh.
+            self._write_jellies(np.ascontiguousarray(rest, dtype=np.float32), None, Usd.TimeCode.Default())
 
         plane_index = {}  # numbered within each world, so every copy of a comparison has Plane_0
         for p in model.planes:
@@ -165,11 +247,14 @@ class UsdWriter:
             points, counts, indices = plane_mesh(p["point"], p["normal"], p["size"], p["hole_center"], p["hole_radius"])
             self.add_static_mesh(f"{self.roots[p['world']]}/Plane_{i}", points, counts, indices)
         # Bowls and spheres; ``self.roots`` puts each world's terrain under its group.
-        for prim_path, points, counts, indices in getattr(model, "terrain_meshes", lambda roots: [])(self.roots):
-            self.add_static_mesh(prim_path, points, counts, indices)
+        # (a mesh terrain may add its asset's normals as a fifth item).
+        for prim_path, points, counts, indices, *normals in getattr(model, "terrain_meshes", lambda roots: [])(self.roots):
+            self.add_static_mesh(prim_path, points, counts, indices, normals=normals[0] if normals else None)
         self.save()
 
-    def add_static_mesh(self, prim_path, points, counts, indices, color=TERRAIN_COLOR):
+    def add_static_mesh(self, prim_path, points, counts, indices, color=TERRAIN_COLOR, normals=None):
+        """A mesh that does not move (terrain); ``normals`` ``(interpolation, (N, 3))`` or None for
+        area-weighted vertex normals of its faces."""
         Gf, Sdf, Usd, UsdGeom, Vt = self._pxr
         mesh = UsdGeom.Mesh.Define(self.stage, prim_path)
         pts = Vt.Vec3fArray.FromNumpy(np.ascontiguousarray(points, dtype=np.float32))
@@ -178,32 +263,57 @@ class UsdWriter:
         mesh.CreateFaceVertexCountsAttr(Vt.IntArray([int(c) for c in counts]))
         mesh.CreateFaceVertexIndicesAttr(Vt.IntArray([int(i) for i in indices]))
         mesh.CreateSubdivisionSchemeAttr(UsdGeom.Tokens.none)
+        if normals is None:
+            normals = (UsdGeom.Tokens.vertex, vertex_normals(points, fan_triangles(counts, indices)))
+        mesh.CreateNormalsAttr(Vt.Vec3fArray.FromNumpy(np.ascontiguousarray(normals[1], dtype=np.float32)))
+        mesh.SetNormalsInterpolation(normals[0])
         mesh.CreateDoubleSidedAttr(True)
         mesh.CreateDisplayColorPrimvar().Set(Vt.Vec3fArray([Gf.Vec3f(*color)]))
+        return mesh
 
-    def write_frame(self, frame, t, positions, metrics=None):
-        """Write all jellies' positions (float32, as simulated in float32) at time code ``frame``."""
-        Gf, Sdf, Usd, UsdGeom, Vt = self._pxr
+    wants_velocities = True
+    """The Simulator passes ``velocities=`` to :meth:`write_frame` (motion blur)."""
+
+    def write_frame(self, frame, t, positions, metrics=None, velocities=None):
+        """Write all jellies' positions (float32, as simulated in float32) at time code ``frame``.
+
+        Extents include the points' widths; the Surface gets its normals; ``velocities`` (the
+        particles' [m/s], same shape as ``positions``), when given, go to Particles and Surface.
+        """
         pos32 = np.ascontiguousarray(positions, dtype=np.float32)
+        vel32 = None if velocities is None else np.ascontiguousarray(velocities, dtype=np.float32)
         if not np.isfinite(pos32).all():
             self.nonfinite_frames += 1
-        for info, pts, mesh, used, curves in self.jelly_prims:
-            x = pos32[info.particle_start : info.particle_start + info.particle_count]
-            arr = Vt.Vec3fArray.FromNumpy(x)
-            extent = UsdGeom.PointBased.ComputeExtent(arr)
-            pts.GetPointsAttr().Set(arr, frame)
-            pts.GetExtentAttr().Set(extent, frame)
-            if mesh is not None:
-                surf = Vt.Vec3fArray.FromNumpy(np.ascontiguousarray(x[used]))
-                mesh.GetPointsAttr().Set(surf, frame)
-                mesh.GetExtentAttr().Set(UsdGeom.PointBased.ComputeExtent(surf), frame)
-            for c, ends in curves.values():
-                seg = Vt.Vec3fArray.FromNumpy(np.ascontiguousarray(pos32[ends]))
-                c.GetPointsAttr().Set(seg, frame)
+        self._write_jellies(pos32, vel32, frame)
         self.last_frame = frame
         self.stage.SetEndTimeCode(max(frame, 0))
         if frame > 0 and frame % self.save_every == 0:
             self.save()
+
+    def _write_jellies(self, pos32, vel32, time):
+        """Points, extents (widths included), Surface normals and, if given, velocities at ``time``."""
+        Gf, Sdf, Usd, UsdGeom, Vt = self._pxr
+        for info, pts, widths, mesh, surface, curves in self.jelly_prims:
+            lo, hi = info.particle_start, info.particle_start + info.particle_count
+            x = pos32[lo:hi]
+            arr = Vt.Vec3fArray.FromNumpy(x)
+            pts.GetPointsAttr().Set(arr, time)
+            pts.GetExtentAttr().Set(UsdGeom.Points.ComputeExtent(arr, widths), time)
+            if vel32 is not None:
+                pts.GetVelocitiesAttr().Set(Vt.Vec3fArray.FromNumpy(vel32[lo:hi]), time)
+            if mesh is not None:
+                sx = surface.points(x)
+                surf = Vt.Vec3fArray.FromNumpy(sx)
+                mesh.GetPointsAttr().Set(surf, time)
+                mesh.GetExtentAttr().Set(UsdGeom.PointBased.ComputeExtent(surf), time)
+                normals = vertex_normals(sx, surface.triangles).astype(np.float32)
+                mesh.GetNormalsAttr().Set(Vt.Vec3fArray.FromNumpy(normals), time)
+                if vel32 is not None:
+                    mesh.GetVelocitiesAttr().Set(Vt.Vec3fArray.FromNumpy(surface.points(vel32[lo:hi])), time)
+            for c, ends, cwidths in curves.values():
+                seg = Vt.Vec3fArray.FromNumpy(np.ascontiguousarray(pos32[ends]))
+                c.GetPointsAttr().Set(seg, time)
+                c.GetExtentAttr().Set(UsdGeom.Curves.ComputeExtent(seg, cwidths), time)
 
     def save(self):
         """Write the stage to the temporary; a write error (a full disk) is a one-line error naming the file."""

@@ -1,0 +1,254 @@
+"""Make softsim's demo assets: every mesh is computed here, nothing is downloaded.
+
+    python assets/make_assets.py            # writes scenes/assets/*.usda (the built-in scenes use them)
+    python assets/make_assets.py --out DIR
+
+* ``blob.usda``: a character, a rounded body with two ears and a snout (a star-shaped surface
+  r(direction) around its centre: closed, manifold, wound outward), face-varying UVs (longitude,
+  latitude) with a seam;
+* ``torus.usda`` and ``pebble.usda`` (a superellipsoid): more closed shapes with UVs, for piles;
+* ``stairs.usda``: a closed staircase solid (the step profile extruded), UsdPhysics CollisionAPI;
+* ``bumpy_floor.usda``: an open height-field sheet facing up (y = sum of smooth bumps), vertex
+  normals and UVs, CollisionAPI.
+
+Meshes are in metres (metersPerUnit = 1, up axis y), right-handed, every face wound outward.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+from pathlib import Path
+
+import numpy as np
+from pxr import Sdf, Usd, UsdGeom, UsdPhysics, Vt
+
+HERE = Path(__file__).resolve().parent
+DEFAULT_OUT = HERE.parent / "scenes" / "assets"
+
+
+def lat_long(radius_fn, rings=48, segments=64):
+    """A closed star-shaped surface x = r(d) d over unit directions d (poles at -y and +y).
+
+    Returns ``(points, counts, indices, uv)``: triangles at the poles, quads elsewhere, wound
+    outward; ``uv`` is face-varying (one (u, v) per face corner), u the longitude in [0, 1] (the
+    seam's last column carries u = 1), v the latitude from the bottom pole.
+    """
+    theta = np.linspace(0.0, math.pi, rings + 1)[1:-1]  # polar angle from the bottom pole
+    phi = np.linspace(0.0, 2.0 * math.pi, segments, endpoint=False)
+    st, ct = np.sin(theta)[:, None], np.cos(theta)[:, None]
+    d = np.stack([st * np.cos(phi), -ct * np.ones_like(phi), st * np.sin(phi)], axis=-1).reshape(-1, 3)
+    dirs = np.concatenate([[[0.0, -1.0, 0.0]], d, [[0.0, 1.0, 0.0]]])
+    points = dirs * radius_fn(dirs)[:, None]
+    top = len(points) - 1
+
+    def ring(k, j):
+        return 1 + k * segments + (j % segments)
+
+    counts, indices, uv = [], [], []
+
+    def uv_of(k, j):  # k: ring (-1 bottom pole, rings - 1 top pole), j: column (may be == segments)
+        return (j / segments, (k + 1) / rings)
+
+    # Increasing azimuth turns from x towards z, counter-clockwise seen from below (-y):
+    # (pole, j, j + 1) faces -y, out of the bottom; the top pole's fan is reversed.
+    for j in range(segments):
+        counts.append(3)
+        indices += [0, ring(0, j), ring(0, j + 1)]
+        uv += [((j + 0.5) / segments, 0.0), uv_of(0, j), uv_of(0, j + 1)]
+    for k in range(rings - 2):
+        for j in range(segments):
+            counts.append(4)
+            indices += [ring(k, j), ring(k + 1, j), ring(k + 1, j + 1), ring(k, j + 1)]
+            uv += [uv_of(k, j), uv_of(k + 1, j), uv_of(k + 1, j + 1), uv_of(k, j + 1)]
+    for j in range(segments):
+        counts.append(3)
+        indices += [top, ring(rings - 2, j + 1), ring(rings - 2, j)]
+        uv += [((j + 0.5) / segments, 1.0), uv_of(rings - 2, j + 1), uv_of(rings - 2, j)]
+    return points, np.array(counts), np.array(indices), np.array(uv, dtype=np.float32)
+
+
+def _bump(dirs, toward, height, width):
+    t = np.asarray(toward, dtype=np.float64)
+    t = t / np.linalg.norm(t)
+    return height * np.exp(-np.sum((dirs - t) ** 2, axis=1) / width**2)
+
+
+def blob_radius(dirs):
+    """A squat rounded body (0.5 m across) with two ears up and apart and a small snout (+x)."""
+    r = 0.25 * (1.0 + 0.08 * dirs[:, 1])  # a little wider at the top than the bottom
+    r = r + _bump(dirs, (0.0, 1.0, 0.55), 0.13, 0.22) + _bump(dirs, (0.0, 1.0, -0.55), 0.13, 0.22)
+    return r + _bump(dirs, (1.0, 0.1, 0.0), 0.05, 0.3)
+
+
+def torus(R=0.2, r=0.09, nu=64, nv=24):
+    """A ring torus about the y axis, quads wound outward, face-varying UVs."""
+    u = np.linspace(0, 2 * math.pi, nu, endpoint=False)
+    v = np.linspace(0, 2 * math.pi, nv, endpoint=False)
+    U, V = np.meshgrid(u, v, indexing="ij")
+    pts = np.stack([(R + r * np.cos(V)) * np.cos(U), r * np.sin(V), (R + r * np.cos(V)) * np.sin(U)], -1).reshape(-1, 3)
+    idx, uv = [], []
+    for i in range(nu):
+        for j in range(nv):
+            a, b = i * nv + j, ((i + 1) % nu) * nv + j
+            c, d = ((i + 1) % nu) * nv + (j + 1) % nv, i * nv + (j + 1) % nv
+            idx += [a, d, c, b]
+            uv += [(i / nu, j / nv), (i / nu, (j + 1) / nv), ((i + 1) / nu, (j + 1) / nv), ((i + 1) / nu, j / nv)]
+    return pts, np.full(nu * nv, 4), np.array(idx), np.array(uv, dtype=np.float32)
+
+
+def pebble_radius(dirs, a=(0.22, 0.12, 0.16), p=3.0):
+    """A superellipsoid |x/a|^p + |y/b|^p + |z/c|^p = 1 along each direction: a rounded pebble."""
+    s = np.sum(np.abs(dirs / np.asarray(a)) ** p, axis=1)
+    return s ** (-1.0 / p)
+
+
+def stairs(steps=5, run=0.35, rise=0.15, width=1.2):
+    """A staircase solid descending towards +x: step i spans x in [i run, (i + 1) run] with its
+    tread at y = (steps - i) rise; closed (the step profile extruded along z), wound outward."""
+    xs = [i * run for i in range(steps + 1)]
+    hs = [(steps - i) * rise for i in range(steps)]
+    # The profile in (x, y), counter-clockwise: along the floor, then up the back and down the steps.
+    prof = [(x, 0.0) for x in xs]
+    for i in reversed(range(steps)):
+        prof += [(xs[i + 1], hs[i]), (xs[i], hs[i])]
+    # (x_{i+1}, h_{i+1}) -> (x_{i+1}, h_i) is the riser between two treads.
+    n = len(prof)
+    z0, z1 = -0.5 * width, 0.5 * width
+    pts = [(x, y, z1) for x, y in prof] + [(x, y, z0) for x, y in prof]
+    counts, idx = [], []
+    for k in range(n):  # the extruded outline: floor, back, treads and risers
+        a, b = k, (k + 1) % n
+        counts.append(4)
+        idx += [a, a + n, b + n, b]
+    # The two sides, one convex polygon per step column (with the lower riser's top corner on its
+    # right edge, so the sides share every edge with the outline), starting at the column's left
+    # floor corner so that a fan from its first vertex has no sliver.
+    for i in range(steps):
+        col = [(xs[i], 0.0), (xs[i + 1], 0.0)]
+        if i + 1 < steps:
+            col.append((xs[i + 1], hs[i + 1]))
+        col += [(xs[i + 1], hs[i]), (xs[i], hs[i])]
+        front = [_side_vertex(pts, p, z1) for p in col]  # counter-clockwise about +z: faces +z
+        back = [_side_vertex(pts, p, z0) for p in col]
+        counts += [len(col), len(col)]
+        idx += front + back[::-1]
+    return np.array(pts, dtype=np.float64), np.array(counts), np.array(idx)
+
+
+def _side_vertex(pts, p, z):
+    """The index of vertex (p, z), added if it is new (a floor corner under a riser)."""
+    for i, q in enumerate(pts):
+        if abs(q[0] - p[0]) < 1e-12 and abs(q[1] - p[1]) < 1e-12 and q[2] == z:
+            return i
+    pts.append((p[0], p[1], z))
+    return len(pts) - 1
+
+
+def bumpy_floor(size=4.0, n=48, height=0.06):
+    """An open height field y(x, z) over a square of edge ``size``, facing up, with vertex normals."""
+    g = np.linspace(-0.5 * size, 0.5 * size, n + 1)
+    X, Z = np.meshgrid(g, g, indexing="ij")
+    k = 2.0 * math.pi / 1.3
+    Y = height * (np.sin(k * X) * np.cos(k * Z) + 0.5 * np.cos(0.7 * k * (X + Z)))
+    pts = np.stack([X, Y, Z], -1).reshape(-1, 3)
+    # Analytic normals of y = f(x, z): (-f_x, 1, -f_z) normalised.
+    fx = height * (k * np.cos(k * X) * np.cos(k * Z) - 0.35 * k * np.sin(0.7 * k * (X + Z)))
+    fz = height * (-k * np.sin(k * X) * np.sin(k * Z) - 0.35 * k * np.sin(0.7 * k * (X + Z)))
+    nrm = np.stack([-fx, np.ones_like(fx), -fz], -1).reshape(-1, 3)
+    nrm /= np.linalg.norm(nrm, axis=1, keepdims=True)
+    idx = []
+    for i in range(n):
+        for j in range(n):
+            a, b, c, d = i * (n + 1) + j, (i + 1) * (n + 1) + j, (i + 1) * (n + 1) + j + 1, i * (n + 1) + j + 1
+            idx += [a, d, c, b]  # x towards z is clockwise seen from above: (a, d, c, b) faces +y
+    uv = np.stack([(X + 0.5 * size) / size, (Z + 0.5 * size) / size], -1).reshape(-1, 2).astype(np.float32)
+    return pts, np.full(n * n, 4), np.array(idx), nrm, uv
+
+
+def write_mesh(path, name, points, counts, indices, uv=None, uv_interp="faceVarying", normals=None, collision=False,
+               color=(0.8, 0.8, 0.8)):
+    stage = Usd.Stage.CreateNew(str(path))
+    UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.y)
+    UsdGeom.SetStageMetersPerUnit(stage, 1.0)
+    root = UsdGeom.Xform.Define(stage, "/Asset")
+    stage.SetDefaultPrim(root.GetPrim())
+    mesh = UsdGeom.Mesh.Define(stage, f"/Asset/{name}")
+    pts = Vt.Vec3fArray.FromNumpy(np.ascontiguousarray(points, dtype=np.float32))
+    mesh.CreatePointsAttr(pts)
+    mesh.CreateExtentAttr(UsdGeom.PointBased.ComputeExtent(pts))
+    mesh.CreateFaceVertexCountsAttr(Vt.IntArray.FromNumpy(np.asarray(counts, dtype=np.int32)))
+    mesh.CreateFaceVertexIndicesAttr(Vt.IntArray.FromNumpy(np.asarray(indices, dtype=np.int32)))
+    mesh.CreateSubdivisionSchemeAttr(UsdGeom.Tokens.none)
+    if normals is None:
+        normals = _vertex_normals(points, counts, indices)
+    mesh.CreateNormalsAttr(Vt.Vec3fArray.FromNumpy(np.ascontiguousarray(normals, dtype=np.float32)))
+    mesh.SetNormalsInterpolation(UsdGeom.Tokens.vertex if len(normals) == len(points) else UsdGeom.Tokens.faceVarying)
+    mesh.CreateDisplayColorPrimvar().Set(Vt.Vec3fArray([tuple(color)]))
+    if uv is not None:
+        pv = UsdGeom.PrimvarsAPI(mesh).CreatePrimvar("st", Sdf.ValueTypeNames.TexCoord2fArray, uv_interp)
+        values, inverse = np.unique(np.asarray(uv, dtype=np.float32), axis=0, return_inverse=True)
+        pv.Set(Vt.Vec2fArray.FromNumpy(np.ascontiguousarray(values)))  # indexed: each (u, v) once
+        pv.SetIndices(Vt.IntArray.FromNumpy(inverse.ravel().astype(np.int32)))
+    if collision:
+        UsdPhysics.CollisionAPI.Apply(mesh.GetPrim())
+    stage.GetRootLayer().Save()
+
+
+def _fan(counts, indices):
+    counts = np.asarray(counts)
+    starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
+    return np.array([[indices[s], indices[s + k], indices[s + k + 1]] for s, c in zip(starts, counts) for k in range(1, c - 1)])
+
+
+def _vertex_normals(points, counts, indices):
+    p = np.asarray(points, dtype=np.float64)
+    t = _fan(counts, indices)
+    a = np.cross(p[t[:, 1]] - p[t[:, 0]], p[t[:, 2]] - p[t[:, 0]])
+    n = np.zeros_like(p)
+    for k in range(3):
+        np.add.at(n, t[:, k], a)
+    return n / np.linalg.norm(n, axis=1, keepdims=True)
+
+
+def _flat_normals(points, counts, indices):
+    """Face-varying normals: each corner carries its face's normal (sharp edges: stairs)."""
+    p = np.asarray(points, dtype=np.float64)
+    starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
+    out = []
+    for s, c in zip(starts, counts):
+        f = p[indices[s : s + c]]
+        area = sum(np.cross(f[k] - f[0], f[k + 1] - f[0]) for k in range(1, c - 1))
+        out += [area / np.linalg.norm(area)] * c
+    return np.array(out)
+
+
+def signed_volume(points, counts, indices):
+    p = np.asarray(points, dtype=np.float64)
+    t = _fan(counts, indices)
+    return float(np.einsum("ij,ij->i", p[t[:, 0]], np.cross(p[t[:, 1]], p[t[:, 2]])).sum() / 6.0)
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--out", default=str(DEFAULT_OUT), help="output folder (default: scenes/assets)")
+    args = ap.parse_args(argv)
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    pts, counts, idx, uv = lat_long(blob_radius)
+    write_mesh(out / "blob.usda", "Blob", pts, counts, idx, uv=uv, color=(0.95, 0.55, 0.2))
+    pts, counts, idx, uv = torus()
+    write_mesh(out / "torus.usda", "Torus", pts, counts, idx, uv=uv, color=(0.3, 0.6, 0.95))
+    pts, counts, idx, uv = lat_long(pebble_radius, rings=32, segments=48)
+    write_mesh(out / "pebble.usda", "Pebble", pts, counts, idx, uv=uv, color=(0.5, 0.8, 0.4))
+    pts, counts, idx = stairs()
+    write_mesh(out / "stairs.usda", "Stairs", pts, counts, idx, normals=_flat_normals(pts, counts, idx), collision=True)
+    pts, counts, idx, nrm, uv = bumpy_floor()
+    write_mesh(out / "bumpy_floor.usda", "Floor", pts, counts, idx, uv=uv, uv_interp="vertex", normals=nrm,
+               collision=True)
+    for name in ("blob", "torus", "pebble", "stairs", "bumpy_floor"):
+        print(out / f"{name}.usda")
+
+
+if __name__ == "__main__":
+    main()

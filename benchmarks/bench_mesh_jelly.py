@@ -1,0 +1,171 @@
+"""Cost of a mesh jelly per particle-step against a box jelly of (about) the same particle count.
+
+Run::
+
+    python benchmarks/bench_mesh_jelly.py --device cpu --res 12 20 --json bench_mesh_jelly_cpu.json
+    python benchmarks/bench_mesh_jelly.py --device cuda:0 --res 20 40 80 --json bench_mesh_jelly_cuda.json
+
+For each resolution R a sphere mesh (and a torus) is voxelised into a jelly of R cells across
+(``[[jelly]] mesh = ...``), the sphere on the masked-lattice path (the CUDA default,
+core/masked_lattice.py; forced here on the CPU too) and on the spring list, the torus on the
+masked path; and a box jelly with the nearest cube of the same particle count is built on the
+lattice path (the default for a box) and on the spring list. Each model is compiled and warmed up, then ``--steps`` steps
+of ``--integrator`` are timed ``--repeats`` times (on CUDA one captured graph, wall time; on the CPU
+launch by launch, this thread's CPU time). The table gives the median time per particle-step
+and the ratio of each case to the box on the lattice path, the issue's measure (a mesh jelly
+within 1.5x of a full box of the same particle count). Compile time is recorded apart. Nothing here
+is asserted.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import statistics
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+from softsim_warp.core.masked_lattice import attach_masked
+from softsim_warp.core.model import ModelBuilder, populate
+from softsim_warp.core.stepper import make_integrator
+from softsim_warp.core.terrain import sphere_mesh
+from softsim_warp.io.scene import scene_from_dict
+
+SPRINGS = {"structural": {"ks": 50.0, "kd": 0.1}, "shear": {"ks": 50.0, "kd": 0.1}, "bending": {"ks": 25.0, "kd": 0.05}}
+
+
+def write_usd(path, points, counts, indices):
+    from pxr import Usd, UsdGeom, Vt  # noqa: PLC0415
+
+    stage = Usd.Stage.CreateNew(str(path))
+    UsdGeom.SetStageMetersPerUnit(stage, 1.0)
+    m = UsdGeom.Mesh.Define(stage, "/Asset")
+    m.CreatePointsAttr(Vt.Vec3fArray.FromNumpy(np.asarray(points, dtype=np.float32)))
+    m.CreateFaceVertexCountsAttr(Vt.IntArray.FromNumpy(np.asarray(counts, dtype=np.int32)))
+    m.CreateFaceVertexIndicesAttr(Vt.IntArray.FromNumpy(np.asarray(indices, dtype=np.int32)))
+    stage.GetRootLayer().Save()
+    return str(path)
+
+
+def torus_mesh(R=1.0, r=0.45, nu=96, nv=48):
+    u = np.linspace(0, 2 * np.pi, nu, endpoint=False)
+    v = np.linspace(0, 2 * np.pi, nv, endpoint=False)
+    U, V = np.meshgrid(u, v, indexing="ij")
+    pts = np.stack([(R + r * np.cos(V)) * np.cos(U), r * np.sin(V), (R + r * np.cos(V)) * np.sin(U)], -1).reshape(-1, 3)
+    idx = []
+    for i in range(nu):
+        for j in range(nv):
+            a, b = i * nv + j, ((i + 1) % nu) * nv + j
+            c, d = ((i + 1) % nu) * nv + (j + 1) % nv, i * nv + (j + 1) % nv
+            idx += [a, d, c, b]
+    return pts, np.full(nu * nv, 4), np.array(idx)
+
+
+def scene(jelly):
+    j = {"center": [0.0, 5.0, 0.0], "total_mass": 1.0, "springs": SPRINGS, **jelly}
+    return scene_from_dict({"simulation": {"dt": 1e-4, "frames": 1}, "jelly": [j]})
+
+
+class Case:
+    """One model and integrator, warmed up, that times ``steps`` steps (a captured graph on CUDA)."""
+
+    def __init__(self, name, scn, device, integrator, steps, dt=1e-4, force_path="auto", gather=False):
+        import warp as wp  # noqa: PLC0415
+
+        self.name, self.wp, self.device, self.steps, self.dt = name, wp, device, steps, dt
+        builder = ModelBuilder(scn.sim["gravity"])
+        builder.device = device
+        populate(builder, scn.data)
+        self.model = builder.finalize(device, scn.sim["precision"], force_path=force_path)
+        if gather:  # the masked path on any device (finalize takes it on CUDA only)
+            attach_masked(builder, self.model, kernel="gather")
+        m = self.model
+        self.particles = m.particle_count
+        self.path = "lattice" if m.lattice is not None else "masked" if getattr(m, "masked", None) else "springs"
+        self.integ = make_integrator(integrator, self.model)
+        self.states = [self.model.state(), self.model.state()]
+        t0 = time.perf_counter()
+        self._run(2)
+        wp.synchronize_device(device)
+        self.compile_seconds = time.perf_counter() - t0
+        self.graph = None
+        if wp.get_device(device).is_cuda:
+            with wp.ScopedCapture(device=device) as cap:
+                self._run(steps)
+            self.graph = cap.graph
+
+    def _run(self, n):
+        for i in range(n):
+            self.integ.step(self.states[i % 2], self.states[(i + 1) % 2], self.dt)
+
+    def time(self) -> float:
+        """Seconds per step (CUDA: wall; CPU: this thread's CPU time)."""
+        wp = self.wp
+        wp.synchronize_device(self.device)
+        cpu = self.graph is None
+        t0 = time.thread_time() if cpu else time.perf_counter()
+        if cpu:
+            self._run(self.steps)
+        else:
+            wp.capture_launch(self.graph)
+        wp.synchronize_device(self.device)
+        return ((time.thread_time() if cpu else time.perf_counter()) - t0) / self.steps
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--device", default="cpu")
+    ap.add_argument("--res", type=int, nargs="+", default=[12, 20])
+    ap.add_argument("--integrator", default="symplectic")
+    ap.add_argument("--steps", type=int, default=200)
+    ap.add_argument("--repeats", type=int, default=5)
+    ap.add_argument("--json", default=None)
+    args = ap.parse_args(argv)
+    import warp as wp  # noqa: PLC0415
+
+    wp.config.quiet = True
+    rows = []
+    with tempfile.TemporaryDirectory() as tmp:
+        sphere = write_usd(Path(tmp) / "sphere.usda", *sphere_mesh([0, 0, 0], 1.0, rings=48, segments=96))
+        torus = write_usd(Path(tmp) / "torus.usda", *torus_mesh())
+        for res in args.res:
+            sphere_scene = scene({"mesh": sphere, "resolution": res, "size": 1.0})
+            cases = [
+                Case("sphere_masked", sphere_scene, args.device, args.integrator, args.steps, gather=True),
+                Case("sphere_springs", sphere_scene, args.device, args.integrator, args.steps, force_path="springs"),
+                Case("torus_masked", scene({"mesh": torus, "resolution": res, "size": 1.0}), args.device,
+                     args.integrator, args.steps, gather=True),
+            ]
+            n = round(cases[0].particles ** (1.0 / 3.0))
+            box = scene({"resolution": [n, n, n], "size": 1.0})
+            cases.append(Case("box_lattice", box, args.device, args.integrator, args.steps))
+            cases.append(Case("box_springs", box, args.device, args.integrator, args.steps, force_path="springs"))
+            times = {c.name: [] for c in cases}
+            for _ in range(args.repeats):
+                for c in cases:  # interleaved, so drifts of the machine hit every case alike
+                    times[c.name].append(c.time())
+            ref = statistics.median(times["box_lattice"]) / cases[3].particles
+            for c in cases:
+                per = statistics.median(times[c.name]) / c.particles
+                rows.append({
+                    "res": res, "case": c.name, "path": c.path, "particles": c.particles,
+                    "seconds_per_step": statistics.median(times[c.name]), "ns_per_particle_step": per * 1e9,
+                    "ratio_to_box_lattice": per / ref, "compile_seconds": c.compile_seconds,
+                })
+    print(f"{'res':>4} {'case':<15} {'path':<8} {'particles':>9} {'ns/particle-step':>17} {'x box lattice':>14}")
+    for r in rows:
+        print(f"{r['res']:>4} {r['case']:<15} {r['path']:<8} {r['particles']:>9} {r['ns_per_particle_step']:>17.2f} "
+              f"{r['ratio_to_box_lattice']:>14.2f}")
+    if args.json:
+        meta = {"device": str(wp.get_device(args.device)), "integrator": args.integrator, "steps": args.steps,
+                "repeats": args.repeats, "warp": wp.config.version}
+        Path(args.json).write_text(json.dumps({"meta": meta, "rows": rows}, indent=1))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

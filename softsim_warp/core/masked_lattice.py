@@ -1,0 +1,169 @@
+"""Masked-lattice force path: lattice jellies with points missing (mesh jellies) without a spring list.
+
+A mesh jelly (core/voxelize.py) is a box lattice with the points outside the mesh left out, and its
+springs are the standard stencil springs between present neighbours. The regular lattice path
+(core/lattice_model.py) needs every point; the spring list handles any topology but pays atomics
+(5-10x the lattice path on CUDA, docs/PERFORMANCE.md). This path keeps the lattice's tables (one
+rest length per stencil offset, one ks/kd per type and jelly) and adds, per jelly, a grid of
+particle indices over its box (-1 where no point is): one thread per particle gathers its springs
+(``eval_masked_springs``, kernels/mesh.py), with no atomics and in a fixed order.
+
+``finalize`` takes it, on CUDA, for a model whose jellies are all (masked or whole) standard
+lattices that the regular lattice path does not cover; on the CPU the atomic spring list (one
+thread per spring, vectorised by Warp's CPU backend no better) stays, as benchmarks/bench_mesh_jelly.py
+measured. The model keeps its spring list too (the implicit integrator's Jacobian and the metrics
+read it).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import warp as wp
+
+from . import lattice
+from ..kernels.lattice import REST_SLOTS, rest_slot
+from .lattice_model import REST_TOLERANCE
+
+
+def detect_masked(builder) -> tuple[dict | None, str]:
+    """Host tables of the masked path for ``builder``'s jellies, or ``(None, reason)``."""
+    jellies = builder.jellies
+    if not jellies or not any(getattr(j, "lattice_index", None) is not None for j in jellies):
+        return None, "no masked jelly"
+    if sum(j.particle_count for j in jellies) != builder._particle_count:
+        return None, "some particles belong to no jelly"
+    if sum(j.spring_count for j in jellies) != builder._spring_count:
+        return None, "some springs belong to no jelly"
+    pairs = np.concatenate(builder._pairs) if builder._pairs else np.zeros((0, 2), dtype=np.int64)
+    types = np.concatenate(builder._type) if builder._type else np.zeros(0, dtype=np.int32)
+    rest = np.concatenate(builder._rest) if builder._rest else np.zeros(0)
+    ks = np.concatenate(builder._ks) if builder._ks else np.zeros(0)
+    kd = np.concatenate(builder._kd) if builder._kd else np.zeros(0)
+    count = len(jellies)
+    tables = {
+        "shape": np.zeros((count, 3), dtype=np.int32),
+        "grid_start": np.zeros(count, dtype=np.int32),
+        "types": np.zeros(count, dtype=np.int32),
+        "rest": np.zeros((count, REST_SLOTS)),
+        "ks": np.zeros((count, 3)),
+        "kd": np.zeros((count, 3)),
+        "cell": np.zeros(builder._particle_count, dtype=np.int32),
+        "grid": [],
+    }
+    grid_at = 0
+    for j, info in enumerate(jellies):
+        name = info.name or f"jelly {j}"
+        shape = tuple(int(n) for n in info.shape)
+        cells = getattr(info, "lattice_index", None)
+        cells = np.arange(int(np.prod(shape))) if cells is None else np.asarray(cells, dtype=np.int64)
+        if cells.size != info.particle_count:
+            return None, f"{name}: particle count is not its lattice points'"
+        grid = np.full(int(np.prod(shape)), -1, dtype=np.int64)
+        grid[cells] = np.arange(cells.size) + info.particle_start
+        # The springs must be the standard stencil between present points, type by type in stencil order.
+        std_pairs, std_types = lattice.lattice_springs(shape)
+        present = np.zeros(grid.size, dtype=bool)
+        present[cells] = True
+        sl = slice(info.spring_start, info.spring_start + info.spring_count)
+        j_types = types[sl]
+        have = [t for t in range(3) if np.any(j_types == t)]
+        keep = present[std_pairs[:, 0]] & present[std_pairs[:, 1]] & np.isin(std_types, have)
+        if not (np.array_equal(grid[std_pairs[keep]], pairs[sl]) and np.array_equal(std_types[keep], j_types)):
+            return None, f"{name}: springs are not the stencil between its lattice points"
+        for t in have:
+            sel = j_types == t
+            for table, values in (("ks", ks[sl][sel]), ("kd", kd[sl][sel])):
+                if values.min() != values.max():
+                    return None, f"{name}: {lattice.SPRING_TYPE_NAMES[t]} {table} varies per spring"
+                tables[table][j, t] = values[0]
+            tables["types"][j] |= 1 << t
+        # One rest length per stencil offset (and its opposite).
+        coord = np.stack(np.unravel_index(std_pairs[keep], shape), axis=-1)  # (S, 2, 3)
+        offsets = coord[:, 1] - coord[:, 0]
+        j_rest = rest[sl]
+        for off in {tuple(o) for o in offsets}:
+            r = j_rest[np.all(offsets == off, axis=1)]
+            if r.max() - r.min() > REST_TOLERANCE * max(abs(r.max()), 1e-30):
+                return None, f"{name}: rest lengths of offset {off} vary per spring"
+            value = float(np.median(r))
+            tables["rest"][j, rest_slot(*off)] = value
+            tables["rest"][j, rest_slot(*(-o for o in off))] = value
+        tables["shape"][j] = shape
+        tables["grid_start"][j] = grid_at
+        tables["cell"][info.particle_start : info.particle_start + info.particle_count] = cells
+        tables["grid"].append(grid)
+        grid_at += grid.size
+    if grid_at > np.iinfo(np.int32).max:
+        return None, "lattice grids too large for int32 indices"
+    tables["grid"] = np.concatenate(tables["grid"]).astype(np.int32)
+    return tables, "masked lattice"
+
+
+class MaskedLattice:
+    """Device tables of the masked path.
+
+    Attributes:
+        particle_cell: each particle's lattice index in its jelly's box, shape [particle_count], int32.
+        jelly_shape: lattice points per axis of each jelly's box, shape [J], vec3i.
+        jelly_grid_start: each jelly's first entry in ``grid``, shape [J], int32.
+        grid: particle index of every box point (-1: none), all jellies, shape [sum of box sizes], int32.
+        jelly_types: bit mask of present spring types, shape [J], int32.
+        jelly_rest: rest length per stencil offset [m], shape [J, 32], scalar (as the lattice path's).
+        jelly_ks, jelly_kd: stiffness [N/m] and damping [N s/m] per spring type, shape [J, 3], scalar.
+    """
+
+    def __init__(self, tables: dict, device, scalar, np_scalar):
+        def arr(values, dtype, np_dtype):
+            return wp.array(np.asarray(values, dtype=np_dtype), dtype=dtype, device=device)
+
+        self.particle_cell = arr(tables["cell"], wp.int32, np.int32)
+        self.jelly_shape = arr(tables["shape"], wp.vec3i, np.int32)
+        self.jelly_grid_start = arr(tables["grid_start"], wp.int32, np.int32)
+        self.grid = arr(tables["grid"], wp.int32, np.int32)
+        self.jelly_types = arr(tables["types"], wp.int32, np.int32)
+        self.jelly_rest = wp.array2d(np.asarray(tables["rest"], dtype=np_scalar), dtype=scalar, device=device)
+        self.jelly_ks = wp.array2d(np.asarray(tables["ks"], dtype=np_scalar), dtype=scalar, device=device)
+        self.jelly_kd = wp.array2d(np.asarray(tables["kd"], dtype=np_scalar), dtype=scalar, device=device)
+
+
+def attach_masked(builder, m, force_path="auto", kernel=None) -> None:
+    """Give model ``m`` the masked path when it applies (see the module docstring): ``m.masked``
+    (a :class:`MaskedLattice`, or None) and ``m.masked_reason``.
+
+    ``kernel``: "gather" takes it on any device (tests, benchmarks); None: on CUDA only.
+    """
+    m.masked = None
+    m.masked_reason = "the lattice path applies" if m.lattice is not None else "force_path=springs"
+    if m.lattice is not None or force_path != "auto":
+        return
+    tables, m.masked_reason = detect_masked(builder)
+    if tables is None:
+        return
+    if kernel != "gather" and not m.device.is_cuda:
+        m.masked_reason = "masked lattice: on CUDA only (the CPU keeps the spring list)"
+        return
+    m.masked = MaskedLattice(tables, m.device, m.scalar, np.float32 if m.precision == "float32" else np.float64)
+
+
+def eval_masked_forces(model, q: wp.array, qd: wp.array, f_out: wp.array):
+    """Spring and damper forces of (q, qd) into ``f_out`` on the masked path; every entry is written."""
+    ml = model.masked
+    wp.launch(
+        model.kernels.eval_masked_springs,
+        dim=model.particle_count,
+        inputs=[
+            model.particle_jelly,
+            ml.particle_cell,
+            ml.jelly_shape,
+            ml.jelly_grid_start,
+            ml.grid,
+            ml.jelly_types,
+            ml.jelly_rest,
+            ml.jelly_ks,
+            ml.jelly_kd,
+            q,
+            qd,
+        ],
+        outputs=[f_out],
+        device=model.device,
+    )

@@ -1,0 +1,239 @@
+"""Triangle meshes read from files: USD (usd-core) and OBJ/STL/PLY (trimesh, an optional extra).
+
+A mesh is read once per file, prim and modification time (``load_mesh`` is cached), in world space
+(every xform above the prim and the stage's authored metersPerUnit applied; unauthored is metres). Polygons are kept as they are
+for output (the asset's own topology, with its primvars) and split into fan triangles for the
+queries (``MeshAsset.triangles``). Errors are one-line :class:`~softsim_warp.core.errors.SceneError`
+lines naming the scene file, the key and the value.
+"""
+
+from __future__ import annotations
+
+import functools
+import math
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from .errors import SceneError
+from .terrain import fan_triangles, signed_volume
+
+USD_SUFFIXES = (".usd", ".usda", ".usdc")
+TRIMESH_SUFFIXES = (".obj", ".stl", ".ply")
+
+
+@dataclass
+class MeshAsset:
+    """One mesh in world space [m], float64."""
+
+    points: np.ndarray
+    """Vertex positions [m], shape [V, 3]."""
+    counts: np.ndarray
+    """Vertices per face, shape [F]."""
+    indices: np.ndarray
+    """Face vertex indices, shape [sum(counts)]."""
+    primvars: list = field(default_factory=list)
+    """``(name, type name, interpolation, values, indices or None)`` of each primvar to carry over (UVs)."""
+    name: str = ""
+
+    @functools.cached_property
+    def triangles(self) -> np.ndarray:
+        """Fan triangles of the faces, shape [T, 3], int64."""
+        return fan_triangles(self.counts, self.indices)
+
+    @functools.cached_property
+    def edge_uses(self) -> tuple:
+        """``(boundary edges, non-manifold edges)``: edges with one face, edges with more than two.
+
+        Vertices at the same position count as one (a UV seam splits vertices, not the surface).
+        """
+        _, weld = np.unique(self.points, axis=0, return_inverse=True)
+        t = weld.ravel()[self.triangles]
+        e = np.sort(np.concatenate([t[:, [0, 1]], t[:, [1, 2]], t[:, [2, 0]]]), axis=1)
+        _, count = np.unique(e, axis=0, return_counts=True)
+        return int((count == 1).sum()), int((count > 2).sum())
+
+    @property
+    def closed(self) -> bool:
+        """Every edge joins exactly two triangles (a watertight surface)."""
+        boundary, non_manifold = self.edge_uses
+        return boundary == 0 and non_manifold == 0 and self.triangles.shape[0] > 0
+
+    def volume(self) -> float:
+        return signed_volume(self.points, self.triangles)
+
+    def transformed(self, matrix, translate) -> MeshAsset:
+        """The mesh under x -> matrix x + translate (a negative determinant reverses every face)."""
+        pts = self.points @ np.asarray(matrix, dtype=np.float64).T + np.asarray(translate, dtype=np.float64)
+        out = MeshAsset(pts, self.counts, self.indices, self.primvars, self.name)
+        return out.reversed() if np.linalg.det(matrix) < 0 else out
+
+    def reversed(self) -> MeshAsset:
+        """The same surface with every face's winding reversed (face-varying primvars follow)."""
+        perm = _face_reversal(self.counts)
+        primvars = []
+        for name, type_name, interp, values, idx in self.primvars:
+            if interp == "faceVarying":
+                if idx is not None:
+                    idx = np.asarray(idx)[perm]
+                else:
+                    permuted = np.ascontiguousarray(np.asarray(values)[perm])
+                    values = permuted if isinstance(values, np.ndarray) else type(values).FromNumpy(permuted)
+            primvars.append((name, type_name, interp, values, idx))
+        return MeshAsset(self.points, self.counts, self.indices[perm], primvars, self.name)
+
+    def outward(self) -> MeshAsset:
+        """A closed mesh wound so that its faces point out of the volume they enclose."""
+        if self.closed and self.volume() < 0:
+            return self.reversed()
+        return self
+
+
+def _face_reversal(counts) -> np.ndarray:
+    """The face-corner permutation that reverses every face's vertex order."""
+    counts = np.asarray(counts, dtype=np.int64)
+    starts = np.repeat(np.concatenate([[0], np.cumsum(counts)[:-1]]), counts)
+    ends = np.repeat(np.cumsum(counts) - 1, counts)
+    corner = np.arange(int(counts.sum()))
+    return starts + ends - corner
+
+
+def load_mesh(path, prim=None, every=True, source="<scene>", key="mesh.path") -> MeshAsset:
+    """Read a mesh file.
+
+    Args:
+        path: a ``.usd``/``.usda``/``.usdc`` file (usd-core) or ``.obj``/``.stl``/``.ply`` (trimesh).
+        prim: the prim path of the Mesh in a USD file; default: every Mesh with UsdPhysics'
+            CollisionAPI, else every Mesh (``every=True``, merged into one), or the first Mesh
+            (``every=False``).
+        source, key: the scene file and key that named it, for error messages.
+    """
+    p = Path(path)
+    if not p.is_file():
+        raise SceneError(source, key, "no such mesh file" if not p.exists() else "is not a regular file", str(path))
+    suffix = p.suffix.lower()
+    if suffix not in USD_SUFFIXES + TRIMESH_SUFFIXES:
+        raise SceneError(source, key, f"unknown mesh format; use {', '.join(USD_SUFFIXES + TRIMESH_SUFFIXES)}", str(path))
+    st = os.stat(p)
+    return _load_cached(str(p.resolve()), st.st_mtime_ns, st.st_size, prim, bool(every), source, key)
+
+
+@functools.lru_cache(maxsize=32)
+def _load_cached(path, _mtime, _size, prim, every, source, key):
+    if path.lower().endswith(USD_SUFFIXES):
+        mesh = _load_usd(path, prim, every, source, key)
+    else:
+        if prim is not None:
+            raise SceneError(source, key.rsplit(".", 1)[0] + (".prim" if key.endswith(".path") else ".mesh_prim"),
+                             "only a USD file has prims", prim)
+        mesh = _load_trimesh(path, source, key)
+    if mesh.points.shape[0] == 0 or mesh.triangles.shape[0] == 0:
+        raise SceneError(source, key, "the mesh has no faces", path)
+    if not np.isfinite(mesh.points).all():
+        raise SceneError(source, key, "the mesh has non-finite vertex positions", path)
+    return mesh
+
+
+def _load_trimesh(path, source, key):
+    try:
+        import trimesh  # noqa: PLC0415 - optional extra
+    except ImportError:
+        raise SceneError(source, key, "reading OBJ/STL/PLY needs trimesh: pip install 'softsim-warp[mesh]'",
+                         path) from None
+    try:
+        tm = trimesh.load(path, force="mesh", process=False)
+    except Exception as e:  # noqa: BLE001 - any parse failure is the file's fault
+        raise SceneError(source, key, f"cannot read the mesh: {str(e).splitlines()[0] if str(e) else type(e).__name__}",
+                         path) from None
+    faces = np.asarray(getattr(tm, "faces", np.zeros((0, 3))), dtype=np.int64)
+    points = np.asarray(getattr(tm, "vertices", np.zeros((0, 3))), dtype=np.float64)
+    primvars = []
+    uv = getattr(getattr(tm, "visual", None), "uv", None)
+    if uv is not None and len(uv) == len(points):
+        primvars.append(("st", "texCoord2f[]", "vertex", np.asarray(uv, dtype=np.float32), None))
+    return MeshAsset(points, np.full(faces.shape[0], 3), faces.ravel(), primvars, Path(path).stem)
+
+
+def _load_usd(path, prim_path, every, source, key):
+    from pxr import Sdf, Usd, UsdGeom, UsdPhysics  # noqa: PLC0415
+
+    stage = Usd.Stage.Open(path, Usd.Stage.LoadAll)
+    if stage is None:
+        raise SceneError(source, key, "cannot open the USD file", path)
+    # An authored metersPerUnit converts to metres; without one the file is taken to be in metres,
+    # softsim's unit (not USD's fallback of centimetres: most hand-made and script-made files mean metres).
+    meters = UsdGeom.GetStageMetersPerUnit(stage) if UsdGeom.StageHasAuthoredMetersPerUnit(stage) else 1.0
+    prim_key = key.rsplit(".", 1)[0] + (".prim" if key.endswith(".path") else ".mesh_prim")
+    if prim_path is not None:
+        if not Sdf.Path.IsValidPathString(prim_path):
+            raise SceneError(source, prim_key, "is not a prim path", prim_path)
+        prim = stage.GetPrimAtPath(prim_path)
+        if not prim or not prim.IsA(UsdGeom.Mesh):
+            found = [str(p.GetPath()) for p in stage.Traverse() if p.IsA(UsdGeom.Mesh)][:5]
+            raise SceneError(source, prim_key, f"no Mesh prim there in {path}; Meshes: {', '.join(found) or 'none'}",
+                             prim_path)
+        prims = [prim]
+    else:
+        meshes = [p for p in stage.Traverse() if p.IsA(UsdGeom.Mesh)]
+        if not meshes:
+            raise SceneError(source, key, "the file has no Mesh prim", path)
+        colliders = [p for p in meshes if p.HasAPI(UsdPhysics.CollisionAPI)]
+        prims = (colliders or meshes) if every else meshes[:1]
+    cache = UsdGeom.XformCache(Usd.TimeCode.Default())
+    parts = []
+    for prim in prims:
+        mesh = UsdGeom.Mesh(prim)
+        pts = np.asarray(mesh.GetPointsAttr().Get() or [], dtype=np.float64).reshape(-1, 3)
+        counts = np.asarray(mesh.GetFaceVertexCountsAttr().Get() or [], dtype=np.int64)
+        indices = np.asarray(mesh.GetFaceVertexIndicesAttr().Get() or [], dtype=np.int64)
+        if counts.sum() != indices.size or (indices.size and (indices.min() < 0 or indices.max() >= len(pts))):
+            raise SceneError(source, key, f"the Mesh {prim.GetPath()} has inconsistent face counts and indices", path)
+        if (counts < 3).any():
+            raise SceneError(source, key, f"the Mesh {prim.GetPath()} has faces of fewer than 3 vertices", path)
+        m = np.array(cache.GetLocalToWorldTransform(prim), dtype=np.float64)  # row vectors: x' = x M
+        pts = (pts @ m[:3, :3] + m[3, :3]) * meters
+        # Faces wind right-handed in what we return: a left-handed mesh, or a mirroring xform, is reversed.
+        flips = (mesh.GetOrientationAttr().Get() == UsdGeom.Tokens.leftHanded) != (np.linalg.det(m[:3, :3]) < 0)
+        primvars = []
+        if len(prims) == 1:
+            for pv in UsdGeom.PrimvarsAPI(prim).GetPrimvarsWithValues():
+                name = pv.GetPrimvarName()
+                if name == "displayColor" or name == "displayOpacity" or pv.GetAttr().Get() is None:
+                    continue
+                interp = pv.GetInterpolation()
+                idx = np.asarray(pv.GetIndices(), dtype=np.int32) if pv.IsIndexed() else None
+                primvars.append((str(name), str(pv.GetTypeName()), str(interp), pv.GetAttr().Get(), idx))
+        part = MeshAsset(pts, counts, indices, primvars, prim.GetName())
+        parts.append(part.reversed() if flips else part)
+    if len(parts) == 1:
+        return parts[0]
+    offsets = np.cumsum([0] + [p.points.shape[0] for p in parts[:-1]])
+    return MeshAsset(
+        np.concatenate([p.points for p in parts]),
+        np.concatenate([p.counts for p in parts]),
+        np.concatenate([p.indices + o for p, o in zip(parts, offsets)]),
+        [],
+        "+".join(p.name for p in parts),
+    )
+
+
+def transform_matrix(transform: dict | None) -> tuple[np.ndarray, np.ndarray]:
+    """``(3x3 matrix, translation)`` of a scene's ``transform = {translate, rotation, scale}``: scale, then rotate, then translate."""
+    if not transform:
+        return np.eye(3), np.zeros(3)
+    scale = np.broadcast_to(np.asarray(transform.get("scale", 1.0), dtype=np.float64), (3,))
+    rot = transform.get("rotation") or {}
+    r = _rotation(rot.get("axis", (0.0, 1.0, 0.0)), rot.get("degrees", 0.0))
+    return r @ np.diag(scale), np.asarray(transform.get("translate", (0.0, 0.0, 0.0)), dtype=np.float64)
+
+
+def _rotation(axis, degrees):
+    """Rotation by ``degrees`` about ``axis`` (Rodrigues' formula, as ``model.rotation_matrix``,
+    which this module cannot import: the model imports it)."""
+    a = np.asarray(axis, dtype=np.float64)
+    a = a / np.linalg.norm(a)
+    t = math.radians(degrees)
+    k = np.array([[0, -a[2], a[1]], [a[2], 0, -a[0]], [-a[1], a[0], 0]])
+    return np.eye(3) + math.sin(t) * k + (1 - math.cos(t)) * (k @ k)

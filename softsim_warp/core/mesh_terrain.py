@@ -1,0 +1,190 @@
+"""Static triangle-mesh terrain: the model's arrays and BVHs (``wp.Mesh``), and its output mesh.
+
+Collision is ``collide_meshes`` in kernels/mesh.py, launched by ``contact._launch_contacts`` like
+every other terrain kind. A model without meshes allocates nothing here (``mesh_count`` = 0).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import warp as wp
+
+from .terrain import face_normals
+
+
+def attach_meshes(m, meshes: list, arr, first):
+    """Put the builder's ``meshes`` (dicts of :meth:`ModelBuilder.add_mesh`) on model ``m``, sorted by world.
+
+    Model attributes:
+        meshes: host list of dicts (``asset`` in world space, coefficients, world), sorted by world.
+        mesh_count: number of terrain meshes.
+        mesh_first: index of each world's first mesh, shape [world_count + 1], int32.
+        mesh_bvh: host list of the ``wp.Mesh`` objects (kept alive for their ids).
+        mesh_id: ``wp.Mesh`` ids, shape [mesh_count], uint64.
+        mesh_closed: 1 for a closed mesh (inside by winding number), 0 for an open sheet, shape [mesh_count], int32.
+        mesh_reach: how far behind its surface a mesh still pushes particles out [m], shape [mesh_count], scalar.
+        mesh_tri_start: each mesh's first triangle in ``mesh_tris``, shape [mesh_count], int32.
+        mesh_tris: vertex indices into ``mesh_points`` of every triangle, shape [sum of triangles], vec3i.
+        mesh_points: every mesh's vertices in the model's precision [m], shape [sum of vertices], vec3.
+        mesh_restitution, mesh_friction: coefficients [1], shape [mesh_count], scalar.
+    """
+    meshes = sorted(meshes, key=lambda it: it["world"])
+    m.meshes = meshes
+    m.mesh_count = len(meshes)
+    m.mesh_first = first(meshes)
+    if not meshes:
+        # Empty arrays (kernels that take every terrain kind, the implicit touch test, read none).
+        m.mesh_bvh = []
+        m.mesh_id = wp.zeros(0, dtype=wp.uint64, device=m.device)
+        m.mesh_closed = wp.zeros(0, dtype=wp.int32, device=m.device)
+        m.mesh_reach = wp.zeros(0, dtype=m.scalar, device=m.device)
+        m.mesh_tri_start = wp.zeros(0, dtype=wp.int32, device=m.device)
+        m.mesh_tris = wp.zeros(0, dtype=wp.vec3i, device=m.device)
+        m.mesh_points = wp.zeros(0, dtype=m.vec3, device=m.device)
+        m.mesh_restitution = wp.zeros(0, dtype=m.scalar, device=m.device)
+        m.mesh_friction = wp.zeros(0, dtype=m.scalar, device=m.device)
+        return
+    m.mesh_bvh = []
+    tri_start, tris, points, offset = [], [], [], 0
+    for it in meshes:
+        a = it["asset"]
+        tri = np.ascontiguousarray(a.triangles, dtype=np.int32)
+        m.mesh_bvh.append(
+            wp.Mesh(
+                points=wp.array(np.asarray(a.points, dtype=np.float32), dtype=wp.vec3, device=m.device),
+                indices=wp.array(tri.ravel(), dtype=wp.int32, device=m.device),
+                # A closed mesh tells inside from outside by winding number (else Warp casts rays).
+                support_winding_number=a.closed,
+            )
+        )
+        tri_start.append(sum(t.shape[0] for t in tris))
+        tris.append(tri + offset)
+        points.append(a.points)
+        offset += a.points.shape[0]
+    m.mesh_id = wp.array(np.array([b.id for b in m.mesh_bvh], dtype=np.uint64), dtype=wp.uint64, device=m.device)
+    m.mesh_closed = arr(np.array([int(it["asset"].closed) for it in meshes]), wp.int32, np.int32)
+    m.mesh_reach = arr(np.array([it["thickness"] for it in meshes]), m.scalar, _np(m))
+    m.mesh_tri_start = arr(np.array(tri_start), wp.int32, np.int32)
+    m.mesh_tris = arr(np.concatenate(tris), wp.vec3i, np.int32)
+    m.mesh_points = arr(np.concatenate(points), m.vec3, _np(m))
+    m.mesh_restitution = arr(np.array([it["restitution"] for it in meshes]), m.scalar, _np(m))
+    m.mesh_friction = arr(np.array([it["friction"] for it in meshes]), m.scalar, _np(m))
+
+
+def _np(m):
+    return np.float32 if m.precision == "float32" else np.float64
+
+
+def mesh_arrays(model) -> tuple:
+    """The meshes' arrays in the order ``collide_meshes`` takes them."""
+    return (
+        model.mesh_first,
+        model.mesh_id,
+        model.mesh_closed,
+        model.mesh_reach,
+        model.mesh_tri_start,
+        model.mesh_tris,
+        model.mesh_points,
+        model.mesh_restitution,
+        model.mesh_friction,
+    )
+
+
+def mesh_touch_arrays(model) -> tuple:
+    """The meshes' arrays that the implicit integrator's touch test takes (``constrain_contacts``)."""
+    return (
+        model.mesh_first,
+        model.mesh_id,
+        model.mesh_closed,
+        model.mesh_reach,
+        model.mesh_tri_start,
+        model.mesh_tris,
+        model.mesh_points,
+    )
+
+
+def mesh_output(meshes, roots) -> list:
+    """``(prim path, points, counts, indices, normals)`` of each terrain mesh for the USD stage: the
+    asset's own polygons, flat-shaded (each face corner carries its face's normal, faceVarying)."""
+    out, index = [], {}
+    for it in meshes:
+        i = index[it["world"]] = index.get(it["world"], -1) + 1
+        a = it["asset"]
+        fn = face_normals(a.points, a.counts, a.indices)
+        normals = ("faceVarying", np.repeat(fn, a.counts, axis=0))
+        out.append((f"{roots.get(it['world'], '/World')}/{it.get('name') or 'Mesh'}_{i}", a.points, a.counts, a.indices, normals))
+    return out
+
+
+def mesh_anchors(meshes) -> list:
+    """Bounding-box corners of each mesh [m] (for the explosion speed bound)."""
+    pts = []
+    for it in meshes:
+        p = it["asset"].points
+        pts += [p.min(axis=0), p.max(axis=0)]
+    return pts
+
+
+def mesh_signed_distance(asset, points: np.ndarray) -> np.ndarray:
+    """Host signed distance of ``points`` to a mesh terrain (NumPy, for the scene checks) [m]:
+    negative behind the nearest face (inside a closed mesh wound outward, behind an open sheet).
+    Points in the bounding box are measured by brute force over the triangles, in chunks."""
+    p = np.asarray(points, dtype=np.float64)
+    v = asset.points
+    t = asset.triangles
+    # Outside the bounding box nothing is inside: the distance to the box is a positive lower bound.
+    lo, hi = v.min(axis=0), v.max(axis=0)
+    gap = np.maximum(np.maximum(lo - p, p - hi), 0.0)
+    out = np.linalg.norm(gap, axis=1)
+    near = np.nonzero(out == 0.0)[0]
+    if near.size:
+        out[near] = _brute_distance(v, t, p[near])
+    return out
+
+
+def _brute_distance(v, t, p):
+    a, b, c = v[t[:, 0]], v[t[:, 1]], v[t[:, 2]]
+    n = np.cross(b - a, c - a)
+    n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-300)
+    out = np.empty(p.shape[0])
+    chunk = max(1, (1 << 22) // max(t.shape[0], 1))
+    for s in range(0, p.shape[0], chunk):
+        x = p[s : s + chunk, None, :]
+        q = _closest_on_triangles(x, a[None], b[None], c[None])
+        d = x - q
+        dist = np.linalg.norm(d, axis=2)
+        k = np.argmin(dist, axis=1)
+        rows = np.arange(x.shape[0])
+        side = np.sign(np.einsum("ij,ij->i", d[rows, k], n[k]))
+        side[side == 0] = 1.0
+        out[s : s + chunk] = dist[rows, k] * side
+    return out
+
+
+def _closest_on_triangles(p, a, b, c):
+    """Closest points on triangles (a, b, c) to p, broadcast (Ericson, Real-Time Collision Detection 5.1.5)."""
+    ab, ac, ap = b - a, c - a, p - a
+    d1, d2 = np.einsum("...k,...k", ab, ap), np.einsum("...k,...k", ac, ap)
+    bp = p - b
+    d3, d4 = np.einsum("...k,...k", ab, bp), np.einsum("...k,...k", ac, bp)
+    cp = p - c
+    d5, d6 = np.einsum("...k,...k", ab, cp), np.einsum("...k,...k", ac, cp)
+    va = d3 * d6 - d5 * d4
+    vb = d5 * d2 - d1 * d6
+    vc = d1 * d4 - d3 * d2
+    with np.errstate(all="ignore"):
+        denom = 1.0 / (va + vb + vc)
+        v = vb * denom
+        w = vc * denom
+        res = a + ab * v[..., None] + ac * w[..., None]
+        # Vertex and edge regions, applied so that Ericson's first matching test wins.
+        t_ab = d1 / (d1 - d3)
+        t_ac = d2 / (d2 - d6)
+        t_bc = (d4 - d3) / ((d4 - d3) + (d5 - d6))
+    res = np.where(((va <= 0) & (d4 - d3 >= 0) & (d5 - d6 >= 0))[..., None], b + (c - b) * t_bc[..., None], res)
+    res = np.where(((vb <= 0) & (d2 >= 0) & (d6 <= 0))[..., None], a + ac * t_ac[..., None], res)
+    res = np.where(((d6 >= 0) & (d5 <= d6))[..., None], c, res)
+    res = np.where(((vc <= 0) & (d1 >= 0) & (d3 <= 0))[..., None], a + ab * t_ab[..., None], res)
+    res = np.where(((d3 >= 0) & (d4 <= d3))[..., None], b, res)
+    res = np.where(((d1 <= 0) & (d2 <= 0))[..., None], a, res)
+    return res

@@ -1,0 +1,127 @@
+"""Scene keys that name mesh files: ``[[mesh]]`` terrain and ``[[jelly]] mesh = ...``.
+
+Run by :func:`softsim_warp.io.scene.validate` right after the schema. Paths are resolved against
+the scene file's directory (a built-in scene's: the package's scenes folder) and every file is read
+here (``core.mesh_assets.load_mesh``, cached), so a missing file, a file without a Mesh, an open or
+non-manifold mesh for a jelly and a mesh smaller than one lattice cell are one-line errors before
+anything is built.
+
+A mesh jelly's lattice is a box lattice with points missing: validation fills in the box, the
+jelly's ``resolution`` (particles per axis) and ``size`` (edge lengths [m]), centred on the asset's
+bounding box, so every whole-scene check of a box jelly (precision, memory, terrain overlap) holds
+for it too, counting the box's points as an upper bound. The lattice is voxelised here too (once: the builder
+reuses it), so a ``total_mass`` becomes the per-particle mass of the points really inside. ``_mesh_scale`` (the asset's scale) and
+``_mesh_center`` (its bounding-box centre in its own frame [m]) place the asset in the box.
+"""
+
+from __future__ import annotations
+
+import math
+from importlib import resources
+from pathlib import Path
+
+import numpy as np
+
+from ..core.mesh_assets import load_mesh, transform_matrix
+from ..core.voxelize import MeshLatticeError, mesh_lattice
+
+
+def scene_base(source: str) -> Path:
+    """The directory relative mesh paths start from: the scene file's, or the built-in scenes' folder."""
+    p = Path(source)
+    if p.is_file():
+        return p.resolve().parent
+    return Path(str(resources.files("softsim_warp.scenes")))  # as scene.builtin_dir
+
+
+def _resolve(path: str, base: Path) -> str:
+    p = Path(path).expanduser()
+    return str(p if p.is_absolute() else base / p)
+
+
+def resolve_meshes(data: dict, ctx, base=None):
+    """Resolve and read every mesh file the validated ``data`` names; fill in mesh jellies' boxes."""
+    terrain = data.get("mesh", [])
+    jellies = [(i, j) for i, j in enumerate(data.get("jelly", [])) if "mesh" in j or "mesh_prim" in j or "spacing" in j]
+    if not terrain and not jellies:
+        return
+    base = Path(base) if base is not None else scene_base(ctx.source)
+    for i, t in enumerate(terrain):
+        t["path"] = _resolve(t["path"], base)
+        load_mesh(t["path"], t.get("prim"), every=True, source=ctx.source, key=f"mesh.{i}.path")
+    for i, j in jellies:
+        _mesh_jelly(i, j, ctx, base)
+
+
+def _mesh_jelly(i, j, ctx, base):
+    key = f"jelly.{i}"
+    if "mesh" not in j:
+        name = "mesh_prim" if "mesh_prim" in j else "spacing"
+        ctx.fail(f"{key}.{name}", "only a mesh jelly takes it; give mesh = \"file\" too", j[name])
+    j["mesh"] = _resolve(j["mesh"], base)
+    asset = load_mesh(j["mesh"], j.get("mesh_prim"), every=False, source=ctx.source, key=f"{key}.mesh")
+    boundary, non_manifold = asset.edge_uses
+    if non_manifold:
+        ctx.fail(f"{key}.mesh", f"the mesh is non-manifold ({non_manifold} edges shared by more than two faces); "
+                 "a jelly needs a closed manifold mesh", j["mesh"])
+    if boundary:
+        ctx.fail(f"{key}.mesh", f"the mesh is open ({boundary} edges on one face only); a jelly needs a closed mesh "
+                 "(open meshes can be terrain: [[mesh]])", j["mesh"])
+    if "resolution" in j and "spacing" in j:
+        ctx.fail(f"{key}.spacing", "give resolution or spacing for a mesh jelly, not both", j["spacing"])
+    if "resolution" not in j and "spacing" not in j:
+        ctx.fail(f"{key}.resolution", "is required for a mesh jelly (cells along its longest side), or give spacing")
+    lo, hi = asset.points.min(axis=0), asset.points.max(axis=0)
+    extent0 = hi - lo
+    longest0 = float(extent0.max())
+    scale = 1.0
+    if "size" in j:
+        if len(set(j["size"])) != 1:
+            ctx.fail(f"{key}.size", "a mesh jelly's size is one number: the length of its longest side [m]", j["size"])
+        scale = j["size"][0] / longest0
+    extent = extent0 * scale
+    if "resolution" in j:
+        if len(set(j["resolution"])) != 1:
+            ctx.fail(f"{key}.resolution", "a mesh jelly's resolution is one number: cells along its longest side",
+                     j["resolution"])
+        h = float(extent.max()) / j["resolution"][0]
+    else:
+        h = j["spacing"]
+    if extent.min() < h:
+        ctx.fail(f"{key}.{'spacing' if 'spacing' in j else 'resolution'}",
+                 f"the mesh ({' x '.join(f'{e:.4g}' for e in extent)} m) is smaller than one lattice cell "
+                 f"({h:.4g} m) along an axis; use a finer lattice", j.get("spacing", j.get("resolution")))
+    # Points per axis: the box spans the bounding box, a whole number of cells (a box mesh of k
+    # cells gives exactly k + 1 points: the extent's rounding is forgiven).
+    given = ["spacing", j["spacing"]] if "spacing" in j else ["resolution", j["resolution"][0]]
+    shape = [int(math.ceil(e / h - 1e-6)) + 1 for e in extent]
+    j["resolution"] = shape
+    j["size"] = [(n - 1) * h for n in shape]
+    j["_mesh_scale"] = scale
+    j["_mesh_center"] = (0.5 * (lo + hi)).tolist()
+    # For errors found when the lattice is voxelised (core/voxelize.py): the key the user wrote,
+    # its value and the scene file.
+    j["_mesh_given"] = given
+    j["_source"] = ctx.source
+    # Voxelise now (core/voxelize.mesh_lattice, kept for the builder): the particle count gives a
+    # total_mass its per-particle mass, and a lattice too coarse for the mesh is an error here.
+    try:
+        mask = mesh_lattice(j)[1]
+    except MeshLatticeError as e:
+        ctx.fail(f"{key}.{given[0]}", f"{e}; use a finer lattice", given[1])
+    if "total_mass" in j and "particle_mass" not in j:
+        j["particle_mass"] = j.pop("total_mass") / int(mask.sum())
+
+
+def terrain_asset(t: dict, i: int, source="<scene>"):
+    """A validated ``[[mesh]]`` entry's mesh in world space (its transform applied)."""
+    return load_mesh(t["path"], t.get("prim"), every=True, source=source, key=f"mesh.{i}.path").transformed(
+        *transform_matrix(t.get("transform"))
+    )
+
+
+def mesh_signed_distance_entry(entry: dict, points: np.ndarray) -> np.ndarray:
+    """``checks.TERRAIN_SDF`` entry for ``[[mesh]]``."""
+    from ..core.mesh_terrain import mesh_signed_distance  # noqa: PLC0415
+
+    return mesh_signed_distance(terrain_asset(entry, 0).outward(), points)
