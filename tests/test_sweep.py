@@ -14,6 +14,7 @@ import signal
 import subprocess
 import sys
 import time
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -155,7 +156,8 @@ def test_interrupt_then_resume_recomputes_nothing_and_misses_nothing(tmp_path):
             "--out", str(out))
     proc = subprocess.Popen(_cli(*argv), env=_env(marks, delay=0.7), stderr=subprocess.PIPE, text=True)
     try:
-        _wait_for(lambda: len(list(marks.glob("*.done"))) >= 2)
+        parts = tmp_path / ".res.parquet.parts"
+        _wait_for(lambda: len(list(parts.glob("part-*.parquet"))) >= 2)  # two tasks' rows written
         proc.send_signal(signal.SIGINT)
         _, err = proc.communicate(timeout=60)
     finally:
@@ -167,7 +169,6 @@ def test_interrupt_then_resume_recomputes_nothing_and_misses_nothing(tmp_path):
     assert 2 <= len(first) < 6
 
     # Without --resume the unfinished sweep's parts are not thrown away.
-    parts = tmp_path / ".res.parquet.parts"
     if parts.exists():
         with pytest.raises(CommandLineError, match="--resume"):
             engine.RowStore(out, pq.read_schema(out), resume=False)
@@ -189,17 +190,54 @@ def test_interrupt_then_resume_recomputes_nothing_and_misses_nothing(tmp_path):
     assert rc == 0 and read_results(out) == rows
 
 
+def test_lost_scheduler_keeps_finished_rows_and_resume_finishes(tmp_path):
+    # An existing cluster (--scheduler): its scheduler is killed mid-sweep; the rows of the tasks
+    # that finished stay, the command says to resume, and --resume on a new cluster runs the rest.
+    marks = tmp_path / "marks"
+    marks.mkdir()
+    dask = Path(sys.executable).with_name("dask")
+    info = tmp_path / "scheduler.json"
+    env = _env(marks, delay=1.0)
+    procs = [subprocess.Popen([str(dask), "scheduler", "--port", "0", "--dashboard-address", ":0",
+                               "--scheduler-file", str(info)], env=env, stderr=subprocess.DEVNULL)]
+    try:
+        _wait_for(lambda: info.exists() and info.read_text().strip().endswith("}"))
+        procs.append(subprocess.Popen([str(dask), "worker", "--scheduler-file", str(info), "--nthreads", "1",
+                                       "--no-nanny"], env=env, stderr=subprocess.DEVNULL))
+        address = json.loads(info.read_text())["address"]
+        out = tmp_path / "lost.parquet"
+        argv = ("--duration", "0.3", "--vary", f"{KS}=1000:6000:6", "--batch", "1", "--out", str(out))
+        sweep = subprocess.Popen(_cli(*argv, "--scheduler", address), env=env, stderr=subprocess.PIPE, text=True)
+        parts = tmp_path / ".lost.parquet.parts"
+        _wait_for(lambda: len(list(parts.glob("part-*.parquet"))) >= 2, timeout=90)  # two tasks' rows written
+        procs[0].kill()
+        _, err = sweep.communicate(timeout=90)
+    finally:
+        for p in procs:
+            p.kill()
+            p.wait()
+    assert sweep.returncode == 1 and "the scheduler was lost" in err and "--resume" in err, err
+    kept = {r["variant_id"]: r for r in read_results(out)}
+    assert 2 <= len(kept) < 6
+    done = subprocess.run(_cli(*argv, "--workers", "2", "--resume"), env=_env(), stderr=subprocess.PIPE, text=True,
+                          timeout=120, check=False)
+    assert done.returncode == 0, done.stderr
+    rows = read_results(out)
+    assert sorted(r["index"] for r in rows) == list(range(6))
+    assert all(r == kept[r["variant_id"]] for r in rows if r["variant_id"] in kept)
+
+
 # ---------------------------------------------------------------------------------------------
 # --find-stable-dt
 
 
 def test_find_stable_dt_agrees_with_stability(tmp_path):
-    rc, out = _sweep(tmp_path, "--duration", "0.3", "--integrators", "symplectic,rk4", "--find-stable-dt",
+    rc, out = _sweep(tmp_path, "--duration", "0.1", "--integrators", "symplectic,rk4", "--find-stable-dt",
                      "--workers", "2")
     assert rc == 0
     rows = {r["integrator"]: r for r in read_results(out)}
     report = tmp_path / "stability.json"
-    assert cli.main(["stability", "seed_bowl", *SMALL, "--duration", "0.3", "--integrators", "symplectic,rk4",
+    assert cli.main(["stability", "seed_bowl", *SMALL, "--duration", "0.1", "--integrators", "symplectic,rk4",
                      "--ks", "none", "--out", str(report), "--quiet"]) == 0
     limits = json.loads(report.read_text())["limits"]
     for method in ("symplectic", "rk4"):

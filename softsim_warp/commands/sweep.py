@@ -243,9 +243,10 @@ def run(args) -> int:
         cluster = None
         if todo:
             cluster = engine.start_cluster(device, args.workers, args.scheduler, gpus)
+            t0, startup = time.perf_counter(), time.perf_counter() - t0
             try:
                 say(f"{name}: {len(todo)} variants on {cluster.workers} worker{'s' if cluster.workers != 1 else ''} "
-                    f"(scheduler {cluster.address}); dashboard: "
+                    f"(started in {startup:.1f} s; scheduler {cluster.address}); dashboard: "
                     + (cluster.dashboard or "not served (install bokeh>=3.1 for it)"))
                 if mode == "stable_dt":
                     batches = [[v] for v in todo]

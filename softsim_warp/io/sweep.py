@@ -962,8 +962,9 @@ def start_cluster(device: str, workers: int | None = None, scheduler: str | None
         dashboard = client.dashboard_link if dashboard_ok else None
         task_device = "cuda:0" if device == "cuda" else device
         return Cluster(client, None, n, dashboard, scheduler, task_device)
+    # preload: this module's dask_setup runs in each local worker process (Ctrl-C is the client's).
     kwargs = {"threads_per_worker": 1, "dashboard_address": ":0" if dashboard_ok else None,
-              "silence_logs": logging.ERROR}
+              "silence_logs": logging.ERROR, "preload": [__name__]}
     if device == "cuda" and gpus > 1:
         try:
             from dask_cuda import LocalCUDACluster  # noqa: PLC0415
@@ -980,6 +981,17 @@ def start_cluster(device: str, workers: int | None = None, scheduler: str | None
     n = len(cluster.workers)
     dashboard = client.dashboard_link if dashboard_ok else None
     return Cluster(client, cluster, n, dashboard, cluster.scheduler_address, task_device)
+
+
+def dask_setup(worker):
+    """Preloaded into each local worker process: a Ctrl-C in the terminal reaches every process of
+    the group, and the client alone handles it (it stops, keeps the rows and closes the cluster)."""
+    import signal  # noqa: PLC0415
+
+    try:
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
+    except ValueError:  # not the main thread: leave it
+        pass
 
 
 def _has_bokeh() -> bool:

@@ -79,18 +79,18 @@ def plot_sweep(rows, keys, path, mode="run", metric=None, title="", sampled=Fals
     FigureCanvasAgg(fig)
     if title:
         fig.suptitle(title)
-    fig.tight_layout()
     save_atomic(path, lambda tmp: fig.savefig(tmp, dpi=110), "--plot")
 
 
 def _lines(Figure, rows, key, mode):
+    # A metric that is 0 throughout (no penetration anywhere, say) gets no panel.
     metrics = STABLE_METRICS if mode == "stable_dt" else tuple(
-        (m, label) for m, label in LINE_METRICS if any(_finite(r.get(m)) for r in rows))
-    fig = Figure(figsize=(7.5, 2.6 * len(metrics) + 0.6))
+        (m, label) for m, label in LINE_METRICS if any(_finite(r.get(m)) and r.get(m) != 0 for r in rows))
+    fig = Figure(figsize=(7.5, 2.6 * len(metrics) + 0.6), layout="constrained")
     axes = fig.subplots(len(metrics), 1, sharex=True, squeeze=False)[:, 0]
     series = {}
-    for r in rows:
-        series.setdefault(_series_key(r, [key]), []).append(r)
+    for r in rows:  # --find-stable-dt: the scene's dt is only the bisection's fallback start
+        series.setdefault(_series_key(r, [key, "dt"] if mode == "stable_dt" else [key]), []).append(r)
     xs_all = [_key_value(r[key]) if key != "integrator" else 0.0 for r in rows]
     for ax, (m, label) in zip(axes, metrics):
         for skey, members in series.items():
@@ -130,7 +130,7 @@ def _maps(Figure, rows, keys, mode, metric, sampled):
     for r in rows:
         panels.setdefault(_series_key(r, keys), []).append(r)
     n = len(panels)
-    fig = Figure(figsize=(4.6 * n + 1.2, 4.4))
+    fig = Figure(figsize=(4.6 * n + 1.2, 4.4), layout="constrained")
     axes = fig.subplots(1, n, squeeze=False)[0]
     values = [r.get(metric) for r in rows if r["status"] == "completed" and _finite(r.get(metric))]
     log = mode == "stable_dt" or _log_axis(values)
