@@ -14,10 +14,15 @@ The separate runs are timed on the first ``--runs`` variants (default all) and r
 variant, so a large sweep need not be run twice. Each line also gives the sweep's own rate after
 start-up (the ``N run in T s`` of its summary line). Prints a table and writes JSON.
 
+``--scaling 1,2,4`` instead times the sweep alone at each worker count and reports the efficiency
+``rate(n) / (n rate(first))`` after start-up; with ``--device cuda`` each worker is one GPU
+(dask-cuda).
+
 Usage::
 
     python benchmarks/bench_sweep.py --device cpu --variants 16 --workers 2
     python benchmarks/bench_sweep.py --device cuda:0 --variants 4000 --runs 32 --workers 1 --out bench_sweep_cuda.json
+    python benchmarks/bench_sweep.py --device cuda --variants 4000 --scaling 1,2,4 --out bench_sweep_scaling.json
 """
 
 from __future__ import annotations
@@ -46,12 +51,13 @@ def ks_values(n: int) -> list[float]:
     return [KS_LO + (KS_HI - KS_LO) * i / max(n - 1, 1) for i in range(n)]
 
 
-def time_sweep(args, folder: Path) -> dict:
-    out = folder / "sweep.parquet"
+def time_sweep(args, folder: Path, workers=None) -> dict:
+    out = folder / f"sweep{workers or ''}.parquet"
     cmd = _softsim("sweep", SCENE, "--duration", str(args.duration), "--vary",
                    f"jelly.0.springs.*.ks={KS_LO}:{KS_HI}:{args.variants}", "--device", args.device, "--out", str(out))
-    if args.workers:
-        cmd += ["--workers", str(args.workers)]
+    workers = workers or args.workers
+    if workers:
+        cmd += ["--workers", str(workers)]
     if args.batch:
         cmd += ["--batch", str(args.batch)]
     t0 = time.perf_counter()
@@ -63,7 +69,8 @@ def time_sweep(args, folder: Path) -> dict:
     tasks = re.search(r"(\d+) tasks of up to (\d+) worlds", done.stderr)
     ran, inner = (int(m.group(1)), float(m.group(2))) if m else (args.variants, wall)
     return {
-        "method": "sweep",
+        "method": "sweep" if workers is None else f"sweep, {workers} workers",
+        "workers": workers,
         "variants": args.variants,
         "wall_seconds": wall,
         "variants_per_second": args.variants / wall,
@@ -108,9 +115,14 @@ def main(argv=None):
     p.add_argument("--batch", type=int, help="the sweep's --batch")
     p.add_argument("--duration", type=float, default=1.0)
     p.add_argument("--no-serial", action="store_true", help="skip the serial runs")
+    p.add_argument("--scaling", help="comma-separated worker counts: the sweep alone at each, with the efficiency "
+                   "rate(n) / (n rate(first)); with --device cuda one worker per GPU (dask-cuda)")
     p.add_argument("--out", default="bench_sweep.json")
     args = p.parse_args(argv)
 
+    if args.scaling:
+        run_scaling(args)
+        return
     rows = []
     with tempfile.TemporaryDirectory() as tmp:
         folder = Path(tmp)
@@ -138,6 +150,28 @@ def main(argv=None):
         "cpus": len(os.sched_getaffinity(0)),
         "rows": rows,
     }
+    Path(args.out).write_text(json.dumps(report, indent=1) + "\n")
+    print(f"-> {args.out}")
+
+
+def run_scaling(args):
+    counts = [int(n) for n in args.scaling.split(",")]
+    rows = []
+    with tempfile.TemporaryDirectory() as tmp:
+        for n in counts:
+            rows.append(time_sweep(args, Path(tmp), workers=n))
+    first = rows[0]
+    print(f"{SCENE} (10^3 particles), {args.duration:g} s simulated, {args.variants} variants, device {args.device}")
+    print(f"{'workers':>8}{'tasks':>7}{'batch':>7}{'wall [s]':>10}{'variants/s':>12}{'after start-up':>16}"
+          f"{'efficiency':>12}")
+    for r in rows:
+        rate = r["variants_per_second_after_startup"] or r["variants_per_second"]
+        base = first["variants_per_second_after_startup"] or first["variants_per_second"]
+        r["efficiency"] = rate / (base * r["workers"] / first["workers"])
+        print(f"{r['workers']:>8}{r['tasks'] or 0:>7}{r['batch'] or 0:>7}{r['wall_seconds']:>10.2f}"
+              f"{r['variants_per_second']:>12.3g}{rate:>14.3g}/s{r['efficiency']:>11.0%}")
+    report = {"scene": SCENE, "duration": args.duration, "device": args.device, "host": platform.node(),
+              "scaling": rows}
     Path(args.out).write_text(json.dumps(report, indent=1) + "\n")
     print(f"-> {args.out}")
 

@@ -441,7 +441,8 @@ def memory_budget(device_name: str, workers: int) -> int | None:
             import warp as wp  # noqa: PLC0415
 
             dev = wp.get_device("cuda:0" if device_name == "cuda" else device_name)
-            return int(dev.free_memory)  # each GPU is its own worker's (dask-cuda) or shared by this many
+            # --device cuda: one worker per GPU (dask-cuda); cuda:N: the workers share that GPU.
+            return int(dev.free_memory) // (1 if device_name == "cuda" else max(1, workers))
         except Exception:  # noqa: BLE001 - a remote cluster's devices may not be visible here
             return None
     avail = available_host_bytes()
@@ -562,7 +563,7 @@ def _record_frame(world: _World, frame: dict, k: int, step: int, t: float) -> bo
 def _simulate(variants: list[dict], device, use_graph=True) -> list[dict]:
     """Run one batch (all of one group) as worlds of one model; one result dict per variant."""
     from .runinfo import energy_drift  # noqa: PLC0415
-    from .worlds import world_frame  # noqa: PLC0415
+    from .worlds import probe_arrays, world_frame  # noqa: PLC0415
 
     batch = _Batch([v["data"] for v in variants], device, use_graph)
     ref = None
@@ -578,13 +579,15 @@ def _simulate(variants: list[dict], device, use_graph=True) -> list[dict]:
     for k in range(batch.frames + 1):
         step, t = batch.advance_to_frame(k)
         q = batch.sim.state.particle_q.numpy()
+        arrays = probe_arrays(batch.sim.probe)
         if ref is not None:
             ref.advance_to_frame(k)
             q_ref = ref.sim.state.particle_q.numpy()
+            ref_arrays = probe_arrays(ref.sim.probe)
         for w, world in enumerate(batch.worlds):
             if not alive[w]:
                 continue
-            frame = world_frame(batch.sim.probe, batch.jellies[w])
+            frame = world_frame(arrays, batch.jellies[w])
             alive[w] = _record_frame(world, frame, k, step, t)
             if not alive[w]:
                 continue
@@ -592,7 +595,7 @@ def _simulate(variants: list[dict], device, use_graph=True) -> list[dict]:
             qw = q[a:b].astype(np.float64)
             world.penetration = max(world.penetration, penetration(batch.datas[w], qw, batch.world_jelly_ranges[w]))
             if ref is not None and ref_alive[w]:
-                rframe = world_frame(ref.sim.probe, ref.jellies[w])
+                rframe = world_frame(ref_arrays, ref.jellies[w])
                 rworld = ref.worlds[w]
                 ref_alive[w] = _record_frame(rworld, rframe, k, step, t)
                 if ref_alive[w]:
@@ -978,9 +981,15 @@ def start_cluster(device: str, workers: int | None = None, scheduler: str | None
         cluster = distributed.LocalCluster(n_workers=n, processes=True, scheduler_port=0, **kwargs)
         task_device = "cuda:0" if device == "cuda" else device
     client = distributed.Client(cluster)
+    # Warp starts in every worker now, not in its first task (a start-up cost, not a task's).
+    client.run(_start_worker)
     n = len(cluster.workers)
     dashboard = client.dashboard_link if dashboard_ok else None
     return Cluster(client, cluster, n, dashboard, cluster.scheduler_address, task_device)
+
+
+def _start_worker():
+    _init_warp()
 
 
 def dask_setup(worker):

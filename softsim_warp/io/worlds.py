@@ -60,21 +60,30 @@ def world_speed_bound(model, start, end, world):
     return speed_bound(view)
 
 
-def world_frame(probe, jellies) -> dict:
-    """One world's whole-scene metrics from the per-jelly arrays of ``probe``'s last ``measure``.
+def probe_arrays(probe) -> dict:
+    """The per-jelly arrays of ``probe``'s last ``measure`` on the host (one copy each per frame)."""
+    return {
+        "ke": probe.kinetic.numpy().astype(np.float64),
+        "ge": probe.gravity_energy.numpy().astype(np.float64),
+        "se": probe.spring_energy.numpy().astype(np.float64),
+        "mom": probe.moment.numpy().astype(np.float64),
+        "vmax": probe.max_speed.numpy().astype(np.float64),
+        "bad": probe.nonfinite.numpy(),
+        "mass": probe.jelly_mass,
+    }
+
+
+def world_frame(arrays, jellies) -> dict:
+    """One world's whole-scene metrics from :func:`probe_arrays`.
 
     ``jellies``: the world's ``(first, end)`` jelly range. The sums are taken over the same values
     in the same order as ``MetricsProbe.measure`` takes them for a model holding that world alone,
     so they agree with a single run bit for bit.
     """
     a, b = jellies
-    ke = probe.kinetic.numpy().astype(np.float64)[a:b]
-    ge = probe.gravity_energy.numpy().astype(np.float64)[a:b]
-    se = probe.spring_energy.numpy().astype(np.float64)[a:b]
-    mom = probe.moment.numpy().astype(np.float64)[a:b]
-    vmax = probe.max_speed.numpy().astype(np.float64)[a:b]
-    bad = probe.nonfinite.numpy()[a:b]
-    mass = probe.jelly_mass[a:b].sum()
+    ke, ge, se = arrays["ke"][a:b], arrays["ge"][a:b], arrays["se"][a:b]
+    mom, vmax, bad = arrays["mom"][a:b], arrays["vmax"][a:b], arrays["bad"][a:b]
+    mass = arrays["mass"][a:b].sum()
     return {
         "com": (mom.sum(axis=0) / mass).tolist() if mass > 0 else [0.0, 0.0, 0.0],
         "kinetic_energy": float(ke.sum()),
