@@ -113,6 +113,33 @@ def test_reference_error_is_zero_for_the_reference_itself(tmp_path):
     assert 1e-6 < sym["ref_position_error"] < 0.1 and sym["ref_status"] == "completed"
 
 
+def test_a_failing_variant_fails_alone(monkeypatch):
+    # A batch that raises is rerun variant by variant: the bad variant's row says failed with the
+    # error, the others are the rows a batch without it gives.
+    from softsim_warp.io import scene as scene_mod
+
+    _, source, base = scene_mod.read_scene_data("seed_bowl")
+    scene_mod.apply_overrides(base, [("jelly.0.resolution", 4), ("simulation.duration", 0.1)])
+    variants = engine.plan_sweep(base, source, [parse_axis(f"{KS}=1000,2000,3000")])
+    bad = variants[1].id
+    simulate = engine._simulate
+
+    def failing(batch, device, use_graph=True):
+        if any(v["id"] == bad for v in batch):
+            raise RuntimeError("boom")
+        return simulate(batch, device, use_graph)
+
+    monkeypatch.setattr(engine, "_simulate", failing)
+    rows = engine.run_batch(engine.task_spec(variants, "cpu", 0))
+    assert [r["status"] for r in rows] == ["completed", "failed", "completed"]
+    assert rows[1]["error"] == "RuntimeError: boom" and rows[1]["variant_id"] == bad
+    monkeypatch.setattr(engine, "_simulate", simulate)
+    alone = engine.run_batch(engine.task_spec([variants[0], variants[2]], "cpu", 1))
+    for a, b in zip(alone, [rows[0], rows[2]]):
+        for key in ("steps", "energy_change", "com_x", "com_y", "com_z", "max_speed"):
+            assert a[key] == b[key]
+
+
 # ---------------------------------------------------------------------------------------------
 # No finished row lost
 

@@ -307,8 +307,11 @@ def run(args) -> int:
               "run again with --resume for the rest", file=sys.stderr)
         return signals.exit_code()
     if outcome.scheduler_lost or outcome.lost:
-        why = f"the scheduler was lost ({outcome.scheduler_lost})" if outcome.scheduler_lost else \
-            f"{len(outcome.lost)} variants' tasks were lost with their workers too often"
+        if outcome.scheduler_lost:
+            why = f"the scheduler was lost ({outcome.scheduler_lost})"
+        else:
+            why = (f"the tasks of {len(outcome.lost)} variants gave no rows (first: {outcome.errors[0]}; a task is "
+                   "given up after its worker died 3 times)")
         print(f"error: {out}: {why}; {len(store.rows)} of {len(variants)} rows kept; run again with --resume "
               "for the rest", file=sys.stderr)
         return 1

@@ -1013,7 +1013,8 @@ def _has_bokeh() -> bool:
 class Outcome:
     done: int = 0
     failed: int = 0
-    lost: list = field(default_factory=list)  # variant ids whose task was lost (KilledWorker)
+    lost: list = field(default_factory=list)  # variant ids whose task was lost or raised (no rows)
+    errors: list = field(default_factory=list)  # what those tasks raised
     interrupted: bool = False
     scheduler_lost: str | None = None
 
@@ -1022,8 +1023,10 @@ def run_tasks(cluster: Cluster, fn, specs: list[dict], on_rows, stop_requested=N
     """Submit ``fn(spec)`` for each spec and hand each finished task's rows to ``on_rows`` as they come.
 
     A task whose worker died is rerun by the scheduler (up to its ``allowed-failures``); one it gave
-    up on is reported in ``Outcome.lost`` (no rows: ``--resume`` runs it again). Stops early,
-    cancelling what is still queued, when ``stop_requested()`` says so or the scheduler is lost.
+    up on, or one that raised outside a variant (a device missing on that worker, say), is reported
+    in ``Outcome.lost`` and ``errors`` and gives no rows, so ``--resume`` runs it again: only a
+    variant's own failure is a row. Stops early, cancelling what is still queued, when
+    ``stop_requested()`` says so or the scheduler is lost.
     """
     distributed = require("distributed")
     client = cluster.client
@@ -1046,7 +1049,7 @@ def run_tasks(cluster: Cluster, fn, specs: list[dict], on_rows, stop_requested=N
                 continue
             for f in ac.next_batch(block=False):
                 pending.discard(f)
-                _, spec = futures[f.key]
+                _, spec = futures.pop(f.key)  # the result is released once read
                 ids = [v["id"] for v in spec["variants"]]
                 if f.status == "finished":
                     rows = f.result()
@@ -1055,13 +1058,8 @@ def run_tasks(cluster: Cluster, fn, specs: list[dict], on_rows, stop_requested=N
                     outcome.failed += sum(r["status"] == "failed" for r in rows)
                 elif f.status == "error":
                     exc = f.exception()
-                    if type(exc).__name__ == "KilledWorker":
-                        outcome.lost += ids
-                    else:
-                        rows = [_failed(v, exc, len(ids)) for v in spec["variants"]]
-                        on_rows(rows)
-                        outcome.done += len(rows)
-                        outcome.failed += len(rows)
+                    outcome.lost += ids
+                    outcome.errors.append(f"{type(exc).__name__}: {exc}".strip())
                 else:  # cancelled or lost: the scheduler went away
                     outcome.lost += ids
                     outcome.scheduler_lost = f"task {spec['task']} was {f.status}"
