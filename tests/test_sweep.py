@@ -371,6 +371,28 @@ def test_penetration_closed_forms():
     assert penetration({"bowl": [bowl]}, cut, [(0, 2)]) == pytest.approx(0.05)
 
 
+def test_batch_penetration_is_each_worlds_penetration():
+    # All worlds at once (one distance evaluation when the surfaces agree) = world by world.
+    rng = np.random.default_rng(5)
+    plane = {"point": [0.0, 0.0, 0.0], "normal": [0.0, 1.0, 0.0], "hole": {"center": [0.5, 0, 0], "radius": 0.3},
+             "friction": 0.2}
+    bowl = {"center": [0.0, 0.0, 0.0], "radius": 1.0, "cut_height": 0.5, "friction": 0.1}
+    sphere = {"center": [0.0, -0.5, 0.0], "radius": 0.4}
+    datas, ranges, jellies, start = [], [], [], 0
+    for w in range(5):
+        moved = dict(sphere, center=[0.1 * w, -0.5, 0.0])  # differs per world: evaluated world by world
+        datas.append({"plane": [dict(plane, friction=0.1 * w)], "bowl": [bowl], "sphere": [moved]})
+        n = 20 + 3 * w
+        ranges.append((start, start + n))
+        jellies.append([(0, 8), (8, n)])
+        start += n
+    q = rng.uniform(-1.2, 1.2, (start, 3)).astype(np.float32)
+    got = engine.batch_penetration(datas, q, ranges, jellies)
+    for w, (a, b) in enumerate(ranges):
+        assert got[w] == penetration(datas[w], q[a:b].astype(np.float64), jellies[w])
+    assert (got > 0).all()
+
+
 def test_batches_group_what_can_share_a_launch():
     from softsim_warp.io import scene as scene_mod
 

@@ -478,6 +478,64 @@ def penetration(data: dict, q: np.ndarray, jelly_ranges) -> float:
     return worst
 
 
+# Terrain keys that do not move the surface: entries that differ only in these share one distance evaluation.
+_NOT_GEOMETRY = ("restitution", "friction", "size")
+
+
+def shared_surfaces(datas: list[dict]) -> dict:
+    """``{(kind, entry): True}`` for each terrain entry whose surface is the same in every world."""
+    out = {}
+    for kind in TERRAIN_SDF:
+        count = len(datas[0].get(kind, []))
+        for e in range(count):
+            if any(len(d.get(kind, [])) != count for d in datas):
+                out[(kind, e)] = False
+                continue
+            shape = {_canonical({k: v for k, v in d[kind][e].items() if k not in _NOT_GEOMETRY}) for d in datas}
+            out[(kind, e)] = len(shape) == 1
+    return out
+
+
+def batch_penetration(datas: list[dict], q: np.ndarray, ranges, jelly_ranges, shared=None) -> np.ndarray:
+    """:func:`penetration` of every world of a batch: ``q`` holds all worlds' particles, ``ranges``
+    each world's ``(first, end)`` and ``jelly_ranges`` each world's jelly ranges (world-local).
+
+    A terrain entry whose surface is the same in every world (only restitution or friction vary, say)
+    is evaluated once over all particles; otherwise world by world. ``shared``: :func:`shared_surfaces`
+    of ``datas`` (computed when not given).
+    """
+    shared = shared_surfaces(datas) if shared is None else shared
+    worlds = len(datas)
+    worst = np.zeros(worlds)
+    q64 = None
+    starts = np.array([a for a, _ in ranges])
+    for kind, sdf in TERRAIN_SDF.items():
+        count = len(datas[0].get(kind, []))
+        for e in range(count):
+            if not shared[(kind, e)]:
+                for w, (a, b) in enumerate(ranges):
+                    if e >= len(datas[w].get(kind, [])):
+                        continue
+                    worst[w] = max(worst[w], penetration({kind: [datas[w][kind][e]]}, q[a:b].astype(np.float64),
+                                                         jelly_ranges[w]))
+                continue
+            if q64 is None:
+                q64 = q.astype(np.float64)
+            phi = sdf(datas[0][kind][e], q64)
+            finite = np.isfinite(phi)
+            if kind in SHELLS:
+                jstart = np.array([a + ja for (a, _), js in zip(ranges, jelly_ranges) for ja, _ in js])
+                jworld = np.array([w for w, js in enumerate(jelly_ranges) for _ in js])
+                lo = np.minimum.reduceat(np.where(finite, phi, np.inf), jstart)
+                hi = np.maximum.reduceat(np.where(finite, phi, -np.inf), jstart)
+                depth = np.where((lo < 0) & (hi > 0), np.minimum(-lo, hi), 0.0)
+                np.maximum.at(worst, jworld, depth)
+            else:
+                depth = np.maximum.reduceat(np.where(finite, -phi, -np.inf), starts)
+                worst = np.maximum(worst, depth)
+    return np.maximum(worst, 0.0)
+
+
 class _World:
     """What one world of a batch accumulates frame by frame (what ``Simulator.run`` records for a run)."""
 
@@ -527,6 +585,7 @@ class _Batch:
             bound = data["simulation"].get("max_speed")
             a, b = self.ranges[w]
             self.worlds.append(_World(float(bound) if bound is not None else world_speed_bound(self.model, a, b, w)))
+        self.shared = shared_surfaces(datas)
         self.done_steps = 0
         self.step_seconds = 0.0
 
@@ -563,7 +622,7 @@ def _record_frame(world: _World, frame: dict, k: int, step: int, t: float) -> bo
 def _simulate(variants: list[dict], device, use_graph=True) -> list[dict]:
     """Run one batch (all of one group) as worlds of one model; one result dict per variant."""
     from .runinfo import energy_drift  # noqa: PLC0415
-    from .worlds import probe_arrays, world_frame  # noqa: PLC0415
+    from .worlds import probe_arrays, world_frame, world_frames  # noqa: PLC0415
 
     batch = _Batch([v["data"] for v in variants], device, use_graph)
     ref = None
@@ -579,7 +638,8 @@ def _simulate(variants: list[dict], device, use_graph=True) -> list[dict]:
     for k in range(batch.frames + 1):
         step, t = batch.advance_to_frame(k)
         q = batch.sim.state.particle_q.numpy()
-        arrays = probe_arrays(batch.sim.probe)
+        frames = world_frames(probe_arrays(batch.sim.probe), batch.jellies)
+        depth = batch_penetration(batch.datas, q, batch.ranges, batch.world_jelly_ranges, batch.shared)
         if ref is not None:
             ref.advance_to_frame(k)
             q_ref = ref.sim.state.particle_q.numpy()
@@ -587,14 +647,14 @@ def _simulate(variants: list[dict], device, use_graph=True) -> list[dict]:
         for w, world in enumerate(batch.worlds):
             if not alive[w]:
                 continue
-            frame = world_frame(arrays, batch.jellies[w])
+            frame = frames[w]
             alive[w] = _record_frame(world, frame, k, step, t)
             if not alive[w]:
                 continue
-            a, b = batch.ranges[w]
-            qw = q[a:b].astype(np.float64)
-            world.penetration = max(world.penetration, penetration(batch.datas[w], qw, batch.world_jelly_ranges[w]))
+            world.penetration = max(world.penetration, float(depth[w]))
             if ref is not None and ref_alive[w]:
+                a, b = batch.ranges[w]
+                qw = q[a:b].astype(np.float64)
                 rframe = world_frame(ref_arrays, ref.jellies[w])
                 rworld = ref.worlds[w]
                 ref_alive[w] = _record_frame(rworld, rframe, k, step, t)
