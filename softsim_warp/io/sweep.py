@@ -165,7 +165,8 @@ def parse_axis(item: str, flag: str = "--vary", key: str | None = None) -> Axis:
             out = [int(round(v)) for v in values]
         else:
             integer = False
-            out = [float(v) for v in values]
+            # 15 significant digits: geomspace's 0.0020000000000000005 is the 0.002 meant.
+            out = [float(f"{v:.15g}") for v in values]
         # The ends exactly as given (geomspace may round them).
         out[0] = type(out[0])(lo)
         if n > 1:
