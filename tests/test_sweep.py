@@ -64,9 +64,11 @@ def _wait_for(predicate, timeout=60.0):
 def test_rows_equal_single_runs_bitwise(tmp_path):
     # ks = 1e6 makes rk4 explode at dt = 1e-3 (omega dt > 2.8) and symplectic explode too; 2000 runs
     # through contact with the rim. Two worlds per task, so every row comes out of a batch.
+    plot = tmp_path / "study.png"
     rc, out = _sweep(tmp_path, "--duration", "1.5", "--vary", f"{KS}=2000,1000000", "--integrators",
-                     "symplectic,rk4", "--workers", "2", "--batch", "2")
+                     "symplectic,rk4", "--workers", "2", "--batch", "2", "--plot", str(plot))
     assert rc == 0
+    assert plot.stat().st_size > 10_000
     rows = read_results(out)
     assert [r["index"] for r in rows] == [0, 1, 2, 3]
     assert {r["batch_size"] for r in rows} == {2}

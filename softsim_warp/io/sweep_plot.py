@@ -127,8 +127,8 @@ def _maps(Figure, rows, keys, mode, metric, sampled):
     kx, ky = keys
     metric = metric or ("stable_dt" if mode == "stable_dt" else "energy_change_relative")
     panels = {}
-    for r in rows:
-        panels.setdefault(_series_key(r, keys), []).append(r)
+    for r in rows:  # --find-stable-dt: the scene's dt is only the bisection's fallback start
+        panels.setdefault(_series_key(r, keys + ["dt"] if mode == "stable_dt" else keys), []).append(r)
     n = len(panels)
     fig = Figure(figsize=(4.6 * n + 1.2, 4.4), layout="constrained")
     axes = fig.subplots(1, n, squeeze=False)[0]
@@ -176,13 +176,19 @@ def _maps(Figure, rows, keys, mode, metric, sampled):
                         ax.plot([j + 0.5, j + 0.5], [i - 0.5, i + 0.5], color="red", lw=2.5)
                     if i + 1 < len(yv) and {state[i, j], state[i + 1, j]} == {1, 2}:
                         ax.plot([j - 0.5, j + 0.5], [i + 0.5, i + 0.5], color="red", lw=2.5)
+            if grid.size <= 100:  # the values themselves, small enough to read
+                for (i, j), v in np.ndenumerate(grid):
+                    if np.isfinite(v):
+                        ax.text(j, i, f"{v:.3g}", ha="center", va="center", fontsize=7, color="white",
+                                bbox={"facecolor": "black", "alpha": 0.25, "lw": 0, "pad": 1})
             ax.set_xticks(range(len(xv)))
             ax.set_xticklabels([f"{v:.3g}" for v in xv], rotation=45, fontsize=7)
             ax.set_yticks(range(len(yv)))
             ax.set_yticklabels([f"{v:.3g}" for v in yv], fontsize=7)
         ax.set_xlabel(kx, fontsize=8)
         ax.set_ylabel(ky, fontsize=8)
-        ax.set_title(label + ("" if sampled else "  (hatched: exploded; red: boundary)"), fontsize=8)
+        note = "" if sampled or mode == "stable_dt" else "  (hatched: exploded; red: boundary)"
+        ax.set_title(label + note, fontsize=8)
     if image is not None:
         cb = fig.colorbar(image, ax=list(axes), shrink=0.9)
         cb.set_label(metric)
