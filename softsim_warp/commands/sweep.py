@@ -262,15 +262,22 @@ def run(args) -> int:
                     specs.append(spec)
                 say(f"{name}: {len(specs)} tasks of up to {max(len(b) for b in batches)} worlds")
 
+                writing = [False]
+                signals.busy = lambda: writing[0]  # a second Ctrl-C waits for the rows being written
+
                 def on_rows(rows):
                     for r in rows:
                         v = by_id[r["variant_id"]]
                         r.update(v.values)
                         r["index"] = v.index
                         r["precision"] = v.data["simulation"]["precision"]
-                    store.add(rows)
-                    if store.due():
-                        store.consolidate()
+                    writing[0] = True
+                    try:
+                        store.add(rows)
+                        if store.due():
+                            store.consolidate()
+                    finally:
+                        writing[0] = False
 
                 progress = None
                 if not args.quiet:
