@@ -305,6 +305,7 @@ def test_find_stable_dt_agrees_with_stability(tmp_path):
         (["--samples", "4"], "give at least one --vary"),
         (["--find-stable-dt", "--dts", "0.001"], "--find-stable-dt finds the step itself"),
         (["--out", "x.json"], "unsupported file extension"),
+        (["--metric", "colour"], "--metric: not a numeric column of this sweep; choose from"),
     ],
 )
 def test_bad_input_is_one_line(tmp_path, capsys, argv, needle):

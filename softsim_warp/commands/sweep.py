@@ -224,6 +224,11 @@ def run(args) -> int:
                     check_fits(scene, local, frames=scene.frame_count())
     meta = {"scene": name, "source": source, "mode": mode, "keys": [a.key for a in axes]}
     schema = engine.make_schema(axes, variants, mode, meta)
+    if args.metric is not None:
+        numeric = [f.name for f in schema if str(f.type) in ("double", "int64") and f.name != "index"]
+        if args.metric not in numeric:
+            raise CommandLineError("--metric", f"not a numeric column of this sweep; choose from {', '.join(numeric)}",
+                                   args.metric)
     by_id = {v.id: v for v in variants}
 
     with common.Signals() as signals, outputs:
