@@ -341,8 +341,11 @@ def test_ranges_lists_and_wildcards():
     assert parse_axis("x=1,2.5,[1,0,1]").values == [1, 2.5, [1, 0, 1]]
     assert parse_axis("x=1,2.5").values == [1.0, 2.5]  # one column type
     base = {"jelly": [{"springs": {"structural": {"ks": 1}, "bending": {"ks": 2}}}, {"springs": {"shear": {}}}]}
-    assert engine.expand_key(base, "jelly.*.springs.*.ks") == [
-        "jelly.0.springs.structural.ks", "jelly.0.springs.bending.ks", "jelly.1.springs.shear.ks"]
+    # Only the tables whose file sets the key; when none does, every table matched.
+    assert engine.expand_key(base, "jelly.*.springs.*.ks") == ["jelly.0.springs.structural.ks",
+                                                               "jelly.0.springs.bending.ks"]
+    assert engine.expand_key(base, "jelly.*.springs.*.kd") == [
+        "jelly.0.springs.structural.kd", "jelly.0.springs.bending.kd", "jelly.1.springs.shear.kd"]
 
 
 def test_latin_hypercube_uses_each_stratum_once():

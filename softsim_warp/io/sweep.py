@@ -197,7 +197,9 @@ def _canonical(value) -> str:
 def expand_key(data: dict, key: str, flag: str = "--vary") -> list[str]:
     """The scene keys a key with ``*`` parts names: every table entry or list index there, in order.
 
-    ``jelly.0.springs.*.ks`` names the ``ks`` of every spring type jelly 0 lists.
+    ``jelly.0.springs.*.ks`` names the ``ks`` of every spring type jelly 0 lists; ``*.*.friction``
+    the friction of every terrain entry that sets one (only the tables whose file sets the last
+    key, unless none does: then every table matched).
     """
     parts = key.split(".")
     if "*" not in parts:
@@ -218,7 +220,10 @@ def expand_key(data: dict, key: str, flag: str = "--vary") -> list[str]:
         found = nxt
     if parts[-1] == "*":
         raise CommandLineError(flag, f"{key}: '*' may stand for a table or list entry, not the last part", key)
-    keys = [".".join(prefix + [parts[-1]]) for prefix, node in found if isinstance(node, dict)]
+    # The tables that have the key in the file; when none has it (a default), every table matched.
+    tables = [(prefix, node) for prefix, node in found if isinstance(node, dict)]
+    keys = [".".join(prefix + [parts[-1]]) for prefix, node in tables if parts[-1] in node] or \
+        [".".join(prefix + [parts[-1]]) for prefix, _ in tables]
     if not keys:
         raise CommandLineError(flag, f"{key}: no table of the scene matches", key)
     return keys
