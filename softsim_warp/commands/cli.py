@@ -25,9 +25,9 @@ import traceback
 
 from ..core import stepper
 from ..core.errors import CommandLineError, UserError
-from . import accuracy, bench, common, compare, preview, run, scenes, stability
+from . import accuracy, bench, common, compare, preview, run, scenes, stability, sweep
 
-SUBCOMMANDS = (run, scenes, compare, preview, bench, accuracy, stability)
+SUBCOMMANDS = (run, scenes, compare, preview, bench, accuracy, stability, sweep)
 
 
 class _Parser(argparse.ArgumentParser):

@@ -25,7 +25,6 @@ import itertools
 import math
 import re
 import sys
-import types
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -33,15 +32,15 @@ import numpy as np
 
 from ..core.errors import CommandLineError, SceneError, UserError
 from ..core.integrators import ExplicitIntegrator
-from ..core.model import ModelBuilder, populate, terrain_anchors
 from ..core.stepper import make_integrator
 from ..io import scene as scene_mod
-from ..io.metrics import speed_bound
 from ..io.outputs import USD_SUFFIXES, Outputs, kept_partial_path, save_atomic, write_json_atomic
 from ..io.resources import check_fits
 from ..io.scene import parse_override
 from ..io.simulate import Simulator
+from ..io.sweep import split_values  # noqa: F401 - shared with softsim sweep; re-exported
 from ..io.usd import UsdWriter
+from ..io.worlds import make_builder, world_speed_bound
 from . import common
 
 COMMAND = "compare"
@@ -159,27 +158,6 @@ class Plan:
     fps: float
     frames: int
     sim: dict
-
-
-def split_values(text: str) -> list[str]:
-    """Split ``1,2,[1,0,1]`` on the commas outside brackets and quotes."""
-    parts, depth, quote, cur = [], 0, None, []
-    for ch in text:
-        if quote:
-            quote = None if ch == quote else quote
-        elif ch in "\"'":
-            quote = ch
-        elif ch in "[{":
-            depth += 1
-        elif ch in "]}":
-            depth -= 1
-        elif ch == "," and depth == 0:
-            parts.append("".join(cur))
-            cur = []
-            continue
-        cur.append(ch)
-    parts.append("".join(cur))
-    return [p.strip() for p in parts]
 
 
 def prim_token(value) -> str:
@@ -413,28 +391,9 @@ class _Group:
             self.ranges.append((infos[0].particle_start, infos[-1].particle_start + infos[-1].particle_count))
 
 
-def _make_builder(datas):
-    builder = ModelBuilder(datas[0]["simulation"]["gravity"])
-    for w, data in enumerate(datas):
-        populate(builder, data, world=w)
-    return builder
-
-
-def _variant_speed_bound(model, start, end, world):
-    """The explosion speed bound a single run of this copy would use (see simulate.speed_bound)."""
-
-    qd = model.particle_qd.numpy()[start:end]
-    # speed_bound reads only these host-side fields; this view holds one world's share of them.
-    view = types.SimpleNamespace(
-        particle_q_host=model.particle_q_host[start:end],
-        planes=[p for p in model.planes if p["world"] == world],
-        terrain_anchor_points=terrain_anchors([b for b in model.bowls if b["world"] == world],
-                                              [s for s in model.spheres if s["world"] == world]),
-        particle_qd=types.SimpleNamespace(numpy=lambda: qd),
-        particle_count=end - start,
-        gravity_host=model.gravity_host,
-    )
-    return speed_bound(view)
+# Shared with ``softsim sweep`` (io/worlds.py); the old names stay for this module's callers.
+_make_builder = make_builder
+_variant_speed_bound = world_speed_bound
 
 
 def rigid_deviation(rest: np.ndarray, current: np.ndarray, mass: np.ndarray) -> float:

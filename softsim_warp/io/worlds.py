@@ -1,0 +1,112 @@
+"""Several variants of a scene as worlds of one model: built together, stepped in the same launches.
+
+``softsim compare`` and ``softsim sweep`` both batch variants this way. A world shares no
+particles, springs or terrain with another, and each world's explosion bound and metrics are what a
+single run of its variant would compute: on the CPU a world of a batch steps bit for bit like that
+single run (tests/test_sweep.py), as long as the batch uses one integrator (the stage count and
+the contact filter between stages are per model).
+"""
+
+from __future__ import annotations
+
+import types
+
+import numpy as np
+
+from ..core.model import ModelBuilder, populate, terrain_anchors
+from .metrics import speed_bound
+
+
+def make_builder(datas):
+    """A builder holding each validated scene dict of ``datas`` as world 0, 1, ... (gravity of the first)."""
+    builder = ModelBuilder(datas[0]["simulation"]["gravity"])
+    for w, data in enumerate(datas):
+        populate(builder, data, world=w)
+    return builder
+
+
+def world_ranges(model) -> list[tuple[int, int]]:
+    """``(first particle, end)`` of each world of ``model`` (populate adds a world's jellies one after another)."""
+    out = []
+    for w in range(model.world_count):
+        infos = [j for j in model.jellies if j.world == w]
+        out.append((infos[0].particle_start, infos[-1].particle_start + infos[-1].particle_count))
+    return out
+
+
+def world_jellies(model) -> list[tuple[int, int]]:
+    """``(first jelly, end)`` of each world in ``model.jellies`` (a world's jellies are consecutive)."""
+    out = []
+    for w in range(model.world_count):
+        idx = [k for k, j in enumerate(model.jellies) if j.world == w]
+        out.append((idx[0], idx[-1] + 1))
+    return out
+
+
+def world_speed_bound(model, start, end, world):
+    """The explosion speed bound a single run of this world's variant would use (see ``metrics.speed_bound``)."""
+
+    qd = model.particle_qd.numpy()[start:end]
+    # speed_bound reads only these host-side fields; this view holds one world's share of them.
+    view = types.SimpleNamespace(
+        particle_q_host=model.particle_q_host[start:end],
+        planes=[p for p in model.planes if p["world"] == world],
+        terrain_anchor_points=terrain_anchors([b for b in model.bowls if b["world"] == world],
+                                              [s for s in model.spheres if s["world"] == world]),
+        particle_qd=types.SimpleNamespace(numpy=lambda: qd),
+        particle_count=end - start,
+        gravity_host=model.gravity_host,
+    )
+    return speed_bound(view)
+
+
+def probe_arrays(probe) -> dict:
+    """The per-jelly arrays of ``probe``'s last ``measure`` on the host (one copy each per frame)."""
+    return {
+        "ke": probe.kinetic.numpy().astype(np.float64),
+        "ge": probe.gravity_energy.numpy().astype(np.float64),
+        "se": probe.spring_energy.numpy().astype(np.float64),
+        "mom": probe.moment.numpy().astype(np.float64),
+        "vmax": probe.max_speed.numpy().astype(np.float64),
+        "bad": probe.nonfinite.numpy(),
+        "mass": probe.jelly_mass,
+    }
+
+
+def world_frame(arrays, jellies) -> dict:
+    """One world's whole-scene metrics from :func:`probe_arrays`.
+
+    ``jellies``: the world's ``(first, end)`` jelly range. The sums are taken over the same values
+    in the same order as ``MetricsProbe.measure`` takes them for a model holding that world alone,
+    so they agree with a single run bit for bit.
+    """
+    a, b = jellies
+    ke, ge, se = arrays["ke"][a:b], arrays["ge"][a:b], arrays["se"][a:b]
+    mom, vmax, bad = arrays["mom"][a:b], arrays["vmax"][a:b], arrays["bad"][a:b]
+    mass = arrays["mass"][a:b].sum()
+    return {
+        "com": (mom.sum(axis=0) / mass).tolist() if mass > 0 else [0.0, 0.0, 0.0],
+        "kinetic_energy": float(ke.sum()),
+        "spring_energy": float(se.sum()),
+        "gravity_energy": float(ge.sum()),
+        "total_energy": float(ke.sum() + se.sum() + ge.sum()),
+        "max_speed": float(vmax.max()) if len(vmax) else 0.0,
+        "nonfinite": int(bad.sum()),
+    }
+
+
+def world_frames(arrays, jellies) -> list[dict]:
+    """:func:`world_frame` of every world; vectorised when each world has one jelly (the sums over one
+    jelly are that jelly's values, so the result is the same bit for bit)."""
+    if not all(b - a == 1 for a, b in jellies):
+        return [world_frame(arrays, j) for j in jellies]
+    idx = np.array([a for a, _ in jellies])
+    ke, ge, se = arrays["ke"][idx], arrays["ge"][idx], arrays["se"][idx]
+    mass = arrays["mass"][idx]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        com = np.where(mass[:, None] > 0, arrays["mom"][idx] / mass[:, None], 0.0).tolist()
+    total = (ke + se + ge).tolist()
+    vmax, bad = arrays["vmax"][idx].tolist(), arrays["bad"][idx].tolist()
+    ke, ge, se = ke.tolist(), ge.tolist(), se.tolist()
+    return [{"com": com[w], "kinetic_energy": ke[w], "spring_energy": se[w], "gravity_energy": ge[w],
+             "total_energy": total[w], "max_speed": vmax[w], "nonfinite": int(bad[w])} for w in range(len(idx))]
