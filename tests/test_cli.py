@@ -128,3 +128,14 @@ def test_compile_notice_only_for_a_slow_warm_up(capsys):
     err = capsys.readouterr().err.splitlines()
     assert len(err) == 1 and err[0].startswith("compiling kernels (first run only; cached in ")
     common.compile_notice.shown = False
+
+
+def test_preview_refuses_flags_it_has_no_use_for(tmp_path, capsys):
+    """`softsim preview` draws a USD file: it has no scene to `--set` and runs no kernel on a
+    `--device`, so both are refused (one line, exit 2) rather than silently ignored."""
+    from softsim_warp.commands.cli import main  # noqa: PLC0415
+
+    for flag in (["--set", "jelly.0.size=1"], ["--device", "cuda:0"]):
+        assert main(["preview", str(tmp_path / "x.usdc"), "--png", str(tmp_path / "x.png"), *flag]) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and "unrecognized arguments" in err[0] and flag[0] in err[0], err

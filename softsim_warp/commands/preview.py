@@ -34,7 +34,9 @@ def add_parser(subparsers, add_common):
     p.add_argument("--split", action="store_true",
                    help="for a `softsim compare` stage: render each copy alone and tile the pictures in the "
                    "stage's grid, labelled with the copy's name (--png only)")
-    add_common(p)
+    # Not add_common: a picture of a USD file has no scene to override and runs no kernels.
+    p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.add_argument("--debug", action="store_true", help="show tracebacks for errors")
     return p
 
 
