@@ -89,8 +89,12 @@ from .forces import eval_forces
 from .integrators import Integrator
 from ..kernels import implicit as ki
 from .model import Model, State
+from .multigrid import AUTO_MIN_PARTICLES, LatticeMultigrid, multigrid_support
 
-PRECONDITIONERS = ("block_jacobi", "jacobi")
+# "jacobi": 3x3 block-Jacobi; "diagonal": the inverse of the diagonal; "multigrid": a V-cycle on
+# the lattice of a one-jelly model (core/multigrid.py); "auto": multigrid where it applies and pays
+# (multigrid.AUTO_MIN_PARTICLES), else jacobi. "block_jacobi" is another name of "jacobi".
+PRECONDITIONERS = ("auto", "multigrid", "jacobi", "diagonal", "block_jacobi")
 LINEARIZATIONS = ("predictor", "baraff_witkin")
 SOLVERS = ("matrix_free", "bsr", "warp_cg")
 
@@ -130,8 +134,12 @@ class ImplicitIntegrator(Integrator):
         cg_max_iterations: iteration cap of each CG solve.
         linearization: ``"predictor"`` (Newton from v_n, forces linearised about x_n + h v_n) or
             ``"baraff_witkin"`` (the first solve linearises about x_n); see the module docstring.
-        preconditioner: ``"block_jacobi"`` (inverse of each particle's 3x3 diagonal block) or
-            ``"jacobi"`` (inverse of the diagonal).
+        preconditioner: ``"jacobi"`` (inverse of each particle's 3x3 diagonal block; also called
+            ``"block_jacobi"``), ``"diagonal"`` (inverse of the diagonal), ``"multigrid"`` (a
+            geometric multigrid V-cycle, ``core/multigrid.py``: one-jelly lattice models with the
+            matrix-free solver; any other model falls back to ``"jacobi"``, and
+            ``stats()["cg_preconditioner_note"]`` says why) or ``"auto"`` (multigrid where it
+            applies from ``multigrid.AUTO_MIN_PARTICLES`` particles on, else jacobi).
         solver: ``"matrix_free"`` (A p from the spring list, this module's PCG loop), ``"bsr"``
             (an assembled ``warp.sparse`` block matrix, ``bsr_mv`` in the same PCG loop) or
             ``"warp_cg"`` (the assembled matrix solved by ``warp.optim.linear.cg``). The last two
@@ -151,7 +159,7 @@ class ImplicitIntegrator(Integrator):
         cg_tolerance: float = DEFAULT_CG_TOLERANCE,
         cg_max_iterations: int = DEFAULT_CG_MAX_ITERATIONS,
         linearization: str = DEFAULT_LINEARIZATION,
-        preconditioner: str = "block_jacobi",
+        preconditioner: str = "auto",
         solver: str = "matrix_free",
         warm_start: bool = True,
     ):
@@ -174,7 +182,7 @@ class ImplicitIntegrator(Integrator):
         self.cg_tolerance = float(cg_tolerance)
         self.cg_max_iterations = int(cg_max_iterations)
         self.linearization = linearization
-        self.preconditioner = preconditioner
+        self.preconditioner, self.preconditioner_note = self._choose_preconditioner(model, preconditioner, solver)
         self.solver = solver
         self.warm_start = bool(warm_start)
 
@@ -240,6 +248,27 @@ class ImplicitIntegrator(Integrator):
         self._host_stats = np.zeros(ki.STAT_SLOTS, dtype=np.int64)
         if solver in ("bsr", "warp_cg"):
             self._setup_bsr()
+        # Multigrid: the V-cycle replaces z = P r in the CG loop; cg_update and init_residual get a
+        # zero block array as P (their r.z is 0) and the V-cycle adds r.z itself.
+        self.multigrid = None
+        if self.preconditioner == "multigrid":
+            self.multigrid = LatticeMultigrid(model, self)
+            self.no_precond = wp.zeros(n, dtype=self.mat33, device=device)
+
+    @staticmethod
+    def _choose_preconditioner(model: Model, name: str, solver: str) -> tuple[str, str]:
+        """The preconditioner used for ``name`` ("auto" and "multigrid" may fall back to jacobi), and why."""
+        name = "jacobi" if name == "block_jacobi" else name
+        if name not in ("auto", "multigrid"):
+            return name, "requested"
+        ok, reason = multigrid_support(model)
+        if ok and solver != "matrix_free":
+            ok, reason = False, f"solver {solver} (multigrid needs matrix_free)"
+        if ok and name == "auto" and model.particle_count < AUTO_MIN_PARTICLES:
+            ok, reason = False, f"{model.particle_count} particles (auto: multigrid from {AUTO_MIN_PARTICLES})"
+        if ok:
+            return "multigrid", f"{name}: lattice"
+        return "jacobi", f"{name}: jacobi, since multigrid does not apply: {reason}"
 
     # -- assembled block-sparse variants --------------------------------------------------------
 
@@ -369,6 +398,8 @@ class ImplicitIntegrator(Integrator):
         matrix_free = self.solver == "matrix_free"
 
         spring_mv = self._spring_mv
+        mg = self.multigrid
+        precond = self.precond if mg is None else self.no_precond
 
         # r = b - A x0, z = P r, tolerance and condition.
         if matrix_free:
@@ -379,10 +410,12 @@ class ImplicitIntegrator(Integrator):
             k.init_residual,
             dim=(pblocks, ki.TILE),
             block_dim=ki.TILE,
-            inputs=[n, self.filters, self.rhs, self.precond, self.ap],
+            inputs=[n, self.filters, self.rhs, precond, self.ap],
             outputs=[self.r, self.z, self.p, self.scalars],
             device=device,
         )
+        if mg is not None:
+            mg.apply(self.r, self.z, self.scalars, ki.RZ_NEW)
         wp.launch(
             k.cg_begin,
             dim=1,
@@ -416,10 +449,12 @@ class ImplicitIntegrator(Integrator):
                 k.cg_update,
                 dim=(pblocks, ki.TILE),
                 block_dim=ki.TILE,
-                inputs=[n, self.filters, self.precond, self.p, self.ap],
+                inputs=[n, self.filters, precond, self.p, self.ap],
                 outputs=[self.x, self.r, self.z, self.scalars],
                 device=device,
             )
+            if mg is not None:
+                mg.apply(self.r, self.z, self.scalars, ki.RZ_NEW)
             wp.launch(
                 k.cg_end_iteration,
                 dim=1,
@@ -456,6 +491,8 @@ class ImplicitIntegrator(Integrator):
             self._loop_ran = True
 
     def _solve(self):
+        if self.multigrid is not None:
+            self.multigrid.setup()
         if self.solver != "matrix_free":
             self._assemble_bsr()
         if self.solver == "warp_cg":
@@ -525,7 +562,7 @@ class ImplicitIntegrator(Integrator):
                 n,
                 h,
                 scalar(1.0) if first and self.warm_start else scalar(0.0),
-                int(self.preconditioner == "block_jacobi"),
+                int(self.preconditioner != "diagonal"),
                 int(reset_filters),
                 model.particle_mass,
                 model.gravity,
@@ -624,7 +661,7 @@ class ImplicitIntegrator(Integrator):
                 block_dim=ki.TILE,
                 inputs=[
                     n,
-                    int(self.preconditioner == "block_jacobi"),
+                    int(self.preconditioner != "diagonal"),
                     model.particle_mass,
                     self.mass_eff,
                     self.fixed,
@@ -769,6 +806,8 @@ class ImplicitIntegrator(Integrator):
             "cg_tolerance": self.cg_tolerance,
             "cg_max_iterations": self.cg_max_iterations,
             "cg_preconditioner": self.preconditioner,
+            "cg_preconditioner_note": self.preconditioner_note,
+            **(self.multigrid.stats() if self.multigrid is not None else {}),
             "cg_solver": self.solver,
             "cg_steps": steps,
             "cg_iterations_mean": float(a[ki.TOTAL_ITERS]) / steps if steps else 0.0,
