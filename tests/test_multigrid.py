@@ -16,6 +16,7 @@ from softsim_warp.core.lattice import SPRING_TYPE_NAMES, lattice_index
 from softsim_warp.core.model import ModelBuilder
 from softsim_warp.core.multigrid import (
     AUTO_MIN_PARTICLES,
+    DEFAULT_COARSE_OMEGA,
     DEFAULT_OMEGA,
     level_shapes,
     multigrid_support,
@@ -215,10 +216,11 @@ def two_grid_factor(a, a_split, shape, omega):
 def test_two_grid_convergence_factor():
     """The model problem: the stiff jelly (h^2 ks / m = 1e4 per particle at 9^3) after one step.
 
-    One pre- and one post-sweep of block-Jacobi (omega = 0.6) around the exact coarse solve
-    reduce every error component by at least 0.6 per cycle: measured 0.50 here (the smoother alone:
-    1 - 1e-4, the stiff system's near-rigid modes). With the bending springs split in the coarse
-    operator the factor is the same to two digits as with the exact Galerkin product.
+    One pre- and one post-sweep of block-Jacobi (omega = 0.8) around the exact coarse solve
+    reduce every error component by at least 0.45 per cycle: measured 0.39 here (omega = 0.6:
+    0.51; the smoother alone: 1 - 1e-4, the stiff system's near-rigid modes). With the bending
+    springs split in the coarse operator the factor is the same to three digits as with the exact
+    Galerkin product.
     """
     model = stiff_jelly(7)
     integ, _ = run(model, 1, preconditioner="multigrid")
@@ -227,20 +229,28 @@ def test_two_grid_convergence_factor():
     rho = two_grid_factor(a, a_split, shape, DEFAULT_OMEGA)
     rho_exact = two_grid_factor(a, a, shape, DEFAULT_OMEGA)
     print(f"two-grid factor {rho:.3f} (exact Galerkin {rho_exact:.3f})")
-    assert rho < 0.6
+    assert rho < 0.45
+    assert abs(rho - rho_exact) < 0.01
     smoother_only = np.eye(len(a)) - DEFAULT_OMEGA * np.linalg.solve(block_diagonal(a), a)
     assert np.abs(np.linalg.eigvals(smoother_only)).max() > 0.99
 
 
 def test_smoothers_converge_on_every_level():
-    """omega lambda_max(D^-1 A) < 2 on every level, which makes the V-cycle SPD."""
+    """omega lambda_max(D^-1 A) < 2 on every level, which makes the V-cycle SPD.
+
+    Measured lambda_max: 1.73 on the jelly's lattice (at most 2 by construction), 2.5 to 3.2 on the
+    Galerkin levels (9^3 and 12^3 jellies).
+    """
     model = stiff_jelly(9)
     integ, _ = run(model, 1, preconditioner="multigrid")
     a, _, _ = dense_operators(integ)
     ops = [a] + [dense_stencil(lv) for lv in integ.multigrid.levels]
-    for op in ops:
+    for level, op in enumerate(ops):
         lam = np.linalg.eigvals(np.linalg.solve(block_diagonal(op), op)).real.max()
-        assert DEFAULT_OMEGA * lam < 2.0 * 0.8, lam
+        if level == 0:
+            assert lam <= 2.0 + 1e-9
+        omega = DEFAULT_OMEGA if level == 0 else DEFAULT_COARSE_OMEGA
+        assert omega * lam < 1.75, (level, lam)
 
 
 def test_vcycle_is_symmetric_positive_definite():
