@@ -7,9 +7,13 @@ from those matrices. The iteration counts at 8^3, 16^3 and 32^3 are the method's
 block-Jacobi lacks (its counts double with each doubling of the resolution).
 """
 
+import json
+
 import numpy as np
 import pytest
 import warp as wp
+
+from softsim_warp.commands.cli import main as cli_main
 
 from softsim_warp.core.implicit import ImplicitIntegrator
 from softsim_warp.core.lattice import SPRING_TYPE_NAMES, lattice_index
@@ -349,3 +353,36 @@ def test_fallback_and_choice():
     assert integ.preconditioner == "jacobi" and "2 jellies" in integ.preconditioner_note
     with pytest.raises(ValueError, match="preconditioner must be one of"):
         ImplicitIntegrator(stiff_jelly(4), preconditioner="amg")
+
+
+# -- the scene key ----------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("choice, used", [("multigrid", "multigrid"), ("jacobi", "jacobi")])
+def test_scene_key_chooses_the_preconditioner(tmp_path, choice, used):
+    """``--set implicit.preconditioner=...`` reaches the integrator; the metrics say which one ran."""
+    metrics = tmp_path / "m.json"
+    rc = cli_main(
+        [
+            "run", "jelly_drop", "--integrator", "implicit", "--set", f"implicit.preconditioner={choice}",
+            "--dt", "0.01", "--frames", "2", "--fps", "50", "--out", str(tmp_path / "x.usdc"),
+            "--metrics", str(metrics), "--quiet",
+        ]
+    )
+    assert rc == 0
+    summary = json.loads(metrics.read_text())["summary"]
+    assert summary["cg_preconditioner"] == used and summary["cg_unconverged_solves"] == 0
+    assert ("multigrid_levels" in summary) == (used == "multigrid")
+
+
+def test_bad_preconditioner_is_a_one_line_error(tmp_path, capsys):
+    rc = cli_main(
+        [
+            "run", "jelly_drop", "--integrator", "implicit", "--set", "implicit.preconditioner=amg",
+            "--out", str(tmp_path / "x.usdc"), "--quiet",
+        ]
+    )
+    err = capsys.readouterr().err
+    assert rc != 0 and "Traceback" not in err
+    assert "implicit.preconditioner: must be one of auto, multigrid, jacobi" in err
+    assert len(err.strip().splitlines()) == 1
