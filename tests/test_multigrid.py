@@ -386,3 +386,33 @@ def test_bad_preconditioner_is_a_one_line_error(tmp_path, capsys):
     assert rc != 0 and "Traceback" not in err
     assert "implicit.preconditioner: must be one of auto, multigrid, jacobi" in err
     assert len(err.strip().splitlines()) == 1
+
+
+# -- the Newton peer (benchmark helpers) -----------------------------------------------------------
+
+
+def test_lattice_coloring_separates_every_spring():
+    from softsim_warp.commands.bench_newton import lattice_coloring
+    from softsim_warp.core.lattice import lattice_springs
+
+    shape = (5, 4, 6)
+    groups = lattice_coloring(shape)
+    color = np.full(int(np.prod(shape)), -1)
+    for c, g in enumerate(groups):
+        assert np.all(color[g] == -1)
+        color[g] = c
+    assert np.all(color >= 0)
+    pairs, _ = lattice_springs(shape)
+    assert np.all(color[pairs[:, 0]] != color[pairs[:, 1]])
+
+
+def test_implicit_peer_reports_both_solvers():
+    """``softsim bench --peer newton`` with implicit: our step is within its CG tolerance of the float64 reference."""
+    pytest.importorskip("newton")
+    from softsim_warp.commands.bench_newton import implicit_peer
+
+    rows = implicit_peer(4, KS, 0.1, DT, "cpu", steps=2, error_steps=3, vbd_iterations=(10,), repeats=1)
+    assert [r["solver"].split()[0] for r in rows] == ["softsim", "newton.SolverVBD"]
+    assert all(np.isfinite(r["ms_per_step"]) and r["ms_per_step"] > 0 for r in rows)
+    assert rows[0]["error_over_edge"] < 1e-3
+    assert np.isfinite(rows[1]["error_over_edge"])
