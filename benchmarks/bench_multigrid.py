@@ -32,6 +32,7 @@ sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 from bench_implicit import _time_steps, stiff_jelly  # noqa: E402
 
 from softsim_warp.core.implicit import ImplicitIntegrator  # noqa: E402
+from softsim_warp.core.multigrid import LatticeMultigrid  # noqa: E402
 from softsim_warp.kernels import implicit as ki  # noqa: E402
 
 
@@ -73,9 +74,11 @@ def _cg_iteration_parts(integ):
 
 
 def measure(size: int, preconditioner: str, device, steps: int, dt: float, ks: float, precision: str,
-            repeats: int) -> dict:
+            repeats: int, fine_cycle=None) -> dict:
     model = stiff_jelly(size, ks, device, precision)
     integ = ImplicitIntegrator(model, preconditioner=preconditioner)
+    if fine_cycle is not None and integ.multigrid is not None:
+        integ.multigrid = LatticeMultigrid(model, integ, fine_cycle=fine_cycle)
     compile_s, seconds, finite = _time_steps(integ, model, dt, steps)
     stats = integ.stats()
     solves_per_step = stats["cg_solves"] / max(stats["cg_steps"], 1)
@@ -101,6 +104,7 @@ def measure(size: int, preconditioner: str, device, steps: int, dt: float, ks: f
         "particles": model.particle_count,
         "springs": model.spring_count,
         "preconditioner": integ.preconditioner,
+        "fine_cycle": integ.multigrid.fine_cycle if integ.multigrid is not None else None,
         "precision": precision,
         "ks": ks,
         "dt": dt,
@@ -123,7 +127,10 @@ def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--device", default="cpu")
     p.add_argument("--sizes", type=int, nargs="+", default=[10, 20], help="particles per axis")
-    p.add_argument("--preconditioners", nargs="+", default=["jacobi", "multigrid"])
+    p.add_argument(
+        "--preconditioners", nargs="+", default=["jacobi", "multigrid"],
+        help="jacobi, multigrid (its default cycle), multigrid:multiplicative, multigrid:additive",
+    )
     p.add_argument("--ks", type=float, default=1.0e5, help="spring stiffness of every type [N/m]")
     p.add_argument("--dt", type=float, default=0.01, help="implicit step [s]")
     p.add_argument("--steps", type=int, default=10, help="timed steps per case")
@@ -135,7 +142,7 @@ def main(argv=None) -> int:
     wp.init()
     device = wp.get_device(args.device)
     header = (
-        f"{'n^3':>5} {'particles':>9} {'precond':>10} {'ms/step':>9} {'CG it mean/max':>15} {'unconv':>6} "
+        f"{'n^3':>5} {'particles':>9} {'precond':>24} {'ms/step':>9} {'CG it mean/max':>15} {'unconv':>6} "
         f"{'setup ms':>9} {'V-cycles ms':>11} {'CG it ms':>9}  (per step)"
     )
     print(f"implicit, ks = {args.ks:.0e}, dt = {args.dt}, {args.precision}, {device} ({device.name})")
@@ -144,10 +151,12 @@ def main(argv=None) -> int:
     rows = []
     for size in args.sizes:
         for pc in args.preconditioners:
-            r = measure(size, pc, device, args.steps, args.dt, args.ks, args.precision, args.repeats)
+            name, _, cycle = pc.partition(":")
+            r = measure(size, name, device, args.steps, args.dt, args.ks, args.precision, args.repeats, cycle or None)
+            r["preconditioner"] = pc if cycle else r["preconditioner"]
             per = r["parts_ms_per_step"]
             print(
-                f"{size:5d} {r['particles']:9d} {r['preconditioner']:>10} {r['ms_per_step']:9.2f} "
+                f"{size:5d} {r['particles']:9d} {r['preconditioner']:>24} {r['ms_per_step']:9.2f} "
                 f"{r['cg_iterations_mean']:8.1f}/{r['cg_iterations_max']:<6d} {r['cg_unconverged_solves']:6d} "
                 f"{per['setup_ms']:9.2f} {per['vcycle_ms']:11.2f} {per['cg_iterations_ms']:9.2f}",
                 flush=True,
@@ -155,10 +164,10 @@ def main(argv=None) -> int:
             rows.append(r)
     by = {(r["size"], r["preconditioner"]): r for r in rows}
     sizes = sorted({r["size"] for r in rows})
-    if "multigrid" in args.preconditioners and len(sizes) > 1:
-        its = [by[(s, "multigrid")]["cg_iterations_mean"] for s in sizes if (s, "multigrid") in by]
-        if its and min(its) > 0:
-            print(f"multigrid CG iterations, largest / smallest size: {max(its) / min(its):.2f}")
+    for pc in args.preconditioners:
+        its = [by[(s, pc)]["cg_iterations_mean"] for s in sizes if (s, pc) in by]
+        if pc.startswith("multigrid") and len(its) > 1 and min(its) > 0:
+            print(f"{pc} CG iterations, largest / smallest size: {max(its) / min(its):.2f}")
     result = {
         "device": str(device),
         "device_name": device.name,

@@ -178,8 +178,9 @@ def build(scalar):
         diag_block: wp.array(dtype=mat33),
         spring_block: wp.array(dtype=mat33),
         bend_start: wp.array(dtype=wp.int32),
-        # Out: the split operator's diagonal blocks (projected) and the smoother's block inverses
-        galerkin_diag_out: wp.array(dtype=mat33),
+        spring_start: wp.array(dtype=wp.int32),
+        # Out: the split, projected operator as a 27-block stencil, and the smoother's block inverses
+        a_out: wp.array2d(dtype=mat33),
         dinv_out: wp.array(dtype=mat33),
     ):
         i = wp.tid()
@@ -207,22 +208,23 @@ def build(scalar):
         s = (d[0, 0] + d[1, 1] + d[2, 2]) / scalar(3.0)
         if s <= scalar(0.0):
             s = scalar(1.0)
-        galerkin_diag_out[i] = sf * (d + extra) * sf + s * free
         dinv_out[i] = sf * wp.inverse(sf * d * sf + s * free) * sf
+        for slot in range(STENCIL):
+            o = slot_offset(slot)
+            blk = mat33(scalar(0.0))
+            if slot == CENTER:
+                blk = sf * (d + extra) * sf + s * free
+            elif inside(c[0] + o[0], c[1] + o[1], c[2] + o[2], shape):
+                j = node_index(c[0] + o[0], c[1] + o[1], c[2] + o[2], shape)
+                blk = -(sf * neighbour_block(c, o, shape, spring_start, bend_start, spring_block) * filters[j])
+            a_out[i, slot] = blk
 
     @wp.kernel(module="unique")
     def mg_galerkin(
-        fine_level: int,
         shape: wp.vec3i,
         coarse_shape: wp.vec3i,
-        # Coarse-level input: the level's dense stencil [nodes, 27]
+        # The level above as a dense stencil [nodes, 27]
         a_fine: wp.array2d(dtype=mat33),
-        # Level-0 input (fine_level = 1): the split operator's diagonal and the spring blocks
-        galerkin_diag: wp.array(dtype=mat33),
-        filters: wp.array(dtype=mat33),
-        spring_block: wp.array(dtype=mat33),
-        spring_start: wp.array(dtype=wp.int32),
-        bend_start: wp.array(dtype=wp.int32),
         # Out: the coarse stencil and its diagonal blocks' inverses
         a_out: wp.array2d(dtype=mat33),
         dinv_out: wp.array(dtype=mat33),
@@ -278,21 +280,9 @@ def build(scalar):
                                 w = wxy * wiz * axis_weight(jz, cj[2], shape[2], coarse_shape[2])
                                 if w == scalar(0.0):
                                     continue
-                                e = wp.vec3i(jx - ix, jy - iy, jz - iz)
                                 i = node_index(ix, iy, iz, shape)
-                                blk = mat33(scalar(0.0))
-                                if fine_level != 0:
-                                    if e[0] == 0 and e[1] == 0 and e[2] == 0:
-                                        blk = galerkin_diag[i]
-                                    else:
-                                        j = node_index(jx, jy, jz, shape)
-                                        nb = neighbour_block(
-                                            wp.vec3i(ix, iy, iz), e, shape, spring_start, bend_start, spring_block
-                                        )
-                                        blk = -(filters[i] * nb * filters[j])
-                                else:
-                                    blk = a_fine[i, (e[0] + 1) * 9 + (e[1] + 1) * 3 + (e[2] + 1)]
-                                acc = acc + w * blk
+                                slot_ij = (jx - ix + 1) * 9 + (jy - iy + 1) * 3 + (jz - iz + 1)
+                                acc = acc + w * a_fine[i, slot_ij]
         if slot == CENTER:
             sym = half * (acc + wp.transpose(acc))
             a_out[node, slot] = sym

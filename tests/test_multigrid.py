@@ -199,6 +199,8 @@ def test_galerkin_levels_match_dense_products():
     integ, _ = run(model, 1, preconditioner="multigrid")
     mg = integ.multigrid
     _, a_split, _ = dense_operators(integ)
+    level0 = {"shape": mg.shapes[0], "count": model.particle_count, "a": mg.a0}
+    np.testing.assert_allclose(dense_stencil(level0), a_split, rtol=1e-12, atol=1e-12 * np.abs(a_split).max())
     above, shape = a_split, mg.shapes[0]
     for lv in mg.levels:
         p = interpolation(shape)

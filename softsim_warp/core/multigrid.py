@@ -105,6 +105,7 @@ class LatticeMultigrid:
         omega: float = DEFAULT_OMEGA,
         coarse_omega: float = DEFAULT_COARSE_OMEGA,
         sweeps: int = DEFAULT_SWEEPS,
+        fine_cycle: str = "multiplicative",
     ):
         ok, reason = multigrid_support(model)
         if not ok:
@@ -119,6 +120,9 @@ class LatticeMultigrid:
         self.omega = model.scalar(omega)
         self.coarse_omega = model.scalar(coarse_omega)
         self.sweeps = int(sweeps)
+        if fine_cycle not in ("multiplicative", "additive"):
+            raise ValueError(f"fine_cycle must be multiplicative or additive (got {fine_cycle!r})")
+        self.fine_cycle = fine_cycle
         device = model.device
         scalar, vec3 = model.scalar, model.vec3
         mat33 = wp.types.matrix((3, 3), scalar)
@@ -129,12 +133,13 @@ class LatticeMultigrid:
         self.spring_start = wp.array(starts, dtype=wp.int32, device=device)
         self.bend_start = wp.array(bending, dtype=wp.int32, device=device)
         n = model.particle_count
-        # Level 0: smoother inverses, the split operator's diagonal, and the V-cycle's vectors.
+        # Level 0: smoother inverses, the split operator's stencil, and the V-cycle's vectors.
         self.dinv0 = wp.zeros(n, dtype=mat33, device=device)
-        self.galerkin_diag = wp.zeros(n, dtype=mat33, device=device)
+        self.a0 = wp.zeros((n, km.STENCIL), dtype=mat33, device=device) if len(self.shapes) > 1 else None
         self.x0 = wp.zeros(n, dtype=vec3, device=device)
+        # A lattice of at most 2x2x2 has no coarse level and builds no stencil (mg_fine_setup writes here).
+        self.dummy_stencil = wp.zeros((n if self.a0 is None else 1, km.STENCIL), dtype=mat33, device=device)
         self.y0 = wp.zeros(n, dtype=vec3, device=device)
-        self.dummy_stencil = wp.zeros((1, km.STENCIL), dtype=mat33, device=device)
         self.scratch = wp.zeros(1, dtype=scalar, device=device)
         # Coarse levels 1..L: stencils, inverses of their diagonal blocks, b, x, and a sweep's output.
         self.levels = []
@@ -162,15 +167,13 @@ class LatticeMultigrid:
 
     def nbytes(self) -> int:
         """Bytes of the device arrays held here."""
-        arrays = [self.dinv0, self.galerkin_diag, self.x0, self.y0, self.chol, self.work]
+        arrays = [self.dinv0, self.x0, self.y0, self.chol, self.work] + ([self.a0] if self.a0 is not None else [])
         for lv in self.levels:
             arrays += [lv["a"], lv["dinv"], lv["b"], lv["x"], lv["t"]]
         return sum(a.capacity for a in arrays)
 
     def setup(self):
         """Build the hierarchy for the current system (its spring blocks, diagonal, filters, masses)."""
-        if not self.levels:
-            return
         model = self.model
         device = model.device
         k = self.kernels
@@ -187,26 +190,19 @@ class LatticeMultigrid:
                 s.diag_block,
                 s.spring_block,
                 self.bend_start,
+                self.spring_start,
             ],
-            outputs=[self.galerkin_diag, self.dinv0],
+            outputs=[self.a0 if self.a0 is not None else self.dummy_stencil, self.dinv0],
             device=device,
         )
-        below_shape, below_a = fine_shape, self.dummy_stencil
-        for index, lv in enumerate(self.levels):
+        if not self.levels:
+            return
+        below_shape, below_a = fine_shape, self.a0
+        for lv in self.levels:
             wp.launch(
                 k.mg_galerkin,
                 dim=(lv["count"], km.HALF),
-                inputs=[
-                    int(index == 0),
-                    below_shape,
-                    lv["shape"],
-                    below_a,
-                    self.galerkin_diag,
-                    s.filters,
-                    s.spring_block,
-                    self.spring_start,
-                    self.bend_start,
-                ],
+                inputs=[below_shape, lv["shape"], below_a],
                 outputs=[lv["a"], lv["dinv"]],
                 device=device,
             )
@@ -230,18 +226,29 @@ class LatticeMultigrid:
             self._fine_post(r, z, scalars, slot)
             return
         # Level 0, down: one sweep from 0, then the filtered residual restricted.
+        additive = self.fine_cycle == "additive"
         wp.launch(k.mg_fine_pre, dim=n, inputs=[omega, s.mass_eff, self.dinv0, r], outputs=[self.x0, self.y0],
                   device=device)
-        self._spring_product(self.x0)
         fine_shape = wp.vec3i(*self.shapes[0])
         first = self.levels[0]
-        wp.launch(
-            k.mg_restrict,
-            dim=first["count"],
-            inputs=[1, fine_shape, first["shape"], s.filters, r, self.y0],
-            outputs=[first["b"]],
-            device=device,
-        )
+        if additive:
+            # z = omega D^-1 r + S P V(P^T r): no spring product on the lattice.
+            wp.launch(
+                k.mg_restrict,
+                dim=first["count"],
+                inputs=[0, fine_shape, first["shape"], s.filters, r, r],
+                outputs=[first["b"]],
+                device=device,
+            )
+        else:
+            self._spring_product(self.x0)
+            wp.launch(
+                k.mg_restrict,
+                dim=first["count"],
+                inputs=[1, fine_shape, first["shape"], s.filters, r, self.y0],
+                outputs=[first["b"]],
+                device=device,
+            )
         # Coarse levels, down: sweeps from 0, residual, restriction.
         for index, lv in enumerate(self.levels[:-1]):
             self._smooth(lv, from_zero=True)
@@ -286,6 +293,9 @@ class LatticeMultigrid:
             outputs=[self.x0, self.y0],
             device=device,
         )
+        if additive:
+            self._fine_post(r, z, scalars, slot, omega=self.model.scalar(0.0))
+            return
         self._spring_product(self.x0)
         self._fine_post(r, z, scalars, slot)
 
@@ -305,13 +315,14 @@ class LatticeMultigrid:
                 device=model.device,
             )
 
-    def _fine_post(self, r, z, scalars, slot):
+    def _fine_post(self, r, z, scalars, slot, omega=None):
         n = self.model.particle_count
+        omega = self.omega if omega is None else omega
         wp.launch(
             self.kernels.mg_fine_post,
             dim=((n + ki.TILE - 1) // ki.TILE, ki.TILE),
             block_dim=ki.TILE,
-            inputs=[n, slot, self.omega, self.system.filters, self.dinv0, r, self.x0, self.y0],
+            inputs=[n, slot, omega, self.system.filters, self.dinv0, r, self.x0, self.y0],
             outputs=[z, scalars],
             device=self.model.device,
         )
