@@ -18,6 +18,7 @@ from softsim_warp.commands.cli import main as cli_main
 from softsim_warp.core.implicit import ImplicitIntegrator
 from softsim_warp.core.lattice import SPRING_TYPE_NAMES, lattice_index
 from softsim_warp.core.model import ModelBuilder
+from softsim_warp.core import multigrid
 from softsim_warp.core.multigrid import (
     AUTO_MIN_PARTICLES,
     DEFAULT_COARSE_OMEGA,
@@ -287,8 +288,14 @@ def test_vcycle_is_symmetric_positive_definite():
 # -- the solve -------------------------------------------------------------------------------------
 
 
-def test_same_step_as_jacobi():
-    """Both preconditioners solve the same system: the steps agree to the CG tolerance (float64)."""
+@pytest.mark.parametrize("cycle, gain", [("multiplicative", 3.0), ("additive", 2.0)])
+def test_same_step_as_jacobi(monkeypatch, cycle, gain):
+    """Both preconditioners solve the same system: the steps agree to the CG tolerance (float64).
+
+    At this tight tolerance (1e-10) block-Jacobi takes 82 CG iterations per step on the 8^3 jelly,
+    multigrid with the multiplicative fine level 21, with the additive one 36.
+    """
+    monkeypatch.setattr(multigrid, "DEFAULT_FINE_CYCLE", cycle)
     tol = 1.0e-10
     out = {}
     for pc in ("jacobi", "multigrid"):
@@ -297,10 +304,11 @@ def test_same_step_as_jacobi():
         assert integ.preconditioner == pc
         assert integ.stats()["cg_unconverged_solves"] == 0
         out[pc] = (state.particle_qd.numpy(), integ.stats()["cg_iterations_mean"])
+    print(cycle, {pc: v[1] for pc, v in out.items()})
     v_j, v_m = out["jacobi"][0], out["multigrid"][0]
     scale = np.abs(v_j).max()
     assert np.abs(v_j - v_m).max() < 1e3 * tol * scale
-    assert out["multigrid"][1] < out["jacobi"][1] / 3
+    assert out["multigrid"][1] < out["jacobi"][1] / gain
 
 
 def test_iterations_do_not_grow_with_resolution():
