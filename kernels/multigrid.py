@@ -179,8 +179,9 @@ def build(scalar):
         spring_block: wp.array(dtype=mat33),
         bend_start: wp.array(dtype=wp.int32),
         spring_start: wp.array(dtype=wp.int32),
-        # Out: the split, projected operator as a 27-block stencil, and the smoother's block inverses
+        # Out: the split, projected operator as a 27-block stencil, its row sums, the smoother's block inverses
         a_out: wp.array2d(dtype=mat33),
+        rowsum_out: wp.array(dtype=mat33),
         dinv_out: wp.array(dtype=mat33),
     ):
         i = wp.tid()
@@ -209,6 +210,9 @@ def build(scalar):
         if s <= scalar(0.0):
             s = scalar(1.0)
         dinv_out[i] = sf * wp.inverse(sf * d * sf + s * free) * sf
+        # Row sum, formed without cancellation: S M S + s (I - S) + sum_j S B_ij (S_i - S_j), which is
+        # exactly m I on a free particle with free neighbours (the springs do not resist translation).
+        rowsum = sf * (mass_eff[i] * identity) * sf + s * free
         for slot in range(STENCIL):
             o = slot_offset(slot)
             blk = mat33(scalar(0.0))
@@ -216,17 +220,23 @@ def build(scalar):
                 blk = sf * (d + extra) * sf + s * free
             elif inside(c[0] + o[0], c[1] + o[1], c[2] + o[2], shape):
                 j = node_index(c[0] + o[0], c[1] + o[1], c[2] + o[2], shape)
-                blk = -(sf * neighbour_block(c, o, shape, spring_start, bend_start, spring_block) * filters[j])
+                sj = filters[j]
+                nb = neighbour_block(c, o, shape, spring_start, bend_start, spring_block)
+                blk = -(sf * nb * sj)
+                rowsum = rowsum + sf * nb * (sf - sj)
             a_out[i, slot] = blk
+        rowsum_out[i] = rowsum
 
     @wp.kernel(module="unique")
     def mg_galerkin(
         shape: wp.vec3i,
         coarse_shape: wp.vec3i,
-        # The level above as a dense stencil [nodes, 27]
+        # The level above as a dense stencil [nodes, 27] and its row sums
         a_fine: wp.array2d(dtype=mat33),
-        # Out: the coarse stencil and its diagonal blocks' inverses
+        rowsum_fine: wp.array(dtype=mat33),
+        # Out: the coarse stencil, its row sums and its diagonal blocks' inverses
         a_out: wp.array2d(dtype=mat33),
+        rowsum_out: wp.array(dtype=mat33),
         dinv_out: wp.array(dtype=mat33),
     ):
         node, t = wp.tid()
@@ -287,6 +297,22 @@ def build(scalar):
             sym = half * (acc + wp.transpose(acc))
             a_out[node, slot] = sym
             dinv_out[node] = wp.inverse(sym)
+            # Row sums restrict exactly (the rows of P sum to 1): sum_J (P^T A P)_IJ = sum_i P_iI rowsum_i.
+            rs = mat33(scalar(0.0))
+            for ix in range(fi[0], fi[0] + 3):
+                wx = axis_weight(ix, ci[0], shape[0], coarse_shape[0])
+                if wx == scalar(0.0):
+                    continue
+                for iy in range(fi[1], fi[1] + 3):
+                    wxy = wx * axis_weight(iy, ci[1], shape[1], coarse_shape[1])
+                    if wxy == scalar(0.0):
+                        continue
+                    for iz in range(fi[2], fi[2] + 3):
+                        w = wxy * axis_weight(iz, ci[2], shape[2], coarse_shape[2])
+                        if w == scalar(0.0):
+                            continue
+                        rs = rs + w * rowsum_fine[node_index(ix, iy, iz, shape)]
+            rowsum_out[node] = rs
         else:
             a_out[node, slot] = acc
             a_out[node_index(cj[0], cj[1], cj[2], coarse_shape), STENCIL - 1 - slot] = wp.transpose(acc)
@@ -297,6 +323,7 @@ def build(scalar):
         omega: scalar,
         shape: wp.vec3i,
         a: wp.array2d(dtype=mat33),
+        rowsum: wp.array(dtype=mat33),
         dinv: wp.array(dtype=mat33),
         b: wp.array(dtype=vec3),
         x: wp.array(dtype=vec3),
@@ -308,11 +335,14 @@ def build(scalar):
             y_out[node] = omega * (dinv[node] * b[node])
             return
         c = node_coord(node, shape)
-        r = b[node]
+        # A x = R x_I + sum_J A_IJ (x_J - x_I), R the row sum: no cancellation of the large
+        # stiffness terms on smooth x, and translations see exactly R (the mass) on every level.
+        xi = x[node]
+        r = b[node] - rowsum[node] * xi
         for slot in range(STENCIL):
             o = slot_offset(slot)
-            if inside(c[0] + o[0], c[1] + o[1], c[2] + o[2], shape):
-                r = r - a[node, slot] * x[node_index(c[0] + o[0], c[1] + o[1], c[2] + o[2], shape)]
+            if slot != CENTER and inside(c[0] + o[0], c[1] + o[1], c[2] + o[2], shape):
+                r = r - a[node, slot] * (x[node_index(c[0] + o[0], c[1] + o[1], c[2] + o[2], shape)] - xi)
         if mode == 0:
             y_out[node] = r
         else:
@@ -439,30 +469,39 @@ def build(scalar):
     def mg_coarse_factor(
         shape: wp.vec3i,
         a: wp.array2d(dtype=mat33),
-        # Out: the Cholesky factor L (lower triangle) of the dense coarsest matrix
-        chol_out: wp.array2d(dtype=scalar),
+        rowsum: wp.array(dtype=mat33),
+        # Out: the Cholesky factor L (lower triangle) of the dense coarsest matrix, in float64
+        chol_out: wp.array2d(dtype=wp.float64),
     ):
         nodes = shape[0] * shape[1] * shape[2]
         m = 3 * nodes
         for r in range(m):
             for col in range(m):
-                chol_out[r, col] = scalar(0.0)
+                chol_out[r, col] = wp.float64(0.0)
+        # The diagonal blocks are the row sums minus the off-diagonal blocks, summed in float64: the
+        # matrix's translations keep exactly the row sums' (mass) energy, however stiff the level.
         for node in range(nodes):
             c = node_coord(node, shape)
+            rs = rowsum[node]
+            for p in range(3):
+                for q in range(3):
+                    chol_out[3 * node + p, 3 * node + q] = chol_out[3 * node + p, 3 * node + q] + wp.float64(rs[p, q])
             for slot in range(STENCIL):
                 o = slot_offset(slot)
-                if inside(c[0] + o[0], c[1] + o[1], c[2] + o[2], shape):
+                if slot != CENTER and inside(c[0] + o[0], c[1] + o[1], c[2] + o[2], shape):
                     other = node_index(c[0] + o[0], c[1] + o[1], c[2] + o[2], shape)
                     blk = a[node, slot]
                     for p in range(3):
                         for q in range(3):
-                            chol_out[3 * node + p, 3 * other + q] = blk[p, q]
+                            v = wp.float64(blk[p, q])
+                            chol_out[3 * node + p, 3 * other + q] = v
+                            chol_out[3 * node + p, 3 * node + q] = chol_out[3 * node + p, 3 * node + q] - v
         for k in range(m):
             pivot = chol_out[k, k]
             for s in range(k):
                 pivot = pivot - chol_out[k, s] * chol_out[k, s]
             # The matrix is SPD; guard rounding on a nearly singular one.
-            pivot = wp.sqrt(wp.max(pivot, scalar(1.0e-30)))
+            pivot = wp.sqrt(wp.max(pivot, wp.float64(1.0e-300)))
             chol_out[k, k] = pivot
             for r in range(k + 1, m):
                 v = chol_out[r, k]
@@ -473,16 +512,16 @@ def build(scalar):
     @wp.kernel(module="unique")
     def mg_coarse_solve(
         shape: wp.vec3i,
-        chol: wp.array2d(dtype=scalar),
+        chol: wp.array2d(dtype=wp.float64),
         b: wp.array(dtype=vec3),
-        # Out: x = A^-1 b on the coarsest level (work: a [3 nodes] scratch vector)
-        work: wp.array(dtype=scalar),
+        # Out: x = A^-1 b on the coarsest level (work: a [3 nodes] float64 scratch vector)
+        work: wp.array(dtype=wp.float64),
         x_out: wp.array(dtype=vec3),
     ):
         nodes = shape[0] * shape[1] * shape[2]
         m = 3 * nodes
         for k in range(m):
-            v = b[k // 3][k % 3]
+            v = wp.float64(b[k // 3][k % 3])
             for s in range(k):
                 v = v - chol[k, s] * work[s]
             work[k] = v / chol[k, k]
@@ -493,7 +532,7 @@ def build(scalar):
                 v = v - chol[s, k] * work[s]
             work[k] = v / chol[k, k]
         for node in range(nodes):
-            x_out[node] = vec3(work[3 * node], work[3 * node + 1], work[3 * node + 2])
+            x_out[node] = vec3(scalar(work[3 * node]), scalar(work[3 * node + 1]), scalar(work[3 * node + 2]))
 
     return {
         "mg_fine_setup": mg_fine_setup,

@@ -581,8 +581,10 @@ def run(args) -> int:
               "steps, over the edge")
         for r in implicit_rows:
             extra = f", CG it/step {r['cg_iterations_mean']:.1f}" if "cg_iterations_mean" in r else ""
-            print(f"  {r['size']}^3 {r['solver']:>38}: {r['ms_per_step']:9.3f} ms/step, error {r['error_over_edge']:.2e}"
-                  f"{extra}")
+            print(
+                f"  {r['size']}^3 {r['solver']:>38}: {r['ms_per_step']:9.3f} ms/step, "
+                f"error {r['error_over_edge']:.2e}{extra}"
+            )
     for c in gpu_clocks:
         clock = c["sm_clock_mhz"]
         print(

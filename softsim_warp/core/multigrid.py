@@ -142,6 +142,7 @@ class LatticeMultigrid:
         # Level 0: smoother inverses, the split operator's stencil, and the V-cycle's vectors.
         self.dinv0 = wp.zeros(n, dtype=mat33, device=device)
         self.a0 = wp.zeros((n, km.STENCIL), dtype=mat33, device=device) if len(self.shapes) > 1 else None
+        self.rowsum0 = wp.zeros(n, dtype=mat33, device=device)
         self.x0 = wp.zeros(n, dtype=vec3, device=device)
         # A lattice of at most 2x2x2 has no coarse level and builds no stencil (mg_fine_setup writes here).
         self.dummy_stencil = wp.zeros((n if self.a0 is None else 1, km.STENCIL), dtype=mat33, device=device)
@@ -157,14 +158,16 @@ class LatticeMultigrid:
                     "count": count,
                     "a": wp.zeros((count, km.STENCIL), dtype=mat33, device=device),
                     "dinv": wp.zeros(count, dtype=mat33, device=device),
+                    "rowsum": wp.zeros(count, dtype=mat33, device=device),
                     "b": wp.zeros(count, dtype=vec3, device=device),
                     "x": wp.zeros(count, dtype=vec3, device=device),
                     "t": wp.zeros(count, dtype=vec3, device=device),
                 }
             )
         coarsest = self.levels[-1]["count"] if self.levels else 0
-        self.chol = wp.zeros((3 * coarsest, 3 * coarsest), dtype=scalar, device=device)
-        self.work = wp.zeros(3 * coarsest, dtype=scalar, device=device)
+        # The coarsest factorisation is float64 in either precision (kernels/multigrid.py: mg_coarse_factor).
+        self.chol = wp.zeros((3 * coarsest, 3 * coarsest), dtype=wp.float64, device=device)
+        self.work = wp.zeros(3 * coarsest, dtype=wp.float64, device=device)
 
     @property
     def level_count(self) -> int:
@@ -173,9 +176,9 @@ class LatticeMultigrid:
 
     def nbytes(self) -> int:
         """Bytes of the device arrays held here."""
-        arrays = [self.dinv0, self.x0, self.y0, self.chol, self.work] + ([self.a0] if self.a0 is not None else [])
+        arrays = [self.dinv0, self.rowsum0, self.x0, self.y0, self.chol, self.work] + ([self.a0] if self.a0 is not None else [])
         for lv in self.levels:
-            arrays += [lv["a"], lv["dinv"], lv["b"], lv["x"], lv["t"]]
+            arrays += [lv["a"], lv["dinv"], lv["rowsum"], lv["b"], lv["x"], lv["t"]]
         return sum(a.capacity for a in arrays)
 
     def setup(self):
@@ -198,23 +201,29 @@ class LatticeMultigrid:
                 self.bend_start,
                 self.spring_start,
             ],
-            outputs=[self.a0 if self.a0 is not None else self.dummy_stencil, self.dinv0],
+            outputs=[self.a0 if self.a0 is not None else self.dummy_stencil, self.rowsum0, self.dinv0],
             device=device,
         )
         if not self.levels:
             return
-        below_shape, below_a = fine_shape, self.a0
+        below_shape, below_a, below_rowsum = fine_shape, self.a0, self.rowsum0
         for lv in self.levels:
             wp.launch(
                 k.mg_galerkin,
                 dim=(lv["count"], km.HALF),
-                inputs=[below_shape, lv["shape"], below_a],
-                outputs=[lv["a"], lv["dinv"]],
+                inputs=[below_shape, lv["shape"], below_a, below_rowsum],
+                outputs=[lv["a"], lv["rowsum"], lv["dinv"]],
                 device=device,
             )
-            below_shape, below_a = lv["shape"], lv["a"]
+            below_shape, below_a, below_rowsum = lv["shape"], lv["a"], lv["rowsum"]
         last = self.levels[-1]
-        wp.launch(k.mg_coarse_factor, dim=1, inputs=[last["shape"], last["a"]], outputs=[self.chol], device=device)
+        wp.launch(
+            k.mg_coarse_factor,
+            dim=1,
+            inputs=[last["shape"], last["a"], last["rowsum"]],
+            outputs=[self.chol],
+            device=device,
+        )
 
     def apply(self, r: wp.array, z: wp.array, scalars: wp.array, slot: int):
         """z = V-cycle(r) for a filtered residual r; adds r.z to ``scalars[slot]``."""
@@ -261,7 +270,7 @@ class LatticeMultigrid:
             wp.launch(
                 k.mg_stencil_op,
                 dim=lv["count"],
-                inputs=[0, self.coarse_omega, lv["shape"], lv["a"], lv["dinv"], lv["b"], lv["x"]],
+                inputs=[0, self.coarse_omega, lv["shape"], lv["a"], lv["rowsum"], lv["dinv"], lv["b"], lv["x"]],
                 outputs=[lv["t"]],
                 device=device,
             )
@@ -342,7 +351,9 @@ class LatticeMultigrid:
             wp.launch(
                 k.mg_stencil_op,
                 dim=lv["count"],
-                inputs=[2 if zero else 1, self.coarse_omega, lv["shape"], lv["a"], lv["dinv"], lv["b"], lv["x"]],
+                inputs=[
+                    2 if zero else 1, self.coarse_omega, lv["shape"], lv["a"], lv["rowsum"], lv["dinv"], lv["b"], lv["x"]
+                ],
                 outputs=[lv["t"]],
                 device=device,
             )

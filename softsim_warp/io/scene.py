@@ -366,7 +366,7 @@ SCHEMA = Table(
                 "linearization": Choice(("predictor", "baraff_witkin"), doc="where forces are linearised (predictor)"),
                 "preconditioner": Choice(
                     ("auto", "multigrid", "jacobi"),
-                    doc="CG preconditioner: multigrid (one lattice jelly), jacobi (3x3 blocks) or auto (docs/IMPLICIT.md)",
+                    doc="CG preconditioner: multigrid (one lattice jelly), jacobi (3x3 blocks) or auto",
                 ),
             },
             optional=True,
