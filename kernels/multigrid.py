@@ -25,11 +25,19 @@ be 125-point on the first coarse level). Fixed and contact-constrained direction
 Dirichlet meaning on the coarse levels: their part of a coarse function's elastic energy is
 taken with the constrained components removed.
 
+Products with a coarse operator are taken in difference form, A x = R x_I + sum_J A_IJ (x_J - x_I)
+with R the level's row sums, which restrict exactly (P's rows sum to 1) and on the lattice are
+formed without cancellation (m I on a free particle): in float32 the assembled diagonal of a stiff
+level carries rounding noise the size of the mass, which made coarse levels indefinite along the
+translations.
+
 The smoother is damped block-Jacobi (order-free, one thread per node); a V-cycle with the same
 number of pre- and post-smoothing sweeps, started from zero, is a symmetric positive definite
 operator when every level's smoother converges (omega < 2 / lambda_max(D^-1 A)) and the coarsest
-solve is SPD: it is a valid CG preconditioner. The coarsest level (at most 2 x 2 x 2 nodes) is
-solved exactly by a dense Cholesky factorisation on one thread.
+solve is SPD: it is a valid CG preconditioner. The jelly's own lattice joins either the same way
+or additively (z = omega D^-1 r + P V(P^T r), no spring product; ``core/multigrid.py``). The
+coarsest level (at most 2 x 2 x 2 nodes) is solved exactly by a dense Cholesky factorisation on
+one thread, in float64.
 
 Every kernel exists for float32 and float64 and runs on the CPU and CUDA. The host side is
 ``softsim_warp/core/multigrid.py``.
