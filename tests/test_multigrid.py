@@ -221,7 +221,7 @@ def two_grid_factor(a, a_split, shape, omega):
 
 
 def test_two_grid_convergence_factor():
-    """The model problem: the stiff jelly (h^2 ks / m = 1e4 per particle at 9^3) after one step.
+    """The model problem: the stiff 7^3 jelly (h^2 ks / m = 3.4e3 per particle) after one step.
 
     One pre- and one post-sweep of block-Jacobi (omega = 0.8) around the exact coarse solve
     reduce every error component by at least 0.45 per cycle: measured 0.39 here (omega = 0.6:
@@ -240,6 +240,17 @@ def test_two_grid_convergence_factor():
     assert abs(rho - rho_exact) < 0.01
     smoother_only = np.eye(len(a)) - DEFAULT_OMEGA * np.linalg.solve(block_diagonal(a), a)
     assert np.abs(np.linalg.eigvals(smoother_only)).max() > 0.99
+    # The additive form (the default on the lattice): B = omega D^-1 + P A_c^-1 P^T. CG's
+    # iterations follow the condition number of B A: measured 5.4, against 4.6e4 for block-Jacobi.
+    dinv = np.linalg.inv(block_diagonal(a))
+    p = interpolation(shape)
+    b_add = DEFAULT_OMEGA * dinv + p @ np.linalg.solve(p.T @ a_split @ p, p.T)
+    ev = np.linalg.eigvals(b_add @ a).real
+    ev_jacobi = np.linalg.eigvals(dinv @ a).real
+    kappa, kappa_jacobi = ev.max() / ev.min(), ev_jacobi.max() / ev_jacobi.min()
+    print(f"condition numbers: additive two-level {kappa:.2f}, block-Jacobi {kappa_jacobi:.3g}")
+    assert ev.min() > 0 and ev.max() / ev.min() < 6.0
+    assert ev_jacobi.max() / ev_jacobi.min() > 1e4
 
 
 def test_smoothers_converge_on_every_level():
