@@ -313,8 +313,11 @@ def test_same_step_as_jacobi(monkeypatch, cycle, gain):
         model = stiff_jelly(8)
         integ, state = run(model, 3, preconditioner=pc, cg_tolerance=tol, cg_max_iterations=2000)
         assert integ.preconditioner == pc
-        assert integ.stats()["cg_unconverged_solves"] == 0
-        out[pc] = (state.particle_qd.numpy(), integ.stats()["cg_iterations_mean"])
+        stats = integ.stats()
+        assert stats["cg_unconverged_solves"] == 0
+        assert 0.0 < stats["cg_relative_residual_max"] <= tol * (1 + 1e-6)
+        assert stats["cg_relative_residual_mean"] <= stats["cg_relative_residual_max"]
+        out[pc] = (state.particle_qd.numpy(), stats["cg_iterations_mean"])
     print(cycle, {pc: v[1] for pc, v in out.items()})
     v_j, v_m = out["jacobi"][0], out["multigrid"][0]
     scale = np.abs(v_j).max()
@@ -393,6 +396,7 @@ def test_scene_key_chooses_the_preconditioner(tmp_path, choice, used):
     assert rc == 0
     summary = json.loads(metrics.read_text())["summary"]
     assert summary["cg_preconditioner"] == used and summary["cg_unconverged_solves"] == 0
+    assert summary["cg_relative_residual_max"] <= summary["cg_tolerance"] * (1 + 1e-3)
     assert ("multigrid_levels" in summary) == (used == "multigrid")
 
 

@@ -210,6 +210,8 @@ class ImplicitIntegrator(Integrator):
         self.scalars = wp.zeros(ki.SCALAR_SLOTS, dtype=scalar, device=device)
         self.ints = wp.zeros(2, dtype=wp.int32, device=device)
         self.stats_array = wp.zeros(ki.STAT_SLOTS, dtype=wp.int32, device=device)
+        # Largest and summed final relative residual of this module's CG solves (record_residual).
+        self.residual_stats = wp.zeros(2, dtype=model.scalar, device=device)
         self._condition = self.ints[ki.COND : ki.COND + 1]
         # Fixed particles (inverse mass 0) and each particle's constraint filter (see kernels/implicit.py).
         fixed = (model.particle_inv_mass.numpy() == 0).astype(np.int32)
@@ -473,6 +475,17 @@ class ImplicitIntegrator(Integrator):
                 self.scalars[ki.TOL2 : ki.TOL2 + 1],
             ],
             outputs=[self.stats_array],
+            device=device,
+        )
+        wp.launch(
+            k.record_residual,
+            dim=1,
+            inputs=[
+                model.scalar(self.cg_tolerance),
+                self.scalars[ki.RR : ki.RR + 1],
+                self.scalars[ki.TOL2 : ki.TOL2 + 1],
+            ],
+            outputs=[self.residual_stats],
             device=device,
         )
 
@@ -794,11 +807,13 @@ class ImplicitIntegrator(Integrator):
     def reset_stats(self):
         """Forget the CG iteration counts so far (e.g. those of a warm-up step)."""
         self.stats_array.zero_()
+        self.residual_stats.zero_()
         self._host_stats[:] = 0
 
     def stats(self) -> dict:
         """CG iterations per step (summed over all solves of a step), for the metrics summary."""
         a = self.stats_array.numpy().astype(np.int64) + self._host_stats
+        res = self.residual_stats.numpy().astype(np.float64)
         steps = int(a[ki.STEPS])
         return {
             "newton_iterations": self.newton_iterations,
@@ -814,4 +829,7 @@ class ImplicitIntegrator(Integrator):
             "cg_iterations_max": int(a[ki.MAX_ITERS]),
             "cg_solves": int(a[ki.SOLVES]),
             "cg_unconverged_solves": int(a[ki.UNCONVERGED]),
+            # Final |r| / max(|b|, |b_1|) of the solves (this module's loop; not warp_cg's).
+            "cg_relative_residual_max": float(res[0]),
+            "cg_relative_residual_mean": float(res[1]) / int(a[ki.SOLVES]) if a[ki.SOLVES] else 0.0,
         }
