@@ -300,7 +300,7 @@ def test_vcycle_is_symmetric_positive_definite():
 
 
 @pytest.mark.parametrize("cycle, gain", [("multiplicative", 3.0), ("additive", 2.0)])
-def test_same_step_as_jacobi(monkeypatch, cycle, gain):
+def test_same_step_as_jacobi(device, monkeypatch, cycle, gain):
     """Both preconditioners solve the same system: the steps agree to the CG tolerance (float64).
 
     At this tight tolerance (1e-10) block-Jacobi takes 82 CG iterations per step on the 8^3 jelly,
@@ -310,7 +310,7 @@ def test_same_step_as_jacobi(monkeypatch, cycle, gain):
     tol = 1.0e-10
     out = {}
     for pc in ("jacobi", "multigrid"):
-        model = stiff_jelly(8)
+        model = stiff_jelly(8, device=device)
         integ, state = run(model, 3, preconditioner=pc, cg_tolerance=tol, cg_max_iterations=2000)
         assert integ.preconditioner == pc
         stats = integ.stats()
@@ -325,11 +325,11 @@ def test_same_step_as_jacobi(monkeypatch, cycle, gain):
     assert out["multigrid"][1] < out["jacobi"][1] / gain
 
 
-def test_iterations_do_not_grow_with_resolution():
+def test_iterations_do_not_grow_with_resolution(device):
     """CG iterations per step at 8^3, 16^3 and 32^3 stay within 1.5x of each other (block-Jacobi: about 4x)."""
     counts = []
     for size in (8, 16, 32):
-        model = stiff_jelly(size, precision="float32")
+        model = stiff_jelly(size, device=device, precision="float32")
         integ, state = run(model, 2, preconditioner="multigrid")
         stats = integ.stats()
         assert stats["cg_unconverged_solves"] == 0
@@ -340,13 +340,13 @@ def test_iterations_do_not_grow_with_resolution():
 
 
 @pytest.mark.parametrize("precision", ["float32", "float64"])
-def test_contact_and_pins(precision):
+def test_contact_and_pins(device, precision):
     """A jelly resting on a plane, with one edge pinned: the same steps as with Jacobi."""
     shape = (6, 5, 4)
     pinned = [lattice_index(0, 4, k, shape) for k in range(4)]
     out = {}
     for pc in ("jacobi", "multigrid"):
-        model = stiff_jelly(0, precision=precision, plane=True, pinned=pinned, shape=shape)
+        model = stiff_jelly(0, device=device, precision=precision, plane=True, pinned=pinned, shape=shape)
         tol = 1e-10 if precision == "float64" else 1e-5
         integ, state = run(model, 4, preconditioner=pc, cg_tolerance=tol, cg_max_iterations=2000)
         assert integ.preconditioner == pc
