@@ -377,6 +377,14 @@ def test_fallback_and_choice():
     assert integ.preconditioner == "jacobi" and "2 jellies" in integ.preconditioner_note
     with pytest.raises(ValueError, match="preconditioner must be one of"):
         ImplicitIntegrator(stiff_jelly(4), preconditioner="amg")
+    assert ImplicitIntegrator(stiff_jelly(8), preconditioner="block_jacobi").preconditioner == "jacobi"
+    # The scalar Jacobi variant solves the same system as the block one.
+    out = []
+    for pc in ("diagonal", "jacobi"):
+        integ, state = run(stiff_jelly(4), 2, preconditioner=pc, cg_tolerance=1e-10, cg_max_iterations=2000)
+        assert integ.preconditioner == pc and integ.stats()["cg_unconverged_solves"] == 0
+        out.append(state.particle_qd.numpy())
+    assert np.abs(out[0] - out[1]).max() < 1e-6 * np.abs(out[1]).max()
 
 
 # -- the scene key ----------------------------------------------------------------------------------
