@@ -474,6 +474,51 @@ def build(scalar):
         wp.tile_atomic_add(scalars_out, wp.tile_sum(wp.tile(rz)), offset=slot)
 
     @wp.kernel(module="unique")
+    def mg_fine_additive(
+        n: int,
+        slot: int,
+        omega: scalar,
+        shape: wp.vec3i,
+        coarse_shape: wp.vec3i,
+        filters: wp.array(dtype=mat33),
+        dinv: wp.array(dtype=mat33),
+        r: wp.array(dtype=vec3),
+        e: wp.array(dtype=vec3),
+        # Out: the additive lattice level z = omega D^-1 r + S P e, and r.z into scalars[slot]
+        z_out: wp.array(dtype=vec3),
+        scalars_out: wp.array(dtype=scalar),
+    ):
+        blk, lane = wp.tid()
+        i = blk * TILE + lane
+        rz = scalar(0.0)
+        if i < n:
+            c = node_coord(i, shape)
+            f = wp.vec3i(
+                first_coarse(c[0], shape[0], coarse_shape[0]),
+                first_coarse(c[1], shape[1], coarse_shape[1]),
+                first_coarse(c[2], shape[2], coarse_shape[2]),
+            )
+            acc = vec3(scalar(0.0))
+            for ax in range(2):
+                wx = axis_weight(c[0], f[0] + ax, shape[0], coarse_shape[0])
+                if wx == scalar(0.0):
+                    continue
+                for ay in range(2):
+                    wxy = wx * axis_weight(c[1], f[1] + ay, shape[1], coarse_shape[1])
+                    if wxy == scalar(0.0):
+                        continue
+                    for az in range(2):
+                        w = wxy * axis_weight(c[2], f[2] + az, shape[2], coarse_shape[2])
+                        if w == scalar(0.0):
+                            continue
+                        acc = acc + w * e[node_index(f[0] + ax, f[1] + ay, f[2] + az, coarse_shape)]
+            ri = r[i]
+            zi = omega * (dinv[i] * ri) + filters[i] * acc
+            z_out[i] = zi
+            rz = wp.dot(ri, zi)
+        wp.tile_atomic_add(scalars_out, wp.tile_sum(wp.tile(rz)), offset=slot)
+
+    @wp.kernel(module="unique")
     def mg_coarse_factor(
         shape: wp.vec3i,
         a: wp.array2d(dtype=mat33),
@@ -550,6 +595,7 @@ def build(scalar):
         "mg_prolong": mg_prolong,
         "mg_fine_pre": mg_fine_pre,
         "mg_fine_post": mg_fine_post,
+        "mg_fine_additive": mg_fine_additive,
         "mg_coarse_factor": mg_coarse_factor,
         "mg_coarse_solve": mg_coarse_solve,
     }

@@ -242,8 +242,6 @@ class LatticeMultigrid:
             return
         # Level 0, down: one sweep from 0, then the filtered residual restricted.
         additive = self.fine_cycle == "additive"
-        wp.launch(k.mg_fine_pre, dim=n, inputs=[omega, s.mass_eff, self.dinv0, r], outputs=[self.x0, self.y0],
-                  device=device)
         fine_shape = wp.vec3i(*self.shapes[0])
         first = self.levels[0]
         if additive:
@@ -256,6 +254,10 @@ class LatticeMultigrid:
                 device=device,
             )
         else:
+            wp.launch(
+                k.mg_fine_pre, dim=n, inputs=[omega, s.mass_eff, self.dinv0, r], outputs=[self.x0, self.y0],
+                device=device,
+            )
             self._spring_product(self.x0)
             wp.launch(
                 k.mg_restrict,
@@ -301,6 +303,16 @@ class LatticeMultigrid:
                 device=device,
             )
             self._smooth(lv, from_zero=False)
+        if additive:
+            wp.launch(
+                k.mg_fine_additive,
+                dim=((n + ki.TILE - 1) // ki.TILE, ki.TILE),
+                block_dim=ki.TILE,
+                inputs=[n, slot, omega, fine_shape, first["shape"], s.filters, self.dinv0, r, first["x"]],
+                outputs=[z, scalars],
+                device=device,
+            )
+            return
         wp.launch(
             k.mg_prolong,
             dim=n,
@@ -308,9 +320,6 @@ class LatticeMultigrid:
             outputs=[self.x0, self.y0],
             device=device,
         )
-        if additive:
-            self._fine_post(r, z, scalars, slot, omega=self.model.scalar(0.0))
-            return
         self._spring_product(self.x0)
         self._fine_post(r, z, scalars, slot)
 
@@ -330,9 +339,9 @@ class LatticeMultigrid:
                 device=model.device,
             )
 
-    def _fine_post(self, r, z, scalars, slot, omega=None):
+    def _fine_post(self, r, z, scalars, slot):
         n = self.model.particle_count
-        omega = self.omega if omega is None else omega
+        omega = self.omega
         wp.launch(
             self.kernels.mg_fine_post,
             dim=((n + ki.TILE - 1) // ki.TILE, ki.TILE),
