@@ -367,8 +367,9 @@ def test_fallback_and_choice():
     assert multigrid_support(stiff_jelly(4))[0]
     integ = ImplicitIntegrator(stiff_jelly(4))
     assert integ.preconditioner == "jacobi" and "auto" in integ.preconditioner_note
-    assert 4**3 < AUTO_MIN_PARTICLES <= 8**3
-    assert ImplicitIntegrator(stiff_jelly(8)).preconditioner == "multigrid"
+    assert 8**3 < AUTO_MIN_PARTICLES <= 16**3
+    assert ImplicitIntegrator(stiff_jelly(8)).preconditioner == "jacobi"
+    assert ImplicitIntegrator(stiff_jelly(16)).preconditioner == "multigrid"
     b = ModelBuilder()
     springs = {t: {"ks": KS, "kd": 0.0} for t in SPRING_TYPE_NAMES}
     b.add_jelly((3, 3, 3), 0.2, 0.01, springs, center=(0, 0, 0))
