@@ -908,6 +908,21 @@ def build(scalar):
             stats[UNCONVERGED] = stats[UNCONVERGED] + 1
 
     @wp.kernel(module="unique")
+    def record_residual(
+        tol: scalar,
+        residual_sq: wp.array(dtype=scalar),
+        tolerance_sq: wp.array(dtype=scalar),
+        # In/out: [largest, sum] of the solves' final relative residuals |r| / max(|b|, |b_1|)
+        residual_stats: wp.array(dtype=scalar),
+    ):
+        # One thread. tolerance_sq = tol^2 max(|b|^2, |b_1|^2), so the scale is tolerance_sq / tol^2.
+        rel = scalar(0.0)
+        if tolerance_sq[0] > scalar(0.0):
+            rel = tol * wp.sqrt(residual_sq[0] / tolerance_sq[0])
+        residual_stats[0] = wp.max(residual_stats[0], rel)
+        residual_stats[1] = residual_stats[1] + rel
+
+    @wp.kernel(module="unique")
     def record_step(stats: wp.array(dtype=wp.int32)):
         # One thread: close the step's CG iteration count.
         it = stats[STEP_ITERS]
@@ -1008,6 +1023,7 @@ def build(scalar):
         "cg_update": cg_update,
         "cg_end_iteration": cg_end_iteration,
         "record_solve": record_solve,
+        "record_residual": record_residual,
         "record_step": record_step,
         "apply_velocity_update": apply_velocity_update,
         "precondition": precondition,

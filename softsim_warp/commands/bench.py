@@ -37,7 +37,7 @@ from ..core.stepper import make_integrator
 from ..io.outputs import Outputs, save_report
 from ..io.resources import check_counts, lattice_spring_count
 from ..io.scene import load_scene
-from .bench_newton import NewtonJelly, newton_version
+from .bench_newton import NewtonJelly, implicit_peer, newton_version
 from .common import ProgressLog, resolve_device
 
 COMMAND = "bench"
@@ -420,6 +420,11 @@ def add_parser(subparsers, add_common):
     p.add_argument("--scene", help="benchmark this scene (name or .toml, with its dt) instead of the size sweep")
     p.add_argument("--peer", choices=["newton"], help="also step the same jelly with Newton's SolverSemiImplicit")
     p.add_argument(
+        "--implicit-peer-ks", type=float, default=1.0e5,
+        help="with --peer and implicit: ks of the stiff jelly stepped by implicit and Newton's VBD (1e5)",
+    )
+    p.add_argument("--implicit-peer-dt", type=float, default=0.01, help="its step [s] (0.01)")
+    p.add_argument(
         "--variants",
         action="store_true",
         help="measure the fast paths one by one (graph, lattice, fusion, batching) instead of --paths",
@@ -571,7 +576,23 @@ def run(args) -> int:
     if bar is not None:
         bar.close()
 
+    implicit_rows = []
+    if args.peer and "implicit" in methods and not args.scene:
+        # Newton's implicit solver (VBD) against ours on a stiff spinning jelly in free flight, with
+        # the error against a float64 reference (bench_newton.implicit_peer).
+        for n in sizes:
+            implicit_rows += implicit_peer(n, args.implicit_peer_ks, 0.1, args.implicit_peer_dt, device)
     _print_table(results, bandwidth, device)
+    if implicit_rows:
+        print(f"\nimplicit vs newton.SolverVBD: stiff jelly in free flight, ks = {args.implicit_peer_ks:.0e}, "
+              f"dt = {args.implicit_peer_dt}; error: max distance to the float64 backward Euler result after 10 "
+              "steps, over the edge")
+        for r in implicit_rows:
+            extra = f", CG it/step {r['cg_iterations_mean']:.1f}" if "cg_iterations_mean" in r else ""
+            print(
+                f"  {r['size']}^3 {r['solver']:>38}: {r['ms_per_step']:9.3f} ms/step, "
+                f"error {r['error_over_edge']:.2e}{extra}"
+            )
     for c in gpu_clocks:
         clock = c["sm_clock_mhz"]
         print(
@@ -598,6 +619,7 @@ def run(args) -> int:
         },
         "results": results,
         "peer": peers,
+        "implicit_peer": implicit_rows,
         # nvidia-smi's samples while each size's cases were timed (ClockMonitor; empty without it).
         "gpu_clocks": gpu_clocks,
     }

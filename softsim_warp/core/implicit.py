@@ -91,8 +91,12 @@ from .mesh_terrain import mesh_touch_arrays
 from ..kernels import implicit as ki
 from .model import Model, State
 from .pins import drive
+from .multigrid import AUTO_MIN_PARTICLES, LatticeMultigrid, multigrid_support
 
-PRECONDITIONERS = ("block_jacobi", "jacobi")
+# "jacobi": 3x3 block-Jacobi; "diagonal": the inverse of the diagonal; "multigrid": a V-cycle on
+# the lattice of a one-jelly model (core/multigrid.py); "auto": multigrid where it applies and pays
+# (multigrid.AUTO_MIN_PARTICLES), else jacobi. "block_jacobi" is another name of "jacobi".
+PRECONDITIONERS = ("auto", "multigrid", "jacobi", "diagonal", "block_jacobi")
 LINEARIZATIONS = ("predictor", "baraff_witkin")
 SOLVERS = ("matrix_free", "bsr", "warp_cg")
 
@@ -132,8 +136,12 @@ class ImplicitIntegrator(Integrator):
         cg_max_iterations: iteration cap of each CG solve.
         linearization: ``"predictor"`` (Newton from v_n, forces linearised about x_n + h v_n) or
             ``"baraff_witkin"`` (the first solve linearises about x_n); see the module docstring.
-        preconditioner: ``"block_jacobi"`` (inverse of each particle's 3x3 diagonal block) or
-            ``"jacobi"`` (inverse of the diagonal).
+        preconditioner: ``"jacobi"`` (inverse of each particle's 3x3 diagonal block; also called
+            ``"block_jacobi"``), ``"diagonal"`` (inverse of the diagonal), ``"multigrid"`` (a
+            geometric multigrid V-cycle, ``core/multigrid.py``: one-jelly lattice models with the
+            matrix-free solver; any other model falls back to ``"jacobi"``, and
+            ``stats()["cg_preconditioner_note"]`` says why) or ``"auto"`` (multigrid where it
+            applies from ``multigrid.AUTO_MIN_PARTICLES`` particles on, else jacobi).
         solver: ``"matrix_free"`` (A p from the spring list, this module's PCG loop), ``"bsr"``
             (an assembled ``warp.sparse`` block matrix, ``bsr_mv`` in the same PCG loop) or
             ``"warp_cg"`` (the assembled matrix solved by ``warp.optim.linear.cg``). The last two
@@ -153,7 +161,7 @@ class ImplicitIntegrator(Integrator):
         cg_tolerance: float = DEFAULT_CG_TOLERANCE,
         cg_max_iterations: int = DEFAULT_CG_MAX_ITERATIONS,
         linearization: str = DEFAULT_LINEARIZATION,
-        preconditioner: str = "block_jacobi",
+        preconditioner: str = "auto",
         solver: str = "matrix_free",
         warm_start: bool = True,
     ):
@@ -176,7 +184,7 @@ class ImplicitIntegrator(Integrator):
         self.cg_tolerance = float(cg_tolerance)
         self.cg_max_iterations = int(cg_max_iterations)
         self.linearization = linearization
-        self.preconditioner = preconditioner
+        self.preconditioner, self.preconditioner_note = self._choose_preconditioner(model, preconditioner, solver)
         self.solver = solver
         self.warm_start = bool(warm_start)
 
@@ -204,6 +212,8 @@ class ImplicitIntegrator(Integrator):
         self.scalars = wp.zeros(ki.SCALAR_SLOTS, dtype=scalar, device=device)
         self.ints = wp.zeros(2, dtype=wp.int32, device=device)
         self.stats_array = wp.zeros(ki.STAT_SLOTS, dtype=wp.int32, device=device)
+        # Largest and summed final relative residual of this module's CG solves (record_residual).
+        self.residual_stats = wp.zeros(2, dtype=model.scalar, device=device)
         self._condition = self.ints[ki.COND : ki.COND + 1]
         # Fixed particles (inverse mass 0) and each particle's constraint filter (see kernels/implicit.py).
         fixed = (model.particle_inv_mass.numpy() == 0).astype(np.int32)
@@ -245,6 +255,27 @@ class ImplicitIntegrator(Integrator):
         self._host_stats = np.zeros(ki.STAT_SLOTS, dtype=np.int64)
         if solver in ("bsr", "warp_cg"):
             self._setup_bsr()
+        # Multigrid: the V-cycle replaces z = P r in the CG loop; cg_update and init_residual get a
+        # zero block array as P (their r.z is 0) and the V-cycle adds r.z itself.
+        self.multigrid = None
+        if self.preconditioner == "multigrid":
+            self.multigrid = LatticeMultigrid(model, self)
+            self.no_precond = wp.zeros(n, dtype=self.mat33, device=device)
+
+    @staticmethod
+    def _choose_preconditioner(model: Model, name: str, solver: str) -> tuple[str, str]:
+        """The preconditioner used for ``name`` ("auto" and "multigrid" may fall back to jacobi), and why."""
+        name = "jacobi" if name == "block_jacobi" else name
+        if name not in ("auto", "multigrid"):
+            return name, "requested"
+        ok, reason = multigrid_support(model)
+        if ok and solver != "matrix_free":
+            ok, reason = False, f"solver {solver} (multigrid needs matrix_free)"
+        if ok and name == "auto" and model.particle_count < AUTO_MIN_PARTICLES:
+            ok, reason = False, f"{model.particle_count} particles (auto: multigrid from {AUTO_MIN_PARTICLES})"
+        if ok:
+            return "multigrid", f"{name}: lattice"
+        return "jacobi", f"{name}: jacobi, since multigrid does not apply: {reason}"
 
     # -- assembled block-sparse variants --------------------------------------------------------
 
@@ -374,6 +405,8 @@ class ImplicitIntegrator(Integrator):
         matrix_free = self.solver == "matrix_free"
 
         spring_mv = self._spring_mv
+        mg = self.multigrid
+        precond = self.precond if mg is None else self.no_precond
 
         # r = b - A x0, z = P r, tolerance and condition.
         if matrix_free:
@@ -384,10 +417,12 @@ class ImplicitIntegrator(Integrator):
             k.init_residual,
             dim=(pblocks, ki.TILE),
             block_dim=ki.TILE,
-            inputs=[n, self.filters, self.rhs, self.precond, self.ap],
+            inputs=[n, self.filters, self.rhs, precond, self.ap],
             outputs=[self.r, self.z, self.p, self.scalars],
             device=device,
         )
+        if mg is not None:
+            mg.apply(self.r, self.z, self.scalars, ki.RZ_NEW)
         wp.launch(
             k.cg_begin,
             dim=1,
@@ -421,10 +456,12 @@ class ImplicitIntegrator(Integrator):
                 k.cg_update,
                 dim=(pblocks, ki.TILE),
                 block_dim=ki.TILE,
-                inputs=[n, self.filters, self.precond, self.p, self.ap],
+                inputs=[n, self.filters, precond, self.p, self.ap],
                 outputs=[self.x, self.r, self.z, self.scalars],
                 device=device,
             )
+            if mg is not None:
+                mg.apply(self.r, self.z, self.scalars, ki.RZ_NEW)
             wp.launch(
                 k.cg_end_iteration,
                 dim=1,
@@ -445,6 +482,17 @@ class ImplicitIntegrator(Integrator):
             outputs=[self.stats_array],
             device=device,
         )
+        wp.launch(
+            k.record_residual,
+            dim=1,
+            inputs=[
+                model.scalar(self.cg_tolerance),
+                self.scalars[ki.RR : ki.RR + 1],
+                self.scalars[ki.TOL2 : ki.TOL2 + 1],
+            ],
+            outputs=[self.residual_stats],
+            device=device,
+        )
 
     def _solve_pcg(self):
         device = self.model.device
@@ -461,6 +509,8 @@ class ImplicitIntegrator(Integrator):
             self._loop_ran = True
 
     def _solve(self):
+        if self.multigrid is not None:
+            self.multigrid.setup()
         if self.solver != "matrix_free":
             self._assemble_bsr()
         if self.solver == "warp_cg":
@@ -530,7 +580,7 @@ class ImplicitIntegrator(Integrator):
                 n,
                 h,
                 scalar(1.0) if first and self.warm_start else scalar(0.0),
-                int(self.preconditioner == "block_jacobi"),
+                int(self.preconditioner != "diagonal"),
                 int(reset_filters),
                 model.particle_mass,
                 model.gravity,
@@ -633,7 +683,7 @@ class ImplicitIntegrator(Integrator):
                 block_dim=ki.TILE,
                 inputs=[
                     n,
-                    int(self.preconditioner == "block_jacobi"),
+                    int(self.preconditioner != "diagonal"),
                     model.particle_mass,
                     self.mass_eff,
                     self.fixed,
@@ -769,11 +819,13 @@ class ImplicitIntegrator(Integrator):
     def reset_stats(self):
         """Forget the CG iteration counts so far (e.g. those of a warm-up step)."""
         self.stats_array.zero_()
+        self.residual_stats.zero_()
         self._host_stats[:] = 0
 
     def stats(self) -> dict:
         """CG iterations per step (summed over all solves of a step), for the metrics summary."""
         a = self.stats_array.numpy().astype(np.int64) + self._host_stats
+        res = self.residual_stats.numpy().astype(np.float64)
         steps = int(a[ki.STEPS])
         return {
             "newton_iterations": self.newton_iterations,
@@ -781,10 +833,15 @@ class ImplicitIntegrator(Integrator):
             "cg_tolerance": self.cg_tolerance,
             "cg_max_iterations": self.cg_max_iterations,
             "cg_preconditioner": self.preconditioner,
+            "cg_preconditioner_note": self.preconditioner_note,
+            **(self.multigrid.stats() if self.multigrid is not None else {}),
             "cg_solver": self.solver,
             "cg_steps": steps,
             "cg_iterations_mean": float(a[ki.TOTAL_ITERS]) / steps if steps else 0.0,
             "cg_iterations_max": int(a[ki.MAX_ITERS]),
             "cg_solves": int(a[ki.SOLVES]),
             "cg_unconverged_solves": int(a[ki.UNCONVERGED]),
+            # Final |r| / max(|b|, |b_1|) of the solves (this module's loop; not warp_cg's).
+            "cg_relative_residual_max": float(res[0]),
+            "cg_relative_residual_mean": float(res[1]) / int(a[ki.SOLVES]) if a[ki.SOLVES] else 0.0,
         }

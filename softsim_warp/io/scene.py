@@ -387,6 +387,10 @@ SCHEMA = Table(
                 "cg_tolerance": Float(lo=0, lo_open=True, hi=1, hi_open=True, doc="CG stops at |r| <= tol |b| (1e-4)"),
                 "cg_max_iterations": Int(lo=1, doc="CG iteration cap per solve (default 200)"),
                 "linearization": Choice(("predictor", "baraff_witkin"), doc="where forces are linearised (predictor)"),
+                "preconditioner": Choice(
+                    ("auto", "multigrid", "jacobi"),
+                    doc="CG preconditioner: multigrid (one lattice jelly), jacobi (3x3 blocks) or auto",
+                ),
             },
             optional=True,
         ),

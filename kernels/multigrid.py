@@ -1,0 +1,601 @@
+"""Geometric multigrid for the implicit system of a lattice jelly: transfer, Galerkin coarsening, smoothing.
+
+Level 0 is the jelly's lattice (``nx x ny x nz`` particles, flat index ``(x ny + y) nz + z``), with
+the implicit system of ``kernels/implicit.py``: A = M + sum_s B_s over the spring list, filtered
+by the constraint projectors S_i. Level k + 1 coarsens each axis of level k with more than two
+nodes: a coarse node sits on every even fine node, plus one on the last fine node when the count
+is even (``coarse_size``), so odd and even sizes both keep the lattice's ends. Prolongation P is
+1-D linear interpolation along each axis between those positions (trilinear in 3-D); restriction
+is its transpose. It reproduces every field linear in the lattice coordinates exactly: the
+translations and (for a nearly undeformed jelly) the rotations that make the stiff system
+nearly singular.
+
+Coarse operators are Galerkin products, stored dense: 27 3x3 blocks per node, one per neighbour
+offset (slot ``(ox + 1) 9 + (oy + 1) 3 + (oz + 1)``, 13 the node itself). The fine operator used
+for the first product is the projected system
+
+    A^ = S A S + s (I - S)       (s: a diagonal scale of the row; S = I on free particles)
+
+with each bending spring (offset 2 along an axis, the one 33rd-neighbour reach of the stencil)
+split into two half-length springs with twice its block. That splitting has the same energy on
+every linear field and never less on any field ((u_a - u_c)^T B (u_a - u_c) <= 2 (u_a - u_b)^T B
+(u_a - u_b) + 2 (u_b - u_c)^T B (u_b - u_c)), and it keeps the fine operator within the 27-point
+stencil, so every Galerkin product is 27-point again (a product with the 33-point operator would
+be 125-point on the first coarse level). Fixed and contact-constrained directions keep their
+Dirichlet meaning on the coarse levels: their part of a coarse function's elastic energy is
+taken with the constrained components removed.
+
+Products with a coarse operator are taken in difference form, A x = R x_I + sum_J A_IJ (x_J - x_I)
+with R the level's row sums, which restrict exactly (P's rows sum to 1) and on the lattice are
+formed without cancellation (m I on a free particle): in float32 the assembled diagonal of a stiff
+level carries rounding noise the size of the mass, which made coarse levels indefinite along the
+translations.
+
+The smoother is damped block-Jacobi (order-free, one thread per node); a V-cycle with the same
+number of pre- and post-smoothing sweeps, started from zero, is a symmetric positive definite
+operator when every level's smoother converges (omega < 2 / lambda_max(D^-1 A)) and the coarsest
+solve is SPD: it is a valid CG preconditioner. The jelly's own lattice joins either the same way
+or additively (z = omega D^-1 r + P V(P^T r), no spring product; ``core/multigrid.py``). The
+coarsest level (at most 2 x 2 x 2 nodes) is solved exactly by a dense Cholesky factorisation on
+one thread, in float64.
+
+Every kernel exists for float32 and float64 and runs on the CPU and CUDA. The host side is
+``softsim_warp/core/multigrid.py``.
+"""
+
+import warp as wp
+
+from .implicit import TILE
+
+wp.set_module_options({"enable_backward": False})
+
+STENCIL = 27  # blocks per node of a coarse operator
+CENTER = 13  # slot of the node itself
+HALF = 14  # slots CENTER..26: the node itself and the 13 offsets after it (the others are transposes)
+COARSEST_NODES = 8  # the coarsest level: at most 2 nodes per axis
+COARSEST_UNKNOWNS = 3 * COARSEST_NODES
+
+
+def coarse_size(n: int) -> int:
+    """Nodes of the coarsening of an axis of ``n`` nodes (``n`` itself at 2 nodes or fewer)."""
+    if n <= 2:
+        return n
+    return (n + 1) // 2 if n % 2 else n // 2 + 1
+
+
+def build(scalar):
+    vec3 = wp.types.vector(3, scalar)
+    mat33 = wp.types.matrix((3, 3), scalar)
+    half = scalar(0.5)
+
+    @wp.func
+    def axis_weight(i: int, c: int, n: int, nc: int):
+        """P's 1-D factor: weight of coarse node c in fine node i (axis of n fine, nc coarse nodes)."""
+        if i < 0 or i >= n or c < 0 or c >= nc:
+            return scalar(0.0)
+        if nc == n:
+            return wp.where(i == c, scalar(1.0), scalar(0.0))
+        if i % 2 == 0:
+            return wp.where(c == i // 2, scalar(1.0), scalar(0.0))
+        if i == n - 1:
+            # Even n: the last fine node is a coarse node of its own.
+            return wp.where(c == nc - 1, scalar(1.0), scalar(0.0))
+        if c == i // 2 or c == i // 2 + 1:
+            return half
+        return scalar(0.0)
+
+    @wp.func
+    def first_fine(c: int, n: int, nc: int):
+        """The lowest fine index that coarse node c can weigh on (candidates: it and the next two)."""
+        if nc == n:
+            return c
+        return wp.min(2 * c, n - 1) - 1
+
+    @wp.func
+    def first_coarse(i: int, n: int, nc: int):
+        """The lowest coarse index fine node i can weigh on (candidates: it and the next)."""
+        if nc == n:
+            return i
+        return i // 2
+
+    @wp.func
+    def node_index(x: int, y: int, z: int, shape: wp.vec3i):
+        return (x * shape[1] + y) * shape[2] + z
+
+    @wp.func
+    def node_coord(i: int, shape: wp.vec3i):
+        z = i % shape[2]
+        y = (i // shape[2]) % shape[1]
+        x = i // (shape[1] * shape[2])
+        return wp.vec3i(x, y, z)
+
+    @wp.func
+    def inside(x: int, y: int, z: int, shape: wp.vec3i):
+        return x >= 0 and y >= 0 and z >= 0 and x < shape[0] and y < shape[1] and z < shape[2]
+
+    @wp.func
+    def slot_offset(slot: int):
+        return wp.vec3i(slot // 9 - 1, (slot // 3) % 3 - 1, slot % 3 - 1)
+
+    @wp.func
+    def spring_index(
+        a: wp.vec3i, o: wp.vec3i, start: int, shape: wp.vec3i
+    ):
+        """Index of the spring from lattice node a at offset o (lexicographically positive), block ``start``.
+
+        The standard spring list (``lattice.lattice_springs``) holds each offset's springs as one
+        block, their first nodes in lattice order over the box where a + o is inside.
+        """
+        lx = wp.max(0, -o[0])
+        ly = wp.max(0, -o[1])
+        lz = wp.max(0, -o[2])
+        ey = shape[1] - wp.abs(o[1])
+        ez = shape[2] - wp.abs(o[2])
+        return start + ((a[0] - lx) * ey + (a[1] - ly)) * ez + (a[2] - lz)
+
+    @wp.func
+    def neighbour_block(
+        i: wp.vec3i,
+        e: wp.vec3i,
+        shape: wp.vec3i,
+        spring_start: wp.array(dtype=wp.int32),
+        bend_start: wp.array(dtype=wp.int32),
+        spring_block: wp.array(dtype=mat33),
+    ):
+        """The spring block of the fine operator with split bending springs between i and i + e (e != 0, |e| <= 1).
+
+        Both nodes must be inside the lattice.
+        """
+        # The spring is listed from its lexicographically smaller end.
+        positive = e[0] > 0 or (e[0] == 0 and (e[1] > 0 or (e[1] == 0 and e[2] > 0)))
+        a = i
+        o = e
+        if not positive:
+            a = i + e
+            o = -e
+        blk = mat33(scalar(0.0))
+        slot = (o[0] + 1) * 9 + (o[1] + 1) * 3 + (o[2] + 1)
+        start = spring_start[slot]
+        if start >= 0:
+            blk = spring_block[spring_index(a, o, start, shape)]
+        nonzero = wp.abs(o[0]) + wp.abs(o[1]) + wp.abs(o[2])
+        if nonzero == 1:
+            # An axis edge (a, a + o): half of the bending spring centred on a and of the one
+            # starting at a, each with twice its block.
+            axis = 0
+            if o[1] != 0:
+                axis = 1
+            if o[2] != 0:
+                axis = 2
+            bs = bend_start[axis]
+            if bs >= 0:
+                o2 = 2 * o
+                if a[axis] >= 1:
+                    blk = blk + scalar(2.0) * spring_block[spring_index(a - o, o2, bs, shape)]
+                if a[axis] + 2 < shape[axis]:
+                    blk = blk + scalar(2.0) * spring_block[spring_index(a, o2, bs, shape)]
+        return blk
+
+    @wp.kernel(module="unique")
+    def mg_fine_setup(
+        shape: wp.vec3i,
+        # System (kernels/implicit.py: build_system / constrain_last_system):
+        particle_mass: wp.array(dtype=scalar),
+        mass_eff: wp.array(dtype=scalar),
+        filters: wp.array(dtype=mat33),
+        diag_block: wp.array(dtype=mat33),
+        spring_block: wp.array(dtype=mat33),
+        bend_start: wp.array(dtype=wp.int32),
+        spring_start: wp.array(dtype=wp.int32),
+        # Out: the split, projected operator as a 27-block stencil, its row sums, the smoother's block inverses
+        a_out: wp.array2d(dtype=mat33),
+        rowsum_out: wp.array(dtype=mat33),
+        dinv_out: wp.array(dtype=mat33),
+    ):
+        i = wp.tid()
+        c = node_coord(i, shape)
+        identity = wp.identity(n=3, dtype=scalar)
+        d = diag_block[i] + (mass_eff[i] - particle_mass[i]) * identity
+        # Splitting a bending spring (a, c) with middle b: 2B on a and c (B there already), 4B on b.
+        extra = mat33(scalar(0.0))
+        for axis in range(3):
+            bs = bend_start[axis]
+            if bs >= 0:
+                o2 = wp.vec3i(0, 0, 0)
+                o2[axis] = 2
+                o1 = wp.vec3i(0, 0, 0)
+                o1[axis] = 1
+                if c[axis] + 2 < shape[axis]:
+                    extra = extra + spring_block[spring_index(c, o2, bs, shape)]
+                if c[axis] >= 2:
+                    extra = extra + spring_block[spring_index(c - o2, o2, bs, shape)]
+                if c[axis] >= 1 and c[axis] + 1 < shape[axis]:
+                    extra = extra + scalar(4.0) * spring_block[spring_index(c - o1, o2, bs, shape)]
+        sf = filters[i]
+        free = identity - sf
+        # Constrained directions: an identity row scaled like the rest of the row.
+        s = (d[0, 0] + d[1, 1] + d[2, 2]) / scalar(3.0)
+        if s <= scalar(0.0):
+            s = scalar(1.0)
+        dinv_out[i] = sf * wp.inverse(sf * d * sf + s * free) * sf
+        # Row sum, formed without cancellation: S M S + s (I - S) + sum_j S B_ij (S_i - S_j), which is
+        # exactly m I on a free particle with free neighbours (the springs do not resist translation).
+        rowsum = sf * (mass_eff[i] * identity) * sf + s * free
+        for slot in range(STENCIL):
+            o = slot_offset(slot)
+            blk = mat33(scalar(0.0))
+            if slot == CENTER:
+                blk = sf * (d + extra) * sf + s * free
+            elif inside(c[0] + o[0], c[1] + o[1], c[2] + o[2], shape):
+                j = node_index(c[0] + o[0], c[1] + o[1], c[2] + o[2], shape)
+                sj = filters[j]
+                nb = neighbour_block(c, o, shape, spring_start, bend_start, spring_block)
+                blk = -(sf * nb * sj)
+                rowsum = rowsum + sf * nb * (sf - sj)
+            a_out[i, slot] = blk
+        rowsum_out[i] = rowsum
+
+    @wp.kernel(module="unique")
+    def mg_galerkin(
+        shape: wp.vec3i,
+        coarse_shape: wp.vec3i,
+        # The level above as a dense stencil [nodes, 27] and its row sums
+        a_fine: wp.array2d(dtype=mat33),
+        rowsum_fine: wp.array(dtype=mat33),
+        # Out: the coarse stencil, its row sums and its diagonal blocks' inverses
+        a_out: wp.array2d(dtype=mat33),
+        rowsum_out: wp.array(dtype=mat33),
+        dinv_out: wp.array(dtype=mat33),
+    ):
+        node, t = wp.tid()
+        slot = CENTER + t
+        o = slot_offset(slot)
+        ci = node_coord(node, coarse_shape)
+        cj = ci + o
+        if not inside(cj[0], cj[1], cj[2], coarse_shape):
+            a_out[node, slot] = mat33(scalar(0.0))
+            return
+        # (R A P)_IJ = sum over fine pairs (i, j), |i - j| <= 1, of P_iI A_ij P_jJ; P factors by axis.
+        acc = mat33(scalar(0.0))
+        fi = wp.vec3i(
+            first_fine(ci[0], shape[0], coarse_shape[0]),
+            first_fine(ci[1], shape[1], coarse_shape[1]),
+            first_fine(ci[2], shape[2], coarse_shape[2]),
+        )
+        fj = wp.vec3i(
+            first_fine(cj[0], shape[0], coarse_shape[0]),
+            first_fine(cj[1], shape[1], coarse_shape[1]),
+            first_fine(cj[2], shape[2], coarse_shape[2]),
+        )
+        # Loops over runtime ranges: Warp unrolls constant ones, 3^6 copies of the body here.
+        for ix in range(fi[0], fi[0] + 3):
+            wix = axis_weight(ix, ci[0], shape[0], coarse_shape[0])
+            if wix == scalar(0.0):
+                continue
+            for jx in range(fj[0], fj[0] + 3):
+                if wp.abs(jx - ix) > 1:
+                    continue
+                wx = wix * axis_weight(jx, cj[0], shape[0], coarse_shape[0])
+                if wx == scalar(0.0):
+                    continue
+                for iy in range(fi[1], fi[1] + 3):
+                    wiy = axis_weight(iy, ci[1], shape[1], coarse_shape[1])
+                    if wiy == scalar(0.0):
+                        continue
+                    for jy in range(fj[1], fj[1] + 3):
+                        if wp.abs(jy - iy) > 1:
+                            continue
+                        wxy = wx * wiy * axis_weight(jy, cj[1], shape[1], coarse_shape[1])
+                        if wxy == scalar(0.0):
+                            continue
+                        for iz in range(fi[2], fi[2] + 3):
+                            wiz = axis_weight(iz, ci[2], shape[2], coarse_shape[2])
+                            if wiz == scalar(0.0):
+                                continue
+                            for jz in range(fj[2], fj[2] + 3):
+                                if wp.abs(jz - iz) > 1:
+                                    continue
+                                w = wxy * wiz * axis_weight(jz, cj[2], shape[2], coarse_shape[2])
+                                if w == scalar(0.0):
+                                    continue
+                                i = node_index(ix, iy, iz, shape)
+                                slot_ij = (jx - ix + 1) * 9 + (jy - iy + 1) * 3 + (jz - iz + 1)
+                                acc = acc + w * a_fine[i, slot_ij]
+        if slot == CENTER:
+            sym = half * (acc + wp.transpose(acc))
+            a_out[node, slot] = sym
+            dinv_out[node] = wp.inverse(sym)
+            # Row sums restrict exactly (the rows of P sum to 1): sum_J (P^T A P)_IJ = sum_i P_iI rowsum_i.
+            rs = mat33(scalar(0.0))
+            for ix in range(fi[0], fi[0] + 3):
+                wx = axis_weight(ix, ci[0], shape[0], coarse_shape[0])
+                if wx == scalar(0.0):
+                    continue
+                for iy in range(fi[1], fi[1] + 3):
+                    wxy = wx * axis_weight(iy, ci[1], shape[1], coarse_shape[1])
+                    if wxy == scalar(0.0):
+                        continue
+                    for iz in range(fi[2], fi[2] + 3):
+                        w = wxy * axis_weight(iz, ci[2], shape[2], coarse_shape[2])
+                        if w == scalar(0.0):
+                            continue
+                        rs = rs + w * rowsum_fine[node_index(ix, iy, iz, shape)]
+            rowsum_out[node] = rs
+        else:
+            a_out[node, slot] = acc
+            a_out[node_index(cj[0], cj[1], cj[2], coarse_shape), STENCIL - 1 - slot] = wp.transpose(acc)
+
+    @wp.kernel(module="unique")
+    def mg_stencil_op(
+        mode: int,
+        omega: scalar,
+        shape: wp.vec3i,
+        a: wp.array2d(dtype=mat33),
+        rowsum: wp.array(dtype=mat33),
+        dinv: wp.array(dtype=mat33),
+        b: wp.array(dtype=vec3),
+        x: wp.array(dtype=vec3),
+        # Out: mode 0 the residual b - A x; 1 a Jacobi sweep x + omega D^-1 (b - A x); 2 the sweep from x = 0
+        y_out: wp.array(dtype=vec3),
+    ):
+        node = wp.tid()
+        if mode == 2:
+            y_out[node] = omega * (dinv[node] * b[node])
+            return
+        c = node_coord(node, shape)
+        # A x = R x_I + sum_J A_IJ (x_J - x_I), R the row sum: no cancellation of the large
+        # stiffness terms on smooth x, and translations see exactly R (the mass) on every level.
+        xi = x[node]
+        r = b[node] - rowsum[node] * xi
+        for slot in range(STENCIL):
+            o = slot_offset(slot)
+            if slot != CENTER and inside(c[0] + o[0], c[1] + o[1], c[2] + o[2], shape):
+                r = r - a[node, slot] * (x[node_index(c[0] + o[0], c[1] + o[1], c[2] + o[2], shape)] - xi)
+        if mode == 0:
+            y_out[node] = r
+        else:
+            y_out[node] = x[node] + omega * (dinv[node] * r)
+
+    @wp.kernel(module="unique")
+    def mg_restrict(
+        fine_level: int,
+        shape: wp.vec3i,
+        coarse_shape: wp.vec3i,
+        filters: wp.array(dtype=mat33),
+        r: wp.array(dtype=vec3),
+        y: wp.array(dtype=vec3),
+        # Out: coarse right-hand side R res, res = r (coarse levels) or S (r - y) (level 0: y = A x)
+        b_out: wp.array(dtype=vec3),
+    ):
+        node = wp.tid()
+        c = node_coord(node, coarse_shape)
+        f = wp.vec3i(
+            first_fine(c[0], shape[0], coarse_shape[0]),
+            first_fine(c[1], shape[1], coarse_shape[1]),
+            first_fine(c[2], shape[2], coarse_shape[2]),
+        )
+        acc = vec3(scalar(0.0))
+        for ix in range(f[0], f[0] + 3):
+            wx = axis_weight(ix, c[0], shape[0], coarse_shape[0])
+            if wx == scalar(0.0):
+                continue
+            for iy in range(f[1], f[1] + 3):
+                wxy = wx * axis_weight(iy, c[1], shape[1], coarse_shape[1])
+                if wxy == scalar(0.0):
+                    continue
+                for iz in range(f[2], f[2] + 3):
+                    w = wxy * axis_weight(iz, c[2], shape[2], coarse_shape[2])
+                    if w == scalar(0.0):
+                        continue
+                    i = node_index(ix, iy, iz, shape)
+                    res = r[i]
+                    if fine_level != 0:
+                        res = filters[i] * (res - y[i])
+                    acc = acc + w * res
+        b_out[node] = acc
+
+    @wp.kernel(module="unique")
+    def mg_prolong(
+        fine_level: int,
+        shape: wp.vec3i,
+        coarse_shape: wp.vec3i,
+        filters: wp.array(dtype=mat33),
+        mass_eff: wp.array(dtype=scalar),
+        e: wp.array(dtype=vec3),
+        # In/out: x += P e (filtered on level 0); out (level 0): y = M x, the start of A x
+        x: wp.array(dtype=vec3),
+        y_out: wp.array(dtype=vec3),
+    ):
+        i = wp.tid()
+        c = node_coord(i, shape)
+        f = wp.vec3i(
+            first_coarse(c[0], shape[0], coarse_shape[0]),
+            first_coarse(c[1], shape[1], coarse_shape[1]),
+            first_coarse(c[2], shape[2], coarse_shape[2]),
+        )
+        acc = vec3(scalar(0.0))
+        for ax in range(2):
+            wx = axis_weight(c[0], f[0] + ax, shape[0], coarse_shape[0])
+            if wx == scalar(0.0):
+                continue
+            for ay in range(2):
+                wxy = wx * axis_weight(c[1], f[1] + ay, shape[1], coarse_shape[1])
+                if wxy == scalar(0.0):
+                    continue
+                for az in range(2):
+                    w = wxy * axis_weight(c[2], f[2] + az, shape[2], coarse_shape[2])
+                    if w == scalar(0.0):
+                        continue
+                    acc = acc + w * e[node_index(f[0] + ax, f[1] + ay, f[2] + az, coarse_shape)]
+        if fine_level != 0:
+            xi = x[i] + filters[i] * acc
+            x[i] = xi
+            y_out[i] = mass_eff[i] * xi
+        else:
+            x[i] = x[i] + acc
+
+    @wp.kernel(module="unique")
+    def mg_fine_pre(
+        omega: scalar,
+        mass_eff: wp.array(dtype=scalar),
+        dinv: wp.array(dtype=mat33),
+        r: wp.array(dtype=vec3),
+        # Out: the pre-smoothing sweep from 0, x = omega D^-1 r, and y = M x (the springs add the rest of A x)
+        x_out: wp.array(dtype=vec3),
+        y_out: wp.array(dtype=vec3),
+    ):
+        i = wp.tid()
+        xi = omega * (dinv[i] * r[i])
+        x_out[i] = xi
+        y_out[i] = mass_eff[i] * xi
+
+    @wp.kernel(module="unique")
+    def mg_fine_post(
+        n: int,
+        slot: int,
+        omega: scalar,
+        filters: wp.array(dtype=mat33),
+        dinv: wp.array(dtype=mat33),
+        r: wp.array(dtype=vec3),
+        x: wp.array(dtype=vec3),
+        y: wp.array(dtype=vec3),
+        # Out: the post-smoothing sweep z = x + omega D^-1 (r - S A x), and r.z into scalars[slot]
+        z_out: wp.array(dtype=vec3),
+        scalars_out: wp.array(dtype=scalar),
+    ):
+        blk, lane = wp.tid()
+        i = blk * TILE + lane
+        rz = scalar(0.0)
+        if i < n:
+            ri = r[i]
+            zi = x[i] + omega * (dinv[i] * (ri - filters[i] * y[i]))
+            z_out[i] = zi
+            rz = wp.dot(ri, zi)
+        wp.tile_atomic_add(scalars_out, wp.tile_sum(wp.tile(rz)), offset=slot)
+
+    @wp.kernel(module="unique")
+    def mg_fine_additive(
+        n: int,
+        slot: int,
+        omega: scalar,
+        shape: wp.vec3i,
+        coarse_shape: wp.vec3i,
+        filters: wp.array(dtype=mat33),
+        dinv: wp.array(dtype=mat33),
+        r: wp.array(dtype=vec3),
+        e: wp.array(dtype=vec3),
+        # Out: the additive lattice level z = omega D^-1 r + S P e, and r.z into scalars[slot]
+        z_out: wp.array(dtype=vec3),
+        scalars_out: wp.array(dtype=scalar),
+    ):
+        blk, lane = wp.tid()
+        i = blk * TILE + lane
+        rz = scalar(0.0)
+        if i < n:
+            c = node_coord(i, shape)
+            f = wp.vec3i(
+                first_coarse(c[0], shape[0], coarse_shape[0]),
+                first_coarse(c[1], shape[1], coarse_shape[1]),
+                first_coarse(c[2], shape[2], coarse_shape[2]),
+            )
+            acc = vec3(scalar(0.0))
+            for ax in range(2):
+                wx = axis_weight(c[0], f[0] + ax, shape[0], coarse_shape[0])
+                if wx == scalar(0.0):
+                    continue
+                for ay in range(2):
+                    wxy = wx * axis_weight(c[1], f[1] + ay, shape[1], coarse_shape[1])
+                    if wxy == scalar(0.0):
+                        continue
+                    for az in range(2):
+                        w = wxy * axis_weight(c[2], f[2] + az, shape[2], coarse_shape[2])
+                        if w == scalar(0.0):
+                            continue
+                        acc = acc + w * e[node_index(f[0] + ax, f[1] + ay, f[2] + az, coarse_shape)]
+            ri = r[i]
+            zi = omega * (dinv[i] * ri) + filters[i] * acc
+            z_out[i] = zi
+            rz = wp.dot(ri, zi)
+        wp.tile_atomic_add(scalars_out, wp.tile_sum(wp.tile(rz)), offset=slot)
+
+    @wp.kernel(module="unique")
+    def mg_coarse_factor(
+        shape: wp.vec3i,
+        a: wp.array2d(dtype=mat33),
+        rowsum: wp.array(dtype=mat33),
+        # Out: the Cholesky factor L (lower triangle) of the dense coarsest matrix, in float64
+        chol_out: wp.array2d(dtype=wp.float64),
+    ):
+        nodes = shape[0] * shape[1] * shape[2]
+        m = 3 * nodes
+        for r in range(m):
+            for col in range(m):
+                chol_out[r, col] = wp.float64(0.0)
+        # The diagonal blocks are the row sums minus the off-diagonal blocks, summed in float64: the
+        # matrix's translations keep exactly the row sums' (mass) energy, however stiff the level.
+        for node in range(nodes):
+            c = node_coord(node, shape)
+            rs = rowsum[node]
+            for p in range(3):
+                for q in range(3):
+                    chol_out[3 * node + p, 3 * node + q] = chol_out[3 * node + p, 3 * node + q] + wp.float64(rs[p, q])
+            for slot in range(STENCIL):
+                o = slot_offset(slot)
+                if slot != CENTER and inside(c[0] + o[0], c[1] + o[1], c[2] + o[2], shape):
+                    other = node_index(c[0] + o[0], c[1] + o[1], c[2] + o[2], shape)
+                    blk = a[node, slot]
+                    for p in range(3):
+                        for q in range(3):
+                            v = wp.float64(blk[p, q])
+                            chol_out[3 * node + p, 3 * other + q] = v
+                            chol_out[3 * node + p, 3 * node + q] = chol_out[3 * node + p, 3 * node + q] - v
+        for k in range(m):
+            pivot = chol_out[k, k]
+            for s in range(k):
+                pivot = pivot - chol_out[k, s] * chol_out[k, s]
+            # The matrix is SPD; guard rounding on a nearly singular one.
+            pivot = wp.sqrt(wp.max(pivot, wp.float64(1.0e-300)))
+            chol_out[k, k] = pivot
+            for r in range(k + 1, m):
+                v = chol_out[r, k]
+                for s in range(k):
+                    v = v - chol_out[r, s] * chol_out[k, s]
+                chol_out[r, k] = v / pivot
+
+    @wp.kernel(module="unique")
+    def mg_coarse_solve(
+        shape: wp.vec3i,
+        chol: wp.array2d(dtype=wp.float64),
+        b: wp.array(dtype=vec3),
+        # Out: x = A^-1 b on the coarsest level (work: a [3 nodes] float64 scratch vector)
+        work: wp.array(dtype=wp.float64),
+        x_out: wp.array(dtype=vec3),
+    ):
+        nodes = shape[0] * shape[1] * shape[2]
+        m = 3 * nodes
+        for k in range(m):
+            v = wp.float64(b[k // 3][k % 3])
+            for s in range(k):
+                v = v - chol[k, s] * work[s]
+            work[k] = v / chol[k, k]
+        for kk in range(m):
+            k = m - 1 - kk
+            v = work[k]
+            for s in range(k + 1, m):
+                v = v - chol[s, k] * work[s]
+            work[k] = v / chol[k, k]
+        for node in range(nodes):
+            x_out[node] = vec3(scalar(work[3 * node]), scalar(work[3 * node + 1]), scalar(work[3 * node + 2]))
+
+    return {
+        "mg_fine_setup": mg_fine_setup,
+        "mg_galerkin": mg_galerkin,
+        "mg_stencil_op": mg_stencil_op,
+        "mg_restrict": mg_restrict,
+        "mg_prolong": mg_prolong,
+        "mg_fine_pre": mg_fine_pre,
+        "mg_fine_post": mg_fine_post,
+        "mg_fine_additive": mg_fine_additive,
+        "mg_coarse_factor": mg_coarse_factor,
+        "mg_coarse_solve": mg_coarse_solve,
+    }

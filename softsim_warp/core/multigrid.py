@@ -1,0 +1,383 @@
+"""Geometric multigrid preconditioner for the implicit solve of a lattice jelly.
+
+The implicit integrator (``core/implicit.py``) solves ``A dv = b`` by conjugate gradient, with A
+the 3x3-block system of the springs, filtered by contact and pin constraints. Block-Jacobi, its
+default preconditioner for general spring sets, leaves the long-wave part of the error to CG, so
+the iterations grow with the jelly's resolution. On a lattice jelly this class applies one
+V-cycle instead: coarse lattices (each axis halved, odd and even sizes alike) with Galerkin
+coarse operators, damped block-Jacobi smoothing and an exact solve on the coarsest (at most 2 x 2
+x 2) lattice. The method, and why each piece is what it is, is in ``kernels/multigrid.py``; the
+measurements in docs/IMPLICIT.md.
+
+Everything runs on the device without host reads: :meth:`LatticeMultigrid.setup` (once per
+linear system, after the system's blocks and filters are built) and :meth:`apply` (once per CG
+iteration) only launch kernels, so both are captured into the step's graph and the CG loop's
+``wp.capture_while`` body.
+
+Which models qualify (:func:`multigrid_support`): one jelly that is the whole model, on the
+lattice path (its springs are the standard stencil). Everything else (several jellies or worlds,
+loose particles, custom spring lists) keeps block-Jacobi.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import warp as wp
+
+from . import lattice
+from ..kernels import implicit as ki
+from ..kernels import multigrid as km
+
+# Damping of the block-Jacobi sweeps, on the jelly's lattice and on the coarse levels. The fine
+# level's D^-1 A has its spectrum in (0, 2] (each spring block B satisfies (u_a - u_b)^T B
+# (u_a - u_b) <= 2 (u_a^T B u_a + u_b^T B u_b)); measured 1.73 on the stiff jelly. The Galerkin
+# levels' reach 3.2 (tests/test_multigrid.py). omega lambda_max stays at most 1.6 on every level,
+# so every sweep converges, which the V-cycle needs to be SPD.
+DEFAULT_OMEGA = 0.8
+DEFAULT_COARSE_OMEGA = 0.5
+DEFAULT_SWEEPS = 1
+# How the jelly's lattice joins the V-cycle of the coarse levels (docs/IMPLICIT.md):
+# "multiplicative": a block-Jacobi sweep before and after the coarse correction (two spring
+# products per V-cycle); "additive": z = omega D^-1 r + P V(P^T r) (no spring product; about 1.5x
+# the CG iterations).
+DEFAULT_FINE_CYCLE = "additive"
+# Particles from which the default ("auto") preconditioner is multigrid: on the CPU block-Jacobi is
+# faster up to about 14^3 (free flight: 8.3 against 9.2 ms a step at 12^3, 13.8 against 13.3 at
+# 14^3, 23.3 against 15.3 at 16^3; docs/IMPLICIT.md).
+AUTO_MIN_PARTICLES = 14**3
+
+
+def multigrid_support(model) -> tuple[bool, str]:
+    """Whether the multigrid preconditioner applies to ``model``, and why not when it does not."""
+    lat = getattr(model, "lattice", None)
+    if lat is None:
+        return False, f"not a lattice model ({getattr(model, 'lattice_reason', 'spring list')})"
+    if lat.jelly_count != 1:
+        return False, f"{lat.jelly_count} jellies (multigrid handles one jelly)"
+    shape = lat.layout.shape[0]
+    if int(lat.layout.start[0]) != 0 or int(np.prod(shape)) != model.particle_count:
+        return False, "particles outside the jelly"
+    return True, "lattice"
+
+
+def spring_block_starts(shape, types: int) -> tuple[np.ndarray, np.ndarray]:
+    """First spring index of each stencil offset in the standard spring list.
+
+    Returns ``(starts, bending)``: ``starts[slot]`` for the 27 offsets of the 3x3x3 block
+    (``kernels.multigrid`` slots; -1 where no spring type has that offset) and ``bending[axis]``
+    for the bending offsets (2 along an axis; -1 without bending springs).
+    """
+    starts = np.full(km.STENCIL, -1, dtype=np.int32)
+    bending = np.full(3, -1, dtype=np.int32)
+    at = 0
+    for t, stencil in lattice.STENCILS.items():
+        if not (types >> t) & 1:
+            continue
+        for off in stencil:
+            count = int(np.prod([max(n - abs(o), 0) for n, o in zip(shape, off)]))
+            if max(abs(o) for o in off) == 2:
+                bending[[abs(o) for o in off].index(2)] = at
+            else:
+                starts[(off[0] + 1) * 9 + (off[1] + 1) * 3 + (off[2] + 1)] = at
+            at += count
+    return starts, bending
+
+
+def level_shapes(shape) -> list[tuple[int, int, int]]:
+    """Lattice shapes of the hierarchy, from the jelly's down to the coarsest (every axis <= 2)."""
+    shapes = [tuple(int(n) for n in shape)]
+    while max(shapes[-1]) > 2:
+        shapes.append(tuple(km.coarse_size(n) for n in shapes[-1]))
+    return shapes
+
+
+class LatticeMultigrid:
+    """A V-cycle for the implicit system of a one-jelly lattice model.
+
+    Args:
+        model: the model (``multigrid_support`` must hold).
+        system: the arrays of the implicit system it reads at :meth:`setup`: ``spring_block``,
+            ``diag_block`` (m I + sum of spring blocks), ``filters``, ``mass_eff`` (see
+            ``kernels/implicit.py``), as attributes of an object (the integrator).
+        omega: damping of the block-Jacobi sweeps on the jelly's lattice.
+        coarse_omega: the same on the coarse levels.
+        sweeps: pre- and post-smoothing sweeps on every coarse level (the fine level always does
+            one each: its sweeps cost a spring product each).
+    """
+
+    def __init__(
+        self,
+        model,
+        system,
+        omega: float = DEFAULT_OMEGA,
+        coarse_omega: float = DEFAULT_COARSE_OMEGA,
+        sweeps: int = DEFAULT_SWEEPS,
+        fine_cycle: str | None = None,
+    ):
+        ok, reason = multigrid_support(model)
+        if not ok:
+            raise ValueError(f"multigrid does not apply: {reason}")
+        for name, value in (("omega", omega), ("coarse_omega", coarse_omega)):
+            if not 0.0 < value < 1.0:
+                raise ValueError(f"{name} must be in (0, 1) (got {value!r})")
+        if int(sweeps) != sweeps or sweeps < 1:
+            raise ValueError(f"sweeps must be an integer >= 1 (got {sweeps!r})")
+        self.model = model
+        self.system = system
+        self.omega = model.scalar(omega)
+        self.coarse_omega = model.scalar(coarse_omega)
+        self.sweeps = int(sweeps)
+        fine_cycle = DEFAULT_FINE_CYCLE if fine_cycle is None else fine_cycle
+        if fine_cycle not in ("multiplicative", "additive"):
+            raise ValueError(f"fine_cycle must be multiplicative or additive (got {fine_cycle!r})")
+        self.fine_cycle = fine_cycle
+        device = model.device
+        scalar, vec3 = model.scalar, model.vec3
+        mat33 = wp.types.matrix((3, 3), scalar)
+        self.kernels = model.kernels
+        layout = model.lattice.layout
+        self.shapes = level_shapes(layout.shape[0])
+        starts, bending = spring_block_starts(self.shapes[0], int(layout.types[0]))
+        self.spring_start = wp.array(starts, dtype=wp.int32, device=device)
+        self.bend_start = wp.array(bending, dtype=wp.int32, device=device)
+        n = model.particle_count
+        # Level 0: smoother inverses, the split operator's stencil, and the V-cycle's vectors.
+        self.dinv0 = wp.zeros(n, dtype=mat33, device=device)
+        self.a0 = wp.zeros((n, km.STENCIL), dtype=mat33, device=device) if len(self.shapes) > 1 else None
+        self.rowsum0 = wp.zeros(n, dtype=mat33, device=device)
+        self.x0 = wp.zeros(n, dtype=vec3, device=device)
+        # A lattice of at most 2x2x2 has no coarse level and builds no stencil (mg_fine_setup writes here).
+        self.dummy_stencil = wp.zeros((n if self.a0 is None else 1, km.STENCIL), dtype=mat33, device=device)
+        self.y0 = wp.zeros(n, dtype=vec3, device=device)
+        self.scratch = wp.zeros(1, dtype=scalar, device=device)
+        # Coarse levels 1..L: stencils, inverses of their diagonal blocks, b, x, and a sweep's output.
+        self.levels = []
+        for shape in self.shapes[1:]:
+            count = int(np.prod(shape))
+            self.levels.append(
+                {
+                    "shape": wp.vec3i(*shape),
+                    "count": count,
+                    "a": wp.zeros((count, km.STENCIL), dtype=mat33, device=device),
+                    "dinv": wp.zeros(count, dtype=mat33, device=device),
+                    "rowsum": wp.zeros(count, dtype=mat33, device=device),
+                    "b": wp.zeros(count, dtype=vec3, device=device),
+                    "x": wp.zeros(count, dtype=vec3, device=device),
+                    "t": wp.zeros(count, dtype=vec3, device=device),
+                }
+            )
+        coarsest = self.levels[-1]["count"] if self.levels else 0
+        # The coarsest factorisation is float64 in either precision (kernels/multigrid.py: mg_coarse_factor).
+        self.chol = wp.zeros((3 * coarsest, 3 * coarsest), dtype=wp.float64, device=device)
+        self.work = wp.zeros(3 * coarsest, dtype=wp.float64, device=device)
+
+    @property
+    def level_count(self) -> int:
+        """Levels, the jelly's lattice included."""
+        return len(self.shapes)
+
+    def nbytes(self) -> int:
+        """Bytes of the device arrays held here."""
+        arrays = [self.dinv0, self.rowsum0, self.x0, self.y0, self.chol, self.work] + ([self.a0] if self.a0 is not None else [])
+        for lv in self.levels:
+            arrays += [lv["a"], lv["dinv"], lv["rowsum"], lv["b"], lv["x"], lv["t"]]
+        return sum(a.capacity for a in arrays)
+
+    def setup(self):
+        """Build the hierarchy for the current system (its spring blocks, diagonal, filters, masses)."""
+        model = self.model
+        device = model.device
+        k = self.kernels
+        s = self.system
+        fine_shape = wp.vec3i(*self.shapes[0])
+        wp.launch(
+            k.mg_fine_setup,
+            dim=model.particle_count,
+            inputs=[
+                fine_shape,
+                model.particle_mass,
+                s.mass_eff,
+                s.filters,
+                s.diag_block,
+                s.spring_block,
+                self.bend_start,
+                self.spring_start,
+            ],
+            outputs=[self.a0 if self.a0 is not None else self.dummy_stencil, self.rowsum0, self.dinv0],
+            device=device,
+        )
+        if not self.levels:
+            return
+        below_shape, below_a, below_rowsum = fine_shape, self.a0, self.rowsum0
+        for lv in self.levels:
+            wp.launch(
+                k.mg_galerkin,
+                dim=(lv["count"], km.HALF),
+                inputs=[below_shape, lv["shape"], below_a, below_rowsum],
+                outputs=[lv["a"], lv["rowsum"], lv["dinv"]],
+                device=device,
+            )
+            below_shape, below_a, below_rowsum = lv["shape"], lv["a"], lv["rowsum"]
+        last = self.levels[-1]
+        wp.launch(
+            k.mg_coarse_factor,
+            dim=1,
+            inputs=[last["shape"], last["a"], last["rowsum"]],
+            outputs=[self.chol],
+            device=device,
+        )
+
+    def apply(self, r: wp.array, z: wp.array, scalars: wp.array, slot: int):
+        """z = V-cycle(r) for a filtered residual r; adds r.z to ``scalars[slot]``."""
+        model = self.model
+        device = model.device
+        k = self.kernels
+        s = self.system
+        n = model.particle_count
+        omega = self.omega
+        if not self.levels:
+            # A lattice of at most 2 x 2 x 2: two block-Jacobi sweeps.
+            wp.launch(k.mg_fine_pre, dim=n, inputs=[omega, s.mass_eff, self.dinv0, r], outputs=[self.x0, self.y0],
+                      device=device)
+            self._spring_product(self.x0)
+            self._fine_post(r, z, scalars, slot)
+            return
+        # Level 0, down: one sweep from 0, then the filtered residual restricted.
+        additive = self.fine_cycle == "additive"
+        fine_shape = wp.vec3i(*self.shapes[0])
+        first = self.levels[0]
+        if additive:
+            # z = omega D^-1 r + S P V(P^T r): no spring product on the lattice.
+            wp.launch(
+                k.mg_restrict,
+                dim=first["count"],
+                inputs=[0, fine_shape, first["shape"], s.filters, r, r],
+                outputs=[first["b"]],
+                device=device,
+            )
+        else:
+            wp.launch(
+                k.mg_fine_pre, dim=n, inputs=[omega, s.mass_eff, self.dinv0, r], outputs=[self.x0, self.y0],
+                device=device,
+            )
+            self._spring_product(self.x0)
+            wp.launch(
+                k.mg_restrict,
+                dim=first["count"],
+                inputs=[1, fine_shape, first["shape"], s.filters, r, self.y0],
+                outputs=[first["b"]],
+                device=device,
+            )
+        # Coarse levels, down: sweeps from 0, residual, restriction.
+        for index, lv in enumerate(self.levels[:-1]):
+            self._smooth(lv, from_zero=True)
+            wp.launch(
+                k.mg_stencil_op,
+                dim=lv["count"],
+                inputs=[0, self.coarse_omega, lv["shape"], lv["a"], lv["rowsum"], lv["dinv"], lv["b"], lv["x"]],
+                outputs=[lv["t"]],
+                device=device,
+            )
+            below = self.levels[index + 1]
+            wp.launch(
+                k.mg_restrict,
+                dim=below["count"],
+                inputs=[0, lv["shape"], below["shape"], s.filters, lv["t"], lv["t"]],
+                outputs=[below["b"]],
+                device=device,
+            )
+        last = self.levels[-1]
+        wp.launch(
+            k.mg_coarse_solve,
+            dim=1,
+            inputs=[last["shape"], self.chol, last["b"]],
+            outputs=[self.work, last["x"]],
+            device=device,
+        )
+        # Up: prolongate the correction, then the same sweeps again (a symmetric cycle).
+        for index in range(len(self.levels) - 2, -1, -1):
+            lv, below = self.levels[index], self.levels[index + 1]
+            wp.launch(
+                k.mg_prolong,
+                dim=lv["count"],
+                inputs=[0, lv["shape"], below["shape"], s.filters, s.mass_eff, below["x"]],
+                outputs=[lv["x"], lv["t"]],
+                device=device,
+            )
+            self._smooth(lv, from_zero=False)
+        if additive:
+            wp.launch(
+                k.mg_fine_additive,
+                dim=((n + ki.TILE - 1) // ki.TILE, ki.TILE),
+                block_dim=ki.TILE,
+                inputs=[n, slot, omega, fine_shape, first["shape"], s.filters, self.dinv0, r, first["x"]],
+                outputs=[z, scalars],
+                device=device,
+            )
+            return
+        wp.launch(
+            k.mg_prolong,
+            dim=n,
+            inputs=[1, fine_shape, first["shape"], s.filters, s.mass_eff, first["x"]],
+            outputs=[self.x0, self.y0],
+            device=device,
+        )
+        self._spring_product(self.x0)
+        self._fine_post(r, z, scalars, slot)
+
+    # -- pieces ---------------------------------------------------------------------------------
+
+    def _spring_product(self, x):
+        """y0 += (spring part of A) x (y0 holds M x)."""
+        model = self.model
+        count = model.spring_count
+        if count:
+            wp.launch(
+                model.kernels.spring_mv,
+                dim=((count + ki.TILE - 1) // ki.TILE, ki.TILE),
+                block_dim=ki.TILE,
+                inputs=[count, 0, model.spring_indices, self.system.spring_block, x],
+                outputs=[self.y0, self.scratch],
+                device=model.device,
+            )
+
+    def _fine_post(self, r, z, scalars, slot):
+        n = self.model.particle_count
+        omega = self.omega
+        wp.launch(
+            self.kernels.mg_fine_post,
+            dim=((n + ki.TILE - 1) // ki.TILE, ki.TILE),
+            block_dim=ki.TILE,
+            inputs=[n, slot, omega, self.system.filters, self.dinv0, r, self.x0, self.y0],
+            outputs=[z, scalars],
+            device=self.model.device,
+        )
+
+    def _smooth(self, lv, from_zero: bool):
+        """``sweeps`` damped block-Jacobi sweeps on a coarse level; the result is in lv["x"]."""
+        k = self.kernels
+        device = self.model.device
+        for sweep in range(self.sweeps):
+            zero = from_zero and sweep == 0
+            wp.launch(
+                k.mg_stencil_op,
+                dim=lv["count"],
+                inputs=[
+                    2 if zero else 1, self.coarse_omega, lv["shape"], lv["a"], lv["rowsum"], lv["dinv"], lv["b"], lv["x"]
+                ],
+                outputs=[lv["t"]],
+                device=device,
+            )
+            lv["x"], lv["t"] = lv["t"], lv["x"]
+
+
+    def stats(self) -> dict:
+        """The hierarchy, for the metrics summary."""
+        return {
+            "multigrid_levels": self.level_count,
+            "multigrid_shapes": ["x".join(str(n) for n in shape) for shape in self.shapes],
+            "multigrid_omega": float(self.omega),
+            "multigrid_coarse_omega": float(self.coarse_omega),
+            "multigrid_sweeps": self.sweeps,
+            "multigrid_fine_cycle": self.fine_cycle,
+        }
