@@ -207,7 +207,8 @@ class ImplicitIntegrator(Integrator):
         fixed = (model.particle_inv_mass.numpy() == 0).astype(np.int32)
         self.fixed = wp.array(fixed, dtype=wp.int32, device=device)
         self.filters = wp.zeros(n, dtype=self.mat33, device=device)
-        terrain = model.plane_count or model.bowl_count or model.sphere_count or getattr(model, "contact_hooks", ())
+        hooks = [h for h in getattr(model, "contact_hooks", ()) if getattr(h, "in_contact_solve", True)]
+        terrain = model.plane_count or model.bowl_count or model.sphere_count or hooks
         self.contact_solve = bool(terrain) and solver != "warp_cg"
         if self.contact_solve:
             # The step's result before the contact response, and the iterate of the last solve.
@@ -570,7 +571,7 @@ class ImplicitIntegrator(Integrator):
         model = self.model
         wp.copy(self.q_free, state_out.particle_q)
         wp.copy(self.qd_free, state_out.particle_qd)
-        apply_contacts(model, state_in, state_out, dt, self.world_contact_beta)
+        apply_contacts(model, state_in, state_out, dt, self.world_contact_beta, solve_hooks_only=True)
         self.any_contact.zero_()
         wp.launch(
             model.kernels.constrain_contacts,

@@ -12,7 +12,7 @@ from dataclasses import dataclass
 import numpy as np
 import warp as wp
 
-from . import lattice
+from . import lattice, particle_contact
 from ..kernels import get_kernels
 from .forces import attach
 from .lattice_model import LatticeData, detect_lattice
@@ -48,6 +48,8 @@ class JellyInfo:
     """Boundary quads, jelly-local particle indices, shape [Q, 4], int32."""
     world: int = 0
     name: str = ""
+    self_contact: bool = False
+    """Whether the jelly collides with itself (``core/particle_contact.py``)."""
 
 
 class ModelBuilder:
@@ -58,6 +60,12 @@ class ModelBuilder:
         self.contact_epsilon = 0.01
         self.contact_velocity_epsilon = 0.01
         self.restitution_threshold_steps = 1.0
+        # Contact between jellies (core/particle_contact.attach): on/off, pair distance [m] (None:
+        # from the lattice spacing), Coulomb friction and restitution between particles.
+        self.jelly_contact = False
+        self.jelly_contact_thickness = None
+        self.jelly_contact_friction = particle_contact.DEFAULT_FRICTION
+        self.jelly_contact_restitution = particle_contact.DEFAULT_RESTITUTION
         self._q, self._qd, self._mass, self._jelly_of, self._world_of = [], [], [], [], []
         self._pairs, self._rest, self._ks, self._kd, self._type = [], [], [], [], []
         self.jellies: list[JellyInfo] = []
@@ -113,6 +121,7 @@ class ModelBuilder:
         world=0,
         name="",
         initial_scale=None,
+        self_contact=False,
     ) -> JellyInfo:
         """Add a lattice jelly.
 
@@ -132,6 +141,7 @@ class ModelBuilder:
                 frame before the rotation, for the start only: rest lengths stay those of the
                 unscaled lattice, so the jelly starts stretched (> 1), crushed (< 1) or mirrored
                 (negative on one axis). Components must be nonzero.
+            self_contact: the jelly collides with itself (``core/particle_contact.py``).
         """
         unknown = sorted(set(springs) - set(lattice.SPRING_TYPE_NAMES))
         if unknown:
@@ -181,6 +191,7 @@ class ModelBuilder:
             surface_quads=lattice.surface_quads(shape),
             world=world,
             name=name or f"Jelly_{len(self.jellies)}",
+            self_contact=bool(self_contact),
         )
         self.jellies.append(info)
         return info
@@ -355,6 +366,14 @@ class ModelBuilder:
         m.sphere_radius = arr(cols(spheres, "radius", (ns,)), scalar, np_scalar)
         m.sphere_restitution = arr(cols(spheres, "restitution", (ns,)), scalar, np_scalar)
         m.sphere_friction = arr(cols(spheres, "friction", (ns,)), scalar, np_scalar)
+        # Contact between jellies and self-contact: nothing at all unless the scene has it.
+        particle_contact.attach(
+            m,
+            self.jelly_contact,
+            self.jelly_contact_thickness,
+            self.jelly_contact_friction,
+            self.jelly_contact_restitution,
+        )
         return m
 
 
@@ -525,6 +544,12 @@ def populate(builder: ModelBuilder, data: dict, world=0):
     builder.contact_epsilon = sim["contact_epsilon"]
     builder.contact_velocity_epsilon = sim["contact_velocity_epsilon"]
     builder.restitution_threshold_steps = sim["restitution_threshold_steps"]
+    # "auto": contact between jellies when the scene (one world's worth) has two or more.
+    jelly_contact = sim.get("jelly_contact", "auto")
+    builder.jelly_contact = len(data["jelly"]) >= 2 if jelly_contact == "auto" else bool(jelly_contact)
+    builder.jelly_contact_thickness = sim.get("jelly_contact_thickness")
+    builder.jelly_contact_friction = sim.get("jelly_contact_friction", particle_contact.DEFAULT_FRICTION)
+    builder.jelly_contact_restitution = sim.get("jelly_contact_restitution", particle_contact.DEFAULT_RESTITUTION)
     for i, j in enumerate(data["jelly"]):
         builder.add_jelly(
             j["resolution"],
@@ -539,6 +564,7 @@ def populate(builder: ModelBuilder, data: dict, world=0):
             world=world,
             name=f"Jelly_{i}",
             initial_scale=j.get("initial_scale"),
+            self_contact=j.get("self_contact", False),
         )
     for p in data.get("plane", []):
         hole = p.get("hole")

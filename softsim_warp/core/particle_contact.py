@@ -1,0 +1,217 @@
+"""Contact between jellies and self-contact: which particles take part, the hash grid, the launches.
+
+:func:`attach` gives a model a :class:`ParticleContact` hook (``model.contact_hooks``) when its scene
+asks for contact between jellies or for a jelly's self-contact; a model without either gets nothing
+(no array, no launch). The hook runs after every integrator's step, after terrain contact
+(``core/contact.apply_contacts``), and launches three kernels and one hash-grid build:
+
+1. ``gather_contact_particles``: the surface particles of the jellies that take part, copied to
+   compact arrays (a lattice's interior particles cannot touch anything before its surface does);
+2. ``wp.HashGrid.build`` on those positions, one group per world (worlds never touch);
+3. ``count_particle_contacts``: each particle's number of contacts;
+4. ``resolve_particle_contacts``: each particle gathers the impulses and position corrections of
+   its contacts (kernels/particle_contact.py explains the response).
+
+``HashGrid.build`` runs inside ``wp.ScopedCapture`` on CUDA and on the CPU (Warp 1.19 records it as
+a graph node with the sort's scratch memory managed by the graph); its buffers are reserved here,
+before any capture, for the fixed number of contact particles.
+
+Which pairs: particles of different jellies of one world (``jelly_contact``), and particles of one
+jelly with ``self_contact`` that are at least :data:`SELF_EXCLUSION` pair distances apart in the
+rest shape. Closer pairs are excluded: at rest they are the jelly's own neighbourhood (its springs
+reach two lattice spacings, the bending springs), which its springs keep apart; a contact between
+them would fight the springs whenever the jelly is compressed by half, where no surface meets
+another. Surfaces that fold onto each other meet at particles many spacings apart.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import warp as wp
+
+from . import lattice
+
+# Defaults of the scene keys [simulation] jelly_contact_friction and jelly_contact_restitution.
+DEFAULT_FRICTION = 0.5
+DEFAULT_RESTITUTION = 0.0
+# Pair distance of two particles of jellies whose largest lattice spacings are s1 and s2, without
+# jelly_contact_thickness: (s1 + s2) / 2 * THICKNESS_PER_SPACING. One spacing keeps a particle from
+# slipping through a face of the other lattice (it meets the face's corners at s / sqrt(2)).
+THICKNESS_PER_SPACING = 1.0
+# Same-jelly pairs closer than this many pair distances in the rest shape never touch.
+SELF_EXCLUSION = 2.0
+# Hash-grid cells per axis at most (cells are hashed; more only spends memory).
+MAX_GRID_DIM = 128
+
+
+def surface_mask(shape) -> np.ndarray:
+    """Boolean mask of a lattice's surface particles (lattice order): any coordinate at 0 or n - 1."""
+    i, j, k = np.meshgrid(*(np.arange(n) for n in shape), indexing="ij")
+    out = np.zeros(i.shape, dtype=bool)
+    for c, n in zip((i, j, k), shape):
+        out |= (c == 0) | (c == n - 1)
+    return out.ravel()
+
+
+def jelly_radius(info, thickness=None) -> float:
+    """Contact radius of a jelly's particles [m]: half the pair distance between two of its particles."""
+    if thickness is not None:
+        return 0.5 * float(thickness)
+    return 0.5 * THICKNESS_PER_SPACING * max(info.spacing)
+
+
+class ParticleContact:
+    """The contact hook of a model: compact arrays of the contact particles and their hash grid.
+
+    Attributes:
+        count: contact particles (surface particles of the jellies taking part).
+        contact_index: particle index of each contact particle, shape [count], int32, ascending.
+        contact_jelly, contact_world: its jelly and world, shape [count], int32.
+        contact_radius: its contact radius [m] (a pair touches within the sum), shape [count], scalar.
+        contact_rest: its rest position in its jelly's frame [m] (self-contact exclusion), shape
+            [count] with self-contact, [1] without, vec3.
+        jelly_self_contact: 1 where a jelly has self-contact, shape [jelly_count], int32.
+        between_jellies: 1 when particles of different jellies touch.
+        friction, restitution: Coulomb coefficient and restitution between particles [1].
+        max_distance: the largest pair distance [m]: the grid's cell width and query radius.
+        grid: the ``wp.HashGrid``.
+    """
+
+    # Not part of the implicit integrator's contact solve, which prescribes each touched particle's
+    # own normal velocity (right for fixed terrain, but it would stop both jellies of a pair and
+    # lose their momentum); the pair projection after the step conserves it.
+    in_contact_solve = False
+
+    def __init__(self, model, between_jellies: bool, thickness, friction: float, restitution: float):
+        jellies = model.jellies
+        self_flags = [bool(getattr(j, "self_contact", False)) for j in jellies]
+        taking_part = [between_jellies or s for s in self_flags]
+        device, scalar, vec3 = model.device, model.scalar, model.vec3
+        index, jelly, world, radius, rest = [], [], [], [], []
+        for jid, (info, part) in enumerate(zip(jellies, taking_part)):
+            if not part:
+                continue
+            mask = surface_mask(info.shape)
+            local = np.flatnonzero(mask)
+            index.append(local + info.particle_start)
+            jelly.append(np.full(local.size, jid))
+            world.append(np.full(local.size, info.world))
+            radius.append(np.full(local.size, jelly_radius(info, thickness)))
+            size = [s * (n - 1) for s, n in zip(info.spacing, info.shape)]
+            rest.append(lattice.lattice_points(info.shape, size)[local])
+        cat = (lambda parts, shape: np.concatenate(parts) if parts else np.zeros(shape))
+        np_index = cat(index, (0,)).astype(np.int32)
+        self.count = int(np_index.size)
+        self.between_jellies = int(bool(between_jellies))
+        self.friction = scalar(friction)
+        self.restitution = scalar(restitution)
+        self.self_exclusion = scalar(SELF_EXCLUSION)
+        np_radius = cat(radius, (0,))
+        self.max_distance_host = float(2.0 * np_radius.max()) if self.count else 0.0
+        self.max_distance = scalar(self.max_distance_host)
+        np_scalar = np.float64 if scalar == wp.float64 else np.float32
+
+        def arr(values, dtype, np_dtype):
+            return wp.array(np.asarray(values, dtype=np_dtype), dtype=dtype, device=device)
+
+        self.contact_index = arr(np_index, wp.int32, np.int32)
+        self.contact_jelly = arr(cat(jelly, (0,)), wp.int32, np.int32)
+        self.contact_world = arr(cat(world, (0,)), wp.int32, np.int32)
+        self.contact_radius = arr(np_radius, scalar, np_scalar)
+        rest_host = cat(rest, (0, 3)) if any(self_flags) else np.zeros((1, 3))
+        self.contact_rest = arr(rest_host, vec3, np_scalar)
+        self.jelly_self_contact = arr(np.asarray(self_flags, dtype=np.int32).reshape(-1), wp.int32, np.int32)
+        # Compact copies of the step's result (the gather reads these, never what it writes) and
+        # each particle's contact count.
+        self.cq = wp.zeros(self.count, dtype=vec3, device=device)
+        self.cqd = wp.zeros(self.count, dtype=vec3, device=device)
+        self.contacts = wp.zeros(self.count, dtype=wp.int32, device=device)
+        # About one cell per contact particle; the grid hashes cells, so a smaller grid only adds
+        # candidates that the distance test rejects.
+        dim = int(min(MAX_GRID_DIM, max(4, 2 ** math.ceil(math.log2(max(self.count, 1) ** (1.0 / 3.0) + 1)))))
+        self.grid = wp.HashGrid(dim, dim, dim, device=device, dtype=scalar)
+        self.grid.reserve(max(self.count, 1), with_groups=True)
+
+    def __call__(self, model, state_in, state_out, h, world_contact_beta):
+        if self.count == 0:
+            return
+        k = model.kernels
+        device = model.device
+        wp.launch(
+            k.gather_contact_particles,
+            dim=self.count,
+            inputs=[self.contact_index, state_out.particle_q, state_out.particle_qd],
+            outputs=[self.cq, self.cqd],
+            device=device,
+        )
+        self.grid.build(self.cq, self.max_distance_host, groups=self.contact_world)
+        shared = [
+            self.contact_jelly,
+            self.contact_world,
+            self.contact_radius,
+            self.contact_rest,
+            self.jelly_self_contact,
+        ]
+        wp.launch(
+            k.count_particle_contacts,
+            dim=self.count,
+            inputs=[
+                self.grid.id,
+                *shared,
+                self.between_jellies,
+                self.self_exclusion,
+                self.max_distance,
+                self.cq,
+            ],
+            outputs=[self.contacts],
+            device=device,
+        )
+        wp.launch(
+            k.resolve_particle_contacts,
+            dim=self.count,
+            inputs=[
+                self.grid.id,
+                self.contact_index,
+                *shared,
+                model.particle_inv_mass,
+                self.between_jellies,
+                self.self_exclusion,
+                self.max_distance,
+                self.friction,
+                self.restitution,
+                model.contact_velocity_epsilon,
+                model.restitution_threshold_steps,
+                h,
+                world_contact_beta,
+                state_in.particle_qd,
+                self.cq,
+                self.cqd,
+                self.contacts,
+            ],
+            outputs=[state_out.particle_q, state_out.particle_qd],
+            device=device,
+        )
+
+
+def wanted(between_jellies: bool, jellies) -> bool:
+    """Whether a model needs the hook: contact between jellies, or a jelly with self-contact."""
+    return bool(between_jellies) or any(getattr(j, "self_contact", False) for j in jellies)
+
+
+def attach(model, between_jellies: bool, thickness=None, friction=DEFAULT_FRICTION, restitution=DEFAULT_RESTITUTION):
+    """Give ``model`` the particle-contact hook when it needs one; returns the hook or None.
+
+    Args:
+        between_jellies: particles of different jellies (of one world) touch.
+        thickness: pair distance [m] for every pair; None derives it from each jelly's lattice
+            spacing (:func:`jelly_radius`).
+        friction, restitution: Coulomb coefficient and restitution between particles.
+    """
+    if not wanted(between_jellies, model.jellies):
+        return None
+    hook = ParticleContact(model, between_jellies, thickness, friction, restitution)
+    model.particle_contact = hook
+    model.contact_hooks = list(getattr(model, "contact_hooks", ())) + [hook]
+    return hook
