@@ -65,37 +65,30 @@ def build(scalar):
 
     @wp.func
     def pair_impulse(
-        xi: vec3,
-        xj: vec3,
+        n: vec3,
         vi: vec3,
         vj: vec3,
         vi_prev: vec3,
         vj_prev: vec3,
-        dist: scalar,
-        d: scalar,
-        wi: scalar,
-        wj: scalar,
-        weight: scalar,
+        wi_split: scalar,
+        wj_split: scalar,
         friction: scalar,
         restitution: scalar,
         eps_v: scalar,
         rest_steps: scalar,
-        beta_h: scalar,
     ):
-        """Impulse P on particle i of the pair (i gets +P, j gets -P) and i's position change.
+        """Impulse on particle i of a touching pair with normal ``n`` (from j to i); j gets its negative.
 
-        Swapping i and j negates P exactly (the normal and the relative velocity both change sign),
-        which is what makes the pair conserve momentum. Returns (P, dx_i).
+        ``wi_split``, ``wj_split`` are the split inverse masses (inverse mass times the particle's
+        number of contacts), which set the pair's effective mass. Swapping i and j negates the
+        impulse exactly (the normal and the relative velocity both change sign), which is what
+        makes the pair conserve momentum.
         """
-        n = (xi - xj) / dist
-        wsum = wi + wj
-        m_eff = scalar(1.0) / wsum
         vrel = vi - vj
         vn = wp.dot(vrel, n)
         p = vec3(scalar(0.0))
-        dx = vec3(scalar(0.0))
-        closing = scalar(0.0)  # how much the velocity-level response already opens the gap
         if vn < scalar(0.0):
+            m_eff = scalar(1.0) / (wi_split + wj_split)
             # Impact or contact: the same restitution threshold as terrain (kernels/contact.py,
             # resolve_contact), on the relative normal velocity before (u0) and after the step.
             u0 = -wp.dot(vi_prev - vj_prev, n)
@@ -110,18 +103,9 @@ def build(scalar):
                 if speed > scalar(0.0):
                     jt = wp.min(speed * m_eff, friction * jn)
                     p = p - (jt / speed) * vt
-                p = weight * p
-                # A force over the whole step moves the position by beta h dv (as for terrain).
-                dx = (beta_h * wi) * p
-                closing = beta_h * wsum * wp.dot(p, n)
             else:
-                p = (weight * (-(scalar(1.0) + restitution) * vn * m_eff)) * n
-        # What the step's own position change leaves of the overlap is projected out, split by
-        # inverse mass (no velocity change, so no momentum).
-        gap = dist - d + closing
-        if gap < scalar(0.0):
-            dx = dx - (weight * gap * wi / wsum) * n
-        return p, dx
+                p = (-(scalar(1.0) + restitution) * vn * m_eff) * n
+        return p
 
     @wp.kernel(module="unique")
     def gather_contact_particles(
@@ -170,7 +154,7 @@ def build(scalar):
         count_out[i] = count
 
     @wp.kernel(module="unique")
-    def resolve_particle_contacts(
+    def resolve_contact_velocities(
         grid: wp.uint64,
         # Model:
         contact_index: wp.array(dtype=wp.int32),
@@ -187,31 +171,27 @@ def build(scalar):
         restitution: scalar,
         eps_v: scalar,
         rest_steps: scalar,
-        h: scalar,
-        world_contact_beta: wp.array(dtype=scalar),
-        # State before the step (particle order) and after it (contact order, a copy):
+        # Velocities before the step (particle order); positions after it, the contact counts and
+        # the velocities of this iteration (contact order):
         qd_prev: wp.array(dtype=vec3),
         cq: wp.array(dtype=vec3),
-        cqd: wp.array(dtype=vec3),
         count: wp.array(dtype=wp.int32),
-        # Out: the step's result, corrected in place (each thread writes its own particle only)
-        q_out: wp.array(dtype=vec3),
-        qd_out: wp.array(dtype=vec3),
+        cqd: wp.array(dtype=vec3),
+        # Out: the velocities after this iteration's impulses (contact order)
+        cqd_out: wp.array(dtype=vec3),
     ):
         i = wp.tid()
         ci = count[i]
+        vi = cqd[i]
         if ci == 0:
+            cqd_out[i] = vi
             return
         pi = contact_index[i]
         wi = particle_inv_mass[pi]
         xi = cq[i]
-        vi = cqd[i]
         vi_prev = qd_prev[pi]
-        world = contact_world[i]
-        beta_h = h * world_contact_beta[world]
-        dv = vec3(scalar(0.0))
-        dx = vec3(scalar(0.0))
-        query = wp.hash_grid_query(grid, xi, max_distance, world)
+        impulse = vec3(scalar(0.0))
+        query = wp.hash_grid_query(grid, xi, max_distance, contact_world[i])
         j = int(0)
         while wp.hash_grid_query_next(query, j):
             if j != i:
@@ -224,20 +204,78 @@ def build(scalar):
                     pj = contact_index[j]
                     wj = particle_inv_mass[pj]
                     if wi + wj > scalar(0.0):
-                        weight = scalar(1.0) / scalar(wp.max(ci, count[j]))
-                        p, dxi = pair_impulse(
-                            xi, xj, vi, cqd[j], vi_prev, qd_prev[pj], dist, d, wi, wj, weight,
-                            friction, restitution, eps_v, rest_steps, beta_h,
+                        impulse = impulse + pair_impulse(
+                            (xi - xj) / dist, vi, cqd[j], vi_prev, qd_prev[pj], scalar(ci) * wi,
+                            scalar(count[j]) * wj, friction, restitution, eps_v, rest_steps,
                         )
-                        dv = dv + wi * p
-                        dx = dx + dxi
-        q_out[pi] = xi + dx
-        qd_out[pi] = vi + dv
+        cqd_out[i] = vi + wi * impulse
+
+    @wp.kernel(module="unique")
+    def resolve_contact_positions(
+        grid: wp.uint64,
+        # Model:
+        contact_index: wp.array(dtype=wp.int32),
+        contact_jelly: wp.array(dtype=wp.int32),
+        contact_world: wp.array(dtype=wp.int32),
+        contact_radius: wp.array(dtype=scalar),
+        contact_rest: wp.array(dtype=vec3),
+        jelly_self_contact: wp.array(dtype=wp.int32),
+        particle_inv_mass: wp.array(dtype=scalar),
+        between_jellies: int,
+        self_exclusion: scalar,
+        max_distance: scalar,
+        h: scalar,
+        world_contact_beta: wp.array(dtype=scalar),
+        # The step's result (contact order), the contact counts and the velocities after the impulses:
+        cq: wp.array(dtype=vec3),
+        cqd: wp.array(dtype=vec3),
+        count: wp.array(dtype=wp.int32),
+        cqd_new: wp.array(dtype=vec3),
+        # Out: the step's result, corrected in place (each thread writes its own particle only)
+        q_out: wp.array(dtype=vec3),
+        qd_out: wp.array(dtype=vec3),
+    ):
+        i = wp.tid()
+        ci = count[i]
+        if ci == 0:
+            return
+        pi = contact_index[i]
+        wi = particle_inv_mass[pi]
+        world = contact_world[i]
+        # The impulses act over the whole step: positions move by what the integrator makes of a
+        # velocity change, beta h dv (as for terrain, kernels/contact.py).
+        beta_h = h * world_contact_beta[world]
+        xi = cq[i]
+        yi = xi + beta_h * (cqd_new[i] - cqd[i])
+        dx = vec3(scalar(0.0))
+        query = wp.hash_grid_query(grid, xi, max_distance, world)
+        j = int(0)
+        while wp.hash_grid_query_next(query, j):
+            if j != i:
+                xj = cq[j]
+                touches, dist, d = pair_touches(
+                    i, j, xi, xj, contact_jelly, contact_radius, contact_rest, jelly_self_contact,
+                    between_jellies, self_exclusion,
+                )
+                if touches:
+                    wj = particle_inv_mass[contact_index[j]]
+                    split = scalar(ci) * wi + scalar(count[j]) * wj
+                    if split > scalar(0.0):
+                        # What overlap the moved positions keep is projected out along the pair's
+                        # normal, split like the impulses (positions only: no momentum).
+                        n = (xi - xj) / dist
+                        yj = xj + beta_h * (cqd_new[j] - cqd[j])
+                        gap = wp.dot(yi - yj, n) - d
+                        if gap < scalar(0.0):
+                            dx = dx - (gap * wi / split) * n
+        q_out[pi] = yi + dx
+        qd_out[pi] = cqd_new[i]
 
     return {
         "pair_touches": pair_touches,
         "pair_impulse": pair_impulse,
         "gather_contact_particles": gather_contact_particles,
         "count_particle_contacts": count_particle_contacts,
-        "resolve_particle_contacts": resolve_particle_contacts,
+        "resolve_contact_velocities": resolve_contact_velocities,
+        "resolve_contact_positions": resolve_contact_positions,
     }

@@ -61,11 +61,13 @@ class ModelBuilder:
         self.contact_velocity_epsilon = 0.01
         self.restitution_threshold_steps = 1.0
         # Contact between jellies (core/particle_contact.attach): on/off, pair distance [m] (None:
-        # from the lattice spacing), Coulomb friction and restitution between particles.
+        # from the lattice spacing), Coulomb friction and restitution between particles, Jacobi
+        # iterations per step.
         self.jelly_contact = False
         self.jelly_contact_thickness = None
         self.jelly_contact_friction = particle_contact.DEFAULT_FRICTION
         self.jelly_contact_restitution = particle_contact.DEFAULT_RESTITUTION
+        self.jelly_contact_iterations = particle_contact.DEFAULT_ITERATIONS
         self._q, self._qd, self._mass, self._jelly_of, self._world_of = [], [], [], [], []
         self._pairs, self._rest, self._ks, self._kd, self._type = [], [], [], [], []
         self.jellies: list[JellyInfo] = []
@@ -373,6 +375,7 @@ class ModelBuilder:
             self.jelly_contact_thickness,
             self.jelly_contact_friction,
             self.jelly_contact_restitution,
+            self.jelly_contact_iterations,
         )
         return m
 
@@ -550,6 +553,7 @@ def populate(builder: ModelBuilder, data: dict, world=0):
     builder.jelly_contact_thickness = sim.get("jelly_contact_thickness")
     builder.jelly_contact_friction = sim.get("jelly_contact_friction", particle_contact.DEFAULT_FRICTION)
     builder.jelly_contact_restitution = sim.get("jelly_contact_restitution", particle_contact.DEFAULT_RESTITUTION)
+    builder.jelly_contact_iterations = sim.get("jelly_contact_iterations", particle_contact.DEFAULT_ITERATIONS)
     for i, j in enumerate(data["jelly"]):
         builder.add_jelly(
             j["resolution"],

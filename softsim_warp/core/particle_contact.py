@@ -36,6 +36,8 @@ from . import lattice
 # Defaults of the scene keys [simulation] jelly_contact_friction and jelly_contact_restitution.
 DEFAULT_FRICTION = 0.5
 DEFAULT_RESTITUTION = 0.0
+# Jacobi iterations of the velocity response per step (scene key jelly_contact_iterations).
+DEFAULT_ITERATIONS = 4
 # Pair distance of two particles of jellies whose largest lattice spacings are s1 and s2, without
 # jelly_contact_thickness: (s1 + s2) / 2 * THICKNESS_PER_SPACING. One spacing keeps a particle from
 # slipping through a face of the other lattice (it meets the face's corners at s / sqrt(2)).
@@ -84,7 +86,10 @@ class ParticleContact:
     # lose their momentum); the pair projection after the step conserves it.
     in_contact_solve = False
 
-    def __init__(self, model, between_jellies: bool, thickness, friction: float, restitution: float):
+    def __init__(
+        self, model, between_jellies: bool, thickness, friction: float, restitution: float, iterations=None
+    ):
+        iterations = DEFAULT_ITERATIONS if iterations is None else iterations
         jellies = model.jellies
         self_flags = [bool(getattr(j, "self_contact", False)) for j in jellies]
         taking_part = [between_jellies or s for s in self_flags]
@@ -128,6 +133,8 @@ class ParticleContact:
         self.cq = wp.zeros(self.count, dtype=vec3, device=device)
         self.cqd = wp.zeros(self.count, dtype=vec3, device=device)
         self.contacts = wp.zeros(self.count, dtype=wp.int32, device=device)
+        self.iterations = int(iterations)
+        self.cqd_iter = [wp.zeros(self.count, dtype=vec3, device=device) for _ in range(min(self.iterations, 2))]
         # About one cell per contact particle; the grid hashes cells, so a smaller grid only adds
         # candidates that the distance test rejects.
         dim = int(min(MAX_GRID_DIM, max(4, 2 ** math.ceil(math.log2(max(self.count, 1) ** (1.0 / 3.0) + 1)))))
@@ -147,7 +154,7 @@ class ParticleContact:
             device=device,
         )
         self.grid.build(self.cq, self.max_distance_host, groups=self.contact_world)
-        shared = [
+        pairs = [
             self.contact_jelly,
             self.contact_world,
             self.contact_radius,
@@ -157,39 +164,44 @@ class ParticleContact:
         wp.launch(
             k.count_particle_contacts,
             dim=self.count,
-            inputs=[
-                self.grid.id,
-                *shared,
-                self.between_jellies,
-                self.self_exclusion,
-                self.max_distance,
-                self.cq,
-            ],
+            inputs=[self.grid.id, *pairs, self.between_jellies, self.self_exclusion, self.max_distance, self.cq],
             outputs=[self.contacts],
             device=device,
         )
+        common = [
+            self.grid.id,
+            self.contact_index,
+            *pairs,
+            model.particle_inv_mass,
+            self.between_jellies,
+            self.self_exclusion,
+            self.max_distance,
+        ]
+        v_in = self.cqd
+        for it in range(self.iterations):
+            v_out = self.cqd_iter[it % 2]
+            wp.launch(
+                k.resolve_contact_velocities,
+                dim=self.count,
+                inputs=[
+                    *common,
+                    self.friction,
+                    self.restitution,
+                    model.contact_velocity_epsilon,
+                    model.restitution_threshold_steps,
+                    state_in.particle_qd,
+                    self.cq,
+                    self.contacts,
+                    v_in,
+                ],
+                outputs=[v_out],
+                device=device,
+            )
+            v_in = v_out
         wp.launch(
-            k.resolve_particle_contacts,
+            k.resolve_contact_positions,
             dim=self.count,
-            inputs=[
-                self.grid.id,
-                self.contact_index,
-                *shared,
-                model.particle_inv_mass,
-                self.between_jellies,
-                self.self_exclusion,
-                self.max_distance,
-                self.friction,
-                self.restitution,
-                model.contact_velocity_epsilon,
-                model.restitution_threshold_steps,
-                h,
-                world_contact_beta,
-                state_in.particle_qd,
-                self.cq,
-                self.cqd,
-                self.contacts,
-            ],
+            inputs=[*common, h, world_contact_beta, self.cq, self.cqd, self.contacts, v_in],
             outputs=[state_out.particle_q, state_out.particle_qd],
             device=device,
         )
@@ -200,7 +212,14 @@ def wanted(between_jellies: bool, jellies) -> bool:
     return bool(between_jellies) or any(getattr(j, "self_contact", False) for j in jellies)
 
 
-def attach(model, between_jellies: bool, thickness=None, friction=DEFAULT_FRICTION, restitution=DEFAULT_RESTITUTION):
+def attach(
+    model,
+    between_jellies: bool,
+    thickness=None,
+    friction=DEFAULT_FRICTION,
+    restitution=DEFAULT_RESTITUTION,
+    iterations=DEFAULT_ITERATIONS,
+):
     """Give ``model`` the particle-contact hook when it needs one; returns the hook or None.
 
     Args:
@@ -208,10 +227,11 @@ def attach(model, between_jellies: bool, thickness=None, friction=DEFAULT_FRICTI
         thickness: pair distance [m] for every pair; None derives it from each jelly's lattice
             spacing (:func:`jelly_radius`).
         friction, restitution: Coulomb coefficient and restitution between particles.
+        iterations: Jacobi iterations of the velocity response per step.
     """
     if not wanted(between_jellies, model.jellies):
         return None
-    hook = ParticleContact(model, between_jellies, thickness, friction, restitution)
+    hook = ParticleContact(model, between_jellies, thickness, friction, restitution, iterations)
     model.particle_contact = hook
     model.contact_hooks = list(getattr(model, "contact_hooks", ())) + [hook]
     return hook
