@@ -32,6 +32,7 @@ import numpy as np
 import warp as wp
 
 from . import lattice
+from ..kernels.particle_contact import CANDIDATE_REACH
 
 # Defaults of the scene keys [simulation] jelly_contact_friction and jelly_contact_restitution.
 DEFAULT_FRICTION = 0.5
@@ -55,6 +56,29 @@ def surface_mask(shape) -> np.ndarray:
     for c, n in zip((i, j, k), shape):
         out |= (c == 0) | (c == n - 1)
     return out.ravel()
+
+
+def axis_neighbors(shape, local) -> np.ndarray:
+    """Lattice neighbours of particles ``local`` (jelly-local indices), shape [len(local), 9]:
+    slots 0..5 the neighbours at -x, +x, -y, +y, -z, +z (the particle itself where the lattice
+    ends), slots 6..8 the neighbour one step inward on each axis where the particle is on the
+    lattice's boundary (-1 on an axis where it is not, or where the lattice has one particle)."""
+    shape = np.array([int(n) for n in shape])
+    local = np.asarray(local)
+    ijk = np.stack(np.unravel_index(local, tuple(shape)), axis=1)
+    out = np.full((ijk.shape[0], 9), -1, dtype=np.int64)
+    for a in range(3):
+        for slot, step in ((2 * a, -1), (2 * a + 1, 1)):
+            nb = ijk.copy()
+            nb[:, a] = np.clip(nb[:, a] + step, 0, shape[a] - 1)
+            out[:, slot] = np.ravel_multi_index(tuple(nb.T), tuple(shape))
+        if shape[a] < 2:
+            continue
+        step = np.where(ijk[:, a] == 0, 1, np.where(ijk[:, a] == shape[a] - 1, -1, 0))
+        nb = ijk.copy()
+        nb[:, a] += step
+        out[:, 6 + a] = np.where(step != 0, np.ravel_multi_index(tuple(nb.T), tuple(shape)), -1)
+    return out
 
 
 def jelly_radius(info, thickness=None) -> float:
@@ -94,7 +118,7 @@ class ParticleContact:
         self_flags = [bool(getattr(j, "self_contact", False)) for j in jellies]
         taking_part = [between_jellies or s for s in self_flags]
         device, scalar, vec3 = model.device, model.scalar, model.vec3
-        index, jelly, world, radius, rest = [], [], [], [], []
+        index, jelly, world, radius, rest, neighbors = [], [], [], [], [], []
         for jid, (info, part) in enumerate(zip(jellies, taking_part)):
             if not part:
                 continue
@@ -106,6 +130,8 @@ class ParticleContact:
             radius.append(np.full(local.size, jelly_radius(info, thickness)))
             size = [s * (n - 1) for s, n in zip(info.spacing, info.shape)]
             rest.append(lattice.lattice_points(info.shape, size)[local])
+            nb = axis_neighbors(info.shape, local)
+            neighbors.append(np.where(nb >= 0, nb + info.particle_start, -1))
         cat = (lambda parts, shape: np.concatenate(parts) if parts else np.zeros(shape))
         np_index = cat(index, (0,)).astype(np.int32)
         self.count = int(np_index.size)
@@ -114,7 +140,8 @@ class ParticleContact:
         self.restitution = scalar(restitution)
         self.self_exclusion = scalar(SELF_EXCLUSION)
         np_radius = cat(radius, (0,))
-        self.max_distance_host = float(2.0 * np_radius.max()) if self.count else 0.0
+        # Candidates lie within CANDIDATE_REACH pair distances: the grid's cell width and query radius.
+        self.max_distance_host = float(CANDIDATE_REACH * 2.0 * np_radius.max()) if self.count else 0.0
         self.max_distance = scalar(self.max_distance_host)
         np_scalar = np.float64 if scalar == wp.float64 else np.float32
 
@@ -127,6 +154,10 @@ class ParticleContact:
         self.contact_radius = arr(np_radius, scalar, np_scalar)
         rest_host = cat(rest, (0, 3)) if any(self_flags) else np.zeros((1, 3))
         self.contact_rest = arr(rest_host, vec3, np_scalar)
+        self.contact_axis_neighbors = wp.array(
+            cat(neighbors, (0, 9)).astype(np.int32).reshape(-1, 9), dtype=wp.int32, device=device
+        )
+        self.normal = wp.zeros((self.count, 3), dtype=vec3, device=device)
         self.jelly_self_contact = arr(np.asarray(self_flags, dtype=np.int32).reshape(-1), wp.int32, np.int32)
         # Compact copies of the step's result (the gather reads these, never what it writes) and
         # each particle's contact count.
@@ -154,6 +185,13 @@ class ParticleContact:
             device=device,
         )
         self.grid.build(self.cq, self.max_distance_host, groups=self.contact_world)
+        wp.launch(
+            k.contact_surface_normals,
+            dim=self.count,
+            inputs=[self.contact_index, self.contact_axis_neighbors, state_out.particle_q],
+            outputs=[self.normal],
+            device=device,
+        )
         pairs = [
             self.contact_jelly,
             self.contact_world,
@@ -164,7 +202,9 @@ class ParticleContact:
         wp.launch(
             k.count_particle_contacts,
             dim=self.count,
-            inputs=[self.grid.id, *pairs, self.between_jellies, self.self_exclusion, self.max_distance, self.cq],
+            inputs=[
+                self.grid.id, *pairs, self.between_jellies, self.self_exclusion, self.max_distance, self.cq, self.normal
+            ],
             outputs=[self.contacts],
             device=device,
         )
@@ -191,6 +231,7 @@ class ParticleContact:
                     model.restitution_threshold_steps,
                     state_in.particle_qd,
                     self.cq,
+                    self.normal,
                     self.contacts,
                     v_in,
                 ],
@@ -201,7 +242,7 @@ class ParticleContact:
         wp.launch(
             k.resolve_contact_positions,
             dim=self.count,
-            inputs=[*common, h, world_contact_beta, self.cq, self.cqd, self.contacts, v_in],
+            inputs=[*common, h, world_contact_beta, self.cq, self.normal, self.cqd, self.contacts, v_in],
             outputs=[state_out.particle_q, state_out.particle_qd],
             device=device,
         )
