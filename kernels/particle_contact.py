@@ -269,8 +269,9 @@ def build(scalar):
         # State after the step and surface normals (contact order):
         cq: wp.array(dtype=vec3),
         normal: wp.array2d(dtype=vec3),
-        # Out: contacts per contact particle
+        # Out: contacts per contact particle, and the first MAX_CONTACTS of them (grid order)
         count_out: wp.array(dtype=wp.int32),
+        contact_list_out: wp.array2d(dtype=wp.int32),
     ):
         i = wp.tid()
         xi = cq[i]
@@ -284,8 +285,51 @@ def build(scalar):
                     between_jellies, self_exclusion, normal,
                 )
                 if touches:
+                    if count < contact_list_out.shape[1]:
+                        contact_list_out[i, count] = j
                     count += 1
         count_out[i] = count
+
+    @wp.func
+    def velocity_term(
+        i: int,
+        j: int,
+        xi: vec3,
+        vi: vec3,
+        vi_prev: vec3,
+        wi_split: scalar,
+        contact_index: wp.array(dtype=wp.int32),
+        contact_jelly: wp.array(dtype=wp.int32),
+        contact_radius: wp.array(dtype=scalar),
+        contact_rest: wp.array(dtype=vec3),
+        jelly_self_contact: wp.array(dtype=wp.int32),
+        particle_inv_mass: wp.array(dtype=scalar),
+        between_jellies: int,
+        self_exclusion: scalar,
+        friction: scalar,
+        restitution: scalar,
+        eps_v: scalar,
+        rest_steps: scalar,
+        qd_prev: wp.array(dtype=vec3),
+        cq: wp.array(dtype=vec3),
+        normal: wp.array2d(dtype=vec3),
+        count: wp.array(dtype=wp.int32),
+        cqd: wp.array(dtype=vec3),
+    ):
+        """The impulse of pair (i, j) on i in a velocity iteration (zero if they do not touch)."""
+        touches, n, gap = pair_contact(
+            i, j, xi, cq[j], contact_jelly, contact_radius, contact_rest, jelly_self_contact, between_jellies,
+            self_exclusion, normal,
+        )
+        p = vec3(scalar(0.0))
+        if touches:
+            pj = contact_index[j]
+            wj_split = scalar(count[j]) * particle_inv_mass[pj]
+            if wi_split + wj_split > scalar(0.0):
+                p = pair_impulse(
+                    n, vi, cqd[j], vi_prev, qd_prev[pj], wi_split, wj_split, friction, restitution, eps_v, rest_steps
+                )
+        return p
 
     @wp.kernel(module="unique")
     def resolve_contact_velocities(
@@ -306,11 +350,12 @@ def build(scalar):
         eps_v: scalar,
         rest_steps: scalar,
         # Velocities before the step (particle order); positions after it, surface normals, the
-        # contact counts and the velocities of this iteration (contact order):
+        # contact counts and lists and the velocities of this iteration (contact order):
         qd_prev: wp.array(dtype=vec3),
         cq: wp.array(dtype=vec3),
         normal: wp.array2d(dtype=vec3),
         count: wp.array(dtype=wp.int32),
+        contact_list: wp.array2d(dtype=wp.int32),
         cqd: wp.array(dtype=vec3),
         # Out: the velocities after this iteration's impulses (contact order)
         cqd_out: wp.array(dtype=vec3),
@@ -325,25 +370,81 @@ def build(scalar):
         wi = particle_inv_mass[pi]
         xi = cq[i]
         vi_prev = qd_prev[pi]
+        wi_split = scalar(ci) * wi
         impulse = vec3(scalar(0.0))
-        query = wp.hash_grid_query(grid, xi, max_distance, contact_world[i])
-        j = int(0)
-        while wp.hash_grid_query_next(query, j):
-            if j != i:
-                xj = cq[j]
-                touches, n, gap = pair_contact(
-                    i, j, xi, xj, contact_jelly, contact_radius, contact_rest, jelly_self_contact,
-                    between_jellies, self_exclusion, normal,
+        # The contacts found by count_particle_contacts, in the grid's order; a particle with more
+        # than the list holds queries the grid again (the same pairs, the same order).
+        if ci <= contact_list.shape[1]:
+            for a in range(ci):
+                impulse = impulse + velocity_term(
+                    i, contact_list[i, a], xi, vi, vi_prev, wi_split, contact_index, contact_jelly,
+                    contact_radius, contact_rest, jelly_self_contact, particle_inv_mass, between_jellies,
+                    self_exclusion, friction, restitution, eps_v, rest_steps, qd_prev, cq, normal, count, cqd,
                 )
-                if touches:
-                    pj = contact_index[j]
-                    wj = particle_inv_mass[pj]
-                    if wi + wj > scalar(0.0):
-                        impulse = impulse + pair_impulse(
-                            n, vi, cqd[j], vi_prev, qd_prev[pj], scalar(ci) * wi,
-                            scalar(count[j]) * wj, friction, restitution, eps_v, rest_steps,
-                        )
+        else:
+            query = wp.hash_grid_query(grid, xi, max_distance, contact_world[i])
+            j = int(0)
+            while wp.hash_grid_query_next(query, j):
+                if j != i:
+                    impulse = impulse + velocity_term(
+                        i, j, xi, vi, vi_prev, wi_split, contact_index, contact_jelly,
+                        contact_radius, contact_rest, jelly_self_contact, particle_inv_mass, between_jellies,
+                        self_exclusion, friction, restitution, eps_v, rest_steps, qd_prev, cq, normal, count, cqd,
+                    )
         cqd_out[i] = vi + wi * impulse
+
+    @wp.func
+    def position_term(
+        i: int,
+        j: int,
+        xi: vec3,
+        yi: vec3,
+        vi: vec3,
+        wi: scalar,
+        wi_split: scalar,
+        h: scalar,
+        beta_h: scalar,
+        contact_index: wp.array(dtype=wp.int32),
+        contact_jelly: wp.array(dtype=wp.int32),
+        contact_radius: wp.array(dtype=scalar),
+        contact_rest: wp.array(dtype=vec3),
+        jelly_self_contact: wp.array(dtype=wp.int32),
+        particle_inv_mass: wp.array(dtype=scalar),
+        between_jellies: int,
+        self_exclusion: scalar,
+        cq: wp.array(dtype=vec3),
+        normal: wp.array2d(dtype=vec3),
+        cqd: wp.array(dtype=vec3),
+        count: wp.array(dtype=wp.int32),
+        cqd_new: wp.array(dtype=vec3),
+    ):
+        """Position and velocity change of i from pair (i, j) in the position pass: (dx, dv)."""
+        xj = cq[j]
+        touches, n, gap = pair_contact(
+            i, j, xi, xj, contact_jelly, contact_radius, contact_rest, jelly_self_contact, between_jellies,
+            self_exclusion, normal,
+        )
+        dx = vec3(scalar(0.0))
+        dv = vec3(scalar(0.0))
+        if touches:
+            split = wi_split + scalar(count[j]) * particle_inv_mass[contact_index[j]]
+            if split > scalar(0.0):
+                # What overlap the moved positions keep is projected out along the pair's normal,
+                # split like the impulses (positions only: no momentum).
+                vj = cqd_new[j]
+                yj = xj + beta_h * (vj - cqd[j])
+                moved = gap + wp.dot((yi - xi) - (yj - xj), n)
+                if moved < scalar(0.0):
+                    dx = (-moved * wi / split) * n
+                    # The projection is a motion of the step: what approach velocity the
+                    # iterations left (they converge slowly where a particle presses on one with
+                    # many contacts) is taken off up to the projected distance per step, so a
+                    # pressed particle does not keep a velocity it never moves by. Only approach
+                    # is removed, never separation added.
+                    vn = wp.dot(vi - vj, n)
+                    if vn < scalar(0.0):
+                        dv = (wp.min(-vn, -moved / h) * wi / split) * n
+        return dx, dv
 
     @wp.kernel(module="unique")
     def resolve_contact_positions(
@@ -361,12 +462,13 @@ def build(scalar):
         max_distance: scalar,
         h: scalar,
         world_contact_beta: wp.array(dtype=scalar),
-        # The step's result, surface normals, the contact counts and the velocities after the
-        # impulses (contact order):
+        # The step's result, surface normals, the contact counts and lists, and the velocities
+        # before and after the impulses (contact order):
         cq: wp.array(dtype=vec3),
         normal: wp.array2d(dtype=vec3),
         cqd: wp.array(dtype=vec3),
         count: wp.array(dtype=wp.int32),
+        contact_list: wp.array2d(dtype=wp.int32),
         cqd_new: wp.array(dtype=vec3),
         # Out: the step's result, corrected in place (each thread writes its own particle only)
         q_out: wp.array(dtype=vec3),
@@ -385,36 +487,30 @@ def build(scalar):
         xi = cq[i]
         vi = cqd_new[i]
         yi = xi + beta_h * (vi - cqd[i])
+        wi_split = scalar(ci) * wi
         dx = vec3(scalar(0.0))
         dv = vec3(scalar(0.0))
-        query = wp.hash_grid_query(grid, xi, max_distance, world)
-        j = int(0)
-        while wp.hash_grid_query_next(query, j):
-            if j != i:
-                xj = cq[j]
-                touches, n, gap = pair_contact(
-                    i, j, xi, xj, contact_jelly, contact_radius, contact_rest, jelly_self_contact,
-                    between_jellies, self_exclusion, normal,
+        if ci <= contact_list.shape[1]:
+            for a in range(ci):
+                ddx, ddv = position_term(
+                    i, contact_list[i, a], xi, yi, vi, wi, wi_split, h, beta_h, contact_index, contact_jelly,
+                    contact_radius, contact_rest, jelly_self_contact, particle_inv_mass, between_jellies,
+                    self_exclusion, cq, normal, cqd, count, cqd_new,
                 )
-                if touches:
-                    wj = particle_inv_mass[contact_index[j]]
-                    split = scalar(ci) * wi + scalar(count[j]) * wj
-                    if split > scalar(0.0):
-                        # What overlap the moved positions keep is projected out along the pair's
-                        # normal, split like the impulses (positions only: no momentum).
-                        vj = cqd_new[j]
-                        yj = xj + beta_h * (vj - cqd[j])
-                        moved = gap + wp.dot((yi - xi) - (yj - xj), n)
-                        if moved < scalar(0.0):
-                            dx = dx - (moved * wi / split) * n
-                            # The projection is a motion of the step: what approach velocity the
-                            # iterations left (they converge slowly where a particle presses on
-                            # one with many contacts) is taken off up to the projected distance
-                            # per step, so a pressed particle does not keep a velocity it never
-                            # moves by. Only approach is removed, never separation added.
-                            vn = wp.dot(vi - vj, n)
-                            if vn < scalar(0.0):
-                                dv = dv + (wp.min(-vn, -moved / h) * wi / split) * n
+                dx = dx + ddx
+                dv = dv + ddv
+        else:
+            query = wp.hash_grid_query(grid, xi, max_distance, world)
+            j = int(0)
+            while wp.hash_grid_query_next(query, j):
+                if j != i:
+                    ddx, ddv = position_term(
+                        i, j, xi, yi, vi, wi, wi_split, h, beta_h, contact_index, contact_jelly,
+                        contact_radius, contact_rest, jelly_self_contact, particle_inv_mass, between_jellies,
+                        self_exclusion, cq, normal, cqd, count, cqd_new,
+                    )
+                    dx = dx + ddx
+                    dv = dv + ddv
         q_out[pi] = yi + dx
         qd_out[pi] = vi + dv
 
@@ -427,6 +523,8 @@ def build(scalar):
         "contact_surface_normals": contact_surface_normals,
         "gather_contact_particles": gather_contact_particles,
         "count_particle_contacts": count_particle_contacts,
+        "velocity_term": velocity_term,
+        "position_term": position_term,
         "resolve_contact_velocities": resolve_contact_velocities,
         "resolve_contact_positions": resolve_contact_positions,
     }

@@ -45,6 +45,9 @@ DEFAULT_ITERATIONS = 4
 THICKNESS_PER_SPACING = 1.0
 # Same-jelly pairs closer than this many pair distances in the rest shape never touch.
 SELF_EXCLUSION = 2.0
+# Contacts a particle keeps in its list for the velocity and position passes; one with more (rare:
+# a pair distance of one spacing gives a particle resting on a face 1 to 4) queries the grid again.
+MAX_CONTACTS = 16
 # Hash-grid cells per axis at most (cells are hashed; more only spends memory).
 MAX_GRID_DIM = 128
 
@@ -164,6 +167,7 @@ class ParticleContact:
         self.cq = wp.zeros(self.count, dtype=vec3, device=device)
         self.cqd = wp.zeros(self.count, dtype=vec3, device=device)
         self.contacts = wp.zeros(self.count, dtype=wp.int32, device=device)
+        self.contact_list = wp.zeros((self.count, MAX_CONTACTS), dtype=wp.int32, device=device)
         self.iterations = int(iterations)
         self.cqd_iter = [wp.zeros(self.count, dtype=vec3, device=device) for _ in range(min(self.iterations, 2))]
         # About one cell per contact particle; the grid hashes cells, so a smaller grid only adds
@@ -205,7 +209,7 @@ class ParticleContact:
             inputs=[
                 self.grid.id, *pairs, self.between_jellies, self.self_exclusion, self.max_distance, self.cq, self.normal
             ],
-            outputs=[self.contacts],
+            outputs=[self.contacts, self.contact_list],
             device=device,
         )
         common = [
@@ -233,6 +237,7 @@ class ParticleContact:
                     self.cq,
                     self.normal,
                     self.contacts,
+                    self.contact_list,
                     v_in,
                 ],
                 outputs=[v_out],
@@ -242,7 +247,9 @@ class ParticleContact:
         wp.launch(
             k.resolve_contact_positions,
             dim=self.count,
-            inputs=[*common, h, world_contact_beta, self.cq, self.normal, self.cqd, self.contacts, v_in],
+            inputs=[
+                *common, h, world_contact_beta, self.cq, self.normal, self.cqd, self.contacts, self.contact_list, v_in
+            ],
             outputs=[state_out.particle_q, state_out.particle_qd],
             device=device,
         )
