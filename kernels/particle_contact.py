@@ -42,7 +42,7 @@ def build(scalar):
         i: int,
         j: int,
         xi: vec3,
-        xj: vec3,
+        cq: wp.array(dtype=vec3),
         contact_jelly: wp.array(dtype=wp.int32),
         contact_radius: wp.array(dtype=scalar),
         contact_rest: wp.array(dtype=vec3),
@@ -56,21 +56,23 @@ def build(scalar):
         Candidates are closer than CANDIDATE_REACH d. Particles of different jellies are candidates
         when ``between_jellies`` is set; particles of one jelly only when that jelly has self
         contact and they are at least ``self_exclusion`` times d apart in the rest shape (closer
-        pairs are the jelly's own elastic neighbourhood).
+        pairs are the jelly's own elastic neighbourhood). The jelly test comes first: most of a
+        particle's grid neighbours are of its own jelly, and it needs no position.
         """
+        ji = contact_jelly[i]
+        same = ji == contact_jelly[j]
+        if same:
+            if jelly_self_contact[ji] == 0:
+                return False, scalar(0.0), scalar(0.0)
+        elif between_jellies == 0:
+            return False, scalar(0.0), scalar(0.0)
         d = contact_radius[i] + contact_radius[j]
-        r = xi - xj
+        r = xi - cq[j]
         dist2 = wp.dot(r, r)
         reach_d = scalar(CANDIDATE_REACH) * d
         if dist2 >= reach_d * reach_d or dist2 == scalar(0.0):
             return False, scalar(0.0), d
-        ji = contact_jelly[i]
-        if ji != contact_jelly[j]:
-            if between_jellies == 0:
-                return False, scalar(0.0), d
-        else:
-            if jelly_self_contact[ji] == 0:
-                return False, scalar(0.0), d
+        if same:
             rr = contact_rest[i] - contact_rest[j]
             reach = self_exclusion * d
             if wp.dot(rr, rr) < reach * reach:
@@ -139,7 +141,7 @@ def build(scalar):
         i: int,
         j: int,
         xi: vec3,
-        xj: vec3,
+        cq: wp.array(dtype=vec3),
         contact_jelly: wp.array(dtype=wp.int32),
         contact_radius: wp.array(dtype=scalar),
         contact_rest: wp.array(dtype=vec3),
@@ -151,12 +153,13 @@ def build(scalar):
         """Whether particles i and j touch: a candidate pair closer than d along its contact normal.
         Returns (touches, normal from j to i, separation along it minus d: negative when touching)."""
         candidate, dist, d = pair_touches(
-            i, j, xi, xj, contact_jelly, contact_radius, contact_rest, jelly_self_contact, between_jellies,
+            i, j, xi, cq, contact_jelly, contact_radius, contact_rest, jelly_self_contact, between_jellies,
             self_exclusion,
         )
         n = vec3(scalar(0.0))
         gap = scalar(0.0)
         if candidate:
+            xj = cq[j]
             n = pair_normal(i, j, xi, xj, dist, d, normal)
             gap = wp.dot(xi - xj, n) - d
         return candidate and gap < scalar(0.0), n, gap
@@ -281,7 +284,7 @@ def build(scalar):
         while wp.hash_grid_query_next(query, j):
             if j != i:
                 touches, n, gap = pair_contact(
-                    i, j, xi, cq[j], contact_jelly, contact_radius, contact_rest, jelly_self_contact,
+                    i, j, xi, cq, contact_jelly, contact_radius, contact_rest, jelly_self_contact,
                     between_jellies, self_exclusion, normal,
                 )
                 if touches:
@@ -318,7 +321,7 @@ def build(scalar):
     ):
         """The impulse of pair (i, j) on i in a velocity iteration (zero if they do not touch)."""
         touches, n, gap = pair_contact(
-            i, j, xi, cq[j], contact_jelly, contact_radius, contact_rest, jelly_self_contact, between_jellies,
+            i, j, xi, cq, contact_jelly, contact_radius, contact_rest, jelly_self_contact, between_jellies,
             self_exclusion, normal,
         )
         p = vec3(scalar(0.0))
@@ -419,14 +422,14 @@ def build(scalar):
         cqd_new: wp.array(dtype=vec3),
     ):
         """Position and velocity change of i from pair (i, j) in the position pass: (dx, dv)."""
-        xj = cq[j]
         touches, n, gap = pair_contact(
-            i, j, xi, xj, contact_jelly, contact_radius, contact_rest, jelly_self_contact, between_jellies,
+            i, j, xi, cq, contact_jelly, contact_radius, contact_rest, jelly_self_contact, between_jellies,
             self_exclusion, normal,
         )
         dx = vec3(scalar(0.0))
         dv = vec3(scalar(0.0))
         if touches:
+            xj = cq[j]
             split = wi_split + scalar(count[j]) * particle_inv_mass[contact_index[j]]
             if split > scalar(0.0):
                 # What overlap the moved positions keep is projected out along the pair's normal,
