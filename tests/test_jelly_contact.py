@@ -295,7 +295,7 @@ def test_self_contact_excludes_rest_neighbours():
 # -- friction ----------------------------------------------------------------------------------------
 
 
-def _slope(theta_deg, mu):
+def _slope(theta_deg, mu, integrator="symplectic"):
     """A 4^3 block on a 31x3x6 jelly slab lying on a plane that holds it (friction 10); gravity
     tilted by theta instead of the slab. Returns the block's displacement along the slope relative
     to the slab over 1.5 s and its acceleration fitted over the last second."""
@@ -321,7 +321,7 @@ def _slope(theta_deg, mu):
     }
     scene = ss.scene_from_dict(data)
     model = ss.build_model(scene, device="cpu")
-    stepper = ss.Stepper(model, ss.make_integrator("symplectic", model), scene.sim["dt"])
+    stepper = ss.Stepper(model, ss.make_integrator(integrator, model), scene.sim["dt"])
     slab, block = _jelly_slices(model)
     xs, ts = [], []
     for k in range(31):
@@ -344,10 +344,12 @@ def test_block_sticks_below_friction_angle(theta, mu):
     assert abs(moved) < 0.01 and abs(accel) < 0.01
 
 
-@pytest.mark.parametrize("theta, mu", [(35.0, 0.5), (20.0, 0.2)])
-def test_block_slides_with_coulomb_acceleration(theta, mu):
+@pytest.mark.parametrize(
+    "theta, mu, integrator", [(35.0, 0.5, "symplectic"), (20.0, 0.2, "symplectic"), (35.0, 0.5, "implicit")]
+)
+def test_block_slides_with_coulomb_acceleration(theta, mu, integrator):
     """tan(theta) > mu: the block slides with a = g (sin(theta) - mu cos(theta)), within 3 %."""
-    moved, accel, expected = _slope(theta, mu)
+    moved, accel, expected = _slope(theta, mu, integrator)
     assert moved > 0.5
     assert accel == pytest.approx(expected, rel=0.03)
 

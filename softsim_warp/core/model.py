@@ -13,6 +13,7 @@ import numpy as np
 import warp as wp
 
 from . import lattice, particle_contact
+from .errors import SceneError
 from ..kernels import get_kernels
 from .forces import attach
 from .lattice_model import LatticeData, detect_lattice
@@ -418,6 +419,9 @@ class Model:
         restitution_threshold_steps: an approach slower than this many steps of a particle's own
             pressing impulse (h |f.n| / m) is a contact, not an impact [1]; see resolve_contact.
         jellies: host list of :class:`JellyInfo`.
+        particle_contact: the :class:`~softsim_warp.core.particle_contact.ParticleContact` hook of a
+            model with contact between jellies or self-contact (absent otherwise); it is also in
+            ``contact_hooks``, the callables ``core/contact.apply_contacts`` runs after terrain.
         deterministic: forces without atomics when True; the CSR arrays it needs are documented
             in ``softsim_warp.core.forces.attach``.
     """
@@ -547,13 +551,32 @@ def populate(builder: ModelBuilder, data: dict, world=0):
     builder.contact_epsilon = sim["contact_epsilon"]
     builder.contact_velocity_epsilon = sim["contact_velocity_epsilon"]
     builder.restitution_threshold_steps = sim["restitution_threshold_steps"]
-    # "auto": contact between jellies when the scene (one world's worth) has two or more.
+    # "auto": contact between jellies when the scene (one world's worth) has two or more. The
+    # settings are the model's, one for all worlds: copies that differ in them are refused.
     jelly_contact = sim.get("jelly_contact", "auto")
-    builder.jelly_contact = len(data["jelly"]) >= 2 if jelly_contact == "auto" else bool(jelly_contact)
-    builder.jelly_contact_thickness = sim.get("jelly_contact_thickness")
-    builder.jelly_contact_friction = sim.get("jelly_contact_friction", particle_contact.DEFAULT_FRICTION)
-    builder.jelly_contact_restitution = sim.get("jelly_contact_restitution", particle_contact.DEFAULT_RESTITUTION)
-    builder.jelly_contact_iterations = sim.get("jelly_contact_iterations", particle_contact.DEFAULT_ITERATIONS)
+    settings = (
+        len(data["jelly"]) >= 2 if jelly_contact == "auto" else bool(jelly_contact),
+        sim.get("jelly_contact_thickness"),
+        sim.get("jelly_contact_friction", particle_contact.DEFAULT_FRICTION),
+        sim.get("jelly_contact_restitution", particle_contact.DEFAULT_RESTITUTION),
+        sim.get("jelly_contact_iterations", particle_contact.DEFAULT_ITERATIONS),
+    )
+    if builder.jellies and getattr(builder, "_jelly_contact_settings", settings) != settings:
+        raise SceneError(
+            "scene",
+            "simulation.jelly_contact",
+            "contact between jellies (jelly_contact and its thickness, friction, restitution, iterations) "
+            "must be the same in every copy",
+            list(settings),
+        )
+    builder._jelly_contact_settings = settings
+    (
+        builder.jelly_contact,
+        builder.jelly_contact_thickness,
+        builder.jelly_contact_friction,
+        builder.jelly_contact_restitution,
+        builder.jelly_contact_iterations,
+    ) = settings
     for i, j in enumerate(data["jelly"]):
         builder.add_jelly(
             j["resolution"],
