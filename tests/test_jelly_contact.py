@@ -388,3 +388,30 @@ def test_deterministic_on_every_device(device):
         runs.append(_frames(scene, model=model, frames=20, every=20)[1][-1])
     assert np.array_equal(runs[0][0], runs[1][0]) and np.array_equal(runs[0][1], runs[1][1])
     assert wp.get_device(device) is not None
+
+
+# -- the benchmark ----------------------------------------------------------------------------------
+
+
+def test_bench_contact_cli(tmp_path, capsys):
+    """``softsim bench --contact`` on tiny piles: a row with and without contact per count, on the
+    same particles, the block of jellies touching from the first step, and a bad count refused."""
+    from softsim_warp.commands import bench_contact
+    from softsim_warp.commands.bench import JellySpec
+    from softsim_warp.commands.cli import main
+
+    out = tmp_path / "contact.json"
+    argv = ["bench", "--contact", "--jellies", "2,8", "--contact-size", "3", "--steps", "4", "--repeats", "1"]
+    assert main(argv + ["--out", str(out)]) == 0
+    rows = __import__("json").loads(out.read_text())["results"]
+    assert [(r["jellies"], r["contact"]) for r in rows] == [(2, False), (2, True), (8, False), (8, True)]
+    assert all(r["finite"] for r in rows) and rows[1]["particles"] == rows[0]["particles"] == 54
+    assert rows[0]["contact_cost"] == 1.0
+    assert "x no-contact" in capsys.readouterr().out
+    # Neighbouring jellies start 0.85 spacings apart: inside the pair distance of one spacing.
+    spec = JellySpec()
+    model = bench_contact.build_pile(8, 3, spec, "cpu")
+    hook = model.particle_contact
+    hook(model, model.state(), model.state(), model.scalar(spec.dt), wp.ones(1, dtype=model.scalar, device="cpu"))
+    assert hook.contacts.numpy().sum() > 0
+    assert main(["bench", "--contact", "--jellies", "1"]) == 2
