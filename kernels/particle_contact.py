@@ -276,7 +276,8 @@ def build(scalar):
         count_out: wp.array(dtype=wp.int32),
         contact_list_out: wp.array2d(dtype=wp.int32),
     ):
-        i = wp.tid()
+        # Threads in the grid's order (by cell): neighbouring threads read neighbouring particles.
+        i = wp.hash_grid_point_id(grid, wp.tid())
         xi = cq[i]
         count = int(0)
         query = wp.hash_grid_query(grid, xi, max_distance, contact_world[i])
@@ -363,7 +364,8 @@ def build(scalar):
         # Out: the velocities after this iteration's impulses (contact order)
         cqd_out: wp.array(dtype=vec3),
     ):
-        i = wp.tid()
+        # Threads in the grid's order (by cell): neighbouring threads read neighbouring particles.
+        i = wp.hash_grid_point_id(grid, wp.tid())
         ci = count[i]
         vi = cqd[i]
         if ci == 0:
@@ -477,7 +479,8 @@ def build(scalar):
         q_out: wp.array(dtype=vec3),
         qd_out: wp.array(dtype=vec3),
     ):
-        i = wp.tid()
+        # Threads in the grid's order (by cell): neighbouring threads read neighbouring particles.
+        i = wp.hash_grid_point_id(grid, wp.tid())
         ci = count[i]
         if ci == 0:
             return
