@@ -12,7 +12,7 @@ import types
 
 import warp as wp
 
-from . import contact, implicit, integration, lattice, mesh, metrics, multigrid, pins, springs
+from . import contact, implicit, integration, lattice, mesh, metrics, multigrid, particle_contact, pins, springs
 
 wp.set_module_options({"enable_backward": False})
 
@@ -21,7 +21,7 @@ wp.set_module_options({"enable_backward": False})
 def get_kernels(scalar) -> types.SimpleNamespace:
     """All kernels and functions for ``scalar`` (``wp.float32`` or ``wp.float64``), as one namespace."""
     ns = types.SimpleNamespace(scalar=scalar, vec3=wp.types.vector(3, scalar))
-    for topic in (springs, integration, contact, metrics, implicit, lattice, pins, mesh, multigrid):
+    for topic in (springs, integration, contact, metrics, implicit, lattice, pins, mesh, multigrid, particle_contact):
         for name, obj in topic.build(scalar).items():
             setattr(ns, name, obj)
     return ns

@@ -32,8 +32,6 @@ wp.set_module_options({"enable_backward": False})
 def build(scalar):
     vec3 = wp.types.vector(3, scalar)
 
-    SETTLE = 0.001  # of eps, per step: see resolve_contact
-
     @wp.func
     def resolve_contact(
         x: vec3,
@@ -64,7 +62,7 @@ def build(scalar):
         if phi >= eps:
             return x, v
         vn = wp.dot(normal, v)
-        if vn <= scalar(0.0):
+        if vn < scalar(0.0):
             # Impact or contact? The approach speed after the step, -vn, is what the particle
             # brought into the step, u0 = -vn_prev, plus what the step added, w: the forces of
             # the step pressing it in (gravity and springs, h |f.n| / m) and, on a concave surface,
@@ -106,19 +104,6 @@ def build(scalar):
                 x = x + beta_h * dv
                 phi = phi + beta_h * wp.dot(normal, dv)
                 v = v_new
-                # A resting particle (arriving slower than eps_v) that the step's forces press onto
-                # the surface (w > 0) settles onto it, instead of floating wherever in the tolerance
-                # layer it was stopped (a resting jelly stood up to eps above the ground): it moves
-                # along the normal by at most SETTLE = 0.1% of eps a step, its velocity unchanged. The
-                # move goes along the pressing force, so it only releases energy; moving it onto the
-                # surface at once shifted a spring's length by up to eps in one step, which kept a
-                # corner of the jelly resting in the bowl flickering at up to 0.15 m/s; and a
-                # faster settle lets an impact's compression push the bottom layer down through the
-                # layer, taking energy from the bounce (1% a step: rebounds 20% lower).
-                if w > scalar(0.0) and u0 < eps_v:
-                    settle = wp.min(phi, scalar(SETTLE) * eps)
-                    x = x - settle * normal
-                    phi = phi - settle
             else:
                 # Impact: reflect the approaching normal velocity, keep the tangential part.
                 v = v - (scalar(1.0) + restitution) * vn * normal

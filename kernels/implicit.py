@@ -380,10 +380,8 @@ def build(scalar):
         restitution_out: wp.array(dtype=scalar),
         approach_out: wp.array(dtype=vec3),
         mass_eff_out: wp.array(dtype=scalar),
-        normal_out: wp.array(dtype=vec3),
     ):
         i = wp.tid()
-        normal_out[i] = vec3(scalar(0.0))
         identity = wp.identity(n=3, dtype=scalar)
         v = qd_free[i]
         sf = identity
@@ -455,7 +453,6 @@ def build(scalar):
                 vt = v - vn * nrm
                 vt_c = v_c - wp.dot(v_c, nrm) * nrm
                 sf = identity - wp.outer(nrm, nrm)
-                normal_out[i] = nrm
                 target = wp.where(vn < scalar(0.0), vt, v)
                 if differs(vt, vt_c):
                     # Friction acted (resting contact). It enters the solve as a tangential
@@ -577,28 +574,6 @@ def build(scalar):
         b = wp.tid()
         if body[b, BODY_BUDGET] < -tol * body[b, BODY_KINETIC]:
             gained_out[0] = 1
-
-    @wp.kernel(module="unique")
-    def settle_contacts(
-        normal: wp.array(dtype=vec3),
-        q_free: wp.array(dtype=vec3),
-        q_contact: wp.array(dtype=vec3),
-        qd: wp.array(dtype=vec3),
-        # In/out:
-        q: wp.array(dtype=vec3),
-    ):
-        """A particle the contact solve held (normal velocity prescribed), whose position the contact
-        response moved along the normal (onto the surface: pressed on it, or pushed out of it), and
-        that does not move away, takes the response's position along the normal: a resting particle
-        lies on the surface instead of wherever in the tolerance layer it was stopped. Velocities
-        are unchanged."""
-        i = wp.tid()
-        n = normal[i]
-        if wp.length_sq(n) == scalar(0.0) or wp.dot(q_free[i] - q_contact[i], n) == scalar(0.0):
-            return
-        if wp.dot(qd[i], n) <= scalar(0.0):
-            x = q[i]
-            q[i] = x - wp.dot(x - q_contact[i], n) * n
 
     @wp.kernel(module="unique")
     def apply_restitution(
@@ -1013,7 +988,6 @@ def build(scalar):
         "measure_spring_restitution": measure_spring_restitution,
         "check_energy_budget": check_energy_budget,
         "apply_restitution": apply_restitution,
-        "settle_contacts": settle_contacts,
         "spring_mv": spring_mv,
         "init_residual": init_residual,
         "cg_begin": cg_begin,

@@ -37,6 +37,7 @@ from ..core.stepper import make_integrator
 from ..io.outputs import Outputs, save_report
 from ..io.resources import check_counts, lattice_spring_count
 from ..io.scene import load_scene
+from . import bench_contact
 from .bench_newton import NewtonJelly, implicit_peer, newton_version
 from .common import ProgressLog, resolve_device
 
@@ -431,6 +432,7 @@ def add_parser(subparsers, add_common):
     )
     p.add_argument("--out", help="write the results as JSON")
     p.add_argument("--plot", help="write a log-log plot of particle-steps/s over particle count (PNG)")
+    bench_contact.add_arguments(p)
     add_common(p)
     return p
 
@@ -498,6 +500,8 @@ def run(args) -> int:
     spec = JellySpec()
     bandwidth = measure_copy_bandwidth(device)
     use_graph = not args.no_graph
+    if args.contact:
+        return bench_contact.run_contact(args, device, spec, _versions(args.peer), _device_name(device))
     results, peers, gpu_clocks = [], [], []
 
     if args.scene:

@@ -13,18 +13,28 @@ from .mesh_terrain import mesh_arrays
 
 
 def apply_contacts(
-    model: Model, state_in: State, state_out: State, dt: float, world_contact_beta: wp.array, planes=True
+    model: Model,
+    state_in: State,
+    state_out: State,
+    dt: float,
+    world_contact_beta: wp.array,
+    planes=True,
+    solve_hooks_only=False,
 ):
     """Terrain contact on ``state_out`` after a step of ``dt`` from ``state_in``; one launch per primitive type present.
 
     ``world_contact_beta`` is, per world, the integrator's position gain for a force held constant
     over the step (x_{n+1} gains beta h^2 a): resting contact and friction shift positions by it.
     ``planes=False`` skips the planes (a fused lattice stage has already applied them).
+    ``solve_hooks_only`` runs only the hooks whose ``in_contact_solve`` is true (the default for a
+    hook): the implicit contact solve constrains what they change, while a hook that conserves
+    momentum pair by pair (jelly contact) runs only after the step.
     """
     h = model.scalar(dt)
     _launch_contacts(model, state_in, state_out.particle_q, state_out.particle_qd, h, world_contact_beta, planes, 0)
     for hook in getattr(model, "contact_hooks", ()):
-        hook(model, state_in, state_out, h, world_contact_beta)
+        if not solve_hooks_only or getattr(hook, "in_contact_solve", True):
+            hook(model, state_in, state_out, h, world_contact_beta)
 
 
 def filter_stage_contacts(

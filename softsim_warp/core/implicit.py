@@ -219,8 +219,8 @@ class ImplicitIntegrator(Integrator):
         fixed = (model.particle_inv_mass.numpy() == 0).astype(np.int32)
         self.fixed = wp.array(fixed, dtype=wp.int32, device=device)
         self.filters = wp.zeros(n, dtype=self.mat33, device=device)
-        terrain = model.plane_count or model.bowl_count or model.sphere_count or getattr(model, "mesh_count", 0) or getattr(
-            model, "contact_hooks", ())
+        hooks = [h for h in getattr(model, "contact_hooks", ()) if getattr(h, "in_contact_solve", True)]
+        terrain = model.plane_count or model.bowl_count or model.sphere_count or getattr(model, "mesh_count", 0) or hooks
         self.contact_solve = bool(terrain) and solver != "warp_cg"
         if self.contact_solve:
             # The step's result before the contact response, and the iterate of the last solve.
@@ -241,8 +241,6 @@ class ImplicitIntegrator(Integrator):
             self.body_data = wp.zeros((body_count, ki.BODY_SLOTS), dtype=scalar, device=device)
             self.contact_restitution = wp.zeros(n, dtype=scalar, device=device)
             self.contact_approach = vectors()
-            self.q_contact = vectors()  # the contact response's positions
-            self.contact_normal = vectors()  # the normal of each held particle's surface (0: none)
             self.energy_gained = wp.zeros(1, dtype=wp.int32, device=device)
         # Mass plus the contact friction damper per particle (kernels/implicit.py: constrain_contacts);
         # the plain mass outside the contact solve.
@@ -626,8 +624,7 @@ class ImplicitIntegrator(Integrator):
         model = self.model
         wp.copy(self.q_free, state_out.particle_q)
         wp.copy(self.qd_free, state_out.particle_qd)
-        apply_contacts(model, state_in, state_out, dt, self.world_contact_beta)
-        wp.copy(self.q_contact, state_out.particle_q)
+        apply_contacts(model, state_in, state_out, dt, self.world_contact_beta, solve_hooks_only=True)
         self.any_contact.zero_()
         wp.launch(
             model.kernels.constrain_contacts,
@@ -665,7 +662,6 @@ class ImplicitIntegrator(Integrator):
                 self.contact_restitution,
                 self.contact_approach,
                 self.mass_eff,
-                self.contact_normal,
             ],
             device=model.device,
         )
@@ -713,9 +709,6 @@ class ImplicitIntegrator(Integrator):
             for _ in range(EXTRA_CONTACT_ITERATIONS):
                 wp.capture_if(self.energy_gained, extra_iteration)
             self._apply_restitution(state_out)
-            wp.launch(model.kernels.settle_contacts, dim=n,
-                      inputs=[self.contact_normal, self.q_free, self.q_contact, state_out.particle_qd],
-                      outputs=[state_out.particle_q], device=model.device)
 
         # Skipped on the device when nothing touched (a conditional graph node on CUDA).
         wp.capture_if(self.any_contact, constrained_iterations)

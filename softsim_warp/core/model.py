@@ -12,7 +12,8 @@ from dataclasses import dataclass
 import numpy as np
 import warp as wp
 
-from . import lattice
+from . import lattice, particle_contact
+from .errors import SceneError
 from ..kernels import get_kernels
 from .forces import attach
 from .lattice_model import LatticeData, detect_lattice
@@ -69,6 +70,8 @@ class JellyInfo:
     """A mesh jelly's surface in its lattice (``core.voxelize.SurfaceEmbedding``), else None."""
     lattice_index: np.ndarray = None
     """A masked jelly's particles' indices in its box lattice, shape [particle_count], else None (all points)."""
+    self_contact: bool = False
+    """Whether the jelly collides with itself (``core/particle_contact.py``)."""
 
 
 class ModelBuilder:
@@ -79,6 +82,14 @@ class ModelBuilder:
         self.contact_epsilon = 0.01
         self.contact_velocity_epsilon = 0.01
         self.restitution_threshold_steps = 1.0
+        # Contact between jellies (core/particle_contact.attach): on/off, pair distance [m] (None:
+        # from the lattice spacing), Coulomb friction and restitution between particles, Jacobi
+        # iterations per step.
+        self.jelly_contact = False
+        self.jelly_contact_thickness = None
+        self.jelly_contact_friction = particle_contact.DEFAULT_FRICTION
+        self.jelly_contact_restitution = particle_contact.DEFAULT_RESTITUTION
+        self.jelly_contact_iterations = particle_contact.DEFAULT_ITERATIONS
         self._q, self._qd, self._mass, self._jelly_of, self._world_of = [], [], [], [], []
         self._pairs, self._rest, self._ks, self._kd, self._type = [], [], [], [], []
         self.jellies: list[JellyInfo] = []
@@ -138,6 +149,7 @@ class ModelBuilder:
         name="",
         initial_scale=None,
         mask=None,
+        self_contact=False,
     ) -> JellyInfo:
         """Add a lattice jelly.
 
@@ -160,6 +172,7 @@ class ModelBuilder:
             mask: optional bool per lattice point (lattice order): only those points become
                 particles, with the stencil springs between them (a mesh jelly, core/voxelize.py);
                 ``particle_mass`` is then one value or one per kept particle.
+            self_contact: the jelly collides with itself (``core/particle_contact.py``).
         """
         unknown = sorted(set(springs) - set(lattice.SPRING_TYPE_NAMES))
         if unknown:
@@ -209,6 +222,7 @@ class ModelBuilder:
             world=world,
             name=name or f"Jelly_{len(self.jellies)}",
             lattice_index=None if mask is None else np.flatnonzero(mask),
+            self_contact=bool(self_contact),
         )
         self.jellies.append(info)
         return info
@@ -456,6 +470,15 @@ class ModelBuilder:
         m.sphere_radius = arr(cols(spheres, "radius", (ns,)), scalar, np_scalar)
         m.sphere_restitution = arr(cols(spheres, "restitution", (ns,)), scalar, np_scalar)
         m.sphere_friction = arr(cols(spheres, "friction", (ns,)), scalar, np_scalar)
+        # Contact between jellies and self-contact: nothing at all unless the scene has it.
+        particle_contact.attach(
+            m,
+            self.jelly_contact,
+            self.jelly_contact_thickness,
+            self.jelly_contact_friction,
+            self.jelly_contact_restitution,
+            self.jelly_contact_iterations,
+        )
         attach_meshes(m, self.meshes, arr, first)
         return m
 
@@ -501,6 +524,9 @@ class Model:
         restitution_threshold_steps: an approach slower than this many steps of a particle's own
             pressing impulse (h |f.n| / m) is a contact, not an impact [1]; see resolve_contact.
         jellies: host list of :class:`JellyInfo`.
+        particle_contact: the :class:`~softsim_warp.core.particle_contact.ParticleContact` hook of a
+            model with contact between jellies or self-contact (absent otherwise); it is also in
+            ``contact_hooks``, the callables ``core/contact.apply_contacts`` runs after terrain.
         deterministic: forces without atomics when True; the CSR arrays it needs are documented
             in ``softsim_warp.core.forces.attach``.
     """
@@ -632,6 +658,32 @@ def populate(builder: ModelBuilder, data: dict, world=0):
     builder.contact_velocity_epsilon = sim["contact_velocity_epsilon"]
     builder.restitution_threshold_steps = sim["restitution_threshold_steps"]
     infos = []
+    # "auto": contact between jellies when the scene (one world's worth) has two or more. The
+    # settings are the model's, one for all worlds: copies that differ in them are refused.
+    jelly_contact = sim.get("jelly_contact", "auto")
+    settings = (
+        len(data["jelly"]) >= 2 if jelly_contact == "auto" else bool(jelly_contact),
+        sim.get("jelly_contact_thickness"),
+        sim.get("jelly_contact_friction", particle_contact.DEFAULT_FRICTION),
+        sim.get("jelly_contact_restitution", particle_contact.DEFAULT_RESTITUTION),
+        sim.get("jelly_contact_iterations", particle_contact.DEFAULT_ITERATIONS),
+    )
+    if builder.jellies and getattr(builder, "_jelly_contact_settings", settings) != settings:
+        raise SceneError(
+            "scene",
+            "simulation.jelly_contact",
+            "contact between jellies (jelly_contact and its thickness, friction, restitution, iterations) "
+            "must be the same in every copy",
+            list(settings),
+        )
+    builder._jelly_contact_settings = settings
+    (
+        builder.jelly_contact,
+        builder.jelly_contact_thickness,
+        builder.jelly_contact_friction,
+        builder.jelly_contact_restitution,
+        builder.jelly_contact_iterations,
+    ) = settings
     for i, j in enumerate(data["jelly"]):
         if "mesh" in j:  # a closed mesh voxelised into a masked lattice
             infos.append(add_mesh_jelly(builder, j, world=world, name=f"Jelly_{i}", key=f"jelly.{i}"))
@@ -649,6 +701,7 @@ def populate(builder: ModelBuilder, data: dict, world=0):
             world=world,
             name=f"Jelly_{i}",
             initial_scale=j.get("initial_scale"),
+            self_contact=j.get("self_contact", False),
         )
         infos.append(info)
     for p in data.get("plane", []):

@@ -198,6 +198,7 @@ def add_mesh_jelly(builder, j: dict, world=0, name="", key="jelly") -> object:
         name=name,
         initial_scale=j.get("initial_scale"),
         mask=mask,
+        self_contact=j.get("self_contact", False),
     )
     info.embedding = SurfaceEmbedding(asset.counts, asset.indices, corners, weights, asset.primvars)
     return info

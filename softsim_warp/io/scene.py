@@ -186,6 +186,19 @@ class Choice(Field):
         return value
 
 
+class Bool(Field):
+    """true or false; with ``auto``, also the string "auto"."""
+
+    def __init__(self, default=None, auto=False, **kw):
+        super().__init__(default, **kw)
+        self.auto = auto
+
+    def check(self, value, key, ctx):
+        if isinstance(value, bool) or (self.auto and value == "auto"):
+            return value
+        ctx.fail(key, 'must be "auto", true or false' if self.auto else "must be true or false", value)
+
+
 class Text(Field):
     def check(self, value, key, ctx):
         if not isinstance(value, str):
@@ -346,6 +359,14 @@ SCHEMA = Table(
                     1.0, lo=0, doc="approaches slower than this many steps of pressing impulse are inelastic [1]"
                 ),
                 "max_speed": Float(lo=0, lo_open=True, doc="speed treated as an explosion [m/s]"),
+                # Contact between jellies (core/particle_contact.py, docs/CONTACT.md).
+                "jelly_contact": Bool("auto", auto=True, doc='"auto": on with two or more jellies'),
+                "jelly_contact_thickness": Float(
+                    lo=0, lo_open=True, doc="distance at which two particles touch [m]; absent: the lattice spacing"
+                ),
+                "jelly_contact_friction": Float(0.5, lo=0, doc="Coulomb coefficient between jellies [1]"),
+                "jelly_contact_restitution": Float(0.0, lo=0, hi=1, doc="restitution between jellies [1]"),
+                "jelly_contact_iterations": Int(4, lo=1, doc="Jacobi iterations of the contact impulses per step"),
             }
         ),
         "jelly": TableList(
@@ -375,6 +396,7 @@ SCHEMA = Table(
                     "springs": Table(
                         {"structural": SPRING, "shear": SPRING, "bending": SPRING},
                     ),
+                    "self_contact": Bool(False, doc="the jelly collides with itself"),
                 }
             ),
             min_len=1,

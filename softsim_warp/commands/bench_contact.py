@@ -1,0 +1,298 @@
+"""``softsim bench --contact``: the cost of contact between jellies, against Newton's particle contact.
+
+A pile of jellies (``--contact-size``^3 particles each, the ``bench`` jelly's spacing, mass and
+springs: :class:`~softsim_warp.commands.bench.JellySpec`) stands on a ground plane as a block of
+``k x k x k`` cells, first the bottom layer; every other layer is shifted by half a spacing so that
+particles do not sit on each other, and neighbouring jellies are 0.85 spacings apart, inside both
+our pair distance (one spacing) and Newton's (2 x 0.45 spacings): every face of the block touches
+its neighbour's from the first step. For each count in ``--jellies`` the command times:
+
+* ours without jelly contact (``jelly_contact = false``), the same particles and springs;
+* ours with it (the hash grid, surface normals, ``jelly_contact_iterations`` velocity passes and
+  the position pass, every step);
+* with ``--peer newton``: Newton 1.8's ``SolverSemiImplicit`` on the same springs and ground, once
+  without particle contact (``model.particle_grid = None``) and once with it (its ``HashGrid``
+  rebuilt every step by the solver, penalty forces ``particle_ke/kd/kf/mu``; particle radius 0.45
+  spacings, so that a jelly's own neighbours, one spacing apart, do not touch: Newton has no
+  exclusion of a body's own particles).
+
+Timing as ``softsim bench``: one untimed step, ``--steps`` steps captured as a graph (CPU and CUDA)
+and replayed ``--repeats`` times, the median reported; the cases of one count run their repeats in
+turn. The table gives ms per step, particle-steps/s, and the cost of contact as the ratio of the
+step with contact to the step without, for ours and Newton's.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+
+import numpy as np
+
+from ..core.errors import CommandLineError
+from ..core.model import ModelBuilder
+from ..core.stepper import make_integrator
+from ..io.outputs import Outputs, save_report
+from .bench_newton import NewtonJelly, newton_version
+
+DEFAULT_JELLIES = "8,64,216,512,1000"
+# Newton's particle radius in lattice spacings: below 0.5, a jelly's own neighbours never touch.
+NEWTON_RADIUS = 0.45
+# Distance between neighbouring jellies' facing surfaces, in lattice spacings.
+JELLY_GAP = 0.85
+
+
+def add_arguments(p):
+    """The flags of ``bench --contact`` (added to ``bench``'s parser)."""
+    p.add_argument(
+        "--contact",
+        action="store_true",
+        help="benchmark contact between jellies: piles of --jellies jellies, with and without contact",
+    )
+    p.add_argument(
+        "--jellies",
+        default=DEFAULT_JELLIES,
+        help=f"with --contact: jelly counts of the piles, comma-separated (default {DEFAULT_JELLIES})",
+    )
+    p.add_argument(
+        "--contact-size", type=int, default=10, help="with --contact: particles per jelly edge (default 10)"
+    )
+
+
+def pile_positions(count: int, size: int, spacing: float):
+    """Centres of ``count`` jellies of ``size``^3 particles in a block on the ground y = 0 [m]."""
+    k = max(1, math.ceil(count ** (1.0 / 3.0) - 1e-9))
+    edge = spacing * (size - 1)
+    pitch = edge + JELLY_GAP * spacing
+    centres = []
+    for c in range(count):
+        layer, rest = divmod(c, k * k)
+        row, col = divmod(rest, k)
+        shift = 0.5 * spacing * (layer % 2)
+        centres.append(
+            (
+                (col - 0.5 * (k - 1)) * pitch + shift,
+                0.5 * spacing + 0.5 * edge + layer * pitch,
+                (row - 0.5 * (k - 1)) * pitch + shift,
+            )
+        )
+    return centres
+
+
+def build_pile(count, size, spec, device, precision="float32", contact=True):
+    """The pile as one model (one world), with or without contact between its jellies."""
+    builder = ModelBuilder((0.0, spec.gravity, 0.0))
+    springs = {t: {"ks": spec.ks, "kd": spec.kd} for t in ("structural", "shear", "bending")}
+    edge = spec.spacing * (size - 1)
+    for centre in pile_positions(count, size, spec.spacing):
+        builder.add_jelly((size,) * 3, edge, spec.particle_mass, springs, center=centre)
+    builder.add_plane((0.0, 0.0, 0.0), (0.0, 1.0, 0.0), spec.restitution, spec.friction)
+    builder.jelly_contact = bool(contact)
+    return builder.finalize(device, precision)
+
+
+class _Timed:
+    """``step_fn(count)`` captured as a graph of ``steps`` steps (even) and replayed; wall-clock medians."""
+
+    def __init__(self, device, step_fn, steps, use_graph):
+        import warp as wp  # noqa: PLC0415
+
+        self.wp, self.device, self.step_fn = wp, device, step_fn
+        self.steps = steps + (steps % 2)
+        self.use_graph = use_graph
+        self.graph = None
+        self.wall = []
+
+    def prepare(self) -> float:
+        wp = self.wp
+        t0 = time.perf_counter()
+        self.step_fn(2)
+        wp.synchronize_device(self.device)
+        first = time.perf_counter() - t0
+        if self.use_graph:
+            with wp.ScopedCapture(device=self.device, force_module_load=False) as capture:
+                self.step_fn(self.steps)
+            self.graph = capture.graph
+        self.run()
+        wp.synchronize_device(self.device)
+        return first
+
+    def run(self):
+        if self.graph is not None:
+            self.wp.capture_launch(self.graph)
+        else:
+            self.step_fn(self.steps)
+
+    def time_once(self):
+        self.wp.synchronize_device(self.device)
+        t0 = time.perf_counter()
+        self.run()
+        self.wp.synchronize_device(self.device)
+        self.wall.append(time.perf_counter() - t0)
+
+    def ms_per_step(self) -> float:
+        return 1e3 * float(np.median(self.wall)) / self.steps
+
+
+class _Ours(_Timed):
+    """Our integrator on the pile, with the model's contact hooks (``contact``) or without them.
+
+    Both cases share one model (building a pile of 1,000 jellies takes half a minute): the step
+    sets the hooks it runs with, and a captured graph holds the launches of its own case only.
+    """
+
+    def __init__(self, model, method, dt, steps, use_graph, contact):
+        self.model = model
+        hooks = [model.particle_contact] if contact else []
+        model.contact_hooks = hooks
+        self.integrator = make_integrator(method, model)
+        self.states = [model.state(), model.state()]
+
+        def step(count):
+            model.contact_hooks = hooks
+            for k in range(count):
+                self.integrator.step(self.states[k % 2], self.states[1 - k % 2], dt)
+
+        super().__init__(model.device, step, steps, use_graph)
+
+    def positions(self):
+        return self.states[0].particle_q.numpy()
+
+
+class _Newton(_Timed):
+    def __init__(self, model, spec, steps, use_graph, contact):
+        import warp as wp  # noqa: PLC0415
+
+        t0 = time.perf_counter()
+        radius = NEWTON_RADIUS * spec.spacing
+        self.jelly = NewtonJelly(
+            model.particle_q_host,
+            model.spring_indices_host,
+            model.spring_rest_host,
+            model.spring_stiffness_host,
+            model.spring_damping_host,
+            model.particle_mass_host,
+            model.gravity_host,
+            0.0,
+            model.device,
+            particle_radius=radius,
+            contact_mu=spec.friction,
+        )
+        if contact:
+            m = self.jelly.model
+            # Newton's own default grid (128^3 cells), on the model's device; the solver reserves it
+            # and rebuilds it every step with the search radius 2 r.
+            m.particle_grid = wp.HashGrid(128, 128, 128, device=model.device)
+            m.particle_ke, m.particle_kd, m.particle_kf, m.particle_mu = 1.0e3, 1.0, 10.0, spec.friction
+            self.jelly.solver = self.jelly.newton.solvers.SolverSemiImplicit(m)
+        self.build_s = time.perf_counter() - t0
+        super().__init__(model.device, lambda count: self.jelly.step(spec.dt, count), steps, use_graph)
+
+    def positions(self):
+        return self.jelly.positions()
+
+
+def run_contact(args, device, spec, versions, device_name) -> int:
+    """The ``--contact`` benchmark; ``bench.run`` hands over its parsed arguments and device."""
+    import warp as wp  # noqa: PLC0415
+
+    counts = [t.strip() for t in str(args.jellies).split(",") if t.strip()]
+    try:
+        counts = [int(c) for c in counts]
+    except ValueError:
+        raise CommandLineError("--jellies", "expected comma-separated jelly counts", args.jellies) from None
+    if not counts or min(counts) < 2:
+        raise CommandLineError("--jellies", "each count must be at least 2 (contact is between jellies)", args.jellies)
+    if args.contact_size < 2:
+        raise CommandLineError("--contact-size", "must be at least 2", args.contact_size)
+    methods = [t.strip() for t in str(args.integrators).split(",") if t.strip()]
+    if args.integrators == "euler,symplectic,midpoint,rk4":  # bench's default: one method is enough here
+        methods = ["symplectic"]
+    outputs = Outputs()
+    outputs.add("--out", args.out, (".json",))
+    if args.peer:
+        try:
+            newton_version()
+        except RuntimeError as exc:
+            raise CommandLineError("--peer", str(exc), args.peer) from None
+    use_graph = not args.no_graph
+    size = args.contact_size
+    rows = []
+    for count in counts:
+        t0 = time.perf_counter()
+        model = build_pile(count, size, spec, device, args.precision, contact=True)
+        build_s = time.perf_counter() - t0
+        for method in methods:
+            cases = {}
+            for contact in (False, True):
+                cases[("ours", contact)] = _Ours(model, method, spec.dt, args.steps, use_graph, contact)
+                cases[("ours", contact)].build_s = build_s
+            if args.peer and method == "symplectic":
+                for contact in (False, True):
+                    cases[("newton", contact)] = _Newton(model, spec, args.steps, use_graph, contact)
+            first = {key: case.prepare() for key, case in cases.items()}
+            for _ in range(args.repeats):
+                for case in cases.values():
+                    case.time_once()
+            particles = model.particle_count
+            hook = model.particle_contact
+            for (who, contact), case in cases.items():
+                ms = case.ms_per_step()
+                base = cases[(who, False)].ms_per_step()
+                rows.append(
+                    {
+                        "jellies": count,
+                        "particles": particles,
+                        "contact_particles": hook.count if who == "ours" else particles,
+                        "solver": method if who == "ours" else "newton.SolverSemiImplicit",
+                        "contact": contact,
+                        "ms_per_step": ms,
+                        "particle_steps_per_s": particles * 1e3 / ms,
+                        "contact_cost": ms / base,
+                        "first_step_s": first[(who, contact)],
+                        "build_s": getattr(case, "build_s", None),
+                        "finite": bool(np.all(np.isfinite(case.positions()))),
+                        "graph": use_graph,
+                    }
+                )
+            for case in cases.values():
+                case.graph = None
+            del cases
+        del model
+        wp.synchronize_device(device)
+    _print(rows, device_name, spec, size, args)
+    report = {
+        "command": "bench --contact",
+        "device": device_name,
+        "versions": versions,
+        "settings": {
+            "jelly_size": size,
+            "spacing": spec.spacing,
+            "particle_mass": spec.particle_mass,
+            "ks": spec.ks,
+            "kd": spec.kd,
+            "dt": spec.dt,
+            "steps": args.steps,
+            "repeats": args.repeats,
+            "precision": args.precision,
+            "jelly_gap_spacings": JELLY_GAP,
+            "newton_particle_radius_spacings": NEWTON_RADIUS,
+        },
+        "results": rows,
+    }
+    save_report(report, args.out)
+    return 0
+
+
+def _print(rows, device_name, spec, size, args):
+    print(f"bench --contact on {device_name}: piles of {size}^3-particle jellies, dt {spec.dt:g} s, "
+          f"{args.steps} steps x {args.repeats} repeats (median)")
+    header = f"{'jellies':>7} {'particles':>10} {'solver':<27} {'contact':<7} {'ms/step':>9} {'particle-steps/s':>17} {'x no-contact':>12}"
+    print(header)
+    print("-" * len(header))
+    for r in rows:
+        flag = "" if r["finite"] else "  NOT FINITE"
+        print(
+            f"{r['jellies']:>7} {r['particles']:>10} {r['solver']:<27} {('yes' if r['contact'] else 'no'):<7} "
+            f"{r['ms_per_step']:>9.4f} {r['particle_steps_per_s']:>17.3e} {r['contact_cost']:>12.2f}{flag}"
+        )

@@ -1,0 +1,301 @@
+"""Contact between jellies and self-contact: which particles take part, the hash grid, the launches.
+
+:func:`attach` gives a model a :class:`ParticleContact` hook (``model.contact_hooks``) when its scene
+asks for contact between jellies or for a jelly's self-contact; a model without either gets nothing
+(no array, no launch). The hook runs after every integrator's step, after terrain contact
+(``core/contact.apply_contacts``), and launches three kernels and one hash-grid build:
+
+1. ``gather_contact_particles``: the surface particles of the jellies that take part, copied to
+   compact arrays (a lattice's interior particles cannot touch anything before its surface does);
+2. ``wp.HashGrid.build`` on those positions, one group per world (worlds never touch);
+3. ``count_particle_contacts``: each particle's number of contacts;
+4. ``resolve_particle_contacts``: each particle gathers the impulses and position corrections of
+   its contacts (kernels/particle_contact.py explains the response).
+
+``HashGrid.build`` runs inside ``wp.ScopedCapture`` on CUDA and on the CPU (Warp 1.19 records it as
+a graph node with the sort's scratch memory managed by the graph); its buffers are reserved here,
+before any capture, for the fixed number of contact particles.
+
+Which pairs: particles of different jellies of one world (``jelly_contact``), and particles of one
+jelly with ``self_contact`` that are at least :data:`SELF_EXCLUSION` pair distances apart in the
+rest shape. Closer pairs are excluded: at rest they are the jelly's own neighbourhood (its springs
+reach two lattice spacings, the bending springs), which its springs keep apart; a contact between
+them would fight the springs whenever the jelly is compressed by half, where no surface meets
+another. Surfaces that fold onto each other meet at particles many spacings apart.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import warp as wp
+
+from . import lattice
+from ..kernels.particle_contact import CANDIDATE_REACH
+
+# Defaults of the scene keys [simulation] jelly_contact_friction and jelly_contact_restitution.
+DEFAULT_FRICTION = 0.5
+DEFAULT_RESTITUTION = 0.0
+# Jacobi iterations of the velocity response per step (scene key jelly_contact_iterations).
+DEFAULT_ITERATIONS = 4
+# Pair distance of two particles of jellies whose largest lattice spacings are s1 and s2, without
+# jelly_contact_thickness: (s1 + s2) / 2 * THICKNESS_PER_SPACING. One spacing keeps a particle from
+# slipping through a face of the other lattice (it meets the face's corners at s / sqrt(2)).
+THICKNESS_PER_SPACING = 1.0
+# Same-jelly pairs closer than this many pair distances in the rest shape never touch.
+SELF_EXCLUSION = 2.0
+# Contacts a particle keeps in its list for the velocity and position passes; one with more (rare:
+# a pair distance of one spacing gives a particle resting on a face 1 to 4) queries the grid again.
+MAX_CONTACTS = 16
+# Hash-grid cells per axis at most (cells are hashed; more only spends memory).
+MAX_GRID_DIM = 128
+
+
+def surface_mask(shape, present=None) -> np.ndarray:
+    """Boolean mask (lattice order) of a lattice's surface particles: present points with an axis
+    neighbour missing, at the lattice's end (any coordinate at 0 or n - 1) or absent from ``present``
+    (a mesh jelly's masked lattice; None: every point is present)."""
+    shape = tuple(int(n) for n in shape)
+    n = int(np.prod(shape))
+    present = np.ones(n, dtype=bool) if present is None else np.asarray(present, dtype=bool)
+    nb = axis_neighbors(shape, np.arange(n), present)
+    return present & np.any(nb[:, :6] == np.arange(n)[:, None], axis=1)
+
+
+def axis_neighbors(shape, local, present=None) -> np.ndarray:
+    """Lattice neighbours of lattice points ``local``, shape [len(local), 9]: slots 0..5 the
+    neighbours at -x, +x, -y, +y, -z, +z (the point itself where the lattice ends or the neighbour
+    is absent from ``present``), slots 6..8 the neighbour one step inward on each axis where exactly
+    one side is missing (-1 on an axis where neither or both are, or where the lattice has one
+    particle). Indices are lattice indices; for a full lattice they are the jelly-local particles."""
+    shape = np.array([int(n) for n in shape])
+    local = np.asarray(local)
+    if present is None:
+        present = np.ones(int(np.prod(shape)), dtype=bool)
+    ijk = np.stack(np.unravel_index(local, tuple(shape)), axis=1)
+    out = np.full((ijk.shape[0], 9), -1, dtype=np.int64)
+    for a in range(3):
+        for slot, step in ((2 * a, -1), (2 * a + 1, 1)):
+            nb = ijk.copy()
+            nb[:, a] = np.clip(nb[:, a] + step, 0, shape[a] - 1)
+            idx = np.ravel_multi_index(tuple(nb.T), tuple(shape))
+            out[:, slot] = np.where(present[idx], idx, local)
+        if shape[a] < 2:
+            continue
+        minus, plus = out[:, 2 * a] == local, out[:, 2 * a + 1] == local
+        step = np.where(minus & ~plus, 1, np.where(plus & ~minus, -1, 0))
+        nb = ijk.copy()
+        nb[:, a] = np.clip(nb[:, a] + step, 0, shape[a] - 1)
+        out[:, 6 + a] = np.where(step != 0, np.ravel_multi_index(tuple(nb.T), tuple(shape)), -1)
+    return out
+
+
+def jelly_radius(info, thickness=None) -> float:
+    """Contact radius of a jelly's particles [m]: half the pair distance between two of its particles."""
+    if thickness is not None:
+        return 0.5 * float(thickness)
+    return 0.5 * THICKNESS_PER_SPACING * max(info.spacing)
+
+
+class ParticleContact:
+    """The contact hook of a model: compact arrays of the contact particles and their hash grid.
+
+    Attributes:
+        count: contact particles (surface particles of the jellies taking part).
+        contact_index: particle index of each contact particle, shape [count], int32, ascending.
+        contact_jelly, contact_world: its jelly and world, shape [count], int32.
+        contact_radius: its contact radius [m] (a pair touches within the sum), shape [count], scalar.
+        contact_rest: its rest position in its jelly's frame [m] (self-contact exclusion), shape
+            [count] with self-contact, [1] without, vec3.
+        jelly_self_contact: 1 where a jelly has self-contact, shape [jelly_count], int32.
+        between_jellies: 1 when particles of different jellies touch.
+        friction, restitution: Coulomb coefficient and restitution between particles [1].
+        max_distance: the largest pair distance [m]: the grid's cell width and query radius.
+        grid: the ``wp.HashGrid``.
+    """
+
+    # Not part of the implicit integrator's contact solve, which prescribes each touched particle's
+    # own normal velocity (right for fixed terrain, but it would stop both jellies of a pair and
+    # lose their momentum); the pair projection after the step conserves it.
+    in_contact_solve = False
+
+    def __init__(
+        self, model, between_jellies: bool, thickness, friction: float, restitution: float, iterations=None
+    ):
+        iterations = DEFAULT_ITERATIONS if iterations is None else iterations
+        jellies = model.jellies
+        self_flags = [bool(getattr(j, "self_contact", False)) for j in jellies]
+        taking_part = [between_jellies or s for s in self_flags]
+        device, scalar, vec3 = model.device, model.scalar, model.vec3
+        index, jelly, world, radius, rest, neighbors = [], [], [], [], [], []
+        for jid, (info, part) in enumerate(zip(jellies, taking_part)):
+            if not part:
+                continue
+            # A mesh jelly is a lattice with points missing (info.lattice_index: its particles' points).
+            points = int(np.prod(info.shape))
+            present, to_particle = np.ones(points, dtype=bool), np.arange(points)
+            if getattr(info, "lattice_index", None) is not None:
+                present = np.zeros(points, dtype=bool)
+                present[info.lattice_index] = True
+                to_particle = np.full(points, -1)
+                to_particle[info.lattice_index] = np.arange(info.lattice_index.size)
+            surface = np.flatnonzero(surface_mask(info.shape, present))
+            local = to_particle[surface]
+            index.append(local + info.particle_start)
+            jelly.append(np.full(local.size, jid))
+            world.append(np.full(local.size, info.world))
+            radius.append(np.full(local.size, jelly_radius(info, thickness)))
+            size = [s * (n - 1) for s, n in zip(info.spacing, info.shape)]
+            rest.append(lattice.lattice_points(info.shape, size)[surface])
+            nb = axis_neighbors(info.shape, surface, present)
+            nb = np.where(nb >= 0, to_particle[np.maximum(nb, 0)], -1)
+            neighbors.append(np.where(nb >= 0, nb + info.particle_start, -1))
+        cat = (lambda parts, shape: np.concatenate(parts) if parts else np.zeros(shape))
+        np_index = cat(index, (0,)).astype(np.int32)
+        self.count = int(np_index.size)
+        self.between_jellies = int(bool(between_jellies))
+        self.friction = scalar(friction)
+        self.restitution = scalar(restitution)
+        self.self_exclusion = scalar(SELF_EXCLUSION)
+        np_radius = cat(radius, (0,))
+        # Candidates lie within CANDIDATE_REACH pair distances: the grid's cell width and query radius.
+        self.max_distance_host = float(CANDIDATE_REACH * 2.0 * np_radius.max()) if self.count else 0.0
+        self.max_distance = scalar(self.max_distance_host)
+        np_scalar = np.float64 if scalar == wp.float64 else np.float32
+
+        def arr(values, dtype, np_dtype):
+            return wp.array(np.asarray(values, dtype=np_dtype), dtype=dtype, device=device)
+
+        self.contact_index = arr(np_index, wp.int32, np.int32)
+        self.contact_jelly = arr(cat(jelly, (0,)), wp.int32, np.int32)
+        self.contact_world = arr(cat(world, (0,)), wp.int32, np.int32)
+        self.contact_radius = arr(np_radius, scalar, np_scalar)
+        rest_host = cat(rest, (0, 3)) if any(self_flags) else np.zeros((1, 3))
+        self.contact_rest = arr(rest_host, vec3, np_scalar)
+        self.contact_axis_neighbors = wp.array(
+            cat(neighbors, (0, 9)).astype(np.int32).reshape(-1, 9), dtype=wp.int32, device=device
+        )
+        self.normal = wp.zeros((self.count, 3), dtype=vec3, device=device)
+        self.jelly_self_contact = arr(np.asarray(self_flags, dtype=np.int32).reshape(-1), wp.int32, np.int32)
+        # Compact copies of the step's result (the gather reads these, never what it writes) and
+        # each particle's contact count.
+        self.cq = wp.zeros(self.count, dtype=vec3, device=device)
+        self.cqd = wp.zeros(self.count, dtype=vec3, device=device)
+        self.contacts = wp.zeros(self.count, dtype=wp.int32, device=device)
+        self.contact_list = wp.zeros((self.count, MAX_CONTACTS), dtype=wp.int32, device=device)
+        self.iterations = int(iterations)
+        self.cqd_iter = [wp.zeros(self.count, dtype=vec3, device=device) for _ in range(min(self.iterations, 2))]
+        # About one cell per contact particle; the grid hashes cells, so a smaller grid only adds
+        # candidates that the distance test rejects.
+        dim = int(min(MAX_GRID_DIM, max(4, 2 ** math.ceil(math.log2(max(self.count, 1) ** (1.0 / 3.0) + 1)))))
+        self.grid = wp.HashGrid(dim, dim, dim, device=device, dtype=scalar)
+        self.grid.reserve(max(self.count, 1), with_groups=True)
+
+    def __call__(self, model, state_in, state_out, h, world_contact_beta):
+        if self.count == 0:
+            return
+        k = model.kernels
+        device = model.device
+        wp.launch(
+            k.gather_contact_particles,
+            dim=self.count,
+            inputs=[self.contact_index, state_out.particle_q, state_out.particle_qd],
+            outputs=[self.cq, self.cqd],
+            device=device,
+        )
+        self.grid.build(self.cq, self.max_distance_host, groups=self.contact_world)
+        wp.launch(
+            k.contact_surface_normals,
+            dim=self.count,
+            inputs=[self.contact_index, self.contact_axis_neighbors, state_out.particle_q],
+            outputs=[self.normal],
+            device=device,
+        )
+        pairs = [
+            self.contact_jelly,
+            self.contact_world,
+            self.contact_radius,
+            self.contact_rest,
+            self.jelly_self_contact,
+        ]
+        wp.launch(
+            k.count_particle_contacts,
+            dim=self.count,
+            inputs=[
+                self.grid.id, *pairs, self.between_jellies, self.self_exclusion, self.max_distance, self.cq, self.normal
+            ],
+            outputs=[self.contacts, self.contact_list],
+            device=device,
+        )
+        common = [
+            self.grid.id,
+            self.contact_index,
+            *pairs,
+            model.particle_inv_mass,
+            self.between_jellies,
+            self.self_exclusion,
+            self.max_distance,
+        ]
+        v_in = self.cqd
+        for it in range(self.iterations):
+            v_out = self.cqd_iter[it % 2]
+            wp.launch(
+                k.resolve_contact_velocities,
+                dim=self.count,
+                inputs=[
+                    *common,
+                    self.friction,
+                    self.restitution,
+                    model.contact_velocity_epsilon,
+                    model.restitution_threshold_steps,
+                    state_in.particle_qd,
+                    self.cq,
+                    self.normal,
+                    self.contacts,
+                    self.contact_list,
+                    v_in,
+                ],
+                outputs=[v_out],
+                device=device,
+            )
+            v_in = v_out
+        wp.launch(
+            k.resolve_contact_positions,
+            dim=self.count,
+            inputs=[
+                *common, h, world_contact_beta, self.cq, self.normal, self.cqd, self.contacts, self.contact_list, v_in
+            ],
+            outputs=[state_out.particle_q, state_out.particle_qd],
+            device=device,
+        )
+
+
+def wanted(between_jellies: bool, jellies) -> bool:
+    """Whether a model needs the hook: contact between jellies, or a jelly with self-contact."""
+    return bool(between_jellies) or any(getattr(j, "self_contact", False) for j in jellies)
+
+
+def attach(
+    model,
+    between_jellies: bool,
+    thickness=None,
+    friction=DEFAULT_FRICTION,
+    restitution=DEFAULT_RESTITUTION,
+    iterations=DEFAULT_ITERATIONS,
+):
+    """Give ``model`` the particle-contact hook when it needs one; returns the hook or None.
+
+    Args:
+        between_jellies: particles of different jellies (of one world) touch.
+        thickness: pair distance [m] for every pair; None derives it from each jelly's lattice
+            spacing (:func:`jelly_radius`).
+        friction, restitution: Coulomb coefficient and restitution between particles.
+        iterations: Jacobi iterations of the velocity response per step.
+    """
+    if not wanted(between_jellies, model.jellies):
+        return None
+    hook = ParticleContact(model, between_jellies, thickness, friction, restitution, iterations)
+    model.particle_contact = hook
+    model.contact_hooks = list(getattr(model, "contact_hooks", ())) + [hook]
+    return hook
