@@ -91,11 +91,11 @@ from .mesh_terrain import mesh_touch_arrays
 from ..kernels import implicit as ki
 from .model import Model, State
 from .pins import drive
-from .multigrid import AUTO_MIN_PARTICLES, LatticeMultigrid, multigrid_support
+from .multigrid import LatticeMultigrid, auto_min_particles, multigrid_support
 
 # "jacobi": 3x3 block-Jacobi; "diagonal": the inverse of the diagonal; "multigrid": a V-cycle on
 # the lattice of a one-jelly model (core/multigrid.py); "auto": multigrid where it applies and pays
-# (multigrid.AUTO_MIN_PARTICLES), else jacobi. "block_jacobi" is another name of "jacobi".
+# (multigrid.auto_min_particles: 14^3 on the CPU, 30^3 on CUDA), else jacobi. "block_jacobi" is another name of "jacobi".
 PRECONDITIONERS = ("auto", "multigrid", "jacobi", "diagonal", "block_jacobi")
 LINEARIZATIONS = ("predictor", "baraff_witkin")
 SOLVERS = ("matrix_free", "bsr", "warp_cg")
@@ -141,7 +141,7 @@ class ImplicitIntegrator(Integrator):
             geometric multigrid V-cycle, ``core/multigrid.py``: one-jelly lattice models with the
             matrix-free solver; any other model falls back to ``"jacobi"``, and
             ``stats()["cg_preconditioner_note"]`` says why) or ``"auto"`` (multigrid where it
-            applies from ``multigrid.AUTO_MIN_PARTICLES`` particles on, else jacobi).
+            applies from ``multigrid.auto_min_particles(device)`` particles on, else jacobi).
         solver: ``"matrix_free"`` (A p from the spring list, this module's PCG loop), ``"bsr"``
             (an assembled ``warp.sparse`` block matrix, ``bsr_mv`` in the same PCG loop) or
             ``"warp_cg"`` (the assembled matrix solved by ``warp.optim.linear.cg``). The last two
@@ -269,8 +269,9 @@ class ImplicitIntegrator(Integrator):
         ok, reason = multigrid_support(model)
         if ok and solver != "matrix_free":
             ok, reason = False, f"solver {solver} (multigrid needs matrix_free)"
-        if ok and name == "auto" and model.particle_count < AUTO_MIN_PARTICLES:
-            ok, reason = False, f"{model.particle_count} particles (auto: multigrid from {AUTO_MIN_PARTICLES})"
+        least = auto_min_particles(model.device)
+        if ok and name == "auto" and model.particle_count < least:
+            ok, reason = False, f"{model.particle_count} particles (auto: multigrid from {least} on {model.device})"
         if ok:
             return "multigrid", f"{name}: lattice"
         return "jacobi", f"{name}: jacobi, since multigrid does not apply: {reason}"

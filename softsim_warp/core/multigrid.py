@@ -43,8 +43,15 @@ DEFAULT_SWEEPS = 1
 DEFAULT_FINE_CYCLE = "additive"
 # Particles from which the default ("auto") preconditioner is multigrid: on the CPU block-Jacobi is
 # faster up to about 14^3 (free flight: 8.3 against 9.2 ms a step at 12^3, 13.8 against 13.3 at
-# 14^3, 23.3 against 15.3 at 16^3; docs/IMPLICIT.md).
+# 14^3, 23.3 against 15.3 at 16^3; docs/IMPLICIT.md); on an H100 up to about 30^3 (1.58 against
+# 4.24 ms a step at 20^3, 8.44 against 7.33 at 40^3; benchmarks/results/bench_multigrid_cuda_h100.json).
 AUTO_MIN_PARTICLES = 14**3
+AUTO_MIN_PARTICLES_CUDA = 30**3
+
+
+def auto_min_particles(device) -> int:
+    """Particles from which "auto" takes multigrid on ``device``."""
+    return AUTO_MIN_PARTICLES_CUDA if device.is_cuda else AUTO_MIN_PARTICLES
 
 
 def multigrid_support(model) -> tuple[bool, str]:
