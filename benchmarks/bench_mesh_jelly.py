@@ -7,14 +7,18 @@ Run::
 
 For each resolution R a sphere mesh (and a torus) is voxelised into a jelly of R cells across
 (``[[jelly]] mesh = ...``), the sphere on the masked-lattice path (the CUDA default,
-core/masked_lattice.py; forced here on the CPU too) and on the spring list, the torus on the
-masked path; and a box jelly with the nearest cube of the same particle count is built on the
-lattice path (the default for a box) and on the spring list. Each model is compiled and warmed up, then ``--steps`` steps
+core/masked_lattice.py; forced here on the CPU too) with its fused stage (``*_fused``: the CUDA
+default, core/fused.py; ``sphere_fused_generic``: the generic build where the compiled one-jelly
+build is the default) and unfused (``sphere_masked``: force kernel, then the update), and on the
+spring list, the torus on the fused masked path; and a box jelly with the nearest cube of the same
+particle count is built on the lattice path (the default for a box; ``box_generic``: its generic
+stage) and on the spring list. Each model is compiled and warmed up, then ``--steps`` steps
 of ``--integrator`` are timed ``--repeats`` times (on CUDA one captured graph, wall time; on the CPU
 launch by launch, this thread's CPU time). The table gives the median time per particle-step
-and the ratio of each case to the box on the lattice path, the issue's measure (a mesh jelly
-within 1.5x of a full box of the same particle count). Compile time is recorded apart. Nothing here
-is asserted.
+and the ratio of each case to the box on the lattice path (``x box lattice``: the box of the
+sphere's count; ``x box same N``: the box of the case's own count, the torus's for the torus), the
+issue's measure (a mesh jelly within 1.5x of a full box of the same particle count). Compile time
+is recorded apart. Nothing here is asserted.
 """
 
 from __future__ import annotations
@@ -31,7 +35,7 @@ import numpy as np
 
 from softsim_warp.core.masked_lattice import attach_masked
 from softsim_warp.core.model import ModelBuilder, populate
-from softsim_warp.core.stepper import make_integrator
+from softsim_warp.core.integrators import ExplicitIntegrator
 from softsim_warp.core.terrain import sphere_mesh
 from softsim_warp.io.scene import scene_from_dict
 
@@ -73,7 +77,7 @@ def scene(jelly):
 class Case:
     """One model and integrator, warmed up, that times ``steps`` steps (a captured graph on CUDA)."""
 
-    def __init__(self, name, scn, device, integrator, steps, dt=1e-4, force_path="auto", gather=False):
+    def __init__(self, name, scn, device, integrator, steps, dt=1e-4, force_path="auto", gather=False, **options):
         import warp as wp  # noqa: PLC0415
 
         self.name, self.wp, self.device, self.steps, self.dt = name, wp, device, steps, dt
@@ -86,7 +90,10 @@ class Case:
         m = self.model
         self.particles = m.particle_count
         self.path = "lattice" if m.lattice is not None else "masked" if getattr(m, "masked", None) else "springs"
-        self.integ = make_integrator(integrator, self.model)
+        # options: the fused stage's (fused, single; core/fused.py configure_fused); none: the defaults.
+        self.integ = ExplicitIntegrator(self.model, integrator, **options)
+        if self.integ.fused:
+            self.path += " fused" + (" 1" if self.integ.single else "")
         self.states = [self.model.state(), self.model.state()]
         t0 = time.perf_counter()
         self._run(2)
@@ -134,32 +141,48 @@ def main(argv=None) -> int:
         torus = write_usd(Path(tmp) / "torus.usda", *torus_mesh())
         for res in args.res:
             sphere_scene = scene({"mesh": sphere, "resolution": res, "size": 1.0})
+            dev, method, steps = args.device, args.integrator, args.steps
             cases = [
-                Case("sphere_masked", sphere_scene, args.device, args.integrator, args.steps, gather=True),
-                Case("sphere_springs", sphere_scene, args.device, args.integrator, args.steps, force_path="springs"),
-                Case("torus_masked", scene({"mesh": torus, "resolution": res, "size": 1.0}), args.device,
-                     args.integrator, args.steps, gather=True),
+                Case("sphere_fused", sphere_scene, dev, method, steps, gather=True),
+                Case("sphere_fused_generic", sphere_scene, dev, method, steps, gather=True, single=False),
+                Case("sphere_masked", sphere_scene, dev, method, steps, gather=True, fused=False),
+                Case("sphere_springs", sphere_scene, dev, method, steps, force_path="springs"),
+                Case("torus_fused", scene({"mesh": torus, "resolution": res, "size": 1.0}), dev, method, steps,
+                     gather=True),
             ]
             n = round(cases[0].particles ** (1.0 / 3.0))
             box = scene({"resolution": [n, n, n], "size": 1.0})
-            cases.append(Case("box_lattice", box, args.device, args.integrator, args.steps))
-            cases.append(Case("box_springs", box, args.device, args.integrator, args.steps, force_path="springs"))
+            cases.append(Case("box_lattice", box, dev, method, steps))
+            cases.append(Case("box_generic", box, dev, method, steps, single=False))
+            cases.append(Case("box_springs", box, dev, method, steps, force_path="springs"))
+            # The torus has fewer particles than the sphere: its own box of (about) its count too.
+            nt = round(cases[4].particles ** (1.0 / 3.0))
+            cases.append(Case("box_torus_count", scene({"resolution": [nt, nt, nt], "size": 1.0}), dev, method, steps))
+            by_name = {c.name: c for c in cases}
             times = {c.name: [] for c in cases}
             for _ in range(args.repeats):
                 for c in cases:  # interleaved, so drifts of the machine hit every case alike
                     times[c.name].append(c.time())
-            ref = statistics.median(times["box_lattice"]) / cases[3].particles
+
+            def per_particle(name):
+                return statistics.median(times[name]) / by_name[name].particles
+
+            ref = per_particle("box_lattice")
             for c in cases:
-                per = statistics.median(times[c.name]) / c.particles
+                per = per_particle(c.name)
+                # The issue's measure: against a box of the same particle count on its default path.
+                same = per_particle("box_torus_count" if "torus" in c.name else "box_lattice")
                 rows.append({
                     "res": res, "case": c.name, "path": c.path, "particles": c.particles,
                     "seconds_per_step": statistics.median(times[c.name]), "ns_per_particle_step": per * 1e9,
-                    "ratio_to_box_lattice": per / ref, "compile_seconds": c.compile_seconds,
+                    "ratio_to_box_lattice": per / ref, "ratio_to_box_same_count": per / same,
+                    "compile_seconds": c.compile_seconds,
                 })
-    print(f"{'res':>4} {'case':<15} {'path':<8} {'particles':>9} {'ns/particle-step':>17} {'x box lattice':>14}")
+    print(f"{'res':>4} {'case':<21} {'path':<16} {'particles':>9} {'ns/particle-step':>17} {'x box lattice':>14}"
+          f" {'x box same N':>13}")
     for r in rows:
-        print(f"{r['res']:>4} {r['case']:<15} {r['path']:<8} {r['particles']:>9} {r['ns_per_particle_step']:>17.2f} "
-              f"{r['ratio_to_box_lattice']:>14.2f}")
+        print(f"{r['res']:>4} {r['case']:<21} {r['path']:<16} {r['particles']:>9} {r['ns_per_particle_step']:>17.2f} "
+              f"{r['ratio_to_box_lattice']:>14.2f} {r['ratio_to_box_same_count']:>13.2f}")
     if args.json:
         meta = {"device": str(wp.get_device(args.device)), "integrator": args.integrator, "steps": args.steps,
                 "repeats": args.repeats, "warp": wp.config.version}

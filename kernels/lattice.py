@@ -123,6 +123,67 @@ def common_coefficients(rest, ks, kd, types, dtype):
     return coef
 
 
+def _spring_macros(ctype):
+    """The SOFTSIM_RSQRT and SOFTSIM_SPRING macros of the native gathers (see ``_gather_snippet``)."""
+    tiny = "1.17549435e-38f" if ctype == "float" else "2.2250738585072014e-308"
+    rsqrt = (
+        "#if defined(__CUDA_ARCH__)\n"
+        '#define SOFTSIM_RSQRT(a, r) asm("rsqrt.approx.ftz.f32 %0, %1;" : "=f"(r) : "f"(a))\n'
+        "#else\n"
+        "#define SOFTSIM_RSQRT(a, r) r = T(1) / wp::sqrt(a)\n"
+        "#endif\n"
+        if ctype == "float"
+        else "#define SOFTSIM_RSQRT(a, r) r = T(1) / wp::sqrt(a)\n"
+    )
+    spring = (
+        "#define SOFTSIM_SPRING(kr_, nks_, kd_, ok_) { \\\n"
+        "  const T dx = x0 - bx, dy = x1 - by, dz = x2 - bz; \\\n"
+        f"  const T l2 = dx * dx + (dy * dy + (dz * dz + T({tiny}))); \\\n"
+        "  T inv; SOFTSIM_RSQRT(l2, inv); \\\n"
+        "  const T dot = (v0 - ux) * dx + (v1 - uy) * dy + (v2 - uz) * dz; \\\n"
+        "  const T s = (kr_ - kd_ * (dot * inv)) * inv + nks_; \\\n"
+        "  if (ok_) { f0 += s * dx; f1 += s * dy; f2 += s * dz; } }\n"
+    )
+    # The macros are textual: undefining them after the return statement is fine.
+    return rsqrt + spring
+
+
+def _stencil_neighbours():
+    """The 32 stencil offsets and their spring types, in the native gathers' order."""
+    # The 32 offsets and spring types in gather_lattice_force's order (the 3x3x3 block in
+    # (di, dj, dk) order, then bending axis by axis, -2 before +2), so the sums round alike.
+    neighbours = []
+    for di in (-1, 0, 1):
+        for dj in (-1, 0, 1):
+            for dk in (-1, 0, 1):
+                m = abs(di) + abs(dj) + abs(dk)
+                if m:
+                    neighbours.append(((di, dj, dk), min(m - 1, 1)))
+    for axis in range(3):
+        for side in (-2, 2):
+            o = [0, 0, 0]
+            o[axis] = side
+            neighbours.append((tuple(o), 2))
+    return neighbours
+
+
+def _coefficient_lines(uniform):
+    """C++ lines defining the native gathers' coefficients: ks r per offset pair, -ks and kd per type."""
+    lines = []
+    # Coefficients per +/- offset pair (the rest table is symmetric): ks r, -ks and kd.
+    if uniform:
+        # Coefficients from the kernel argument (the constant bank): UNIFORM_SLOTS order, then -ks, kd.
+        for n, s in enumerate(UNIFORM_SLOTS):
+            lines.append(f"const T r{s}k = coef.c[{n}];")
+        lines.append("const T n0 = coef.c[16], n1 = coef.c[17], n2 = coef.c[18];")
+        lines.append("const T c0 = coef.c[19], c1 = coef.c[20], c2 = coef.c[21];")
+    else:
+        for s in UNIFORM_SLOTS:
+            lines.append(f"const T r{s}k = rest[{s}] * k{PAIR_SLOT_TYPE[s]};")
+        lines.append("const T n0 = -k0, n1 = -k1, n2 = -k2;")
+    return lines
+
+
 def _gather_snippet(ctype, padded=False, uniform=False, shape=None, types=None, start=None):
     """C++ body of ``gather_native``: the 32-neighbour force on particle i, straight-line.
 
@@ -174,16 +235,6 @@ def _gather_snippet(ctype, padded=False, uniform=False, shape=None, types=None, 
     sm_90 build takes 48 registers instead of 64 and 1904 instructions instead of 2032
     (``cuobjdump -res-usage``; 48 registers on the H200 too). Same arithmetic, same bits.
     """
-    tiny = "1.17549435e-38f" if ctype == "float" else "2.2250738585072014e-308"
-    rsqrt = (
-        "#if defined(__CUDA_ARCH__)\n"
-        '#define SOFTSIM_RSQRT(a, r) asm("rsqrt.approx.ftz.f32 %0, %1;" : "=f"(r) : "f"(a))\n'
-        "#else\n"
-        "#define SOFTSIM_RSQRT(a, r) r = T(1) / wp::sqrt(a)\n"
-        "#endif\n"
-        if ctype == "float"
-        else "#define SOFTSIM_RSQRT(a, r) r = T(1) / wp::sqrt(a)\n"
-    )
     flag = {-2: "m2", -1: "m1", 1: "p1", 2: "p2"}
     lines = [
         f"typedef {ctype} T;",
@@ -220,31 +271,8 @@ def _gather_snippet(ctype, padded=False, uniform=False, shape=None, types=None, 
         "T f0 = T(0), f1 = T(0), f2 = T(0);",
     ]
 
-    # The 32 offsets and spring types in gather_lattice_force's order (the 3x3x3 block in
-    # (di, dj, dk) order, then bending axis by axis, -2 before +2), so the sums round alike.
-    neighbours = []
-    for di in (-1, 0, 1):
-        for dj in (-1, 0, 1):
-            for dk in (-1, 0, 1):
-                m = abs(di) + abs(dj) + abs(dk)
-                if m:
-                    neighbours.append(((di, dj, dk), min(m - 1, 1)))
-    for axis in range(3):
-        for side in (-2, 2):
-            o = [0, 0, 0]
-            o[axis] = side
-            neighbours.append((tuple(o), 2))
-    # Coefficients per +/- offset pair (the rest table is symmetric): ks r, -ks and kd.
-    if uniform:
-        # Coefficients from the kernel argument (the constant bank): UNIFORM_SLOTS order, then -ks, kd.
-        for n, s in enumerate(UNIFORM_SLOTS):
-            lines.append(f"const T r{s}k = coef.c[{n}];")
-        lines.append("const T n0 = coef.c[16], n1 = coef.c[17], n2 = coef.c[18];")
-        lines.append("const T c0 = coef.c[19], c1 = coef.c[20], c2 = coef.c[21];")
-    else:
-        for s in UNIFORM_SLOTS:
-            lines.append(f"const T r{s}k = rest[{s}] * k{PAIR_SLOT_TYPE[s]};")
-        lines.append("const T n0 = -k0, n1 = -k1, n2 = -k2;")
+    neighbours = _stencil_neighbours()
+    lines += _coefficient_lines(uniform)
     rows = sorted({(o[0], o[1]) for o, _ in neighbours})
     for di, dj in rows:
         name = f"{di + 2}{dj + 2}"
@@ -271,17 +299,75 @@ def _gather_snippet(ctype, padded=False, uniform=False, shape=None, types=None, 
                 f" SOFTSIM_SPRING(r{s}k, n{ty}, c{ty}, true); }}"
             )
     lines.append("return wp::vec_t<3, T>(f0, f1, f2);")
-    spring = (
-        "#define SOFTSIM_SPRING(kr_, nks_, kd_, ok_) { \\\n"
-        "  const T dx = x0 - bx, dy = x1 - by, dz = x2 - bz; \\\n"
-        f"  const T l2 = dx * dx + (dy * dy + (dz * dz + T({tiny}))); \\\n"
-        "  T inv; SOFTSIM_RSQRT(l2, inv); \\\n"
-        "  const T dot = (v0 - ux) * dx + (v1 - uy) * dy + (v2 - uz) * dz; \\\n"
-        "  const T s = (kr_ - kd_ * (dot * inv)) * inv + nks_; \\\n"
-        "  if (ok_) { f0 += s * dx; f1 += s * dy; f2 += s * dz; } }\n"
-    )
-    # The macros are textual: undefining them after the return statement is fine.
-    return rsqrt + spring + "\n".join(lines) + "\n#undef SOFTSIM_SPRING\n#undef SOFTSIM_RSQRT\n"
+    return _spring_macros(ctype) + "\n".join(lines) + "\n#undef SOFTSIM_SPRING\n#undef SOFTSIM_RSQRT\n"
+
+
+# Margin of absent points around a masked jelly's box in its index grid: the stencil reaches 2 points.
+MASK_MARGIN = 2
+
+
+def _masked_gather_snippet(ctype, uniform=False, dims=None, types=None):
+    """C++ body of ``masked_gather``: the stencil force on particle i of a masked lattice (mesh jelly).
+
+    A masked jelly is a box lattice with points missing. Its ``index`` table (passed as the
+    gathers' first table argument, ``jelly_start``) holds first each particle's position in the
+    index grid, then the jellies' index grids: per jelly its box with a margin of ``MASK_MARGIN``
+    absent points on every side, each entry a particle index or -1 (``core/masked_lattice.py``).
+    ``jelly_shape`` holds each jelly's grid dimensions (box + 2 margins). A neighbour at stencil
+    offset (di, dj, dk) is the grid entry at a constant offset from the particle's own (one of 21
+    row pointers plus a constant, as in ``_gather_snippet``); the margin makes every offset of every
+    present point land inside the jelly's grid, so there are no bounds tests at all. An absent
+    neighbour (-1) or one of an absent spring type is replaced by the particle itself (exactly zero
+    force, see ``_gather_snippet``), so every load is unconditional and valid. Same spring
+    arithmetic and order as ``gather_native``; over a whole box it gives the same sums.
+
+    A spring costs what the box gather's does plus one 4-byte grid load (shared by the 32 threads of
+    a warp along a lattice row, so cached) and the select and two address computations of the
+    neighbour's index. ``uniform``: coefficients from ``coef`` (as ``_gather_snippet``); ``dims``,
+    ``types``: one jelly's grid dimensions and spring types compiled in (``masked_stage``).
+    """
+    lines = [f"typedef {ctype} T;", "const int* index = (const int*)jelly_start.data;"]
+    if dims is None:
+        lines += [
+            "const int* dims = (const int*)jelly_shape.data + 3 * j;",
+            "const int nz = dims[2], row = dims[1] * dims[2];",
+        ]
+    else:
+        lines.append(f"const int nz = {int(dims[2])}, row = {int(dims[1]) * int(dims[2])};")
+    lines += [
+        "const int* G = index + index[i];",
+        "const int types = " + ("((const int*)jelly_types.data)[j];" if types is None else f"{int(types)};"),
+        "const bool s0 = (types & 1) != 0, s1 = (types & 2) != 0, s2 = (types & 4) != 0;",
+    ]
+    if not uniform:
+        lines += [
+            f"const T* rest = (const T*)jelly_rest.data + {REST_SLOTS} * j;",
+            "const T* ks = (const T*)jelly_ks.data + 3 * j;",
+            "const T* kd = (const T*)jelly_kd.data + 3 * j;",
+            "const T k0 = ks[0], k1 = ks[1], k2 = ks[2], c0 = kd[0], c1 = kd[1], c2 = kd[2];",
+        ]
+    lines += [
+        "const T* X0 = (const T*)q.data;",
+        "const T* V0 = (const T*)qd.data;",
+        "const T* X = X0 + 3 * i;",
+        "const T* V = V0 + 3 * i;",
+        "const T x0 = X[0], x1 = X[1], x2 = X[2], v0 = V[0], v1 = V[1], v2 = V[2];",
+        "T f0 = T(0), f1 = T(0), f2 = T(0);",
+    ]
+    neighbours = _stencil_neighbours()
+    lines += _coefficient_lines(uniform)
+    for di, dj in sorted({(o[0], o[1]) for o, _ in neighbours}):
+        lines.append(f"const int* g{di + 2}{dj + 2} = G + ({di} * row + {dj} * nz);")
+    for (di, dj, dk), ty in neighbours:
+        s = pair_slot((di, dj, dk))
+        lines.append(
+            f"{{ const int gp = g{di + 2}{dj + 2}[{dk}]; const int p = (s{ty} && gp >= 0) ? gp : i;"
+            " const T* xp = X0 + 3 * p; const T* vp = V0 + 3 * p;"
+            " const T bx = xp[0], by = xp[1], bz = xp[2], ux = vp[0], uy = vp[1], uz = vp[2];"
+            f" SOFTSIM_SPRING(r{s}k, n{ty}, c{ty}, true); }}"
+        )
+    lines.append("return wp::vec_t<3, T>(f0, f1, f2);")
+    return _spring_macros(ctype) + "\n".join(lines) + "\n#undef SOFTSIM_SPRING\n#undef SOFTSIM_RSQRT\n"
 
 
 def _rows_snippet(ctype, with_stage=False):
@@ -781,6 +867,37 @@ return 1.0f / wp::sqrt(x);
             single_stages[key] = make_integrate_lattice_stage(gather, single=True)
         return single_stages[key]
 
+    # The fused stage of masked lattices (mesh jellies, core/masked_lattice.py): the same stage kernel
+    # around the masked gather. Generic (per-jelly tables) under the key None; one jelly's grid
+    # dimensions and spring types compiled in, coefficients from ``coef``, under (dims, types).
+    masked_stages = {}
+
+    def masked_stage(key=None):
+        """The fused stage of a model on the masked path, built once per ``key`` (see above)."""
+        if key not in masked_stages:
+            if key is None:
+                options = {}
+            else:
+                options = {"uniform": True, "dims": tuple(int(n) for n in key[0]), "types": int(key[1])}
+
+            @wp.func_native(_masked_gather_snippet(ctype, **options))
+            def masked_gather(
+                i: int,
+                j: int,
+                jelly_start: wp.array(dtype=wp.int32),
+                jelly_shape: wp.array(dtype=wp.vec3i),
+                jelly_types: wp.array(dtype=wp.int32),
+                jelly_rest: wp.array2d(dtype=scalar),
+                jelly_ks: wp.array2d(dtype=scalar),
+                jelly_kd: wp.array2d(dtype=scalar),
+                q: wp.array(dtype=vec3),
+                qd: wp.array(dtype=vec3),
+                coef: coef_vec,
+            ) -> vec3: ...
+
+            masked_stages[key] = make_integrate_lattice_stage(masked_gather, single=key is not None)
+        return masked_stages[key]
+
     @wp.func_native(_rows_snippet("float" if scalar == wp.float32 else "double"))
     def lattice_rows_native(
         j: int,
@@ -988,6 +1105,7 @@ return 1.0f / wp::sqrt(x);
         "make_eval_lattice_springs": make_eval_lattice_springs,
         "integrate_lattice_stage": integrate_lattice_stage,
         "single_stage": single_stage,
+        "masked_stage": masked_stage,
         "gather_native": gather_native,
         "make_gather_native": make_gather_native,
         "make_integrate_lattice_stage": make_integrate_lattice_stage,

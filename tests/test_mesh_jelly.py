@@ -62,12 +62,13 @@ def _mesh_scene(path, **jelly):
     return scene_from_dict({"simulation": {"dt": 1e-3, "frames": 1}, "jelly": [j]})
 
 
-def _grid(points, resolution):
+def _grid(points, resolution, flat=(False, False, False)):
     """The lattice a mesh jelly of ``resolution`` cells along its longest side gets (io/mesh_scene.py),
-    centred on the mesh's bounding box: (shape, size, spacing, centre)."""
+    centred on the mesh's bounding box: (shape, size, spacing, centre). ``flat``: per axis, whether
+    the mesh has a face in a bounding plane (points on the bounding faces; else at cell centres)."""
     lo, hi = points.min(0), points.max(0)
     h = (hi - lo).max() / resolution
-    shape = [int(math.ceil(e / h - 1e-6)) + 1 for e in hi - lo]
+    shape = [max(int(math.ceil(e / h - 1e-6)) + int(f), 2) for e, f in zip(hi - lo, flat)]
     return shape, [(n - 1) * h for n in shape], h, 0.5 * (lo + hi)
 
 
@@ -98,17 +99,26 @@ def test_voxelised_points_are_the_analytic_inside(device):
 
 
 def test_voxelised_sphere_and_torus_volume():
-    # Each lattice point inside stands for one cell: the particle volume N h^3. For the sphere at
-    # resolution 30 (cells along the longest side) it is within 3 %. For a ring torus (R = 1,
-    # r = 0.5, V = 2 pi^2 R r^2) the point count aliases with the lattice (the membership itself is
-    # exact, test above): -3.7 % at resolution 30, then -0.2, -1.1, -1.5, -0.6 % at 40, 50, 60, 80.
+    # Each lattice point inside stands for one cell: the particle volume N h^3, within 3 % of the
+    # analytic volume for the sphere and a ring torus (R = 1, r = 0.5, V = 2 pi^2 R r^2) at
+    # resolution 30 (cells along the longest side) and finer. Neither has a flat face, so the points
+    # sit at cell centres (io/mesh_scene._flat_axes); with points on the bounding faces the torus's
+    # top and bottom tangent planes would hold lattice planes at resolution 30 (-3.7 %).
     from softsim_warp.core.terrain import fan_triangles
+    from softsim_warp.io.mesh_scene import _flat_axes
 
     pts, counts, idx = sphere_mesh([0, 0, 0], 1.0, rings=64, segments=128)
-    assert _grid_volume(pts, fan_triangles(counts, idx), 30) == pytest.approx(4.0 / 3.0 * math.pi, rel=0.03)
+    tris = fan_triangles(counts, idx)
+    assert _flat_axes(pts, tris, pts.min(0), pts.max(0)) == [False] * 3
+    assert _grid_volume(pts, tris, 30) == pytest.approx(4.0 / 3.0 * math.pi, rel=0.03)
     pts, counts, idx = torus_mesh(1.0, 0.5)
-    for res in (40, 50, 60, 80):
-        assert _grid_volume(pts, fan_triangles(counts, idx), res) == pytest.approx(2 * math.pi**2 * 0.25, rel=0.03)
+    tris = fan_triangles(counts, idx)
+    assert _flat_axes(pts, tris, pts.min(0), pts.max(0)) == [False] * 3
+    for res in (30, 40, 50, 60, 80):
+        assert _grid_volume(pts, tris, res) == pytest.approx(2 * math.pi**2 * 0.25, rel=0.03)
+    # A box has flat faces on every axis (points on its faces: the box lattice, test below).
+    box = np.asarray(box_mesh([1.0, 0.5, 0.75])[0])
+    assert _flat_axes(box, fan_triangles([4] * 6, box_mesh([1.0, 0.5, 0.75])[2]), box.min(0), box.max(0)) == [True] * 3
 
 
 def test_box_mesh_gives_exactly_the_box_lattice(tmp_path, device):
@@ -375,3 +385,67 @@ def test_demo_assets_are_what_the_script_makes(tmp_path):
         asset = load_mesh(str(tmp_path / name))
         if name != "bumpy_floor.usda":  # the floor is an open sheet facing up; the rest are closed
             assert asset.closed and asset.volume() > 0
+
+
+def _fused_masked_run(scene, method, precision, steps, path, single=None):
+    """Positions and velocities after ``steps`` steps on ``path``: "fused" (the masked fused stage,
+    forced on the CPU), "springs" (the spring list, unfused, contact as its own kernels)."""
+    from softsim_warp.core.integrators import ExplicitIntegrator
+
+    model = _builder_model(scene, "cpu", precision)
+    if path == "springs":
+        model.masked = None
+    integ = ExplicitIntegrator(model, method, single=single)
+    assert integ.fused == (path == "fused")
+    if single is not None:
+        assert integ.single == single
+    s0, s1 = model.state(), model.state()
+    for _ in range(steps):
+        integ.step(s0, s1, 1e-3)
+        s0, s1 = s1, s0
+    return model, s0.particle_q.numpy().astype(np.float64), s0.particle_qd.numpy().astype(np.float64)
+
+
+def _plane_scene(ball, two):
+    """A tumbling mesh jelly that lands on a plane during the run; ``two``: with a box jelly beside it
+    of other springs and mass (per-jelly tables, the generic stage)."""
+    jelly = {"mesh": ball, "resolution": 6, "size": 0.5, "center": [0.0, 2.0, 0.0], "total_mass": 1.0,
+             "springs": SPRINGS, "velocity": [0.0, -1.0, 0.5], "angular_velocity": [3.0, 0.0, 1.0]}
+    jellies = [jelly]
+    if two:
+        jellies.append({"resolution": [3, 4, 2], "size": [0.3, 0.4, 0.1], "center": [2.0, 1.9, 0.0], "total_mass": 0.5,
+                        "velocity": [0.0, -1.5, 0.0],
+                        "springs": {"structural": {"ks": 80.0, "kd": 0.3}, "bending": {"ks": 20.0, "kd": 0.1}}})
+    plane = {"point": [0.0, 1.7, 0.0], "normal": [0.0, 1.0, 0.0], "restitution": 0.5, "friction": 0.3}
+    return scene_from_dict({"simulation": {"dt": 1e-3, "frames": 1}, "jelly": jellies, "plane": [plane]})
+
+
+@pytest.mark.parametrize("method", ["symplectic", "rk4"])
+@pytest.mark.parametrize("case", ["two jellies", "one jelly, generic", "one jelly, compiled"])
+def test_fused_masked_stage_matches_the_spring_list(ball, method, case):
+    # The fused masked stage (neighbours through the index grid, the stage update and plane contact in
+    # one kernel) against the spring list with separate force, update and contact kernels, float64,
+    # 250 steps of a tumbling jelly that lands on a plane: the same trajectory to rounding growth.
+    two = case == "two jellies"
+    single = None if two else case.endswith("compiled")
+    scene = _plane_scene(ball, two)
+    model, q, qd = _fused_masked_run(scene, method, "float64", 250, "fused", single)
+    assert model.masked.single == (not two)
+    _, q_ref, qd_ref = _fused_masked_run(scene, method, "float64", 250, "springs")
+    # The plane acted: nothing below it, and the jelly's mean height is far above free fall's, which
+    # would have taken it 0.56 m down (v0 = -1 m/s, g = 9.8 m/s^2, 0.25 s).
+    assert q_ref[:, 1].min() > 1.7 - 1e-3
+    assert q_ref[:, 1].mean() > model.particle_q_host[:, 1].mean() - 0.4
+    assert np.abs(q - q_ref).max() < 1e-11
+    assert np.abs(qd - qd_ref).max() < 1e-9
+
+
+@pytest.mark.parametrize("method", ["symplectic", "rk4"])
+def test_fused_masked_stage_float32(ball, method):
+    # float32 build of the generic and compiled stages: the float64 spring list's trajectory to
+    # float32 rounding growth over 60 steps (the jelly lands at step ~50).
+    scene = _plane_scene(ball, False)
+    _, q_ref, _ = _fused_masked_run(scene, method, "float64", 60, "springs")
+    for single in (False, True):
+        _, q, _ = _fused_masked_run(scene, method, "float32", 60, "fused", single)
+        assert np.abs(q - q_ref).max() < 2e-5

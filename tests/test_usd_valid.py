@@ -28,7 +28,7 @@ def _small(name):
     out = []
     for i, j in enumerate(data.get("jelly", [])):
         if "mesh" in j:
-            out += ["--set", f"jelly.{i}.resolution=8"]
+            out += ["--set", f"jelly.{i}.resolution=9"]
         elif max(j["resolution"]) > 6:
             out += ["--set", f"jelly.{i}.resolution=[{','.join(str(min(n, 4)) for n in j['resolution'])}]"]
     return out

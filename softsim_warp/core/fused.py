@@ -11,6 +11,10 @@ set, :func:`step_fused` from ``step``. The kernel follows the lattice kernel the
   the jelly's shape and spring types, reading no per-particle jelly, world or mass and no bounds
   (its states are padded, ``Model.particle_array``); 1.21x symplectic, 1.20x rk4 at 100^3 on an
   H100 (docs/PERFORMANCE.md).
+* masked (mesh jellies, ``model.masked``, core/masked_lattice.py): the same stage kernel around the
+  masked gather (``masked_stage``, kernels/lattice.py), each neighbour read through the jelly's
+  index grid; a one-jelly model of one particle mass with shared coefficients takes the build
+  compiled for its grid (from ``SINGLE_FROM`` particles on, as the box).
 * rows (CPU): ``integrate_lattice_rows_stage`` computes a jelly's forces with the vectorised row
   loops and then its particles' stage update; contact follows as its own kernel.
 
@@ -27,6 +31,7 @@ from __future__ import annotations
 import warp as wp
 
 from .contact import apply_contacts, filter_stage_contacts, plane_arrays
+from .lattice_model import LatticeData
 
 # Particles from which a one-jelly model steps with the shape-compiled stage (``single_stage``).
 # Below, a few blocks per SM leave the latency to the loads each thread has in flight: the
@@ -41,19 +46,22 @@ def configure_fused(integrator, fused=None, fuse_contact=None, single=None):
     particles on)."""
     model = integrator.model
     lat = model.lattice
+    masked = getattr(model, "masked", None)
     if fused is None:
-        fused = lat is not None
-    if fused and lat is None:
+        fused = lat is not None or masked is not None
+    if fused and lat is None and masked is None:
         raise ValueError(f"fused stages need the lattice path ({model.lattice_reason})")
     integrator.fused = bool(fused)
+    if fused and lat is None:
+        masked.make_stage_tables(model.particle_mass.numpy())
     # Only the gather kernel can apply contact per particle; the row kernel works per jelly. On by
     # default: the fused stage calls the same contact_planes as collide_planes on the same values
     # (tests/test_perf_paths.py: bitwise on the CPU), one launch fewer per stage with planes.
-    gather = fused and lat.per_particle
+    gather = fused and (lat is None or lat.per_particle)
     if fuse_contact is None:
         fuse_contact = True
     integrator.fuse_contact = bool(gather and model.plane_count and bool(fuse_contact))
-    eligible = lat is not None and lat.single
+    eligible = (lat is not None and lat.single) or (lat is None and bool(fused) and masked.single)
     if single is None:
         single = eligible and model.particle_count >= SINGLE_FROM
     elif single and not eligible:
@@ -94,14 +102,20 @@ def step_fused(integrator, state_in, state_out, dt):
     lat = model.lattice
     h = model.scalar(dt)
     bufs = stage_buffers(integrator)
-    rows = lat.kernel == "rows"
+    rows = lat is not None and lat.kernel == "rows"
     q, qd = state_in.particle_q, state_in.particle_qd
     stage_kernel = None
+    tables, coef = (lat.stencil_tables, lat.stencil_coef) if lat is not None else (None, None)
     if not rows:
         gathered = [q, qd] + [a for pair in bufs[: stage_buffer_count(integrator)] for a in pair]
         # The fused stages address every per-particle array from its data pointer.
-        lat.check_contiguous(*gathered, state_out.particle_q, state_out.particle_qd)
-        if integrator.single and lat.padded(*gathered):
+        LatticeData.check_contiguous(*gathered, state_out.particle_q, state_out.particle_qd)
+        if lat is None:
+            # Masked lattice: neighbours through the index grid, every load valid (no padding needed).
+            ml = model.masked
+            tables, coef = ml.stage_tables, ml.stencil_coef
+            stage_kernel = model.kernels.masked_stage(ml.stage_key if integrator.single else None)
+        elif integrator.single and lat.padded(*gathered):
             # Compiled for the jelly's shape and spring types (kernels/lattice.py single_stage).
             stage_kernel = model.kernels.single_stage(lat.layout.shape[0], lat.layout.types[0])
         else:
@@ -147,7 +161,7 @@ def step_fused(integrator, state_in, state_out, dt):
                     model.particle_world,
                     model.particle_jelly,
                     model.gravity,
-                    *lat.stencil_tables,
+                    *tables,
                     integrator.world_stage_count,
                     integrator.world_symplectic,
                     integrator.world_stage_c,
@@ -157,7 +171,7 @@ def step_fused(integrator, state_in, state_out, dt):
                     model.contact_velocity_epsilon,
                     model.restitution_threshold_steps,
                     integrator.world_contact_beta,
-                    lat.stencil_coef,
+                    coef,
                     state_in.particle_q,
                     state_in.particle_qd,
                     q,

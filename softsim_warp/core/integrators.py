@@ -125,7 +125,7 @@ class ExplicitIntegrator(Integrator):
         # Stage buffers, allocated once: forces, the stage state and the RK accumulators.
         n = model.particle_count
         # A fused gather stage keeps forces in registers; the row kernel and the plain path need f.
-        gather_fused = self.fused and model.lattice.per_particle
+        gather_fused = self.fused and (model.lattice is None or model.lattice.per_particle)  # None: masked
         self.f = wp.zeros(0 if gather_fused else n, dtype=model.vec3, device=device)
         multi = self.stage_count > 1
         # Stage states are gathered from like the state itself, so they are made the same way.

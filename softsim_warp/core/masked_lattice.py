@@ -13,6 +13,12 @@ lattices that the regular lattice path does not cover; on the CPU the atomic spr
 thread per spring, vectorised by Warp's CPU backend no better) stays, as benchmarks/bench_mesh_jelly.py
 measured. The model keeps its spring list too (the implicit integrator's Jacobian and the metrics
 read it).
+
+The explicit methods step it with the fused lattice stage (core/fused.py) around the masked gather
+(kernels/lattice.py ``masked_stage``): each jelly's index grid gets a margin of absent points
+(``MaskedLattice.make_stage_tables``), so a neighbour is a grid entry at a constant offset with no
+bounds test, and an absent one is replaced by the particle itself (zero force). ``eval_forces``
+(implicit, ``fused=False``) keeps ``eval_masked_springs``.
 """
 
 from __future__ import annotations
@@ -21,7 +27,7 @@ import numpy as np
 import warp as wp
 
 from . import lattice
-from ..kernels.lattice import REST_SLOTS, rest_slot
+from ..kernels.lattice import COEF_LENGTH, MASK_MARGIN, REST_SLOTS, common_coefficients, rest_slot
 from .lattice_model import REST_TOLERANCE
 
 
@@ -124,6 +130,68 @@ class MaskedLattice:
         self.jelly_rest = wp.array2d(np.asarray(tables["rest"], dtype=np_scalar), dtype=scalar, device=device)
         self.jelly_ks = wp.array2d(np.asarray(tables["ks"], dtype=np_scalar), dtype=scalar, device=device)
         self.jelly_kd = wp.array2d(np.asarray(tables["kd"], dtype=np_scalar), dtype=scalar, device=device)
+        self._tables, self._device, self._np_scalar, self._scalar = tables, device, np_scalar, scalar
+        self.stage_index = None
+
+    def make_stage_tables(self, particle_mass: np.ndarray) -> None:
+        """Build the fused stage's tables (once; only an explicit integrator's fused stage needs them).
+
+        Attributes made:
+            stage_index: int32, each particle's position in this array's grid part, then the jellies'
+                index grids: per jelly its box with ``MASK_MARGIN`` absent points on every side, each
+                entry a particle index or -1 (see kernels/lattice.py ``_masked_gather_snippet``).
+            stage_dims: grid dimensions per jelly (box + 2 margins), shape [J], vec3i.
+            uniform, stencil_coef: the jellies' common coefficients, as ``LatticeData``'s.
+            single: one jelly starting at particle 0, of particles of one mass, uniform: the stage
+                compiled for it (``masked_stage(stage_key)``) reads no per-particle jelly, world or mass.
+            stage_key: (grid dimensions, spring types) of that jelly, or None.
+        """
+        if self.stage_index is not None:
+            return
+        t = self._tables
+        n = t["cell"].size
+        pad = MASK_MARGIN
+        dims = t["shape"] + 2 * pad
+        sizes = np.prod(dims, axis=1)
+        starts = n + np.concatenate([[0], np.cumsum(sizes)[:-1]]).astype(np.int64)
+        index = np.full(n + int(sizes.sum()), -1, dtype=np.int64)
+        jelly_of = np.zeros(n, dtype=np.int64)
+        for j, (shape, d) in enumerate(zip(t["shape"], dims)):
+            grid = t["grid"][t["grid_start"][j] : t["grid_start"][j] + int(np.prod(shape))].reshape(shape)
+            full = np.full(tuple(d), -1, dtype=np.int64)
+            full[pad:-pad, pad:-pad, pad:-pad] = grid
+            index[starts[j] : starts[j] + sizes[j]] = full.reshape(-1)
+            present = grid.reshape(-1)[grid.reshape(-1) >= 0]
+            jelly_of[present] = j
+        # Each particle's position in its jelly's padded grid.
+        cell = t["cell"].astype(np.int64)
+        shape_p = t["shape"][jelly_of]
+        dims_p = dims[jelly_of]
+        c = cell % shape_p[:, 2]
+        ab = cell // shape_p[:, 2]
+        b = ab % shape_p[:, 1]
+        a = ab // shape_p[:, 1]
+        index[:n] = starts[jelly_of] + ((a + pad) * dims_p[:, 1] + (b + pad)) * dims_p[:, 2] + (c + pad)
+        if index.size > np.iinfo(np.int32).max:
+            raise ValueError("masked lattice grids too large for int32 indices")
+        dev = self._device
+        self.stage_index = wp.array(index.astype(np.int32), dtype=wp.int32, device=dev)
+        self.stage_dims = wp.array(dims.astype(np.int32), dtype=wp.vec3i, device=dev)
+        coef = common_coefficients(t["rest"], t["ks"], t["kd"], t["types"], self._np_scalar)
+        self.uniform = coef is not None
+        if coef is None:
+            coef = np.zeros(COEF_LENGTH, dtype=self._np_scalar)
+        self.stencil_coef = wp.types.vector(COEF_LENGTH, self._scalar)(*coef)
+        mass = np.asarray(particle_mass)
+        self.single = bool(
+            self.uniform and len(dims) == 1 and mass.shape[0] == n and n > 0 and np.all(mass == mass[0])
+        )
+        self.stage_key = (tuple(int(x) for x in dims[0]), int(t["types"][0])) if self.single else None
+
+    @property
+    def stage_tables(self) -> list:
+        """The fused stage's tables in the order the lattice stage kernels take them (``stencil_tables``)."""
+        return [self.stage_index, self.stage_dims, self.jelly_types, self.jelly_rest, self.jelly_ks, self.jelly_kd]
 
 
 def attach_masked(builder, m, force_path="auto", kernel=None) -> None:

@@ -53,6 +53,27 @@ def resolve_meshes(data: dict, ctx, base=None):
         _mesh_jelly(i, j, ctx, base)
 
 
+def _flat_axes(points, triangles, lo, hi) -> list[bool]:
+    """Per axis, whether some face of the mesh (with area) lies in one of its two bounding-box planes.
+
+    Such an axis keeps lattice points on the bounding faces (a box mesh gives the box lattice); the
+    others get points at cell centres, so that no lattice plane lies on a tangent plane: for a cap
+    of cross-section c sqrt(t) at depth t (a torus's top and bottom), a layer on the tangent plane
+    counts none of its first half cell, an error of -(2/3) c (h/2)^1.5; a layer at depth h/2 errs
+    by +0.04 c h^1.5, six times less.
+    """
+    p = np.asarray(points, dtype=np.float64)
+    tri = np.asarray(triangles, dtype=np.int64).reshape(-1, 3)
+    area2 = np.linalg.norm(np.cross(p[tri[:, 1]] - p[tri[:, 0]], p[tri[:, 2]] - p[tri[:, 0]]), axis=1)
+    tol = 1e-6 * float((hi - lo).max())
+    flat = []
+    for a in range(3):
+        c = p[tri, a]  # (T, 3) this coordinate of each face's corners
+        on = (np.abs(c - lo[a]) <= tol).all(axis=1) | (np.abs(c - hi[a]) <= tol).all(axis=1)
+        flat.append(bool(np.any(on & (area2 > 0.0))))
+    return flat
+
+
 def _mesh_jelly(i, j, ctx, base):
     key = f"jelly.{i}"
     if "mesh" not in j:
@@ -91,10 +112,15 @@ def _mesh_jelly(i, j, ctx, base):
         ctx.fail(f"{key}.{'spacing' if 'spacing' in j else 'resolution'}",
                  f"the mesh ({' x '.join(f'{e:.4g}' for e in extent)} m) is smaller than one lattice cell "
                  f"({h:.4g} m) along an axis; use a finer lattice", j.get("spacing", j.get("resolution")))
-    # Points per axis: the box spans the bounding box, a whole number of cells (a box mesh of k
-    # cells gives exactly k + 1 points: the extent's rounding is forgiven).
+    # Points per axis. Along an axis where the mesh has a face in a bounding-box plane (a box's
+    # sides) the box spans the bounding box, a whole number of cells (a box mesh of k cells gives
+    # exactly k + 1 points: the extent's rounding is forgiven). Along any other axis a curved
+    # surface only touches its bounding planes, and a lattice plane there would hold a sliver of the
+    # body while standing for a whole layer of cells (the torus at resolution 30: particle volume
+    # -3.7 %): the points sit at the centres of the cells that tile the extent instead (_flat_axes).
     given = ["spacing", j["spacing"]] if "spacing" in j else ["resolution", j["resolution"][0]]
-    shape = [int(math.ceil(e / h - 1e-6)) + 1 for e in extent]
+    flat = _flat_axes(asset.points, asset.triangles, lo, hi)
+    shape = [max(int(math.ceil(e / h - 1e-6)) + int(f), 2) for e, f in zip(extent, flat)]
     j["resolution"] = shape
     j["size"] = [(n - 1) * h for n in shape]
     j["_mesh_scale"] = scale
