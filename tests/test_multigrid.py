@@ -277,9 +277,9 @@ def test_vcycle_is_symmetric_positive_definite():
     integ, _ = run(model, 1, preconditioner="multigrid")
     mg = integ.multigrid
     n = model.particle_count
-    r = wp.zeros(n, dtype=model.vec3)
-    z = wp.zeros(n, dtype=model.vec3)
-    scalars = wp.zeros(8, dtype=model.scalar)
+    r = wp.zeros(n, dtype=model.vec3, device=model.device)
+    z = wp.zeros(n, dtype=model.vec3, device=model.device)
+    scalars = wp.zeros(8, dtype=model.scalar, device=model.device)
     cols = []
     for k in range(3 * n):
         e = np.zeros(3 * n)
