@@ -53,6 +53,11 @@ wp.set_module_options({"enable_backward": False})
 # Threads per reduction block; the launcher in softsim_warp/core/implicit.py uses the same value.
 TILE = 256
 
+
+def tile_blocks(count: int) -> int:
+    """Blocks of TILE threads that cover ``count`` items (a tiled kernel's launch is (blocks, TILE))."""
+    return (count + TILE - 1) // TILE
+
 # Slots of the CG scalar array.
 BB = 0  # b.b (filtered)
 RZ = 1  # r.z of the current iterate

@@ -29,7 +29,6 @@ contact-free ``free_flight`` scene; contact scenes are shown separately (docs/AC
 from __future__ import annotations
 
 import math
-import sys
 import time
 from dataclasses import dataclass, field
 

@@ -30,7 +30,7 @@ from dataclasses import asdict, dataclass
 
 import numpy as np
 
-from ..core.errors import CommandLineError, UserError
+from ..core.errors import CommandLineError
 from ..core.integrators import ExplicitIntegrator
 from ..core.model import ModelBuilder, build_model
 from ..core.stepper import make_integrator
@@ -40,6 +40,7 @@ from ..io.scene import load_scene
 from . import bench_contact
 from .bench_newton import NewtonJelly, implicit_peer, newton_version
 from .common import ProgressLog, resolve_device
+from .timing import TimedSteps
 
 COMMAND = "bench"
 DEFAULT_INTEGRATORS = ("euler", "symplectic", "midpoint", "rk4")
@@ -268,59 +269,7 @@ def measure_copy_bandwidth(device, nbytes=None, repeats=5) -> float:
 # -- timed cases ---------------------------------------------------------------------------------
 
 
-class _Case:
-    """A stepper whose ``steps`` steps run as one timed unit (a graph replay or a Python loop)."""
-
-    def __init__(self, device, step_fn, steps, use_graph):
-        import warp as wp  # noqa: PLC0415
-
-        self.wp = wp
-        self.device = device
-        self.step_fn = step_fn
-        self.steps = steps + (steps % 2)  # even: double-buffered states end where they began
-        self.use_graph = use_graph
-        self.graph = None
-        self.wall = []
-        self.cpu = []
-
-    def prepare(self) -> float:
-        """First step (module load or compile), graph capture, warm-up; returns the first step's seconds."""
-        wp = self.wp
-        t0 = time.perf_counter()
-        self.step_fn(2)
-        wp.synchronize_device(self.device)
-        compile_s = time.perf_counter() - t0
-        if self.use_graph:
-            with wp.ScopedCapture(device=self.device, force_module_load=False) as capture:
-                self.step_fn(self.steps)
-            self.graph = capture.graph
-        self.run()
-        wp.synchronize_device(self.device)
-        return compile_s
-
-    def run(self):
-        if self.graph is not None:
-            self.wp.capture_launch(self.graph)
-        else:
-            self.step_fn(self.steps)
-
-    def time_once(self):
-        wp = self.wp
-        wp.synchronize_device(self.device)
-        c0, t0 = time.process_time(), time.perf_counter()
-        self.run()
-        wp.synchronize_device(self.device)
-        self.wall.append(time.perf_counter() - t0)
-        self.cpu.append(time.process_time() - c0)
-
-    def ms_per_step(self) -> float:
-        return 1e3 * float(np.median(self.wall)) / self.steps
-
-    def cpu_ms_per_step(self) -> float:
-        return 1e3 * float(np.median(self.cpu)) / self.steps
-
-
-class _OurCase(_Case):
+class _OurCase(TimedSteps):
     """Our integrator on one model; ``options`` (fused, fuse_contact, single) go to ExplicitIntegrator."""
 
     def __init__(self, model, method, dt, steps, use_graph, options=None):
@@ -345,7 +294,7 @@ class _OurCase(_Case):
         return bool(np.all(np.isfinite(self.states[0].particle_q.numpy())))
 
 
-class _SeparateCase(_Case):
+class _SeparateCase(TimedSteps):
     """Several models stepped one after another (the unbatched reference for ``--variants``)."""
 
     def __init__(self, models, method, dt, steps, use_graph):
@@ -361,7 +310,7 @@ class _SeparateCase(_Case):
         return all(p.finite() for p in self.parts)
 
 
-class _NewtonCase(_Case):
+class _NewtonCase(TimedSteps):
     def __init__(self, model, spec: JellySpec, steps, use_graph):
         t0 = time.perf_counter()
         self.jelly = NewtonJelly(

@@ -34,6 +34,7 @@ from ..core.model import ModelBuilder
 from ..core.stepper import make_integrator
 from ..io.outputs import Outputs, save_report
 from .bench_newton import NewtonJelly, newton_version
+from .timing import TimedSteps
 
 DEFAULT_JELLIES = "8,64,216,512,1000"
 # Newton's particle radius in lattice spacings: below 0.5, a jelly's own neighbours never touch.
@@ -91,50 +92,7 @@ def build_pile(count, size, spec, device, precision="float32", contact=True):
     return builder.finalize(device, precision)
 
 
-class _Timed:
-    """``step_fn(count)`` captured as a graph of ``steps`` steps (even) and replayed; wall-clock medians."""
-
-    def __init__(self, device, step_fn, steps, use_graph):
-        import warp as wp  # noqa: PLC0415
-
-        self.wp, self.device, self.step_fn = wp, device, step_fn
-        self.steps = steps + (steps % 2)
-        self.use_graph = use_graph
-        self.graph = None
-        self.wall = []
-
-    def prepare(self) -> float:
-        wp = self.wp
-        t0 = time.perf_counter()
-        self.step_fn(2)
-        wp.synchronize_device(self.device)
-        first = time.perf_counter() - t0
-        if self.use_graph:
-            with wp.ScopedCapture(device=self.device, force_module_load=False) as capture:
-                self.step_fn(self.steps)
-            self.graph = capture.graph
-        self.run()
-        wp.synchronize_device(self.device)
-        return first
-
-    def run(self):
-        if self.graph is not None:
-            self.wp.capture_launch(self.graph)
-        else:
-            self.step_fn(self.steps)
-
-    def time_once(self):
-        self.wp.synchronize_device(self.device)
-        t0 = time.perf_counter()
-        self.run()
-        self.wp.synchronize_device(self.device)
-        self.wall.append(time.perf_counter() - t0)
-
-    def ms_per_step(self) -> float:
-        return 1e3 * float(np.median(self.wall)) / self.steps
-
-
-class _Ours(_Timed):
+class _Ours(TimedSteps):
     """Our integrator on the pile, with the model's contact hooks (``contact``) or without them.
 
     Both cases share one model (building a pile of 1,000 jellies takes half a minute): the step
@@ -159,7 +117,7 @@ class _Ours(_Timed):
         return self.states[0].particle_q.numpy()
 
 
-class _Newton(_Timed):
+class _Newton(TimedSteps):
     def __init__(self, model, spec, steps, use_graph, contact):
         import warp as wp  # noqa: PLC0415
 

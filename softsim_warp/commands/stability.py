@@ -40,14 +40,13 @@ from __future__ import annotations
 
 import copy
 import math
-import sys
 import time
 from dataclasses import dataclass
 
 import numpy as np
 
 from ..core.errors import CommandLineError
-from ..core.model import NUMPY_SCALARS, ModelBuilder, build_model
+from ..core.model import NUMPY_SCALARS, build_model
 from ..core.stability_model import free_jelly, free_jelly_model as lattice_model, predict_model_dt
 from ..core.stepper import make_integrator
 from ..io.outputs import Outputs, save_report

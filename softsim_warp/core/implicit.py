@@ -109,10 +109,6 @@ DEFAULT_LINEARIZATION = "predictor"
 EXTRA_CONTACT_ITERATIONS = 2
 
 
-def _blocks(count: int) -> int:
-    return (count + ki.TILE - 1) // ki.TILE
-
-
 def _particle_bodies(model: Model) -> np.ndarray:
     """Body index of each particle: its jelly's index, or a body of its own outside every jelly."""
     n = model.particle_count
@@ -387,7 +383,7 @@ class ImplicitIntegrator(Integrator):
         if s:
             wp.launch(
                 model.kernels.spring_mv,
-                dim=(_blocks(s), ki.TILE),
+                dim=(ki.tile_blocks(s), ki.TILE),
                 block_dim=ki.TILE,
                 inputs=[s, ki.PAP, model.spring_indices, self.spring_block, vec],
                 outputs=[self.ap, self.scalars],
@@ -400,7 +396,7 @@ class ImplicitIntegrator(Integrator):
         device = model.device
         k = model.kernels
         n = model.particle_count
-        pblocks = _blocks(n)
+        pblocks = ki.tile_blocks(n)
         matrix_free = self.solver == "matrix_free"
 
         spring_mv = self._spring_mv
@@ -573,7 +569,7 @@ class ImplicitIntegrator(Integrator):
         self.scalars.zero_()
         wp.launch(
             k.build_system,
-            dim=(_blocks(n), ki.TILE),
+            dim=(ki.tile_blocks(n), ki.TILE),
             block_dim=ki.TILE,
             inputs=[
                 n,
@@ -676,7 +672,7 @@ class ImplicitIntegrator(Integrator):
             self.scalars.zero_()
             wp.launch(
                 model.kernels.constrain_last_system,
-                dim=(_blocks(n), ki.TILE),
+                dim=(ki.tile_blocks(n), ki.TILE),
                 block_dim=ki.TILE,
                 inputs=[
                     n,

@@ -315,7 +315,7 @@ class LatticeMultigrid:
         if additive:
             wp.launch(
                 k.mg_fine_additive,
-                dim=((n + ki.TILE - 1) // ki.TILE, ki.TILE),
+                dim=(ki.tile_blocks(n), ki.TILE),
                 block_dim=ki.TILE,
                 inputs=[n, slot, omega, fine_shape, first["shape"], s.filters, self.dinv0, r, first["x"]],
                 outputs=[z, scalars],
@@ -341,7 +341,7 @@ class LatticeMultigrid:
         if count:
             wp.launch(
                 model.kernels.spring_mv,
-                dim=((count + ki.TILE - 1) // ki.TILE, ki.TILE),
+                dim=(ki.tile_blocks(count), ki.TILE),
                 block_dim=ki.TILE,
                 inputs=[count, 0, model.spring_indices, self.system.spring_block, x],
                 outputs=[self.y0, self.scratch],
@@ -353,7 +353,7 @@ class LatticeMultigrid:
         omega = self.omega
         wp.launch(
             self.kernels.mg_fine_post,
-            dim=((n + ki.TILE - 1) // ki.TILE, ki.TILE),
+            dim=(ki.tile_blocks(n), ki.TILE),
             block_dim=ki.TILE,
             inputs=[n, slot, omega, self.system.filters, self.dinv0, r, self.x0, self.y0],
             outputs=[z, scalars],

@@ -98,7 +98,7 @@ class _Operator:
         s = model.spring_count
         self.p.assign((self.w * v).astype(self.np_scalar).reshape(-1, 3))
         self.y.zero_()
-        wp.launch(model.kernels.spring_mv, dim=((s + ki.TILE - 1) // ki.TILE, ki.TILE), block_dim=ki.TILE,
+        wp.launch(model.kernels.spring_mv, dim=(ki.tile_blocks(s), ki.TILE), block_dim=ki.TILE,
                   inputs=[s, ki.PAP, model.spring_indices, blocks, self.p], outputs=[self.y, self.scalars],
                   device=model.device)
         return self.w * self.y.numpy().astype(np.float64).reshape(-1)
