@@ -8,8 +8,7 @@ Run::
 For each resolution R a sphere mesh (and a torus) is voxelised into a jelly of R cells across
 (``[[jelly]] mesh = ...``), the sphere on the masked-lattice path (the CUDA default,
 core/masked_lattice.py; forced here on the CPU too) with its fused stage (``*_fused``: the CUDA
-default, core/fused.py; ``sphere_fused_generic``: the generic build where the compiled one-jelly
-build is the default) and unfused (``sphere_masked``: force kernel, then the update), and on the
+default, core/fused.py) and unfused (``sphere_masked``: force kernel, then the update), and on the
 spring list, the torus on the fused masked path; and a box jelly with the nearest cube of the same
 particle count is built on the lattice path (the default for a box; ``box_generic``: its generic
 stage) and on the spring list. Each model is compiled and warmed up, then ``--steps`` steps
@@ -144,7 +143,6 @@ def main(argv=None) -> int:
             dev, method, steps = args.device, args.integrator, args.steps
             cases = [
                 Case("sphere_fused", sphere_scene, dev, method, steps, gather=True),
-                Case("sphere_fused_generic", sphere_scene, dev, method, steps, gather=True, single=False),
                 Case("sphere_masked", sphere_scene, dev, method, steps, gather=True, fused=False),
                 Case("sphere_springs", sphere_scene, dev, method, steps, force_path="springs"),
                 Case("torus_fused", scene({"mesh": torus, "resolution": res, "size": 1.0}), dev, method, steps,
@@ -156,7 +154,7 @@ def main(argv=None) -> int:
             cases.append(Case("box_generic", box, dev, method, steps, single=False))
             cases.append(Case("box_springs", box, dev, method, steps, force_path="springs"))
             # The torus has fewer particles than the sphere: its own box of (about) its count too.
-            nt = round(cases[4].particles ** (1.0 / 3.0))
+            nt = round(cases[3].particles ** (1.0 / 3.0))
             cases.append(Case("box_torus_count", scene({"resolution": [nt, nt, nt], "size": 1.0}), dev, method, steps))
             by_name = {c.name: c for c in cases}
             times = {c.name: [] for c in cases}

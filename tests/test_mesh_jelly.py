@@ -387,7 +387,7 @@ def test_demo_assets_are_what_the_script_makes(tmp_path):
             assert asset.closed and asset.volume() > 0
 
 
-def _fused_masked_run(scene, method, precision, steps, path, single=None):
+def _fused_masked_run(scene, method, precision, steps, path):
     """Positions and velocities after ``steps`` steps on ``path``: "fused" (the masked fused stage,
     forced on the CPU), "springs" (the spring list, unfused, contact as its own kernels)."""
     from softsim_warp.core.integrators import ExplicitIntegrator
@@ -395,10 +395,8 @@ def _fused_masked_run(scene, method, precision, steps, path, single=None):
     model = _builder_model(scene, "cpu", precision)
     if path == "springs":
         model.masked = None
-    integ = ExplicitIntegrator(model, method, single=single)
+    integ = ExplicitIntegrator(model, method)
     assert integ.fused == (path == "fused")
-    if single is not None:
-        assert integ.single == single
     s0, s1 = model.state(), model.state()
     for _ in range(steps):
         integ.step(s0, s1, 1e-3)
@@ -421,16 +419,14 @@ def _plane_scene(ball, two):
 
 
 @pytest.mark.parametrize("method", ["symplectic", "rk4"])
-@pytest.mark.parametrize("case", ["two jellies", "one jelly, generic", "one jelly, compiled"])
+@pytest.mark.parametrize("case", ["two jellies", "one jelly"])
 def test_fused_masked_stage_matches_the_spring_list(ball, method, case):
     # The fused masked stage (neighbours through the index grid, the stage update and plane contact in
     # one kernel) against the spring list with separate force, update and contact kernels, float64,
     # 250 steps of a tumbling jelly that lands on a plane: the same trajectory to rounding growth.
     two = case == "two jellies"
-    single = None if two else case.endswith("compiled")
     scene = _plane_scene(ball, two)
-    model, q, qd = _fused_masked_run(scene, method, "float64", 250, "fused", single)
-    assert model.masked.single == (not two)
+    model, q, qd = _fused_masked_run(scene, method, "float64", 250, "fused")
     _, q_ref, qd_ref = _fused_masked_run(scene, method, "float64", 250, "springs")
     # The plane acted: nothing below it, and the jelly's mean height is far above free fall's, which
     # would have taken it 0.56 m down (v0 = -1 m/s, g = 9.8 m/s^2, 0.25 s).
@@ -442,10 +438,9 @@ def test_fused_masked_stage_matches_the_spring_list(ball, method, case):
 
 @pytest.mark.parametrize("method", ["symplectic", "rk4"])
 def test_fused_masked_stage_float32(ball, method):
-    # float32 build of the generic and compiled stages: the float64 spring list's trajectory to
-    # float32 rounding growth over 60 steps (the jelly lands at step ~50).
+    # float32 build of the stage: the float64 spring list's trajectory to float32 rounding growth
+    # over 60 steps (the jelly lands at step ~50).
     scene = _plane_scene(ball, False)
     _, q_ref, _ = _fused_masked_run(scene, method, "float64", 60, "springs")
-    for single in (False, True):
-        _, q, _ = _fused_masked_run(scene, method, "float32", 60, "fused", single)
-        assert np.abs(q - q_ref).max() < 2e-5
+    _, q, _ = _fused_masked_run(scene, method, "float32", 60, "fused")
+    assert np.abs(q - q_ref).max() < 2e-5

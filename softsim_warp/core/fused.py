@@ -13,8 +13,7 @@ set, :func:`step_fused` from ``step``. The kernel follows the lattice kernel the
   H100 (docs/PERFORMANCE.md).
 * masked (mesh jellies, ``model.masked``, core/masked_lattice.py): the same stage kernel around the
   masked gather (``masked_stage``, kernels/lattice.py), each neighbour read through the jelly's
-  index grid; a one-jelly model of one particle mass with shared coefficients takes the build
-  compiled for its grid (from ``SINGLE_FROM`` particles on, as the box).
+  index grid, coefficients from the per-jelly tables.
 * rows (CPU): ``integrate_lattice_rows_stage`` computes a jelly's forces with the vectorised row
   loops and then its particles' stage update; contact follows as its own kernel.
 
@@ -53,7 +52,7 @@ def configure_fused(integrator, fused=None, fuse_contact=None, single=None):
         raise ValueError(f"fused stages need the lattice path ({model.lattice_reason})")
     integrator.fused = bool(fused)
     if fused and lat is None:
-        masked.make_stage_tables(model.particle_mass.numpy())
+        masked.make_stage_tables()
     # Only the gather kernel can apply contact per particle; the row kernel works per jelly. On by
     # default: the fused stage calls the same contact_planes as collide_planes on the same values
     # (tests/test_perf_paths.py: bitwise on the CPU), one launch fewer per stage with planes.
@@ -61,7 +60,7 @@ def configure_fused(integrator, fused=None, fuse_contact=None, single=None):
     if fuse_contact is None:
         fuse_contact = True
     integrator.fuse_contact = bool(gather and model.plane_count and bool(fuse_contact))
-    eligible = (lat is not None and lat.single) or (lat is None and bool(fused) and masked.single)
+    eligible = lat is not None and lat.single
     if single is None:
         single = eligible and model.particle_count >= SINGLE_FROM
     elif single and not eligible:
@@ -114,7 +113,7 @@ def step_fused(integrator, state_in, state_out, dt):
             # Masked lattice: neighbours through the index grid, every load valid (no padding needed).
             ml = model.masked
             tables, coef = ml.stage_tables, ml.stencil_coef
-            stage_kernel = model.kernels.masked_stage(ml.stage_key if integrator.single else None)
+            stage_kernel = model.kernels.masked_stage()
         elif integrator.single and lat.padded(*gathered):
             # Compiled for the jelly's shape and spring types (kernels/lattice.py single_stage).
             stage_kernel = model.kernels.single_stage(lat.layout.shape[0], lat.layout.types[0])

@@ -27,7 +27,7 @@ import numpy as np
 import warp as wp
 
 from . import lattice
-from ..kernels.lattice import COEF_LENGTH, MASK_MARGIN, REST_SLOTS, common_coefficients, rest_slot
+from ..kernels.lattice import COEF_LENGTH, MASK_MARGIN, REST_SLOTS, rest_slot
 from .lattice_model import REST_TOLERANCE
 
 
@@ -133,7 +133,7 @@ class MaskedLattice:
         self._tables, self._device, self._np_scalar, self._scalar = tables, device, np_scalar, scalar
         self.stage_index = None
 
-    def make_stage_tables(self, particle_mass: np.ndarray) -> None:
+    def make_stage_tables(self) -> None:
         """Build the fused stage's tables (once; only an explicit integrator's fused stage needs them).
 
         Attributes made:
@@ -141,10 +141,7 @@ class MaskedLattice:
                 index grids: per jelly its box with ``MASK_MARGIN`` absent points on every side, each
                 entry a particle index or -1 (see kernels/lattice.py ``_masked_gather_snippet``).
             stage_dims: grid dimensions per jelly (box + 2 margins), shape [J], vec3i.
-            uniform, stencil_coef: the jellies' common coefficients, as ``LatticeData``'s.
-            single: one jelly starting at particle 0, of particles of one mass, uniform: the stage
-                compiled for it (``masked_stage(stage_key)``) reads no per-particle jelly, world or mass.
-            stage_key: (grid dimensions, spring types) of that jelly, or None.
+            stencil_coef: the stage kernel's coefficient argument (zeros: unused by the masked gather).
         """
         if self.stage_index is not None:
             return
@@ -177,16 +174,8 @@ class MaskedLattice:
         dev = self._device
         self.stage_index = wp.array(index.astype(np.int32), dtype=wp.int32, device=dev)
         self.stage_dims = wp.array(dims.astype(np.int32), dtype=wp.vec3i, device=dev)
-        coef = common_coefficients(t["rest"], t["ks"], t["kd"], t["types"], self._np_scalar)
-        self.uniform = coef is not None
-        if coef is None:
-            coef = np.zeros(COEF_LENGTH, dtype=self._np_scalar)
-        self.stencil_coef = wp.types.vector(COEF_LENGTH, self._scalar)(*coef)
-        mass = np.asarray(particle_mass)
-        self.single = bool(
-            self.uniform and len(dims) == 1 and mass.shape[0] == n and n > 0 and np.all(mass == mass[0])
-        )
-        self.stage_key = (tuple(int(x) for x in dims[0]), int(t["types"][0])) if self.single else None
+        # The stage kernel's coefficient argument; the masked gather reads the per-jelly tables instead.
+        self.stencil_coef = wp.types.vector(COEF_LENGTH, self._scalar)()
 
     @property
     def stage_tables(self) -> list:
