@@ -17,6 +17,13 @@ get the contact branch (normal approach cancelled, friction), never an impact or
 and the outward normal at the particle. Impact or contact is decided by a restitution threshold
 derived from the particle's own pressing impulse over the step (see its comments and
 docs/SCENES.md, "Impact or contact").
+
+Where a particle touches: ``contact_epsilon`` is the layer within which a surface is looked at
+(and where the implicit solve finds the surface a particle touches), but the response acts only
+once the step carries the particle to the surface, within :data:`TOUCH_FRACTION` of the layer (the
+rounding of a projection onto a tilted or curved surface). A particle that crosses is put back on
+the surface, so a jelly comes to rest on it, not on top of the layer (docs/SCENES.md, "Where a
+particle touches").
 """
 
 import functools
@@ -26,6 +33,13 @@ import warp as wp
 from . import integration
 
 wp.set_module_options({"enable_backward": False})
+
+# A particle touches a surface once its step brings it within this fraction of contact_epsilon of
+# it (or through it). Contact at the whole layer held a slowly settling particle wherever it entered
+# the layer, so a resting jelly stood up to contact_epsilon above the ground. The fraction only has
+# to cover the rounding of a particle put back on the surface (1e-7 of a unit in float32), which
+# must still count as touching on the next step.
+TOUCH_FRACTION = 1.0e-3
 
 
 @functools.cache  # one set of Warp objects per precision, shared by every module that builds on it
@@ -58,8 +72,11 @@ def build(scalar):
 
         stage != 0 filters an intermediate Runge-Kutta stage state instead (x, v = y_n + h c_s k):
         only the contact branch acts, on the velocity (see ``filter_stage_contacts``).
+
+        The particle touches when phi < TOUCH_FRACTION eps: the step has carried it to the surface
+        (see the module docstring); a particle still above that moves on freely this step.
         """
-        if phi >= eps:
+        if phi >= eps * scalar(TOUCH_FRACTION):
             return x, v
         vn = wp.dot(normal, v)
         if vn < scalar(0.0):
@@ -105,8 +122,16 @@ def build(scalar):
                 phi = phi + beta_h * wp.dot(normal, dv)
                 v = v_new
             else:
-                # Impact: reflect the approaching normal velocity, keep the tangential part.
-                v = v - (scalar(1.0) + restitution) * vn * normal
+                # Impact: reflect the approaching normal velocity; Coulomb friction removes at
+                # most mu times the normal impulse (1 + e)(-vn) of tangential speed.
+                vt = v - vn * normal
+                speed = wp.length(vt)
+                budget = friction * (scalar(1.0) + restitution) * (-vn)
+                if speed > budget:
+                    vt = vt * ((speed - budget) / speed)
+                else:
+                    vt = vec3(scalar(0.0))
+                v = vt - restitution * vn * normal
         # A particle that moves away after the step (vn >= 0; on a convex surface the tangent of
         # the last step points outward by |v| h / R) is separating: the surface pushes nothing, so
         # neither normal cancellation nor friction applies (cancelling it would glue particles to

@@ -245,13 +245,14 @@ def test_stack_stays_stacked():
 
 def test_pile_no_interpenetration():
     """Ten jellies (4^3 each here) poured into the bowl: at no written frame (every 10th checked) is
-    any particle inside another jelly, and they come to rest in the bowl."""
-    scene = ss.load_scene("pile", [f"jelly.{i}.resolution=4" for i in range(10)] + ["simulation.duration=5"])
+    any particle inside another jelly, and they come to rest in the bowl: after 7 s (the last of them
+    lands at 2 s and tumbles over the heap until about 5.5 s) no particle is faster than 0.3 m/s."""
+    scene = ss.load_scene("pile", [f"jelly.{i}.resolution=4" for i in range(10)] + ["simulation.duration=7"])
     model, frames = _frames(scene, every=10)
     _no_interpenetration(model, frames)
     q, v = frames[-1]
     assert q[:, 1].max() < 3.0  # all of them came down into the heap
-    assert np.abs(v).max() < 2.0
+    assert np.linalg.norm(v, axis=1).max() < 0.3
 
 
 # -- self-contact ---------------------------------------------------------------------------------
