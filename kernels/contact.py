@@ -117,9 +117,14 @@ def build(scalar):
                     v_new = vt * ((speed - budget) / speed)
                 # Contact and friction act as forces over the whole step: move the position by
                 # what the integrator would have made of them, so a stuck particle does not creep.
-                dv = v_new - v
-                x = x + beta_h * dv
-                phi = phi + beta_h * wp.dot(normal, dv)
+                # Along the normal that is at most back onto the surface: the approach stops on
+                # it, not where the step began (which would leave a particle that touched within
+                # its step's approach, (f.n / m) h^2, above the surface for good).
+                dx = beta_h * (v_new - v)
+                lift = wp.dot(normal, dx)
+                landed = wp.min(lift, wp.max(-phi, scalar(0.0)))
+                x = x + dx - (lift - landed) * normal
+                phi = phi + landed
                 v = v_new
             else:
                 # Impact: reflect the approaching normal velocity; Coulomb friction removes at

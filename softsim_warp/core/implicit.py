@@ -50,7 +50,8 @@ contact goes on after the free solve (Baraff and Witkin's constraints, section 5
 1. the response runs on the free result; every particle it changed becomes constrained along
    the normal of the surface it touches (or, with several surfaces or a contact hook, the
    direction the response pushed it): its normal velocity is prescribed (0 for an approaching
-   particle: the compression phase of an impact), its tangential velocity is left to the solve.
+   particle: the compression phase of an impact; for one at rest on a single surface, the one that
+   lands it there), its tangential velocity is left to the solve.
    Where the response applied friction, the particle gets a tangential damper in the solve
    instead (kernels/implicit.py: constrain_contacts). Prescribed normal velocities of 0 take no
    work from the constraint impulses, so the step stays dissipative. (Prescribing whole
@@ -645,7 +646,9 @@ class ImplicitIntegrator(Integrator):
                 model.sphere_radius,
                 *mesh_touch_arrays(model),
                 model.contact_epsilon,
+                model.contact_velocity_epsilon,
                 state_in.particle_q,
+                state_in.particle_qd,
                 self.q_free,
                 self.qd_free,
                 state_out.particle_q,
