@@ -437,9 +437,14 @@ def build(scalar):
                                     # Insert in ascending order; a bucket met twice (two cells
                                     # hashed alike) gives the same particle twice: keep one.
                                     s = int(0)
-                                    while s < n and candidates_out[s, i] < j:
+                                    while s < n:
+                                        if candidates_out[s, i] >= j:
+                                            break
                                         s += 1
-                                    if s == n or candidates_out[s, i] != j:
+                                    fresh = True
+                                    if s < n:
+                                        fresh = candidates_out[s, i] != j
+                                    if fresh:
                                         if n == cap:
                                             n = cap + 1  # overflow: the grid walk takes over
                                         else:
