@@ -8,8 +8,8 @@ our pair distance (one spacing) and Newton's (2 x 0.45 spacings): every face of 
 its neighbour's from the first step. For each count in ``--jellies`` the command times:
 
 * ours without jelly contact (``jelly_contact = false``), the same particles and springs;
-* ours with it (the hash grid, surface normals, ``jelly_contact_iterations`` velocity passes and
-  the position pass, every step);
+* ours with it (surface normals, the candidate lists and their rebuilds, the contacts,
+  ``jelly_contact_iterations`` velocity passes and the position pass, every step);
 * with ``--peer newton``: Newton 1.8's ``SolverSemiImplicit`` on the same springs and ground, once
   without particle contact (``model.particle_grid = None``) and once with it (its ``HashGrid``
   rebuilt every step by the solver, penalty forces ``particle_ke/kd/kf/mu``; particle radius 0.45
