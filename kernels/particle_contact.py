@@ -789,7 +789,9 @@ def build(scalar):
                     break
                 touches, n, gap = pair_contact(i, j, xi, cq, contact_radius, normal)
                 if touches:
-                    ddx, ddv = position_term(i, j, n, gap, xi, yi, vi, wi, wi_split, h, beta_h, cq, cqd, w_split, cqd_new)
+                    ddx, ddv = position_term(
+                        i, j, n, gap, xi, yi, vi, wi, wi_split, h, beta_h, cq, cqd, w_split, cqd_new
+                    )
                     dx = dx + ddx
                     dv = dv + ddv
         q_out[pi] = yi + dx

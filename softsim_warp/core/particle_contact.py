@@ -273,7 +273,9 @@ class ParticleContact:
         wp.launch(
             k.build_contact_candidates,
             dim=n,
-            inputs=[self.rebuild, self.builds, self.grid_head, self.grid_next, self.inv_cell, self.shift, *pairs, self.cq],
+            inputs=[
+                self.rebuild, self.builds, self.grid_head, self.grid_next, self.inv_cell, self.shift, *pairs, self.cq
+            ],
             outputs=[self.x_build, self.candidates, self.candidate_count],
             device=device,
         )
