@@ -1,13 +1,30 @@
-"""Contact between jellies and of a jelly with itself: a post-step projection over hash-grid neighbours.
+"""Contact between jellies and of a jelly with itself: a post-step projection over candidate lists.
 
 The response runs after the integrator's step, on its result, like terrain contact
-(``core/particle_contact.py`` launches these kernels from ``model.contact_hooks``). Each particle
-taking part gathers its neighbours from a ``wp.HashGrid`` (one group per world, so worlds never
-meet) and sums the impulses of its contacts; every pair impulse is computed from the pair's own
-values only, so particle j receives exactly the negative of what particle i does: linear momentum is
-conserved pair by pair. The gather writes only its own particle (no atomics) and visits neighbours
-in the grid's order, which is a stable radix sort by cell and index: the sum is the same on every
-run and on every device count of threads, so the response is deterministic on CUDA as on the CPU.
+(``core/particle_contact.py`` launches these kernels from ``model.contact_hooks``). Each step:
+
+1. ``prepare_contact_particles`` copies the contact particles' positions and velocities to compact
+   arrays, computes their boundary-face normals, and raises the rebuild flag when a particle has
+   moved ``rebuild_distance`` or more since the candidate lists were built;
+2. ``insert_contact_grid`` and ``build_contact_candidates`` (they return at once unless the flag is
+   raised) rebuild each particle's candidate list: the particles of other jellies (or of its own
+   jelly, with self-contact, far enough apart in the rest shape) of its world within the candidate
+   reach plus a skin, in ascending index order, found through a hashed cell grid;
+3. ``find_particle_contacts`` tests each candidate and stores the touching pairs with their normal,
+   gap and approach speed before the step;
+4. ``resolve_contact_velocities`` (Jacobi iterations) and ``resolve_contact_positions`` apply them.
+
+Why no contact is missed: a pair is left out of the lists only when its distance at the build was
+at least ``CANDIDATE_REACH d + skin``; the lists are rebuilt before any particle has moved
+``skin / 2`` (``rebuild_distance`` is slightly less, for the rounding of the distances), so until
+then such a pair stays farther apart than ``CANDIDATE_REACH d``, where it is no candidate.
+
+Every pair impulse is computed from the pair's own values only, so particle j receives exactly the
+negative of what particle i does: linear momentum is conserved pair by pair. Each thread writes
+only its own particle (no atomics in the response) and visits its contacts in ascending index order
+of the partner, whatever the grid's or the threads' order: the sum is the same on every run and
+device, and it does not depend on when the lists were last built. The grid is built with atomics,
+so the order within a cell varies on CUDA; the lists are sorted, so nothing downstream sees it.
 
 Jacobi accumulation with split masses (Tonge et al. 2012, "Mass splitting for jitter-free parallel
 rigid body simulation"): a particle in k contacts would be corrected k times over if every pair
@@ -31,6 +48,13 @@ CANDIDATE_REACH = wp.constant(1.25)
 # A face's normal is the contact normal for particles at most this many pair distances aside of the
 # face's particle (the half diagonal of a face cell is 0.71 lattice spacings).
 FACE_REACH = wp.constant(0.75)
+# Cells per axis before the cell coordinates wrap in the grid's hash (a wrapped cell only adds
+# particles that the distance test rejects).
+CELL_WRAP = wp.constant(1024)
+# Multipliers of the grid's hash: the world's (a 32-bit mix constant) and Fibonacci hashing's
+# (2^32 / golden ratio), whose product's top bits are the bucket.
+WORLD_MIX = wp.constant(wp.uint32(0x85EBCA6B))
+FIBONACCI = wp.constant(wp.uint32(0x9E3779B9))
 
 
 @functools.cache
@@ -38,46 +62,34 @@ def build(scalar):
     vec3 = wp.types.vector(3, scalar)
 
     @wp.func
-    def pair_touches(
+    def pair_allowed(
         i: int,
         j: int,
-        xi: vec3,
-        cq: wp.array(dtype=vec3),
         contact_jelly: wp.array(dtype=wp.int32),
+        contact_world: wp.array(dtype=wp.int32),
         contact_radius: wp.array(dtype=scalar),
         contact_rest: wp.array(dtype=vec3),
         jelly_self_contact: wp.array(dtype=wp.int32),
         between_jellies: int,
         self_exclusion: scalar,
     ):
-        """Whether contact particles i and j (i != j) are a candidate pair; returns (candidate,
-        distance, pair distance d).
+        """Whether contact particles i and j (i != j) may touch at all, whatever their positions.
 
-        Candidates are closer than CANDIDATE_REACH d. Particles of different jellies are candidates
-        when ``between_jellies`` is set; particles of one jelly only when that jelly has self
-        contact and they are at least ``self_exclusion`` times d apart in the rest shape (closer
-        pairs are the jelly's own elastic neighbourhood). The jelly test comes first: most of a
-        particle's grid neighbours are of its own jelly, and it needs no position.
-        """
+        Particles of different worlds never do. Particles of different jellies do when
+        ``between_jellies`` is set; particles of one jelly only when that jelly has self contact
+        and they are at least ``self_exclusion`` times the pair distance apart in the rest shape
+        (closer pairs are the jelly's own elastic neighbourhood)."""
+        if contact_world[i] != contact_world[j]:
+            return False
         ji = contact_jelly[i]
-        same = ji == contact_jelly[j]
-        if same:
+        if ji == contact_jelly[j]:
             if jelly_self_contact[ji] == 0:
-                return False, scalar(0.0), scalar(0.0)
-        elif between_jellies == 0:
-            return False, scalar(0.0), scalar(0.0)
-        d = contact_radius[i] + contact_radius[j]
-        r = xi - cq[j]
-        dist2 = wp.dot(r, r)
-        reach_d = scalar(CANDIDATE_REACH) * d
-        if dist2 >= reach_d * reach_d or dist2 == scalar(0.0):
-            return False, scalar(0.0), d
-        if same:
+                return False
+            d = contact_radius[i] + contact_radius[j]
             rr = contact_rest[i] - contact_rest[j]
             reach = self_exclusion * d
-            if wp.dot(rr, rr) < reach * reach:
-                return False, scalar(0.0), d
-        return True, wp.sqrt(dist2), d
+            return wp.dot(rr, rr) >= reach * reach
+        return between_jellies != 0
 
     @wp.func
     def facing_normal(normal: wp.array2d(dtype=vec3), i: int, direction: vec3):
@@ -142,35 +154,32 @@ def build(scalar):
         j: int,
         xi: vec3,
         cq: wp.array(dtype=vec3),
-        contact_jelly: wp.array(dtype=wp.int32),
         contact_radius: wp.array(dtype=scalar),
-        contact_rest: wp.array(dtype=vec3),
-        jelly_self_contact: wp.array(dtype=wp.int32),
-        between_jellies: int,
-        self_exclusion: scalar,
         normal: wp.array2d(dtype=vec3),
     ):
-        """Whether particles i and j touch: a candidate pair closer than d along its contact normal.
-        Returns (touches, normal from j to i, separation along it minus d: negative when touching)."""
-        candidate, dist, d = pair_touches(
-            i, j, xi, cq, contact_jelly, contact_radius, contact_rest, jelly_self_contact, between_jellies,
-            self_exclusion,
-        )
+        """Whether an allowed pair (i, j) touches: closer than CANDIDATE_REACH d and closer than d
+        along its contact normal. Returns (touches, normal from j to i, separation along it minus
+        d: negative when touching)."""
+        d = contact_radius[i] + contact_radius[j]
+        xj = cq[j]
+        r = xi - xj
+        dist2 = wp.dot(r, r)
+        reach_d = scalar(CANDIDATE_REACH) * d
         n = vec3(scalar(0.0))
         gap = scalar(0.0)
-        if candidate:
-            xj = cq[j]
-            n = pair_normal(i, j, xi, xj, dist, d, normal)
+        touches = False
+        if dist2 < reach_d * reach_d and dist2 > scalar(0.0):
+            n = pair_normal(i, j, xi, xj, wp.sqrt(dist2), d, normal)
             gap = wp.dot(xi - xj, n) - d
-        return candidate and gap < scalar(0.0), n, gap
+            touches = gap < scalar(0.0)
+        return touches, n, gap
 
     @wp.func
     def pair_impulse(
         n: vec3,
         vi: vec3,
         vj: vec3,
-        vi_prev: vec3,
-        vj_prev: vec3,
+        u0: scalar,
         wi_split: scalar,
         wj_split: scalar,
         friction: scalar,
@@ -180,6 +189,7 @@ def build(scalar):
     ):
         """Impulse on particle i of a touching pair with normal ``n`` (from j to i); j gets its negative.
 
+        ``u0`` is the pair's approach speed along ``n`` before the step, -(vi_prev - vj_prev) . n.
         ``wi_split``, ``wj_split`` are the split inverse masses (inverse mass times the particle's
         number of contacts), which set the pair's effective mass. Swapping i and j negates the
         impulse exactly (the normal and the relative velocity both change sign), which is what
@@ -192,7 +202,6 @@ def build(scalar):
             m_eff = scalar(1.0) / (wi_split + wj_split)
             # Impact or contact: the same restitution threshold as terrain (kernels/contact.py,
             # resolve_contact), on the relative normal velocity before (u0) and after the step.
-            u0 = -wp.dot(vi_prev - vj_prev, n)
             w = -vn - u0
             if restitution == scalar(0.0) or u0 < eps_v or u0 < rest_steps * w:
                 # Inelastic: cancel the approach, and Coulomb friction takes at most mu times that
@@ -208,36 +217,129 @@ def build(scalar):
                 p = (-(scalar(1.0) + restitution) * vn * m_eff) * n
         return p
 
+    @wp.func
+    def cell_of(x: vec3, inv_cell: scalar):
+        """Integer cell coordinates of a point, clamped far beyond any scene."""
+        lim = scalar(1.0e9)
+        return wp.vec3i(
+            int(wp.clamp(wp.floor(x[0] * inv_cell), -lim, lim)),
+            int(wp.clamp(wp.floor(x[1] * inv_cell), -lim, lim)),
+            int(wp.clamp(wp.floor(x[2] * inv_cell), -lim, lim)),
+        )
+
+    @wp.func
+    def cell_bucket(c: wp.vec3i, world: int, shift: int):
+        """Bucket of cell ``c`` of ``world`` in a table of 2^(32 - shift) buckets (Fibonacci hashing
+        of the wrapped cell coordinates)."""
+        w = CELL_WRAP - 1
+        key = wp.uint32((c[0] & w) + CELL_WRAP * ((c[1] & w) + CELL_WRAP * (c[2] & w)))
+        key = key ^ (wp.uint32(world) * WORLD_MIX)
+        return int((key * FIBONACCI) >> wp.uint32(shift))
+
+    @wp.func
+    def is_candidate(
+        i: int,
+        j: int,
+        xi: vec3,
+        x_build: wp.array(dtype=vec3),
+        contact_jelly: wp.array(dtype=wp.int32),
+        contact_world: wp.array(dtype=wp.int32),
+        contact_radius: wp.array(dtype=scalar),
+        contact_rest: wp.array(dtype=vec3),
+        jelly_self_contact: wp.array(dtype=wp.int32),
+        between_jellies: int,
+        self_exclusion: scalar,
+        skin: scalar,
+    ):
+        """Whether j belongs to i's candidate list: an allowed pair closer than CANDIDATE_REACH d +
+        skin at the build positions (``xi`` is i's)."""
+        if j == i:
+            return False
+        r = xi - x_build[j]
+        reach = scalar(CANDIDATE_REACH) * (contact_radius[i] + contact_radius[j]) + skin
+        if wp.dot(r, r) >= reach * reach:
+            return False
+        return pair_allowed(
+            i, j, contact_jelly, contact_world, contact_radius, contact_rest, jelly_self_contact, between_jellies,
+            self_exclusion,
+        )
+
+    @wp.func
+    def next_candidate(
+        i: int,
+        after: int,
+        grid_head: wp.array2d(dtype=wp.int32),
+        grid_next: wp.array(dtype=wp.int32),
+        inv_cell: scalar,
+        shift: int,
+        x_build: wp.array(dtype=vec3),
+        contact_jelly: wp.array(dtype=wp.int32),
+        contact_world: wp.array(dtype=wp.int32),
+        contact_radius: wp.array(dtype=scalar),
+        contact_rest: wp.array(dtype=vec3),
+        jelly_self_contact: wp.array(dtype=wp.int32),
+        between_jellies: int,
+        self_exclusion: scalar,
+        skin: scalar,
+    ):
+        """The smallest candidate of i above ``after`` (-1 if none), from the grid: the list of a
+        particle with more candidates than it holds, in the list's order (ascending index). It walks
+        both tables: the one of the last build, and the other one, which that build emptied."""
+        xi = x_build[i]
+        c = cell_of(xi, inv_cell)
+        world = contact_world[i]
+        best = int(-1)
+        for cell in range(54):
+            table = cell // 27
+            o = cell % 27
+            b = cell_bucket(wp.vec3i(c[0] + o % 3 - 1, c[1] + (o // 3) % 3 - 1, c[2] + o // 9 - 1), world, shift)
+            j = grid_head[table, b]
+            while j >= 0:
+                if j > after and (best < 0 or j < best):
+                    if is_candidate(
+                        i, j, xi, x_build, contact_jelly, contact_world, contact_radius, contact_rest,
+                        jelly_self_contact, between_jellies, self_exclusion, skin,
+                    ):
+                        best = j
+                j = grid_next[j]
+        return best
+
     @wp.kernel(module="unique")
-    def gather_contact_particles(
+    def prepare_contact_particles(
         contact_index: wp.array(dtype=wp.int32),
+        contact_axis_neighbors: wp.array2d(dtype=wp.int32),
+        particle_inv_mass: wp.array(dtype=scalar),
+        x_build: wp.array(dtype=vec3),
+        rebuild_distance: scalar,
+        # State before and after the step (particle order):
+        qd_prev: wp.array(dtype=vec3),
         q: wp.array(dtype=vec3),
         qd: wp.array(dtype=vec3),
-        # Out: the contact particles' positions and velocities, in contact order
+        # Out (contact order): positions, velocities after and before the step, inverse masses,
+        # the outward normal of the particle's boundary face on each lattice axis (zero where it is
+        # not on that boundary); the rebuild flag, raised when the particle moved too far
         cq_out: wp.array(dtype=vec3),
         cqd_out: wp.array(dtype=vec3),
+        cqd_prev_out: wp.array(dtype=vec3),
+        cw_out: wp.array(dtype=scalar),
+        normal_out: wp.array2d(dtype=vec3),
+        rebuild_out: wp.array(dtype=wp.int32),
     ):
         k = wp.tid()
         p = contact_index[k]
-        cq_out[k] = q[p]
+        x = q[p]
+        cq_out[k] = x
         cqd_out[k] = qd[p]
-
-    @wp.kernel(module="unique")
-    def contact_surface_normals(
-        contact_index: wp.array(dtype=wp.int32),
-        contact_axis_neighbors: wp.array2d(dtype=wp.int32),
-        q: wp.array(dtype=vec3),
-        # Out: each contact particle's outward normal of its boundary face on each lattice axis
-        # (zero on an axis where it is not on the boundary)
-        normal_out: wp.array2d(dtype=vec3),
-    ):
+        cqd_prev_out[k] = qd_prev[p]
+        cw_out[k] = particle_inv_mass[p]
+        moved = x - x_build[k]
+        if wp.dot(moved, moved) >= rebuild_distance * rebuild_distance:
+            rebuild_out[0] = 1  # every writer writes 1: no race in the result
         # contact_axis_neighbors[k] holds the lattice neighbours at -x, +x, -y, +y, -z, +z (the
         # particle itself where there is none) and, in slots 6..8, the inward neighbour of each axis
         # on whose boundary the particle lies (-1 elsewhere). A face's normal is the cross product
         # of its two in-face directions, so a sheared jelly's faces keep their own normal (the
         # inward lattice line tilts with the shear); it is oriented away from the inward neighbour.
-        k = wp.tid()
-        x = q[contact_index[k]]
         for a in range(3):
             inward = contact_axis_neighbors[k, 6 + a]
             n = vec3(scalar(0.0))
@@ -258,8 +360,39 @@ def build(scalar):
             normal_out[k, a] = n
 
     @wp.kernel(module="unique")
-    def count_particle_contacts(
-        grid: wp.uint64,
+    def insert_contact_grid(
+        rebuild: wp.array(dtype=wp.int32),
+        builds: wp.array(dtype=wp.int32),
+        contact_world: wp.array(dtype=wp.int32),
+        inv_cell: scalar,
+        shift: int,
+        cq: wp.array(dtype=vec3),
+        # In and out: each particle's bucket (of the previous build, then of this one), the buckets'
+        # first particles (two tables, this build's and the previous one's) and the links
+        cell_bucket_io: wp.array(dtype=wp.int32),
+        grid_head: wp.array2d(dtype=wp.int32),
+        grid_next: wp.array(dtype=wp.int32),
+    ):
+        # Only when the lists are rebuilt. The previous build's table is emptied (each particle
+        # clears its old bucket) while this build fills the other one, so no launch empties a
+        # table that another fills.
+        if rebuild[0] == 0:
+            return
+        k = wp.tid()
+        table = builds[0] % 2
+        grid_head[1 - table, cell_bucket_io[k]] = -1
+        b = cell_bucket(cell_of(cq[k], inv_cell), contact_world[k], shift)
+        cell_bucket_io[k] = b
+        grid_next[k] = wp.atomic_exch(grid_head, table, b, k)
+
+    @wp.kernel(module="unique")
+    def build_contact_candidates(
+        rebuild: wp.array(dtype=wp.int32),
+        builds: wp.array(dtype=wp.int32),
+        grid_head: wp.array2d(dtype=wp.int32),
+        grid_next: wp.array(dtype=wp.int32),
+        inv_cell: scalar,
+        shift: int,
         # Model:
         contact_jelly: wp.array(dtype=wp.int32),
         contact_world: wp.array(dtype=wp.int32),
@@ -268,31 +401,151 @@ def build(scalar):
         jelly_self_contact: wp.array(dtype=wp.int32),
         between_jellies: int,
         self_exclusion: scalar,
-        max_distance: scalar,
-        # State after the step and surface normals (contact order):
+        skin: scalar,
         cq: wp.array(dtype=vec3),
-        normal: wp.array2d(dtype=vec3),
-        # Out: contacts per contact particle, and the first MAX_CONTACTS of them (grid order)
-        count_out: wp.array(dtype=wp.int32),
-        contact_list_out: wp.array2d(dtype=wp.int32),
+        # Out: the build positions, each particle's candidates (slot-major, ascending) and their
+        # number (one more than the list holds: the list overflowed, next_candidate walks the grid)
+        x_build_out: wp.array(dtype=vec3),
+        candidates_out: wp.array2d(dtype=wp.int32),
+        candidate_count_out: wp.array(dtype=wp.int32),
     ):
-        # Threads in the grid's order (by cell): neighbouring threads read neighbouring particles.
-        i = wp.hash_grid_point_id(grid, wp.tid())
+        if rebuild[0] == 0:
+            return
+        i = wp.tid()
         xi = cq[i]
+        x_build_out[i] = xi
+        table = builds[0] % 2
+        c = cell_of(xi, inv_cell)
+        world = contact_world[i]
+        cap = candidates_out.shape[0]
+        n = int(0)
+        for dz in range(-1, 2):
+            for dy in range(-1, 2):
+                for dx in range(-1, 2):
+                    b = cell_bucket(wp.vec3i(c[0] + dx, c[1] + dy, c[2] + dz), world, shift)
+                    j = grid_head[table, b]
+                    while j >= 0:
+                        # Positions of this build: cq, which x_build holds for i only so far.
+                        if j != i and n <= cap:
+                            r = xi - cq[j]
+                            reach = scalar(CANDIDATE_REACH) * (contact_radius[i] + contact_radius[j]) + skin
+                            if wp.dot(r, r) < reach * reach:
+                                if pair_allowed(
+                                    i, j, contact_jelly, contact_world, contact_radius, contact_rest,
+                                    jelly_self_contact, between_jellies, self_exclusion,
+                                ):
+                                    # Insert in ascending order; a bucket met twice (two cells
+                                    # hashed alike) gives the same particle twice: keep one.
+                                    s = int(0)
+                                    while s < n:
+                                        if candidates_out[s, i] >= j:
+                                            break
+                                        s += 1
+                                    fresh = True
+                                    if s < n:
+                                        fresh = candidates_out[s, i] != j
+                                    if fresh:
+                                        if n == cap:
+                                            n = cap + 1  # overflow: the grid walk takes over
+                                        else:
+                                            t = n
+                                            while t > s:
+                                                candidates_out[t, i] = candidates_out[t - 1, i]
+                                                t -= 1
+                                            candidates_out[s, i] = j
+                                            n += 1
+                        j = grid_next[j]
+        candidate_count_out[i] = n
+
+    @wp.func
+    def record_contact(
+        i: int,
+        j: int,
+        xi: vec3,
+        vi_prev: vec3,
+        count: int,
+        cq: wp.array(dtype=vec3),
+        cqd_prev: wp.array(dtype=vec3),
+        contact_radius: wp.array(dtype=scalar),
+        normal: wp.array2d(dtype=vec3),
+        contact_list_out: wp.array2d(dtype=wp.int32),
+        contact_normal_out: wp.array2d(dtype=vec3),
+        contact_gap_out: wp.array2d(dtype=scalar),
+        contact_u0_out: wp.array2d(dtype=scalar),
+    ):
+        """Test candidate j of i; a touching pair goes to slot ``count`` of i's lists (while they
+        have room). Returns the new count."""
+        touches, n, gap = pair_contact(i, j, xi, cq, contact_radius, normal)
+        if touches:
+            if count < contact_list_out.shape[0]:
+                contact_list_out[count, i] = j
+                contact_normal_out[count, i] = n
+                contact_gap_out[count, i] = gap
+                contact_u0_out[count, i] = -wp.dot(vi_prev - cqd_prev[j], n)
+            count += 1
+        return count
+
+    @wp.kernel(module="unique")
+    def find_particle_contacts(
+        # Candidates and the grid behind an overflowed list:
+        candidates: wp.array2d(dtype=wp.int32),
+        candidate_count: wp.array(dtype=wp.int32),
+        grid_head: wp.array2d(dtype=wp.int32),
+        grid_next: wp.array(dtype=wp.int32),
+        inv_cell: scalar,
+        shift: int,
+        x_build: wp.array(dtype=vec3),
+        # Model:
+        contact_jelly: wp.array(dtype=wp.int32),
+        contact_world: wp.array(dtype=wp.int32),
+        contact_radius: wp.array(dtype=scalar),
+        contact_rest: wp.array(dtype=vec3),
+        jelly_self_contact: wp.array(dtype=wp.int32),
+        between_jellies: int,
+        self_exclusion: scalar,
+        skin: scalar,
+        # State (contact order):
+        cq: wp.array(dtype=vec3),
+        cqd_prev: wp.array(dtype=vec3),
+        cw: wp.array(dtype=scalar),
+        normal: wp.array2d(dtype=vec3),
+        # Out: contacts per particle, its split inverse mass (contacts times inverse mass), and the
+        # first MAX_CONTACTS contacts (slot-major, ascending partner): partner, normal, gap, and
+        # approach speed before the step
+        count_out: wp.array(dtype=wp.int32),
+        w_split_out: wp.array(dtype=scalar),
+        contact_list_out: wp.array2d(dtype=wp.int32),
+        contact_normal_out: wp.array2d(dtype=vec3),
+        contact_gap_out: wp.array2d(dtype=scalar),
+        contact_u0_out: wp.array2d(dtype=scalar),
+    ):
+        i = wp.tid()
+        xi = cq[i]
+        vi_prev = cqd_prev[i]
         count = int(0)
-        query = wp.hash_grid_query(grid, xi, max_distance, contact_world[i])
-        j = int(0)
-        while wp.hash_grid_query_next(query, j):
-            if j != i:
-                touches, n, gap = pair_contact(
-                    i, j, xi, cq, contact_jelly, contact_radius, contact_rest, jelly_self_contact,
-                    between_jellies, self_exclusion, normal,
+        nc = candidate_count[i]
+        if nc <= candidates.shape[0]:
+            for a in range(nc):
+                count = record_contact(
+                    i, candidates[a, i], xi, vi_prev, count, cq, cqd_prev, contact_radius, normal, contact_list_out,
+                    contact_normal_out, contact_gap_out, contact_u0_out,
                 )
-                if touches:
-                    if count < contact_list_out.shape[1]:
-                        contact_list_out[i, count] = j
-                    count += 1
+        else:
+            j = next_candidate(
+                i, -1, grid_head, grid_next, inv_cell, shift, x_build, contact_jelly, contact_world, contact_radius,
+                contact_rest, jelly_self_contact, between_jellies, self_exclusion, skin,
+            )
+            while j >= 0:
+                count = record_contact(
+                    i, j, xi, vi_prev, count, cq, cqd_prev, contact_radius, normal, contact_list_out,
+                    contact_normal_out, contact_gap_out, contact_u0_out,
+                )
+                j = next_candidate(
+                    i, j, grid_head, grid_next, inv_cell, shift, x_build, contact_jelly, contact_world,
+                    contact_radius, contact_rest, jelly_self_contact, between_jellies, self_exclusion, skin,
+                )
         count_out[i] = count
+        w_split_out[i] = scalar(count) * cw[i]
 
     @wp.func
     def velocity_term(
@@ -302,99 +555,108 @@ def build(scalar):
         vi: vec3,
         vi_prev: vec3,
         wi_split: scalar,
-        contact_index: wp.array(dtype=wp.int32),
-        contact_jelly: wp.array(dtype=wp.int32),
-        contact_radius: wp.array(dtype=scalar),
-        contact_rest: wp.array(dtype=vec3),
-        jelly_self_contact: wp.array(dtype=wp.int32),
-        particle_inv_mass: wp.array(dtype=scalar),
-        between_jellies: int,
-        self_exclusion: scalar,
         friction: scalar,
         restitution: scalar,
         eps_v: scalar,
         rest_steps: scalar,
-        qd_prev: wp.array(dtype=vec3),
         cq: wp.array(dtype=vec3),
+        cqd_prev: wp.array(dtype=vec3),
+        contact_radius: wp.array(dtype=scalar),
         normal: wp.array2d(dtype=vec3),
-        count: wp.array(dtype=wp.int32),
+        w_split: wp.array(dtype=scalar),
         cqd: wp.array(dtype=vec3),
     ):
-        """The impulse of pair (i, j) on i in a velocity iteration (zero if they do not touch)."""
-        touches, n, gap = pair_contact(
-            i, j, xi, cq, contact_jelly, contact_radius, contact_rest, jelly_self_contact, between_jellies,
-            self_exclusion, normal,
-        )
+        """The impulse of candidate j on i in a velocity iteration, tested afresh (zero if they do
+        not touch): for a particle with more contacts than its list holds."""
+        touches, n, gap = pair_contact(i, j, xi, cq, contact_radius, normal)
         p = vec3(scalar(0.0))
         if touches:
-            pj = contact_index[j]
-            wj_split = scalar(count[j]) * particle_inv_mass[pj]
+            wj_split = w_split[j]
             if wi_split + wj_split > scalar(0.0):
-                p = pair_impulse(
-                    n, vi, cqd[j], vi_prev, qd_prev[pj], wi_split, wj_split, friction, restitution, eps_v, rest_steps
-                )
+                u0 = -wp.dot(vi_prev - cqd_prev[j], n)
+                p = pair_impulse(n, vi, cqd[j], u0, wi_split, wj_split, friction, restitution, eps_v, rest_steps)
         return p
 
     @wp.kernel(module="unique")
     def resolve_contact_velocities(
-        grid: wp.uint64,
+        # Candidates and the grid behind an overflowed list:
+        candidates: wp.array2d(dtype=wp.int32),
+        candidate_count: wp.array(dtype=wp.int32),
+        grid_head: wp.array2d(dtype=wp.int32),
+        grid_next: wp.array(dtype=wp.int32),
+        inv_cell: scalar,
+        shift: int,
+        x_build: wp.array(dtype=vec3),
         # Model:
-        contact_index: wp.array(dtype=wp.int32),
         contact_jelly: wp.array(dtype=wp.int32),
         contact_world: wp.array(dtype=wp.int32),
         contact_radius: wp.array(dtype=scalar),
         contact_rest: wp.array(dtype=vec3),
         jelly_self_contact: wp.array(dtype=wp.int32),
-        particle_inv_mass: wp.array(dtype=scalar),
         between_jellies: int,
         self_exclusion: scalar,
-        max_distance: scalar,
+        skin: scalar,
         friction: scalar,
         restitution: scalar,
         eps_v: scalar,
         rest_steps: scalar,
-        # Velocities before the step (particle order); positions after it, surface normals, the
-        # contact counts and lists and the velocities of this iteration (contact order):
-        qd_prev: wp.array(dtype=vec3),
+        # State and contacts (contact order):
         cq: wp.array(dtype=vec3),
+        cqd_prev: wp.array(dtype=vec3),
+        cw: wp.array(dtype=scalar),
         normal: wp.array2d(dtype=vec3),
         count: wp.array(dtype=wp.int32),
+        w_split: wp.array(dtype=scalar),
         contact_list: wp.array2d(dtype=wp.int32),
+        contact_normal: wp.array2d(dtype=vec3),
+        contact_u0: wp.array2d(dtype=scalar),
+        # The velocities of this iteration
         cqd: wp.array(dtype=vec3),
         # Out: the velocities after this iteration's impulses (contact order)
         cqd_out: wp.array(dtype=vec3),
     ):
-        # Threads in the grid's order (by cell): neighbouring threads read neighbouring particles.
-        i = wp.hash_grid_point_id(grid, wp.tid())
+        i = wp.tid()
         ci = count[i]
         vi = cqd[i]
         if ci == 0:
             cqd_out[i] = vi
             return
-        pi = contact_index[i]
-        wi = particle_inv_mass[pi]
-        xi = cq[i]
-        vi_prev = qd_prev[pi]
-        wi_split = scalar(ci) * wi
+        wi = cw[i]
+        wi_split = w_split[i]
         impulse = vec3(scalar(0.0))
-        # The contacts found by count_particle_contacts, in the grid's order; a particle with more
-        # than the list holds queries the grid again (the same pairs, the same order).
-        if ci <= contact_list.shape[1]:
+        if ci <= contact_list.shape[0]:
             for a in range(ci):
-                impulse = impulse + velocity_term(
-                    i, contact_list[i, a], xi, vi, vi_prev, wi_split, contact_index, contact_jelly,
-                    contact_radius, contact_rest, jelly_self_contact, particle_inv_mass, between_jellies,
-                    self_exclusion, friction, restitution, eps_v, rest_steps, qd_prev, cq, normal, count, cqd,
-                )
+                j = contact_list[a, i]
+                wj_split = w_split[j]
+                if wi_split + wj_split > scalar(0.0):
+                    impulse = impulse + pair_impulse(
+                        contact_normal[a, i], vi, cqd[j], contact_u0[a, i], wi_split, wj_split, friction,
+                        restitution, eps_v, rest_steps,
+                    )
         else:
-            query = wp.hash_grid_query(grid, xi, max_distance, contact_world[i])
-            j = int(0)
-            while wp.hash_grid_query_next(query, j):
-                if j != i:
+            # More contacts than the list holds: the candidates again, in the same order.
+            xi = cq[i]
+            vi_prev = cqd_prev[i]
+            nc = candidate_count[i]
+            if nc <= candidates.shape[0]:
+                for a in range(nc):
                     impulse = impulse + velocity_term(
-                        i, j, xi, vi, vi_prev, wi_split, contact_index, contact_jelly,
-                        contact_radius, contact_rest, jelly_self_contact, particle_inv_mass, between_jellies,
-                        self_exclusion, friction, restitution, eps_v, rest_steps, qd_prev, cq, normal, count, cqd,
+                        i, candidates[a, i], xi, vi, vi_prev, wi_split, friction, restitution, eps_v, rest_steps,
+                        cq, cqd_prev, contact_radius, normal, w_split, cqd,
+                    )
+            else:
+                j = next_candidate(
+                    i, -1, grid_head, grid_next, inv_cell, shift, x_build, contact_jelly, contact_world,
+                    contact_radius, contact_rest, jelly_self_contact, between_jellies, self_exclusion, skin,
+                )
+                while j >= 0:
+                    impulse = impulse + velocity_term(
+                        i, j, xi, vi, vi_prev, wi_split, friction, restitution, eps_v, rest_steps,
+                        cq, cqd_prev, contact_radius, normal, w_split, cqd,
+                    )
+                    j = next_candidate(
+                        i, j, grid_head, grid_next, inv_cell, shift, x_build, contact_jelly, contact_world,
+                        contact_radius, contact_rest, jelly_self_contact, between_jellies, self_exclusion, skin,
                     )
         cqd_out[i] = vi + wi * impulse
 
@@ -402,6 +664,8 @@ def build(scalar):
     def position_term(
         i: int,
         j: int,
+        n: vec3,
+        gap: scalar,
         xi: vec3,
         yi: vec3,
         vi: vec3,
@@ -409,51 +673,43 @@ def build(scalar):
         wi_split: scalar,
         h: scalar,
         beta_h: scalar,
-        contact_index: wp.array(dtype=wp.int32),
-        contact_jelly: wp.array(dtype=wp.int32),
-        contact_radius: wp.array(dtype=scalar),
-        contact_rest: wp.array(dtype=vec3),
-        jelly_self_contact: wp.array(dtype=wp.int32),
-        particle_inv_mass: wp.array(dtype=scalar),
-        between_jellies: int,
-        self_exclusion: scalar,
         cq: wp.array(dtype=vec3),
-        normal: wp.array2d(dtype=vec3),
         cqd: wp.array(dtype=vec3),
-        count: wp.array(dtype=wp.int32),
+        w_split: wp.array(dtype=scalar),
         cqd_new: wp.array(dtype=vec3),
     ):
-        """Position and velocity change of i from pair (i, j) in the position pass: (dx, dv)."""
-        touches, n, gap = pair_contact(
-            i, j, xi, cq, contact_jelly, contact_radius, contact_rest, jelly_self_contact, between_jellies,
-            self_exclusion, normal,
-        )
+        """Position and velocity change of i from touching pair (i, j) in the position pass: (dx, dv)."""
         dx = vec3(scalar(0.0))
         dv = vec3(scalar(0.0))
-        if touches:
+        split = wi_split + w_split[j]
+        if split > scalar(0.0):
+            # What overlap the moved positions keep is projected out along the pair's normal,
+            # split like the impulses (positions only: no momentum).
             xj = cq[j]
-            split = wi_split + scalar(count[j]) * particle_inv_mass[contact_index[j]]
-            if split > scalar(0.0):
-                # What overlap the moved positions keep is projected out along the pair's normal,
-                # split like the impulses (positions only: no momentum).
-                vj = cqd_new[j]
-                yj = xj + beta_h * (vj - cqd[j])
-                moved = gap + wp.dot((yi - xi) - (yj - xj), n)
-                if moved < scalar(0.0):
-                    dx = (-moved * wi / split) * n
-                    # The projection is a motion of the step: what approach velocity the
-                    # iterations left (they converge slowly where a particle presses on one with
-                    # many contacts) is taken off up to the projected distance per step, so a
-                    # pressed particle does not keep a velocity it never moves by. Only approach
-                    # is removed, never separation added.
-                    vn = wp.dot(vi - vj, n)
-                    if vn < scalar(0.0):
-                        dv = (wp.min(-vn, -moved / h) * wi / split) * n
+            vj = cqd_new[j]
+            yj = xj + beta_h * (vj - cqd[j])
+            moved = gap + wp.dot((yi - xi) - (yj - xj), n)
+            if moved < scalar(0.0):
+                dx = (-moved * wi / split) * n
+                # The projection is a motion of the step: what approach velocity the iterations
+                # left (they converge slowly where a particle presses on one with many contacts) is
+                # taken off up to the projected distance per step, so a pressed particle does not
+                # keep a velocity it never moves by. Only approach is removed, never separation added.
+                vn = wp.dot(vi - vj, n)
+                if vn < scalar(0.0):
+                    dv = (wp.min(-vn, -moved / h) * wi / split) * n
         return dx, dv
 
     @wp.kernel(module="unique")
     def resolve_contact_positions(
-        grid: wp.uint64,
+        # Candidates and the grid behind an overflowed list:
+        candidates: wp.array2d(dtype=wp.int32),
+        candidate_count: wp.array(dtype=wp.int32),
+        grid_head: wp.array2d(dtype=wp.int32),
+        grid_next: wp.array(dtype=wp.int32),
+        inv_cell: scalar,
+        shift: int,
+        x_build: wp.array(dtype=vec3),
         # Model:
         contact_index: wp.array(dtype=wp.int32),
         contact_jelly: wp.array(dtype=wp.int32),
@@ -461,59 +717,80 @@ def build(scalar):
         contact_radius: wp.array(dtype=scalar),
         contact_rest: wp.array(dtype=vec3),
         jelly_self_contact: wp.array(dtype=wp.int32),
-        particle_inv_mass: wp.array(dtype=scalar),
         between_jellies: int,
         self_exclusion: scalar,
-        max_distance: scalar,
+        skin: scalar,
         h: scalar,
         world_contact_beta: wp.array(dtype=scalar),
-        # The step's result, surface normals, the contact counts and lists, and the velocities
-        # before and after the impulses (contact order):
+        # The step's result, surface normals, the contacts, and the velocities before and after
+        # the impulses (contact order):
         cq: wp.array(dtype=vec3),
+        cw: wp.array(dtype=scalar),
         normal: wp.array2d(dtype=vec3),
-        cqd: wp.array(dtype=vec3),
         count: wp.array(dtype=wp.int32),
+        w_split: wp.array(dtype=scalar),
         contact_list: wp.array2d(dtype=wp.int32),
+        contact_normal: wp.array2d(dtype=vec3),
+        contact_gap: wp.array2d(dtype=scalar),
+        cqd: wp.array(dtype=vec3),
         cqd_new: wp.array(dtype=vec3),
+        # In and out: the rebuild flag (lowered) and the count of builds (one more after a build)
+        rebuild: wp.array(dtype=wp.int32),
+        builds: wp.array(dtype=wp.int32),
         # Out: the step's result, corrected in place (each thread writes its own particle only)
         q_out: wp.array(dtype=vec3),
         qd_out: wp.array(dtype=vec3),
     ):
-        # Threads in the grid's order (by cell): neighbouring threads read neighbouring particles.
-        i = wp.hash_grid_point_id(grid, wp.tid())
+        i = wp.tid()
+        if i == 0 and rebuild[0] != 0:
+            # No other thread of this launch reads these two (the grid walk reads both tables).
+            builds[0] = builds[0] + 1
+            rebuild[0] = 0
         ci = count[i]
         if ci == 0:
             return
         pi = contact_index[i]
-        wi = particle_inv_mass[pi]
-        world = contact_world[i]
+        wi = cw[i]
         # The impulses act over the whole step: positions move by what the integrator makes of a
         # velocity change, beta h dv (as for terrain, kernels/contact.py).
-        beta_h = h * world_contact_beta[world]
+        beta_h = h * world_contact_beta[contact_world[i]]
         xi = cq[i]
         vi = cqd_new[i]
         yi = xi + beta_h * (vi - cqd[i])
-        wi_split = scalar(ci) * wi
+        wi_split = w_split[i]
         dx = vec3(scalar(0.0))
         dv = vec3(scalar(0.0))
-        if ci <= contact_list.shape[1]:
+        if ci <= contact_list.shape[0]:
             for a in range(ci):
                 ddx, ddv = position_term(
-                    i, contact_list[i, a], xi, yi, vi, wi, wi_split, h, beta_h, contact_index, contact_jelly,
-                    contact_radius, contact_rest, jelly_self_contact, particle_inv_mass, between_jellies,
-                    self_exclusion, cq, normal, cqd, count, cqd_new,
+                    i, contact_list[a, i], contact_normal[a, i], contact_gap[a, i], xi, yi, vi, wi, wi_split, h,
+                    beta_h, cq, cqd, w_split, cqd_new,
                 )
                 dx = dx + ddx
                 dv = dv + ddv
         else:
-            query = wp.hash_grid_query(grid, xi, max_distance, world)
-            j = int(0)
-            while wp.hash_grid_query_next(query, j):
-                if j != i:
+            # More contacts than the list holds: the candidates again, in the same order.
+            nc = candidate_count[i]
+            j = int(-1)
+            a = int(0)
+            while True:
+                if nc <= candidates.shape[0]:
+                    if a < nc:
+                        j = candidates[a, i]
+                    else:
+                        j = -1
+                    a += 1
+                else:
+                    j = next_candidate(
+                        i, j, grid_head, grid_next, inv_cell, shift, x_build, contact_jelly, contact_world,
+                        contact_radius, contact_rest, jelly_self_contact, between_jellies, self_exclusion, skin,
+                    )
+                if j < 0:
+                    break
+                touches, n, gap = pair_contact(i, j, xi, cq, contact_radius, normal)
+                if touches:
                     ddx, ddv = position_term(
-                        i, j, xi, yi, vi, wi, wi_split, h, beta_h, contact_index, contact_jelly,
-                        contact_radius, contact_rest, jelly_self_contact, particle_inv_mass, between_jellies,
-                        self_exclusion, cq, normal, cqd, count, cqd_new,
+                        i, j, n, gap, xi, yi, vi, wi, wi_split, h, beta_h, cq, cqd, w_split, cqd_new
                     )
                     dx = dx + ddx
                     dv = dv + ddv
@@ -521,16 +798,15 @@ def build(scalar):
         qd_out[pi] = vi + dv
 
     return {
-        "pair_touches": pair_touches,
+        "pair_allowed": pair_allowed,
         "pair_contact": pair_contact,
         "facing_normal": facing_normal,
         "pair_normal": pair_normal,
         "pair_impulse": pair_impulse,
-        "contact_surface_normals": contact_surface_normals,
-        "gather_contact_particles": gather_contact_particles,
-        "count_particle_contacts": count_particle_contacts,
-        "velocity_term": velocity_term,
-        "position_term": position_term,
+        "prepare_contact_particles": prepare_contact_particles,
+        "insert_contact_grid": insert_contact_grid,
+        "build_contact_candidates": build_contact_candidates,
+        "find_particle_contacts": find_particle_contacts,
         "resolve_contact_velocities": resolve_contact_velocities,
         "resolve_contact_positions": resolve_contact_positions,
     }

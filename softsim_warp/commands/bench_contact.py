@@ -8,8 +8,8 @@ our pair distance (one spacing) and Newton's (2 x 0.45 spacings): every face of 
 its neighbour's from the first step. For each count in ``--jellies`` the command times:
 
 * ours without jelly contact (``jelly_contact = false``), the same particles and springs;
-* ours with it (the hash grid, surface normals, ``jelly_contact_iterations`` velocity passes and
-  the position pass, every step);
+* ours with it (surface normals, the candidate lists and their rebuilds, the contacts,
+  ``jelly_contact_iterations`` velocity passes and the position pass, every step);
 * with ``--peer newton``: Newton 1.8's ``SolverSemiImplicit`` on the same springs and ground, once
   without particle contact (``model.particle_grid = None``) and once with it (its ``HashGrid``
   rebuilt every step by the solver, penalty forces ``particle_ke/kd/kf/mu``; particle radius 0.45
@@ -213,6 +213,11 @@ def run_contact(args, device, spec, versions, device_name) -> int:
                         "graph": use_graph,
                     }
                 )
+                if who == "ours" and contact:
+                    # Candidate-list builds over every step this case ran (first steps, warm-up,
+                    # repeats): how often the skin ran out.
+                    rows[-1]["list_builds"] = hook.builds_done()
+                    rows[-1]["steps_run"] = 2 + case.steps * (1 + args.repeats)
             for case in cases.values():
                 case.graph = None
             del cases
@@ -254,3 +259,6 @@ def _print(rows, device_name, spec, size, args):
             f"{r['jellies']:>7} {r['particles']:>10} {r['solver']:<27} {('yes' if r['contact'] else 'no'):<7} "
             f"{r['ms_per_step']:>9.4f} {r['particle_steps_per_s']:>17.3e} {r['contact_cost']:>12.2f}{flag}"
         )
+    for r in rows:
+        if "list_builds" in r:
+            print(f"{r['jellies']} jellies: candidate lists built {r['list_builds']} times in {r['steps_run']} steps")

@@ -1,20 +1,20 @@
-"""Contact between jellies and self-contact: which particles take part, the hash grid, the launches.
+"""Contact between jellies and self-contact: which particles take part, the candidate lists, the launches.
 
 :func:`attach` gives a model a :class:`ParticleContact` hook (``model.contact_hooks``) when its scene
 asks for contact between jellies or for a jelly's self-contact; a model without either gets nothing
 (no array, no launch). The hook runs after every integrator's step, after terrain contact
-(``core/contact.apply_contacts``), and launches three kernels and one hash-grid build:
+(``core/contact.apply_contacts``), and launches (kernels/particle_contact.py explains each):
 
-1. ``gather_contact_particles``: the surface particles of the jellies that take part, copied to
-   compact arrays (a lattice's interior particles cannot touch anything before its surface does);
-2. ``wp.HashGrid.build`` on those positions, one group per world (worlds never touch);
-3. ``count_particle_contacts``: each particle's number of contacts;
-4. ``resolve_particle_contacts``: each particle gathers the impulses and position corrections of
-   its contacts (kernels/particle_contact.py explains the response).
+1. ``prepare_contact_particles``: the surface particles of the jellies that take part, copied to
+   compact arrays (a lattice's interior particles cannot touch anything before its surface does),
+   their boundary-face normals, and the rebuild flag (a particle moved half the skin);
+2. ``insert_contact_grid`` and ``build_contact_candidates``: the candidate lists, rebuilt only when
+   the flag is raised (otherwise both return at once);
+3. ``find_particle_contacts``: each particle's contacts among its candidates;
+4. ``resolve_contact_velocities`` (``iterations`` times) and ``resolve_contact_positions``.
 
-``HashGrid.build`` runs inside ``wp.ScopedCapture`` on CUDA and on the CPU (Warp 1.19 records it as
-a graph node with the sort's scratch memory managed by the graph); its buffers are reserved here,
-before any capture, for the fixed number of contact particles.
+Every launch has a fixed size and every array is allocated here, so a step with contact is captured
+as a graph (CUDA and CPU) like any other.
 
 Which pairs: particles of different jellies of one world (``jelly_contact``), and particles of one
 jelly with ``self_contact`` that are at least :data:`SELF_EXCLUSION` pair distances apart in the
@@ -46,10 +46,16 @@ THICKNESS_PER_SPACING = 1.0
 # Same-jelly pairs closer than this many pair distances in the rest shape never touch.
 SELF_EXCLUSION = 2.0
 # Contacts a particle keeps in its list for the velocity and position passes; one with more (rare:
-# a pair distance of one spacing gives a particle resting on a face 1 to 4) queries the grid again.
+# a pair distance of one spacing gives a particle resting on a face 1 to 4) tests its candidates again.
 MAX_CONTACTS = 16
-# Hash-grid cells per axis at most (cells are hashed; more only spends memory).
-MAX_GRID_DIM = 128
+# Candidates a particle's list holds; one with more (a jelly crushed to well below its spacing) walks
+# the grid of the last build instead, in the same order.
+MAX_CANDIDATES = 32
+# The candidate lists' skin, in the smallest pair distance: a list holds the pairs within
+# CANDIDATE_REACH d + skin, and it is rebuilt when a particle has moved skin / 2 since it was built.
+SKIN = 0.25
+# What rebuild_distance keeps below skin / 2, in skins: room for the rounding of the distances.
+SKIN_ROUNDING = 1.0 / 64.0
 
 
 def surface_mask(shape, present=None) -> np.ndarray:
@@ -99,7 +105,7 @@ def jelly_radius(info, thickness=None) -> float:
 
 
 class ParticleContact:
-    """The contact hook of a model: compact arrays of the contact particles and their hash grid.
+    """The contact hook of a model: compact arrays of the contact particles and their candidate lists.
 
     Attributes:
         count: contact particles (surface particles of the jellies taking part).
@@ -111,8 +117,14 @@ class ParticleContact:
         jelly_self_contact: 1 where a jelly has self-contact, shape [jelly_count], int32.
         between_jellies: 1 when particles of different jellies touch.
         friction, restitution: Coulomb coefficient and restitution between particles [1].
-        max_distance: the largest pair distance [m]: the grid's cell width and query radius.
-        grid: the ``wp.HashGrid``.
+        skin: the candidate lists' skin [m]: a list holds the pairs within CANDIDATE_REACH d + skin
+            at its build, and it is rebuilt once a particle has moved ``rebuild_distance`` (just
+            under skin / 2) since.
+        candidates, candidate_count: each particle's candidates, shape [MAX_CANDIDATES, count]
+            (slot-major, ascending), and their number (MAX_CANDIDATES + 1: more than the list
+            holds, the grid walk takes over), int32.
+        builds: how many times the lists were built, shape [1], int32 (:meth:`builds_done`).
+        contacts: each particle's number of contacts in the last step, shape [count], int32.
     """
 
     # Not part of the implicit integrator's contact solve, which prescribes each touched particle's
@@ -159,14 +171,22 @@ class ParticleContact:
         self.restitution = scalar(restitution)
         self.self_exclusion = scalar(SELF_EXCLUSION)
         np_radius = cat(radius, (0,))
-        # Candidates lie within CANDIDATE_REACH pair distances: the grid's cell width and query radius.
-        self.max_distance_host = float(CANDIDATE_REACH * 2.0 * np_radius.max()) if self.count else 0.0
-        self.max_distance = scalar(self.max_distance_host)
+        # The skin from the smallest pair distance; the grid's cells are as wide as the largest
+        # candidate reach, so a particle's candidates lie in its own and the 26 cells around it.
+        self.skin_host = float(SKIN * 2.0 * np_radius.min()) if self.count else 0.0
+        self.skin = scalar(self.skin_host)
+        self.rebuild_distance = scalar(self.skin_host * (0.5 - SKIN_ROUNDING))
+        cell = float(CANDIDATE_REACH * 2.0 * np_radius.max()) + self.skin_host if self.count else 1.0
+        self.inv_cell = scalar(1.0 / cell)
+        # About two buckets per contact particle (Fibonacci hashing keeps the top bits).
+        bits = int(max(4, math.ceil(math.log2(max(2 * self.count, 1)))))
+        self.shift = 32 - bits
         np_scalar = np.float64 if scalar == wp.float64 else np.float32
 
         def arr(values, dtype, np_dtype):
             return wp.array(np.asarray(values, dtype=np_dtype), dtype=dtype, device=device)
 
+        n = self.count
         self.contact_index = arr(np_index, wp.int32, np.int32)
         self.contact_jelly = arr(cat(jelly, (0,)), wp.int32, np.int32)
         self.contact_world = arr(cat(world, (0,)), wp.int32, np.int32)
@@ -176,40 +196,68 @@ class ParticleContact:
         self.contact_axis_neighbors = wp.array(
             cat(neighbors, (0, 9)).astype(np.int32).reshape(-1, 9), dtype=wp.int32, device=device
         )
-        self.normal = wp.zeros((self.count, 3), dtype=vec3, device=device)
+        self.normal = wp.zeros((n, 3), dtype=vec3, device=device)
         self.jelly_self_contact = arr(np.asarray(self_flags, dtype=np.int32).reshape(-1), wp.int32, np.int32)
-        # Compact copies of the step's result (the gather reads these, never what it writes) and
-        # each particle's contact count.
-        self.cq = wp.zeros(self.count, dtype=vec3, device=device)
-        self.cqd = wp.zeros(self.count, dtype=vec3, device=device)
-        self.contacts = wp.zeros(self.count, dtype=wp.int32, device=device)
-        self.contact_list = wp.zeros((self.count, MAX_CONTACTS), dtype=wp.int32, device=device)
+        # Compact copies of the step's result (the passes read these, never what they write), of
+        # the velocities before the step, and of the inverse masses.
+        self.cq = wp.zeros(n, dtype=vec3, device=device)
+        self.cqd = wp.zeros(n, dtype=vec3, device=device)
+        self.cqd_prev = wp.zeros(n, dtype=vec3, device=device)
+        self.cw = wp.zeros(n, dtype=scalar, device=device)
+        # Candidate lists (slot-major), their build positions, the flag that asks for a rebuild
+        # (raised: the first step builds) and the count of builds.
+        self.x_build = wp.zeros(n, dtype=vec3, device=device)
+        self.candidates = wp.zeros((MAX_CANDIDATES, n), dtype=wp.int32, device=device)
+        self.candidate_count = wp.zeros(n, dtype=wp.int32, device=device)
+        self.rebuild = wp.ones(1, dtype=wp.int32, device=device)
+        self.builds = wp.zeros(1, dtype=wp.int32, device=device)
+        # The hashed cell grid of the builds: two tables of bucket heads, the links, each
+        # particle's bucket.
+        self.grid_head = wp.full((2, 1 << bits), -1, dtype=wp.int32, device=device)
+        self.grid_next = wp.full(n, -1, dtype=wp.int32, device=device)
+        self.cell_bucket = wp.zeros(n, dtype=wp.int32, device=device)
+        # Contacts: per particle its count and split inverse mass; per contact (slot-major) its
+        # partner, normal, gap and approach speed before the step.
+        self.contacts = wp.zeros(n, dtype=wp.int32, device=device)
+        self.w_split = wp.zeros(n, dtype=scalar, device=device)
+        self.contact_list = wp.zeros((MAX_CONTACTS, n), dtype=wp.int32, device=device)
+        self.contact_normal = wp.zeros((MAX_CONTACTS, n), dtype=vec3, device=device)
+        self.contact_gap = wp.zeros((MAX_CONTACTS, n), dtype=scalar, device=device)
+        self.contact_u0 = wp.zeros((MAX_CONTACTS, n), dtype=scalar, device=device)
         self.iterations = int(iterations)
-        self.cqd_iter = [wp.zeros(self.count, dtype=vec3, device=device) for _ in range(min(self.iterations, 2))]
-        # About one cell per contact particle; the grid hashes cells, so a smaller grid only adds
-        # candidates that the distance test rejects.
-        dim = int(min(MAX_GRID_DIM, max(4, 2 ** math.ceil(math.log2(max(self.count, 1) ** (1.0 / 3.0) + 1)))))
-        self.grid = wp.HashGrid(dim, dim, dim, device=device, dtype=scalar)
-        self.grid.reserve(max(self.count, 1), with_groups=True)
+        self.cqd_iter = [wp.zeros(n, dtype=vec3, device=device) for _ in range(min(self.iterations, 2))]
+
+    def builds_done(self) -> int:
+        """How many times the candidate lists were built (a metric: reads the device)."""
+        return int(self.builds.numpy()[0])
 
     def __call__(self, model, state_in, state_out, h, world_contact_beta):
         if self.count == 0:
             return
         k = model.kernels
         device = model.device
+        n = self.count
         wp.launch(
-            k.gather_contact_particles,
-            dim=self.count,
-            inputs=[self.contact_index, state_out.particle_q, state_out.particle_qd],
-            outputs=[self.cq, self.cqd],
+            k.prepare_contact_particles,
+            dim=n,
+            inputs=[
+                self.contact_index,
+                self.contact_axis_neighbors,
+                model.particle_inv_mass,
+                self.x_build,
+                self.rebuild_distance,
+                state_in.particle_qd,
+                state_out.particle_q,
+                state_out.particle_qd,
+            ],
+            outputs=[self.cq, self.cqd, self.cqd_prev, self.cw, self.normal, self.rebuild],
             device=device,
         )
-        self.grid.build(self.cq, self.max_distance_host, groups=self.contact_world)
         wp.launch(
-            k.contact_surface_normals,
-            dim=self.count,
-            inputs=[self.contact_index, self.contact_axis_neighbors, state_out.particle_q],
-            outputs=[self.normal],
+            k.insert_contact_grid,
+            dim=n,
+            inputs=[self.rebuild, self.builds, self.contact_world, self.inv_cell, self.shift, self.cq],
+            outputs=[self.cell_bucket, self.grid_head, self.grid_next],
             device=device,
         )
         pairs = [
@@ -218,42 +266,59 @@ class ParticleContact:
             self.contact_radius,
             self.contact_rest,
             self.jelly_self_contact,
-        ]
-        wp.launch(
-            k.count_particle_contacts,
-            dim=self.count,
-            inputs=[
-                self.grid.id, *pairs, self.between_jellies, self.self_exclusion, self.max_distance, self.cq, self.normal
-            ],
-            outputs=[self.contacts, self.contact_list],
-            device=device,
-        )
-        common = [
-            self.grid.id,
-            self.contact_index,
-            *pairs,
-            model.particle_inv_mass,
             self.between_jellies,
             self.self_exclusion,
-            self.max_distance,
+            self.skin,
         ]
+        wp.launch(
+            k.build_contact_candidates,
+            dim=n,
+            inputs=[
+                self.rebuild, self.builds, self.grid_head, self.grid_next, self.inv_cell, self.shift, *pairs, self.cq
+            ],
+            outputs=[self.x_build, self.candidates, self.candidate_count],
+            device=device,
+        )
+        walk = [
+            self.candidates,
+            self.candidate_count,
+            self.grid_head,
+            self.grid_next,
+            self.inv_cell,
+            self.shift,
+            self.x_build,
+            *pairs,
+        ]
+        wp.launch(
+            k.find_particle_contacts,
+            dim=n,
+            inputs=[*walk, self.cq, self.cqd_prev, self.cw, self.normal],
+            outputs=[
+                self.contacts, self.w_split, self.contact_list, self.contact_normal, self.contact_gap, self.contact_u0
+            ],
+            device=device,
+        )
         v_in = self.cqd
         for it in range(self.iterations):
             v_out = self.cqd_iter[it % 2]
             wp.launch(
                 k.resolve_contact_velocities,
-                dim=self.count,
+                dim=n,
                 inputs=[
-                    *common,
+                    *walk,
                     self.friction,
                     self.restitution,
                     model.contact_velocity_epsilon,
                     model.restitution_threshold_steps,
-                    state_in.particle_qd,
                     self.cq,
+                    self.cqd_prev,
+                    self.cw,
                     self.normal,
                     self.contacts,
+                    self.w_split,
                     self.contact_list,
+                    self.contact_normal,
+                    self.contact_u0,
                     v_in,
                 ],
                 outputs=[v_out],
@@ -262,9 +327,25 @@ class ParticleContact:
             v_in = v_out
         wp.launch(
             k.resolve_contact_positions,
-            dim=self.count,
+            dim=n,
             inputs=[
-                *common, h, world_contact_beta, self.cq, self.normal, self.cqd, self.contacts, self.contact_list, v_in
+                *walk[:7],
+                self.contact_index,
+                *pairs,
+                h,
+                world_contact_beta,
+                self.cq,
+                self.cw,
+                self.normal,
+                self.contacts,
+                self.w_split,
+                self.contact_list,
+                self.contact_normal,
+                self.contact_gap,
+                self.cqd,
+                v_in,
+                self.rebuild,
+                self.builds,
             ],
             outputs=[state_out.particle_q, state_out.particle_qd],
             device=device,

@@ -1,0 +1,182 @@
+"""Candidate lists of contact between jellies (kernels/particle_contact.py, core/particle_contact.py).
+
+A list holds the pairs within CANDIDATE_REACH d + skin at its build and is rebuilt once a particle
+has moved half the skin. Checked against what cannot agree by accident: a brute-force O(n^2) NumPy
+search in float64 (every allowed pair, by world, jelly, self-exclusion and distance), a hook that
+builds fresh lists on the same positions (the contacts, normals and gaps must be bitwise the same),
+and the lists' overflow paths (tiny lists), which must give bitwise the same step.
+"""
+
+import numpy as np
+import pytest
+import warp as wp
+
+from softsim_warp.core import particle_contact
+from softsim_warp.core.model import ModelBuilder
+
+SPACING = 0.05
+SIZE = 4
+
+
+def _pile(self_contact=False, worlds=1):
+    """Eight jellies of 4^3 in a 2x2x2 block, 0.85 spacings apart (every face touches), in
+    ``worlds`` copies on top of each other."""
+    builder = ModelBuilder((0.0, -9.81, 0.0))
+    springs = {t: {"ks": 1000.0, "kd": 0.0} for t in ("structural", "shear", "bending")}
+    edge = SPACING * (SIZE - 1)
+    pitch = edge + 0.85 * SPACING
+    for world in range(worlds):
+        for c in range(8):
+            centre = ((c % 2) * pitch, (c // 2 % 2) * pitch + 0.5, (c // 4) * pitch)
+            builder.add_jelly(
+                (SIZE,) * 3, edge, 0.01, springs, center=centre, world=world, self_contact=self_contact and c == 0
+            )
+    builder.jelly_contact = True
+    return builder.finalize("cpu", "float32")
+
+
+def _step_hook(model, state, q):
+    """One hook call on positions ``q`` (the step's result) and zero velocities; returns the state."""
+    state.particle_q.assign(q.astype(np.float32))
+    state.particle_qd.zero_()
+    hook = model.particle_contact
+    hook(model, state, state, model.scalar(1e-4), wp.ones(4, dtype=model.scalar, device="cpu"))
+    return state
+
+
+def _brute_force(hook, x, reach_extra):
+    """Every contact particle's allowed partners within CANDIDATE_REACH d + ``reach_extra`` of it at
+    contact positions ``x`` (float64), by checking all pairs."""
+    jelly = hook.contact_jelly.numpy()
+    world = hook.contact_world.numpy()
+    radius = hook.contact_radius.numpy().astype(np.float64)
+    self_flag = hook.jelly_self_contact.numpy()
+    rest = hook.contact_rest.numpy().astype(np.float64)
+    d = radius[:, None] + radius[None, :]
+    dist = np.linalg.norm(x[:, None, :] - x[None, :, :], axis=2)
+    same = jelly[:, None] == jelly[None, :]
+    allowed = (world[:, None] == world[None, :]) & ~np.eye(len(x), dtype=bool)
+    if rest.shape[0] == len(x):
+        rest_dist = np.linalg.norm(rest[:, None, :] - rest[None, :, :], axis=2)
+        self_ok = (self_flag[jelly][:, None] == 1) & (rest_dist >= particle_contact.SELF_EXCLUSION * d)
+    else:
+        self_ok = np.zeros_like(same)
+    allowed &= np.where(same, self_ok, hook.between_jellies == 1)
+    near = dist < 1.25 * d + reach_extra
+    return [set(np.flatnonzero(row)) for row in (allowed & near)]
+
+
+def _lists(hook):
+    cand = hook.candidates.numpy()
+    count = hook.candidate_count.numpy()
+    return [list(cand[: count[i], i]) for i in range(hook.count)]
+
+
+def _contacts(hook):
+    c = hook.contacts.numpy()
+    lst, nrm, gap = hook.contact_list.numpy(), hook.contact_normal.numpy(), hook.contact_gap.numpy()
+    return [(list(lst[: c[i], i]), nrm[: c[i], i].tolist(), gap[: c[i], i].tolist()) for i in range(hook.count)]
+
+
+@pytest.mark.parametrize("self_contact", [False, True])
+def test_candidate_lists_match_brute_force(self_contact):
+    """After a build, each list is exactly the brute-force set of allowed partners within
+    CANDIDATE_REACH d + skin, in ascending order (so the sums do not depend on the grid)."""
+    model = _pile(self_contact)
+    hook = model.particle_contact
+    rng = np.random.default_rng(1)
+    # Jitter by up to 0.4 spacings: pairs across the reach, and with self-contact, pairs of one
+    # jelly far apart in the rest shape that come close.
+    q = model.particle_q_host + rng.uniform(-0.4, 0.4, model.particle_q_host.shape) * SPACING
+    state = _step_hook(model, model.state(), q)
+    assert hook.builds_done() == 1
+    x = q[hook.contact_index.numpy()].astype(np.float32).astype(np.float64)
+    expected = _brute_force(hook, x, hook.skin_host)
+    lists = _lists(hook)
+    assert all(lst == sorted(lst) for lst in lists)
+    assert [set(lst) for lst in lists] == expected
+    assert sum(len(e) for e in expected) > hook.count  # the scene has pairs to find
+    if self_contact:
+        jelly = hook.contact_jelly.numpy()
+        assert any(jelly[i] == jelly[j] for i, e in enumerate(expected) for j in e)
+
+
+def test_lists_kept_give_the_contacts_of_a_fresh_build():
+    """Particles moved by just under the rebuild distance: the lists are not rebuilt, every pair
+    within CANDIDATE_REACH d now is in them, and the contacts (partners, normals, gaps) are bitwise
+    those of a hook that builds its lists on the moved positions."""
+    model = _pile()
+    hook = model.particle_contact
+    rng = np.random.default_rng(2)
+    q0 = model.particle_q_host + rng.uniform(-0.2, 0.2, model.particle_q_host.shape) * SPACING
+    _step_hook(model, model.state(), q0)
+    # Each particle moves by 0.99 of the rebuild distance in a random direction.
+    step = rng.normal(size=q0.shape)
+    step *= 0.99 * float(hook.rebuild_distance) / np.linalg.norm(step, axis=1, keepdims=True)
+    q1 = q0 + step
+    _step_hook(model, model.state(), q1)
+    assert hook.builds_done() == 1
+    x1 = q1[hook.contact_index.numpy()].astype(np.float32).astype(np.float64)
+    within_reach = _brute_force(hook, x1, 0.0)
+    assert all(e <= set(lst) for e, lst in zip(within_reach, _lists(hook)))
+    fresh = _pile()
+    _step_hook(fresh, fresh.state(), q1)
+    assert fresh.particle_contact.builds_done() == 1
+    assert _contacts(hook) == _contacts(fresh.particle_contact)
+    assert hook.contacts.numpy().sum() > 0
+
+
+def test_rebuild_when_a_particle_moves_half_the_skin():
+    """One particle moved by more than the rebuild distance (just under skin / 2) rebuilds the lists;
+    moves below it do not."""
+    model = _pile()
+    hook = model.particle_contact
+    assert hook.rebuild_distance < 0.5 * hook.skin_host < 1.05 * hook.rebuild_distance
+    q = model.particle_q_host.copy()
+    _step_hook(model, model.state(), q)
+    p = int(hook.contact_index.numpy()[5])
+    for moved, builds in ((0.9, 1), (0.98, 1), (1.02, 2)):
+        q1 = q.copy()
+        q1[p, 1] += moved * float(hook.rebuild_distance)
+        _step_hook(model, model.state(), q1)
+        assert hook.builds_done() == builds, moved
+    # The build of the last call measures moves from there.
+    _step_hook(model, model.state(), q1)
+    assert hook.builds_done() == 2
+
+
+def test_worlds_get_no_candidates_of_each_other():
+    model = _pile(worlds=2)
+    hook = model.particle_contact
+    _step_hook(model, model.state(), model.particle_q_host)
+    world = hook.contact_world.numpy()
+    assert all(world[j] == world[i] for i, lst in enumerate(_lists(hook)) for j in lst)
+    assert sum(len(lst) for lst in _lists(hook)) > 0
+
+
+@pytest.mark.parametrize("cap", ["MAX_CANDIDATES", "MAX_CONTACTS"])
+def test_full_lists_step_bitwise_the_same(monkeypatch, cap):
+    """With lists too short (a candidate list of 2: the grid walk; a contact list of 1: the
+    candidates tested again), ten steps of a squeezed pile are bitwise those with the full lists."""
+    from softsim_warp.core.stepper import make_integrator
+
+    def run():
+        model = _pile()
+        q = model.particle_q_host.copy()
+        q[:, 0] *= 0.97  # squeeze along x: particles with several contacts
+        state = [model.state(), model.state()]
+        state[0].particle_q.assign(q.astype(np.float32))
+        integrator = make_integrator("symplectic", model)
+        for k in range(10):
+            integrator.step(state[k % 2], state[1 - k % 2], 1e-4)
+        hook = model.particle_contact
+        return state[0].particle_q.numpy(), state[0].particle_qd.numpy(), hook
+
+    q_full, v_full, hook = run()
+    most = hook.candidate_count.numpy().max() if cap == "MAX_CANDIDATES" else hook.contacts.numpy().max()
+    monkeypatch.setattr(particle_contact, cap, 2 if cap == "MAX_CANDIDATES" else 1)
+    q_short, v_short, short = run()
+    assert most > getattr(particle_contact, cap)  # the short lists do overflow
+    if cap == "MAX_CANDIDATES":
+        assert (short.candidate_count.numpy() == 3).any()
+    assert np.array_equal(q_full, q_short) and np.array_equal(v_full, v_short)
