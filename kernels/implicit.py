@@ -487,7 +487,16 @@ def build(scalar):
                     if one_surface == 1 and wp.dot(v_c, nrm) <= scalar(0.0) and wp.length(qd_n[i]) < eps_v:
                         land = wp.min(wp.max(depth - h * vn, scalar(0.0)) / h, -vn)
                     target = vt - land * nrm
-                if differs(vt, vt_c):
+                if vn < scalar(0.0) and wp.dot(v_c, nrm) > scalar(0.0):
+                    # A collision (the response reflected the approach). Its restitution is applied
+                    # to the whole body after the solve (apply_restitution), not as a reflected
+                    # velocity of this one particle. The coefficient the response used
+                    # (v_c.n = -e v.n), so that whatever rule resolve_contact applies (resting
+                    # contact, thresholds) carries over. The impact's friction is not carried
+                    # into the solve.
+                    e = wp.clamp(wp.dot(v_c, nrm) / (-vn), scalar(0.0), scalar(1.0))
+                    approach = (m * (-vn)) * nrm
+                elif differs(vt, vt_c):
                     # Friction acted (resting contact). It enters the solve as a tangential
                     # damper on the particle, c (I - n n^T) with c = m (1 - r) / r, r = |vt_c| / |vt|:
                     # alone it would scale vt by r, as the response did; in the solve it is a
@@ -496,13 +505,6 @@ def build(scalar):
                     speed = wp.length(vt)
                     ratio = wp.max(wp.length(vt_c) / wp.max(speed, scalar(1.0e-30)), scalar(1.0e-3))
                     damper = m * (scalar(1.0) - ratio) / ratio
-                elif vn < scalar(0.0):
-                    # A collision. Its restitution is applied to the whole body after the solve
-                    # (apply_restitution), not as a reflected velocity of this one particle. The
-                    # coefficient the response used (v_c.n = -e v.n), so that whatever rule
-                    # resolve_contact applies (resting contact, thresholds) carries over.
-                    e = wp.clamp(wp.dot(v_c, nrm) / (-vn), scalar(0.0), scalar(1.0))
-                    approach = (m * (-vn)) * nrm
             v = sf * v + (identity - sf) * target
         filters_out[i] = sf
         qd_out[i] = v

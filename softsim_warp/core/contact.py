@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import warp as wp
 
+from ..kernels.contact import LAYER_TOUCH
 from .mesh_terrain import mesh_arrays
 
 
@@ -20,6 +21,7 @@ def apply_contacts(
     world_contact_beta: wp.array,
     planes=True,
     solve_hooks_only=False,
+    layer_touch=False,
 ):
     """Terrain contact on ``state_out`` after a step of ``dt`` from ``state_in``; one launch per primitive type present.
 
@@ -28,10 +30,13 @@ def apply_contacts(
     ``planes=False`` skips the planes (a fused lattice stage has already applied them).
     ``solve_hooks_only`` runs only the hooks whose ``in_contact_solve`` is true (the default for a
     hook): the implicit contact solve constrains what they change, while a hook that conserves
-    momentum pair by pair (jelly contact) runs only after the step.
+    momentum pair by pair (jelly contact) runs only after the step. ``layer_touch``: a particle
+    touches anywhere within ``contact_epsilon`` (``kernels.contact.LAYER_TOUCH``; the implicit
+    integrator's response on its free result), not only once its step has reached the surface.
     """
     h = model.scalar(dt)
-    _launch_contacts(model, state_in, state_out.particle_q, state_out.particle_qd, h, world_contact_beta, planes, 0)
+    stage = LAYER_TOUCH if layer_touch else 0
+    _launch_contacts(model, state_in, state_out.particle_q, state_out.particle_qd, h, world_contact_beta, planes, stage)
     for hook in getattr(model, "contact_hooks", ()):
         if not solve_hooks_only or getattr(hook, "in_contact_solve", True):
             hook(model, state_in, state_out, h, world_contact_beta)

@@ -47,7 +47,9 @@ layer back by those 3 cm, and springs squeezed by half a lattice spacing invert 
 ks = 1e5 the jelly_drop jelly ended with 4e4 J of spring energy from 10 J). So a step with
 contact goes on after the free solve (Baraff and Witkin's constraints, section 5 of the paper):
 
-1. the response runs on the free result; every particle it changed becomes constrained along
+1. the response runs on the free result, a particle touching anywhere within contact_epsilon
+   (kernels/contact.py: LAYER_TOUCH; a stiff lattice needs the particles about to reach the
+   surface in the solve too); every particle it changed becomes constrained along
    the normal of the surface it touches (or, with several surfaces or a contact hook, the
    direction the response pushed it): its normal velocity is prescribed (0 for an approaching
    particle: the compression phase of an impact; for one at rest on a single surface, the one that
@@ -622,7 +624,7 @@ class ImplicitIntegrator(Integrator):
         model = self.model
         wp.copy(self.q_free, state_out.particle_q)
         wp.copy(self.qd_free, state_out.particle_qd)
-        apply_contacts(model, state_in, state_out, dt, self.world_contact_beta, solve_hooks_only=True)
+        apply_contacts(model, state_in, state_out, dt, self.world_contact_beta, solve_hooks_only=True, layer_touch=True)
         self.any_contact.zero_()
         wp.launch(
             model.kernels.constrain_contacts,
