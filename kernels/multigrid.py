@@ -176,6 +176,262 @@ def build(scalar):
                     blk = blk + scalar(2.0) * spring_block[spring_index(a, o2, bs, shape)]
         return blk
 
+    # -- the jelly's lattice, from positions --------------------------------------------------------
+    # One jelly's springs are implicit in the lattice (kernels/lattice.py: 26 neighbours in the
+    # 3x3x3 block, structural or shear, and 6 bending at +-2 along an axis), with one rest length
+    # per offset and one ks, kd per type. Each spring's block B = h kd d^d^T + h^2 ks [d^d^T +
+    # max(0, 1 - r/|d|) (I - d^d^T)] (kernels/implicit.py: spring_jacobian) is alpha d^d^T + beta I,
+    # so the kernels below recompute it from the linearisation point wherever they need it, one
+    # thread per particle gathering over its neighbours: no spring list, no stored blocks, no
+    # atomics.
+
+    @wp.func
+    def pair_coefficients(d: vec3, rest: scalar, ks: scalar, kd: scalar, h: scalar):
+        """(alpha, beta, d^) of a spring's block B = alpha d^d^T + beta I; zeros at |d| = 0 (as spring_jacobian)."""
+        length = wp.length(d)
+        if length == scalar(0.0):
+            return scalar(0.0), scalar(0.0), vec3(scalar(0.0))
+        dhat = d / length
+        transverse = wp.max(scalar(1.0) - rest / length, scalar(0.0))
+        hks = h * h * ks
+        return h * kd + hks * (scalar(1.0) - transverse), hks * transverse, dhat
+
+    @wp.func
+    def pair_block(d: vec3, rest: scalar, ks: scalar, kd: scalar, h: scalar):
+        """The spring's block B as a matrix."""
+        alpha, beta, dhat = pair_coefficients(d, rest, ks, kd, h)
+        return alpha * wp.outer(dhat, dhat) + beta * wp.identity(n=3, dtype=scalar)
+
+    @wp.func
+    def neighbour_type(di: int, dj: int, dk: int):
+        """Spring type of a 3x3x3-block offset: 0 structural (one nonzero component), 1 shear."""
+        return wp.min(wp.abs(di) + wp.abs(dj) + wp.abs(dk) - 1, 1)
+
+    @wp.kernel(module="unique")
+    def mg_lattice_jacobians(
+        h: scalar,
+        kv_scale: scalar,
+        shape: wp.vec3i,
+        types: int,
+        # Model (the jelly's rows of the lattice tables, kernels/lattice.py):
+        rest: wp.array2d(dtype=scalar),
+        ks: wp.array2d(dtype=scalar),
+        kd: wp.array2d(dtype=scalar),
+        # Linearisation point and velocity iterate:
+        q: wp.array(dtype=vec3),
+        qd_k: wp.array(dtype=vec3),
+        # Out: sum of the particle's spring blocks, kv_scale df/dx v_k (as eval_spring_jacobians
+        # accumulates them, every element written) and the linearisation point the products read
+        diag_block_out: wp.array(dtype=mat33),
+        rhs_out: wp.array(dtype=vec3),
+        q_lin_out: wp.array(dtype=vec3),
+    ):
+        i = wp.tid()
+        c = node_coord(i, shape)
+        qi = q[i]
+        vi = qd_k[i]
+        q_lin_out[i] = qi
+        diag = mat33(scalar(0.0))
+        kv = vec3(scalar(0.0))
+        hks_to_s = scalar(0.0)
+        if h != scalar(0.0):
+            hks_to_s = scalar(1.0) / (h * h)
+        for di in range(-1, 2):
+            for dj in range(-1, 2):
+                for dk in range(-1, 2):
+                    if di != 0 or dj != 0 or dk != 0:
+                        ty = neighbour_type(di, dj, dk)
+                        if ((types >> ty) & 1) != 0 and inside(c[0] + di, c[1] + dj, c[2] + dk, shape):
+                            j = node_index(c[0] + di, c[1] + dj, c[2] + dk, shape)
+                            alpha, beta, dhat = pair_coefficients(
+                                qi - q[j], rest[0, (di + 1) * 9 + (dj + 1) * 3 + dk + 1], ks[0, ty], kd[0, ty], h
+                            )
+                            diag = diag + alpha * wp.outer(dhat, dhat) + beta * wp.identity(n=3, dtype=scalar)
+                            if kv_scale != scalar(0.0):
+                                # S = (B - h kd d^d^T) / h^2: df_i/dx v = -S (v_i - v_j).
+                                dv = vi - qd_k[j]
+                                sa = (alpha - h * kd[0, ty]) * hks_to_s
+                                sb = beta * hks_to_s
+                                kv = kv - kv_scale * (sa * wp.dot(dhat, dv) * dhat + sb * dv)
+        if ((types >> 2) & 1) != 0:
+            for axis in range(3):
+                for side in range(2):
+                    o = wp.vec3i(0, 0, 0)
+                    o[axis] = 4 * side - 2
+                    if inside(c[0] + o[0], c[1] + o[1], c[2] + o[2], shape):
+                        j = node_index(c[0] + o[0], c[1] + o[1], c[2] + o[2], shape)
+                        alpha, beta, dhat = pair_coefficients(qi - q[j], rest[0, 27 + axis], ks[0, 2], kd[0, 2], h)
+                        diag = diag + alpha * wp.outer(dhat, dhat) + beta * wp.identity(n=3, dtype=scalar)
+                        if kv_scale != scalar(0.0):
+                            dv = vi - qd_k[j]
+                            sa = (alpha - h * kd[0, 2]) * hks_to_s
+                            sb = beta * hks_to_s
+                            kv = kv - kv_scale * (sa * wp.dot(dhat, dv) * dhat + sb * dv)
+        diag_block_out[i] = diag
+        rhs_out[i] = kv
+
+    @wp.kernel(module="unique")
+    def mg_lattice_mv(
+        n: int,
+        slot: int,
+        h: scalar,
+        shape: wp.vec3i,
+        types: int,
+        rest: wp.array2d(dtype=scalar),
+        ks: wp.array2d(dtype=scalar),
+        kd: wp.array2d(dtype=scalar),
+        # System: the linearisation point (mg_lattice_jacobians) and the mass plus friction damper
+        q: wp.array(dtype=vec3),
+        mass_eff: wp.array(dtype=scalar),
+        p: wp.array(dtype=vec3),
+        # Out: y = A p = M p + sum_j B_ij (p_i - p_j) (every element written); scalars[slot] += p.A p
+        y_out: wp.array(dtype=vec3),
+        scalars_out: wp.array(dtype=scalar),
+    ):
+        blk, lane = wp.tid()
+        i = blk * TILE + lane
+        quad = scalar(0.0)
+        if i < n:
+            c = node_coord(i, shape)
+            qi = q[i]
+            pi = p[i]
+            mp = mass_eff[i] * pi
+            acc = mp
+            # p.A p = sum_i p_i.M p_i + sum over springs of (p_i - p_j).B (p_i - p_j): each spring
+            # is met from both ends, so half of it here. Summing these non-negative terms keeps
+            # float32 accurate, where sum_i p_i.(A p)_i would cancel for smooth p.
+            spring_quad = scalar(0.0)
+            for di in range(-1, 2):
+                for dj in range(-1, 2):
+                    for dk in range(-1, 2):
+                        if di != 0 or dj != 0 or dk != 0:
+                            ty = neighbour_type(di, dj, dk)
+                            if ((types >> ty) & 1) != 0 and inside(c[0] + di, c[1] + dj, c[2] + dk, shape):
+                                j = node_index(c[0] + di, c[1] + dj, c[2] + dk, shape)
+                                alpha, beta, dhat = pair_coefficients(
+                                    qi - q[j], rest[0, (di + 1) * 9 + (dj + 1) * 3 + dk + 1], ks[0, ty], kd[0, ty], h
+                                )
+                                dp = pi - p[j]
+                                along = wp.dot(dhat, dp)
+                                t = alpha * along * dhat + beta * dp
+                                acc = acc + t
+                                spring_quad = spring_quad + wp.dot(dp, t)
+            if ((types >> 2) & 1) != 0:
+                for axis in range(3):
+                    for side in range(2):
+                        o = wp.vec3i(0, 0, 0)
+                        o[axis] = 4 * side - 2
+                        if inside(c[0] + o[0], c[1] + o[1], c[2] + o[2], shape):
+                            j = node_index(c[0] + o[0], c[1] + o[1], c[2] + o[2], shape)
+                            alpha, beta, dhat = pair_coefficients(qi - q[j], rest[0, 27 + axis], ks[0, 2], kd[0, 2], h)
+                            dp = pi - p[j]
+                            t = alpha * wp.dot(dhat, dp) * dhat + beta * dp
+                            acc = acc + t
+                            spring_quad = spring_quad + wp.dot(dp, t)
+            y_out[i] = acc
+            quad = wp.dot(pi, mp) + half * spring_quad
+        wp.tile_atomic_add(scalars_out, wp.tile_sum(wp.tile(quad)), offset=slot)
+
+    @wp.func
+    def shifted(c: wp.vec3i, axis: int, delta: int):
+        """c moved by delta along axis."""
+        return wp.vec3i(
+            c[0] + wp.where(axis == 0, delta, 0), c[1] + wp.where(axis == 1, delta, 0), c[2] + wp.where(axis == 2, delta, 0)
+        )
+
+    @wp.func
+    def bending_block(
+        a: wp.vec3i, axis: int, shape: wp.vec3i, rest: wp.array2d(dtype=scalar), ks: scalar, kd: scalar, h: scalar,
+        q: wp.array(dtype=vec3),
+    ):
+        """Block of the bending spring (a, a + 2 e_axis), zero where it does not exist."""
+        if a[axis] < 0 or a[axis] + 2 >= shape[axis]:
+            return mat33(scalar(0.0))
+        b = shifted(a, axis, 2)
+        qa = q[node_index(a[0], a[1], a[2], shape)]
+        qb = q[node_index(b[0], b[1], b[2], shape)]
+        return pair_block(qa - qb, rest[0, 27 + axis], ks, kd, h)
+
+    @wp.kernel(module="unique")
+    def mg_fine_setup_lattice(
+        h: scalar,
+        shape: wp.vec3i,
+        types: int,
+        rest: wp.array2d(dtype=scalar),
+        ks: wp.array2d(dtype=scalar),
+        kd: wp.array2d(dtype=scalar),
+        # System: linearisation point, mass plus friction damper, constraint filters
+        q: wp.array(dtype=vec3),
+        mass_eff: wp.array(dtype=scalar),
+        filters: wp.array(dtype=mat33),
+        # Out: the split, projected operator as a 27-block stencil, its row sums, the smoother's block inverses
+        a_out: wp.array2d(dtype=mat33),
+        rowsum_out: wp.array(dtype=mat33),
+        dinv_out: wp.array(dtype=mat33),
+    ):
+        # mg_fine_setup's operator, each block computed from the positions.
+        i = wp.tid()
+        c = node_coord(i, shape)
+        identity = wp.identity(n=3, dtype=scalar)
+        qi = q[i]
+        sf = filters[i]
+        has_bending = ((types >> 2) & 1) != 0
+        ks_b = ks[0, 2]
+        kd_b = kd[0, 2]
+        # d: the sum of every spring block at i (its 32 neighbours) plus the mass; extra: the split
+        # bending springs' excess on the diagonal, B on each end of a bending spring at i and 4 B
+        # on the one centred on i (mg_fine_setup).
+        d = mass_eff[i] * identity
+        extra = mat33(scalar(0.0))
+        if has_bending:
+            for axis in range(3):
+                b_lo = bending_block(shifted(c, axis, -2), axis, shape, rest, ks_b, kd_b, h, q)
+                b_hi = bending_block(c, axis, shape, rest, ks_b, kd_b, h, q)
+                b_c = bending_block(shifted(c, axis, -1), axis, shape, rest, ks_b, kd_b, h, q)
+                d = d + b_lo + b_hi
+                extra = extra + b_lo + b_hi + scalar(4.0) * b_c
+        # Off-diagonal blocks and the row sum without its constrained part, formed without
+        # cancellation: S M S + sum_j S B_ij (S_i - S_j) (+ s (I - S) below).
+        rowsum = sf * (mass_eff[i] * identity) * sf
+        for slot in range(STENCIL):
+            if slot != CENTER:
+                o = slot_offset(slot)
+                blk = mat33(scalar(0.0))
+                if inside(c[0] + o[0], c[1] + o[1], c[2] + o[2], shape):
+                    j = node_index(c[0] + o[0], c[1] + o[1], c[2] + o[2], shape)
+                    nb = mat33(scalar(0.0))
+                    ty = neighbour_type(o[0], o[1], o[2])
+                    if ((types >> ty) & 1) != 0:
+                        nb = pair_block(qi - q[j], rest[0, slot], ks[0, ty], kd[0, ty], h)
+                        d = d + nb
+                    if has_bending and ty == 0:
+                        # An axis edge (i, i + o): twice each of the two bending springs through it,
+                        # the one centred on i and the one beyond i + o or i.
+                        axis = 0
+                        if o[1] != 0:
+                            axis = 1
+                        if o[2] != 0:
+                            axis = 2
+                        far = c
+                        if o[axis] < 0:
+                            far = shifted(c, axis, -2)
+                        nb = nb + scalar(2.0) * (
+                            bending_block(shifted(c, axis, -1), axis, shape, rest, ks_b, kd_b, h, q)
+                            + bending_block(far, axis, shape, rest, ks_b, kd_b, h, q)
+                        )
+                    sj = filters[j]
+                    blk = -(sf * nb * sj)
+                    rowsum = rowsum + sf * nb * (sf - sj)
+                a_out[i, slot] = blk
+        # Constrained directions: an identity row scaled like the rest of the row.
+        s = (d[0, 0] + d[1, 1] + d[2, 2]) / scalar(3.0)
+        if s <= scalar(0.0):
+            s = scalar(1.0)
+        free = identity - sf
+        dinv_out[i] = sf * wp.inverse(sf * d * sf + s * free) * sf
+        a_out[i, CENTER] = sf * (d + extra) * sf + s * free
+        rowsum_out[i] = rowsum + s * free
+
     @wp.kernel(module="unique")
     def mg_fine_setup(
         shape: wp.vec3i,
@@ -519,6 +775,24 @@ def build(scalar):
         wp.tile_atomic_add(scalars_out, wp.tile_sum(wp.tile(rz)), offset=slot)
 
     @wp.kernel(module="unique")
+    def mg_setup_due(
+        every: int,
+        constrained: int,
+        # In/out: [solves since the last build, hierarchy stale]; out: whether this solve builds
+        state: wp.array(dtype=wp.int32),
+        flag_out: wp.array(dtype=wp.int32),
+    ):
+        # One thread. A solve with contact constraints builds (its filters are new), and leaves
+        # the hierarchy stale for the next free solve; free solves build every `every`-th time.
+        due = constrained != 0 or state[1] != 0 or state[0] >= every
+        if due:
+            state[0] = 1
+        else:
+            state[0] = state[0] + 1
+        state[1] = constrained
+        flag_out[0] = wp.where(due, 1, 0)
+
+    @wp.kernel(module="unique")
     def mg_coarse_factor(
         shape: wp.vec3i,
         a: wp.array2d(dtype=mat33),
@@ -589,6 +863,9 @@ def build(scalar):
 
     return {
         "mg_fine_setup": mg_fine_setup,
+        "mg_lattice_jacobians": mg_lattice_jacobians,
+        "mg_lattice_mv": mg_lattice_mv,
+        "mg_fine_setup_lattice": mg_fine_setup_lattice,
         "mg_galerkin": mg_galerkin,
         "mg_stencil_op": mg_stencil_op,
         "mg_restrict": mg_restrict,
@@ -596,6 +873,7 @@ def build(scalar):
         "mg_fine_pre": mg_fine_pre,
         "mg_fine_post": mg_fine_post,
         "mg_fine_additive": mg_fine_additive,
+        "mg_setup_due": mg_setup_due,
         "mg_coarse_factor": mg_coarse_factor,
         "mg_coarse_solve": mg_coarse_solve,
     }

@@ -124,18 +124,32 @@ def test_spring_block_starts_match_the_spring_list():
 # -- dense references ------------------------------------------------------------------------------
 
 
+def spring_blocks(model, q, h):
+    """Each spring's block h kd d^d^T + h^2 ks [d^d^T + max(0, 1 - r/|d|) (I - d^d^T)] (kernels/implicit.py), float64."""
+    pairs = model.spring_indices_host
+    rest, ks, kd = (a.numpy().astype(np.float64) for a in (model.spring_rest_length, model.spring_stiffness,
+                                                            model.spring_damping))
+    d = q[pairs[:, 0]].astype(np.float64) - q[pairs[:, 1]].astype(np.float64)
+    length = np.linalg.norm(d, axis=1)
+    dhat = d / length[:, None]
+    along = dhat[:, :, None] * dhat[:, None, :]
+    transverse = np.maximum(1.0 - rest / length, 0.0)
+    stiff = ks[:, None, None] * (along + transverse[:, None, None] * (np.eye(3) - along))
+    return (h * kd)[:, None, None] * along + h * h * stiff
+
+
 def dense_operators(integ):
     """(A, A_split, S): the fine system, the operator with split bending springs (projected), the filters.
 
-    Built in float64 NumPy from the spring list and the integrator's spring blocks, masses and
-    filters, independently of the multigrid kernels.
+    Built in float64 NumPy from the spring list, its rest lengths, ks and kd, and the integrator's
+    linearisation point, masses and filters, independently of the multigrid kernels.
     """
     model = integ.model
     n = model.particle_count
     shape = tuple(model.lattice.layout.shape[0])
     coords = np.stack(np.unravel_index(np.arange(n), shape), axis=1)
     pairs = model.spring_indices_host
-    blocks = integ.spring_block.numpy().astype(np.float64)
+    blocks = spring_blocks(model, integ.multigrid.q_lin.numpy(), DT)
     me = integ.mass_eff.numpy().astype(np.float64)
     filters = integ.filters.numpy().astype(np.float64)
 

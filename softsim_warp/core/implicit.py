@@ -402,6 +402,11 @@ class ImplicitIntegrator(Integrator):
         spring_mv = self._spring_mv
         mg = self.multigrid
         precond = self.precond if mg is None else self.no_precond
+        # The lattice product writes all of A p (mass included) and p.A p.
+        lattice_product = mg is not None and mg.on_the_fly
+        if lattice_product:
+            def spring_mv(vec):
+                mg.product(vec, self.ap, self.scalars, ki.PAP)
 
         # r = b - A x0, z = P r, tolerance and condition.
         if matrix_free:
@@ -431,7 +436,7 @@ class ImplicitIntegrator(Integrator):
                 k.cg_direction,
                 dim=(pblocks, ki.TILE),
                 block_dim=ki.TILE,
-                inputs=[n, int(matrix_free), self.mass_eff, self.z],
+                inputs=[n, int(matrix_free and not lattice_product), self.mass_eff, self.z],
                 outputs=[self.p, self.ap, self.scalars],
                 device=device,
             )
@@ -503,9 +508,9 @@ class ImplicitIntegrator(Integrator):
             self._pcg_loop()
             self._loop_ran = True
 
-    def _solve(self):
+    def _solve(self, constrained: bool = False):
         if self.multigrid is not None:
-            self.multigrid.setup()
+            self.multigrid.setup(constrained)
         if self.solver != "matrix_free":
             self._assemble_bsr()
         if self.solver == "warp_cg":
@@ -549,7 +554,10 @@ class ImplicitIntegrator(Integrator):
         eval_forces(model, q, qd, self.f)
         self.diag_block.zero_()
         self.rhs.zero_()
-        if model.spring_count:
+        if model.spring_count and self.multigrid is not None and self.multigrid.on_the_fly:
+            # A lattice jelly: per-particle gather, no spring blocks stored (core/multigrid.py).
+            self.multigrid.jacobians(h, h * h if at_start else scalar(0.0), q, qd, self.diag_block, self.rhs)
+        elif model.spring_count:
             wp.launch(
                 k.eval_spring_jacobians,
                 dim=model.spring_count,
@@ -594,7 +602,7 @@ class ImplicitIntegrator(Integrator):
         )
         if first:
             wp.launch(k.set_step_scale, dim=1, inputs=[self.scalars], outputs=[self.step_bb], device=device)
-        self._solve()
+        self._solve(constrained=not reset_filters)
         self._update(h, state_in, qd, state_out, first)
 
     def step(self, state_in: State, state_out: State, dt: float):
@@ -688,7 +696,7 @@ class ImplicitIntegrator(Integrator):
                 outputs=[self.x, self.rhs, self.precond, self.qd_k, self.ap, self.scalars],
                 device=model.device,
             )
-            self._solve()
+            self._solve(constrained=True)
             self._update(h, state_in, self.qd_k, state_out, False)
             # Then Newton iterations at the result, which take the springs' nonlinearity into
             # account (an impact can turn the jelly by ~0.1 rad in one step).

@@ -41,6 +41,8 @@ DEFAULT_SWEEPS = 1
 # products per V-cycle); "additive": z = omega D^-1 r + P V(P^T r) (no spring product; about 1.5x
 # the CG iterations).
 DEFAULT_FINE_CYCLE = "additive"
+# Free solves per hierarchy build (LatticeMultigrid.setup; docs/IMPLICIT.md): 1 rebuilds for every solve.
+DEFAULT_SETUP_EVERY = 1
 # Particles from which the default ("auto") preconditioner is multigrid: on the CPU block-Jacobi is
 # faster up to about 14^3 (free flight: 8.3 against 9.2 ms a step at 12^3, 13.8 against 13.3 at
 # 14^3, 23.3 against 15.3 at 16^3; docs/IMPLICIT.md); on an H100 up to about 30^3 (1.58 against
@@ -120,6 +122,8 @@ class LatticeMultigrid:
         coarse_omega: float = DEFAULT_COARSE_OMEGA,
         sweeps: int = DEFAULT_SWEEPS,
         fine_cycle: str | None = None,
+        setup_every: int | None = None,
+        on_the_fly: bool = True,
     ):
         ok, reason = multigrid_support(model)
         if not ok:
@@ -138,6 +142,11 @@ class LatticeMultigrid:
         if fine_cycle not in ("multiplicative", "additive"):
             raise ValueError(f"fine_cycle must be multiplicative or additive (got {fine_cycle!r})")
         self.fine_cycle = fine_cycle
+        setup_every = DEFAULT_SETUP_EVERY if setup_every is None else setup_every
+        if int(setup_every) != setup_every or setup_every < 1:
+            raise ValueError(f"setup_every must be an integer >= 1 (got {setup_every!r})")
+        self.setup_every = int(setup_every)
+        self.on_the_fly = bool(on_the_fly)
         device = model.device
         scalar, vec3 = model.scalar, model.vec3
         mat33 = wp.types.matrix((3, 3), scalar)
@@ -156,6 +165,18 @@ class LatticeMultigrid:
         # A lattice of at most 2x2x2 has no coarse level and builds no stencil (mg_fine_setup writes here).
         self.dummy_stencil = wp.zeros((n if self.a0 is None else 1, km.STENCIL), dtype=mat33, device=device)
         self.y0 = wp.zeros(n, dtype=vec3, device=device)
+        # The linearisation point of the system (written by jacobians()): the products and the
+        # setup recompute the spring blocks from it.
+        self.q_lin = wp.zeros(n, dtype=vec3, device=device)
+        self.h = scalar(0.0)
+        lat = model.lattice
+        self.types = int(layout.types[0])
+        self.tables = [lat.jelly_rest, lat.jelly_ks, lat.jelly_kd]
+        # Lagged setup (setup_every > 1): [solves since the last build, hierarchy stale] and the
+        # build flag, on the device.
+        self.setup_state = wp.array([0, 1], dtype=wp.int32, device=device)
+        self.setup_flag = wp.zeros(1, dtype=wp.int32, device=device)
+        self.builds = 0
         self.scratch = wp.zeros(1, dtype=scalar, device=device)
         # Coarse levels 1..L: stencils, inverses of their diagonal blocks, b, x, and a sweep's output.
         self.levels = []
@@ -190,29 +211,90 @@ class LatticeMultigrid:
             arrays += [lv["a"], lv["dinv"], lv["rowsum"], lv["b"], lv["x"], lv["t"]]
         return sum(a.capacity for a in arrays)
 
-    def setup(self):
+    def jacobians(self, h, kv_scale, q: wp.array, qd_k: wp.array, diag_out: wp.array, rhs_out: wp.array):
+        """The system's spring part at the linearisation point q (instead of eval_spring_jacobians).
+
+        Writes each particle's sum of spring blocks into ``diag_out`` and ``kv_scale`` df/dx qd_k
+        into ``rhs_out`` (every element), and keeps q for :meth:`product` and :meth:`setup`; no
+        spring blocks are stored.
+        """
+        model = self.model
+        self.h = model.scalar(h)
+        wp.launch(
+            self.kernels.mg_lattice_jacobians,
+            dim=model.particle_count,
+            inputs=[self.h, model.scalar(kv_scale), wp.vec3i(*self.shapes[0]), self.types, *self.tables, q, qd_k],
+            outputs=[diag_out, rhs_out, self.q_lin],
+            device=model.device,
+        )
+
+    def product(self, p: wp.array, y: wp.array, scalars: wp.array, slot: int):
+        """y = A p (mass and springs, every element written); scalars[slot] += p.A p."""
+        model = self.model
+        n = model.particle_count
+        wp.launch(
+            self.kernels.mg_lattice_mv,
+            dim=(ki.tile_blocks(n), ki.TILE),
+            block_dim=ki.TILE,
+            inputs=[n, slot, self.h, wp.vec3i(*self.shapes[0]), self.types, *self.tables, self.q_lin,
+                    self.system.mass_eff, p],
+            outputs=[y, scalars],
+            device=model.device,
+        )
+
+    def setup(self, constrained: bool = False):
+        """Build the hierarchy for the current system, or keep the last one (``setup_every``).
+
+        With ``setup_every`` = k > 1 the hierarchy of free solves is rebuilt every k-th solve
+        (decided on the device); a solve with contact constraints (``constrained``) always
+        rebuilds, and so does the free solve after it. A kept hierarchy is a fixed SPD
+        preconditioner for the solve, so CG converges to the same tolerance.
+        """
+        if self.setup_every == 1:
+            self.build()
+            return
+        wp.launch(
+            self.kernels.mg_setup_due,
+            dim=1,
+            inputs=[self.setup_every, int(constrained)],
+            outputs=[self.setup_state, self.setup_flag],
+            device=self.model.device,
+        )
+        wp.capture_if(self.setup_flag, self.build)
+
+    def build(self):
         """Build the hierarchy for the current system (its spring blocks, diagonal, filters, masses)."""
         model = self.model
         device = model.device
         k = self.kernels
         s = self.system
         fine_shape = wp.vec3i(*self.shapes[0])
-        wp.launch(
-            k.mg_fine_setup,
-            dim=model.particle_count,
-            inputs=[
-                fine_shape,
-                model.particle_mass,
-                s.mass_eff,
-                s.filters,
-                s.diag_block,
-                s.spring_block,
-                self.bend_start,
-                self.spring_start,
-            ],
-            outputs=[self.a0 if self.a0 is not None else self.dummy_stencil, self.rowsum0, self.dinv0],
-            device=device,
-        )
+        fine_out = [self.a0 if self.a0 is not None else self.dummy_stencil, self.rowsum0, self.dinv0]
+        if self.on_the_fly:
+            wp.launch(
+                k.mg_fine_setup_lattice,
+                dim=model.particle_count,
+                inputs=[self.h, fine_shape, self.types, *self.tables, self.q_lin, s.mass_eff, s.filters],
+                outputs=fine_out,
+                device=device,
+            )
+        else:
+            wp.launch(
+                k.mg_fine_setup,
+                dim=model.particle_count,
+                inputs=[
+                    fine_shape,
+                    model.particle_mass,
+                    s.mass_eff,
+                    s.filters,
+                    s.diag_block,
+                    s.spring_block,
+                    self.bend_start,
+                    self.spring_start,
+                ],
+                outputs=fine_out,
+                device=device,
+            )
         if not self.levels:
             return
         below_shape, below_a, below_rowsum = fine_shape, self.a0, self.rowsum0
@@ -338,7 +420,9 @@ class LatticeMultigrid:
         """y0 += (spring part of A) x (y0 holds M x)."""
         model = self.model
         count = model.spring_count
-        if count:
+        if self.on_the_fly:
+            self.product(x, self.y0, self.scratch, 0)
+        elif count:
             wp.launch(
                 model.kernels.spring_mv,
                 dim=(ki.tile_blocks(count), ki.TILE),
@@ -387,4 +471,5 @@ class LatticeMultigrid:
             "multigrid_coarse_omega": float(self.coarse_omega),
             "multigrid_sweeps": self.sweeps,
             "multigrid_fine_cycle": self.fine_cycle,
+            "multigrid_setup_every": self.setup_every,
         }
