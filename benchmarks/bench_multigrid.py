@@ -54,14 +54,20 @@ def _cg_iteration_parts(integ):
     k = model.kernels
     n = model.particle_count
     blocks = (n + ki.TILE - 1) // ki.TILE
-    precond = integ.precond if integ.multigrid is None else integ.no_precond
+    mg = integ.multigrid
+    precond = integ.precond if mg is None else integ.no_precond
+    lattice_product = mg is not None and mg.on_the_fly
 
     def run():
         wp.launch(
             k.cg_direction, dim=(blocks, ki.TILE), block_dim=ki.TILE,
-            inputs=[n, 1, integ.mass_eff, integ.z], outputs=[integ.p, integ.ap, integ.scalars], device=device,
+            inputs=[n, int(not lattice_product), integ.mass_eff, integ.z], outputs=[integ.p, integ.ap, integ.scalars],
+            device=device,
         )
-        integ._spring_mv(integ.p)
+        if lattice_product:
+            mg.product(integ.p, integ.ap, integ.scalars, ki.PAP)
+        else:
+            integ._spring_mv(integ.p)
         wp.launch(
             k.cg_update, dim=(blocks, ki.TILE), block_dim=ki.TILE,
             inputs=[n, integ.filters, precond, integ.p, integ.ap],
@@ -74,11 +80,11 @@ def _cg_iteration_parts(integ):
 
 
 def measure(size: int, preconditioner: str, device, steps: int, dt: float, ks: float, precision: str,
-            repeats: int, fine_cycle=None) -> dict:
+            repeats: int, fine_cycle=None, options=None) -> dict:
     model = stiff_jelly(size, ks, device, precision)
     integ = ImplicitIntegrator(model, preconditioner=preconditioner)
-    if fine_cycle is not None and integ.multigrid is not None:
-        integ.multigrid = LatticeMultigrid(model, integ, fine_cycle=fine_cycle)
+    if (fine_cycle is not None or options) and integ.multigrid is not None:
+        integ.multigrid = LatticeMultigrid(model, integ, fine_cycle=fine_cycle, **(options or {}))
     compile_s, seconds, finite = _time_steps(integ, model, dt, steps)
     stats = integ.stats()
     solves_per_step = stats["cg_solves"] / max(stats["cg_steps"], 1)
@@ -105,6 +111,7 @@ def measure(size: int, preconditioner: str, device, steps: int, dt: float, ks: f
         "springs": model.spring_count,
         "preconditioner": integ.preconditioner,
         "fine_cycle": integ.multigrid.fine_cycle if integ.multigrid is not None else None,
+        "setup_every": integ.multigrid.setup_every if integ.multigrid is not None else None,
         "precision": precision,
         "ks": ks,
         "dt": dt,
@@ -129,7 +136,8 @@ def main(argv=None) -> int:
     p.add_argument("--sizes", type=int, nargs="+", default=[10, 20], help="particles per axis")
     p.add_argument(
         "--preconditioners", nargs="+", default=["jacobi", "multigrid"],
-        help="jacobi, multigrid (its default cycle), multigrid:multiplicative, multigrid:additive",
+        help="jacobi, multigrid (its defaults), multigrid:multiplicative, multigrid:additive; integer options of "
+        "LatticeMultigrid after slashes, e.g. multigrid/setup_every=1/sweeps=2",
     )
     p.add_argument("--ks", type=float, default=1.0e5, help="spring stiffness of every type [N/m]")
     p.add_argument("--dt", type=float, default=0.01, help="implicit step [s]")
@@ -151,9 +159,13 @@ def main(argv=None) -> int:
     rows = []
     for size in args.sizes:
         for pc in args.preconditioners:
-            name, _, cycle = pc.partition(":")
-            r = measure(size, name, device, args.steps, args.dt, args.ks, args.precision, args.repeats, cycle or None)
-            r["preconditioner"] = pc if cycle else r["preconditioner"]
+            head, *opts = pc.split("/")
+            name, _, cycle = head.partition(":")
+            options = {key: int(value) for key, value in (o.split("=") for o in opts)}
+            r = measure(
+                size, name, device, args.steps, args.dt, args.ks, args.precision, args.repeats, cycle or None, options
+            )
+            r["preconditioner"] = pc if (cycle or opts) else r["preconditioner"]
             per = r["parts_ms_per_step"]
             print(
                 f"{size:5d} {r['particles']:9d} {r['preconditioner']:>24} {r['ms_per_step']:9.2f} "

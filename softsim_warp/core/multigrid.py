@@ -42,7 +42,7 @@ DEFAULT_SWEEPS = 1
 # the CG iterations).
 DEFAULT_FINE_CYCLE = "additive"
 # Free solves per hierarchy build (LatticeMultigrid.setup; docs/IMPLICIT.md): 1 rebuilds for every solve.
-DEFAULT_SETUP_EVERY = 1
+DEFAULT_SETUP_EVERY = 4
 # Particles from which the default ("auto") preconditioner is multigrid: on the CPU block-Jacobi is
 # faster up to about 14^3 (free flight: 8.3 against 9.2 ms a step at 12^3, 13.8 against 13.3 at
 # 14^3, 23.3 against 15.3 at 16^3; docs/IMPLICIT.md); on an H100 up to about 30^3 (1.58 against
