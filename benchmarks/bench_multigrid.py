@@ -56,7 +56,7 @@ def _cg_iteration_parts(integ):
     blocks = (n + ki.TILE - 1) // ki.TILE
     mg = integ.multigrid
     precond = integ.precond if mg is None else integ.no_precond
-    lattice_product = mg is not None and mg.on_the_fly
+    lattice_product = mg is not None
 
     def run():
         wp.launch(

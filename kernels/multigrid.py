@@ -11,7 +11,9 @@ translations and (for a nearly undeformed jelly) the rotations that make the sti
 nearly singular.
 
 Coarse operators are Galerkin products, stored dense: 27 3x3 blocks per node, one per neighbour
-offset (slot ``(ox + 1) 9 + (oy + 1) 3 + (oz + 1)``, 13 the node itself). The fine operator used
+offset (slot ``(ox + 1) 9 + (oy + 1) 3 + (oz + 1)``, 13 the node itself), slot-major (``a[slot,
+node]``: the threads of a warp, consecutive nodes, load one slot's blocks from consecutive
+addresses; node-major, the stencil product ran at a fifth of the memory bandwidth). The fine operator used
 for the first product is the projected system
 
     A^ = S A S + s (I - S)       (s: a diagonal scale of the row; S = I on free particles)
@@ -117,65 +119,6 @@ def build(scalar):
     def slot_offset(slot: int):
         return wp.vec3i(slot // 9 - 1, (slot // 3) % 3 - 1, slot % 3 - 1)
 
-    @wp.func
-    def spring_index(
-        a: wp.vec3i, o: wp.vec3i, start: int, shape: wp.vec3i
-    ):
-        """Index of the spring from lattice node a at offset o (lexicographically positive), block ``start``.
-
-        The standard spring list (``lattice.lattice_springs``) holds each offset's springs as one
-        block, their first nodes in lattice order over the box where a + o is inside.
-        """
-        lx = wp.max(0, -o[0])
-        ly = wp.max(0, -o[1])
-        lz = wp.max(0, -o[2])
-        ey = shape[1] - wp.abs(o[1])
-        ez = shape[2] - wp.abs(o[2])
-        return start + ((a[0] - lx) * ey + (a[1] - ly)) * ez + (a[2] - lz)
-
-    @wp.func
-    def neighbour_block(
-        i: wp.vec3i,
-        e: wp.vec3i,
-        shape: wp.vec3i,
-        spring_start: wp.array(dtype=wp.int32),
-        bend_start: wp.array(dtype=wp.int32),
-        spring_block: wp.array(dtype=mat33),
-    ):
-        """The spring block of the fine operator with split bending springs between i and i + e (e != 0, |e| <= 1).
-
-        Both nodes must be inside the lattice.
-        """
-        # The spring is listed from its lexicographically smaller end.
-        positive = e[0] > 0 or (e[0] == 0 and (e[1] > 0 or (e[1] == 0 and e[2] > 0)))
-        a = i
-        o = e
-        if not positive:
-            a = i + e
-            o = -e
-        blk = mat33(scalar(0.0))
-        slot = (o[0] + 1) * 9 + (o[1] + 1) * 3 + (o[2] + 1)
-        start = spring_start[slot]
-        if start >= 0:
-            blk = spring_block[spring_index(a, o, start, shape)]
-        nonzero = wp.abs(o[0]) + wp.abs(o[1]) + wp.abs(o[2])
-        if nonzero == 1:
-            # An axis edge (a, a + o): half of the bending spring centred on a and of the one
-            # starting at a, each with twice its block.
-            axis = 0
-            if o[1] != 0:
-                axis = 1
-            if o[2] != 0:
-                axis = 2
-            bs = bend_start[axis]
-            if bs >= 0:
-                o2 = 2 * o
-                if a[axis] >= 1:
-                    blk = blk + scalar(2.0) * spring_block[spring_index(a - o, o2, bs, shape)]
-                if a[axis] + 2 < shape[axis]:
-                    blk = blk + scalar(2.0) * spring_block[spring_index(a, o2, bs, shape)]
-        return blk
-
     # -- the jelly's lattice, from positions --------------------------------------------------------
     # One jelly's springs are implicit in the lattice (kernels/lattice.py: 26 neighbours in the
     # 3x3x3 block, structural or shear, and 6 bending at +-2 along an axis), with one rest length
@@ -188,11 +131,13 @@ def build(scalar):
     @wp.func
     def pair_coefficients(d: vec3, rest: scalar, ks: scalar, kd: scalar, h: scalar):
         """(alpha, beta, d^) of a spring's block B = alpha d^d^T + beta I; zeros at |d| = 0 (as spring_jacobian)."""
-        length = wp.length(d)
-        if length == scalar(0.0):
+        length2 = wp.dot(d, d)
+        if length2 == scalar(0.0):
             return scalar(0.0), scalar(0.0), vec3(scalar(0.0))
-        dhat = d / length
-        transverse = wp.max(scalar(1.0) - rest / length, scalar(0.0))
+        # One square root and one division per spring (the kernels evaluate 32 to 35 per particle).
+        inv = scalar(1.0) / wp.sqrt(length2)
+        dhat = d * inv
+        transverse = wp.max(scalar(1.0) - rest * inv, scalar(0.0))
         hks = h * h * ks
         return h * kd + hks * (scalar(1.0) - transverse), hks * transverse, dhat
 
@@ -369,7 +314,6 @@ def build(scalar):
         rowsum_out: wp.array(dtype=mat33),
         dinv_out: wp.array(dtype=mat33),
     ):
-        # mg_fine_setup's operator, each block computed from the positions.
         i = wp.tid()
         c = node_coord(i, shape)
         identity = wp.identity(n=3, dtype=scalar)
@@ -380,7 +324,7 @@ def build(scalar):
         kd_b = kd[0, 2]
         # d: the sum of every spring block at i (its 32 neighbours) plus the mass; extra: the split
         # bending springs' excess on the diagonal, B on each end of a bending spring at i and 4 B
-        # on the one centred on i (mg_fine_setup).
+        # on the one centred on i.
         d = mass_eff[i] * identity
         extra = mat33(scalar(0.0))
         if has_bending:
@@ -422,74 +366,15 @@ def build(scalar):
                     sj = filters[j]
                     blk = -(sf * nb * sj)
                     rowsum = rowsum + sf * nb * (sf - sj)
-                a_out[i, slot] = blk
+                a_out[slot, i] = blk
         # Constrained directions: an identity row scaled like the rest of the row.
         s = (d[0, 0] + d[1, 1] + d[2, 2]) / scalar(3.0)
         if s <= scalar(0.0):
             s = scalar(1.0)
         free = identity - sf
         dinv_out[i] = sf * wp.inverse(sf * d * sf + s * free) * sf
-        a_out[i, CENTER] = sf * (d + extra) * sf + s * free
+        a_out[CENTER, i] = sf * (d + extra) * sf + s * free
         rowsum_out[i] = rowsum + s * free
-
-    @wp.kernel(module="unique")
-    def mg_fine_setup(
-        shape: wp.vec3i,
-        # System (kernels/implicit.py: build_system / constrain_last_system):
-        particle_mass: wp.array(dtype=scalar),
-        mass_eff: wp.array(dtype=scalar),
-        filters: wp.array(dtype=mat33),
-        diag_block: wp.array(dtype=mat33),
-        spring_block: wp.array(dtype=mat33),
-        bend_start: wp.array(dtype=wp.int32),
-        spring_start: wp.array(dtype=wp.int32),
-        # Out: the split, projected operator as a 27-block stencil, its row sums, the smoother's block inverses
-        a_out: wp.array2d(dtype=mat33),
-        rowsum_out: wp.array(dtype=mat33),
-        dinv_out: wp.array(dtype=mat33),
-    ):
-        i = wp.tid()
-        c = node_coord(i, shape)
-        identity = wp.identity(n=3, dtype=scalar)
-        d = diag_block[i] + (mass_eff[i] - particle_mass[i]) * identity
-        # Splitting a bending spring (a, c) with middle b: 2B on a and c (B there already), 4B on b.
-        extra = mat33(scalar(0.0))
-        for axis in range(3):
-            bs = bend_start[axis]
-            if bs >= 0:
-                o2 = wp.vec3i(0, 0, 0)
-                o2[axis] = 2
-                o1 = wp.vec3i(0, 0, 0)
-                o1[axis] = 1
-                if c[axis] + 2 < shape[axis]:
-                    extra = extra + spring_block[spring_index(c, o2, bs, shape)]
-                if c[axis] >= 2:
-                    extra = extra + spring_block[spring_index(c - o2, o2, bs, shape)]
-                if c[axis] >= 1 and c[axis] + 1 < shape[axis]:
-                    extra = extra + scalar(4.0) * spring_block[spring_index(c - o1, o2, bs, shape)]
-        sf = filters[i]
-        free = identity - sf
-        # Constrained directions: an identity row scaled like the rest of the row.
-        s = (d[0, 0] + d[1, 1] + d[2, 2]) / scalar(3.0)
-        if s <= scalar(0.0):
-            s = scalar(1.0)
-        dinv_out[i] = sf * wp.inverse(sf * d * sf + s * free) * sf
-        # Row sum, formed without cancellation: S M S + s (I - S) + sum_j S B_ij (S_i - S_j), which is
-        # exactly m I on a free particle with free neighbours (the springs do not resist translation).
-        rowsum = sf * (mass_eff[i] * identity) * sf + s * free
-        for slot in range(STENCIL):
-            o = slot_offset(slot)
-            blk = mat33(scalar(0.0))
-            if slot == CENTER:
-                blk = sf * (d + extra) * sf + s * free
-            elif inside(c[0] + o[0], c[1] + o[1], c[2] + o[2], shape):
-                j = node_index(c[0] + o[0], c[1] + o[1], c[2] + o[2], shape)
-                sj = filters[j]
-                nb = neighbour_block(c, o, shape, spring_start, bend_start, spring_block)
-                blk = -(sf * nb * sj)
-                rowsum = rowsum + sf * nb * (sf - sj)
-            a_out[i, slot] = blk
-        rowsum_out[i] = rowsum
 
     @wp.kernel(module="unique")
     def mg_galerkin(
@@ -503,13 +388,13 @@ def build(scalar):
         rowsum_out: wp.array(dtype=mat33),
         dinv_out: wp.array(dtype=mat33),
     ):
-        node, t = wp.tid()
+        t, node = wp.tid()
         slot = CENTER + t
         o = slot_offset(slot)
         ci = node_coord(node, coarse_shape)
         cj = ci + o
         if not inside(cj[0], cj[1], cj[2], coarse_shape):
-            a_out[node, slot] = mat33(scalar(0.0))
+            a_out[slot, node] = mat33(scalar(0.0))
             return
         # (R A P)_IJ = sum over fine pairs (i, j), |i - j| <= 1, of P_iI A_ij P_jJ; P factors by axis.
         acc = mat33(scalar(0.0))
@@ -556,10 +441,10 @@ def build(scalar):
                                     continue
                                 i = node_index(ix, iy, iz, shape)
                                 slot_ij = (jx - ix + 1) * 9 + (jy - iy + 1) * 3 + (jz - iz + 1)
-                                acc = acc + w * a_fine[i, slot_ij]
+                                acc = acc + w * a_fine[slot_ij, i]
         if slot == CENTER:
             sym = half * (acc + wp.transpose(acc))
-            a_out[node, slot] = sym
+            a_out[slot, node] = sym
             dinv_out[node] = wp.inverse(sym)
             # Row sums restrict exactly (the rows of P sum to 1): sum_J (P^T A P)_IJ = sum_i P_iI rowsum_i.
             rs = mat33(scalar(0.0))
@@ -578,8 +463,8 @@ def build(scalar):
                         rs = rs + w * rowsum_fine[node_index(ix, iy, iz, shape)]
             rowsum_out[node] = rs
         else:
-            a_out[node, slot] = acc
-            a_out[node_index(cj[0], cj[1], cj[2], coarse_shape), STENCIL - 1 - slot] = wp.transpose(acc)
+            a_out[slot, node] = acc
+            a_out[STENCIL - 1 - slot, node_index(cj[0], cj[1], cj[2], coarse_shape)] = wp.transpose(acc)
 
     @wp.kernel(module="unique")
     def mg_stencil_op(
@@ -606,7 +491,7 @@ def build(scalar):
         for slot in range(STENCIL):
             o = slot_offset(slot)
             if slot != CENTER and inside(c[0] + o[0], c[1] + o[1], c[2] + o[2], shape):
-                r = r - a[node, slot] * (x[node_index(c[0] + o[0], c[1] + o[1], c[2] + o[2], shape)] - xi)
+                r = r - a[slot, node] * (x[node_index(c[0] + o[0], c[1] + o[1], c[2] + o[2], shape)] - xi)
         if mode == 0:
             y_out[node] = r
         else:
@@ -797,8 +682,10 @@ def build(scalar):
         shape: wp.vec3i,
         a: wp.array2d(dtype=mat33),
         rowsum: wp.array(dtype=mat33),
-        # Out: the Cholesky factor L (lower triangle) of the dense coarsest matrix, in float64
+        # Out: the Cholesky factor L (lower triangle) of the dense coarsest matrix, and the matrix's
+        # inverse from it, in float64
         chol_out: wp.array2d(dtype=wp.float64),
+        inv_out: wp.array2d(dtype=wp.float64),
     ):
         nodes = shape[0] * shape[1] * shape[2]
         m = 3 * nodes
@@ -817,7 +704,7 @@ def build(scalar):
                 o = slot_offset(slot)
                 if slot != CENTER and inside(c[0] + o[0], c[1] + o[1], c[2] + o[2], shape):
                     other = node_index(c[0] + o[0], c[1] + o[1], c[2] + o[2], shape)
-                    blk = a[node, slot]
+                    blk = a[slot, node]
                     for p in range(3):
                         for q in range(3):
                             v = wp.float64(blk[p, q])
@@ -835,34 +722,38 @@ def build(scalar):
                 for s in range(k):
                     v = v - chol_out[r, s] * chol_out[k, s]
                 chol_out[r, k] = v / pivot
+        # The inverse, column by column (L L^T x = e_col), so that each V-cycle's coarsest solve is
+        # one small matrix product over parallel threads instead of two triangular solves on one.
+        for col in range(m):
+            for k in range(m):
+                v = wp.where(k == col, wp.float64(1.0), wp.float64(0.0))
+                for s in range(k):
+                    v = v - chol_out[k, s] * inv_out[s, col]
+                inv_out[k, col] = v / chol_out[k, k]
+            for kk in range(m):
+                k = m - 1 - kk
+                v = inv_out[k, col]
+                for s in range(k + 1, m):
+                    v = v - chol_out[s, k] * inv_out[s, col]
+                inv_out[k, col] = v / chol_out[k, k]
 
     @wp.kernel(module="unique")
     def mg_coarse_solve(
         shape: wp.vec3i,
-        chol: wp.array2d(dtype=wp.float64),
+        inv: wp.array2d(dtype=wp.float64),
         b: wp.array(dtype=vec3),
-        # Out: x = A^-1 b on the coarsest level (work: a [3 nodes] float64 scratch vector)
-        work: wp.array(dtype=wp.float64),
+        # Out: x = A^-1 b on the coarsest level, one thread per node
         x_out: wp.array(dtype=vec3),
     ):
-        nodes = shape[0] * shape[1] * shape[2]
-        m = 3 * nodes
-        for k in range(m):
-            v = wp.float64(b[k // 3][k % 3])
-            for s in range(k):
-                v = v - chol[k, s] * work[s]
-            work[k] = v / chol[k, k]
-        for kk in range(m):
-            k = m - 1 - kk
-            v = work[k]
-            for s in range(k + 1, m):
-                v = v - chol[s, k] * work[s]
-            work[k] = v / chol[k, k]
-        for node in range(nodes):
-            x_out[node] = vec3(scalar(work[3 * node]), scalar(work[3 * node + 1]), scalar(work[3 * node + 2]))
+        node = wp.tid()
+        m = 3 * shape[0] * shape[1] * shape[2]
+        x = wp.vec3d(wp.float64(0.0))
+        for s in range(m):
+            bs = wp.float64(b[s // 3][s % 3])
+            x = x + bs * wp.vec3d(inv[3 * node, s], inv[3 * node + 1, s], inv[3 * node + 2, s])
+        x_out[node] = vec3(scalar(x[0]), scalar(x[1]), scalar(x[2]))
 
     return {
-        "mg_fine_setup": mg_fine_setup,
         "mg_lattice_jacobians": mg_lattice_jacobians,
         "mg_lattice_mv": mg_lattice_mv,
         "mg_fine_setup_lattice": mg_fine_setup_lattice,

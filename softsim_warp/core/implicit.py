@@ -204,7 +204,8 @@ class ImplicitIntegrator(Integrator):
         self.ap = vectors()
         self.diag_block = wp.zeros(n, dtype=self.mat33, device=device)
         self.precond = wp.zeros(n, dtype=self.mat33, device=device)
-        self.spring_block = wp.zeros(s, dtype=self.mat33, device=device)
+        # Multigrid recomputes the spring blocks from positions (core/multigrid.py) and stores none.
+        self.spring_block = wp.zeros(0 if self.preconditioner == "multigrid" else s, dtype=self.mat33, device=device)
         self.scalars = wp.zeros(ki.SCALAR_SLOTS, dtype=scalar, device=device)
         self.ints = wp.zeros(2, dtype=wp.int32, device=device)
         self.stats_array = wp.zeros(ki.STAT_SLOTS, dtype=wp.int32, device=device)
@@ -403,7 +404,7 @@ class ImplicitIntegrator(Integrator):
         mg = self.multigrid
         precond = self.precond if mg is None else self.no_precond
         # The lattice product writes all of A p (mass included) and p.A p.
-        lattice_product = mg is not None and mg.on_the_fly
+        lattice_product = mg is not None
         if lattice_product:
             def spring_mv(vec):
                 mg.product(vec, self.ap, self.scalars, ki.PAP)
@@ -554,7 +555,7 @@ class ImplicitIntegrator(Integrator):
         eval_forces(model, q, qd, self.f)
         self.diag_block.zero_()
         self.rhs.zero_()
-        if model.spring_count and self.multigrid is not None and self.multigrid.on_the_fly:
+        if model.spring_count and self.multigrid is not None:
             # A lattice jelly: per-particle gather, no spring blocks stored (core/multigrid.py).
             self.multigrid.jacobians(h, h * h if at_start else scalar(0.0), q, qd, self.diag_block, self.rhs)
         elif model.spring_count:

@@ -69,29 +69,6 @@ def multigrid_support(model) -> tuple[bool, str]:
     return True, "lattice"
 
 
-def spring_block_starts(shape, types: int) -> tuple[np.ndarray, np.ndarray]:
-    """First spring index of each stencil offset in the standard spring list.
-
-    Returns ``(starts, bending)``: ``starts[slot]`` for the 27 offsets of the 3x3x3 block
-    (``kernels.multigrid`` slots; -1 where no spring type has that offset) and ``bending[axis]``
-    for the bending offsets (2 along an axis; -1 without bending springs).
-    """
-    starts = np.full(km.STENCIL, -1, dtype=np.int32)
-    bending = np.full(3, -1, dtype=np.int32)
-    at = 0
-    for t, stencil in lattice.STENCILS.items():
-        if not (types >> t) & 1:
-            continue
-        for off in stencil:
-            count = int(np.prod([max(n - abs(o), 0) for n, o in zip(shape, off)]))
-            if max(abs(o) for o in off) == 2:
-                bending[[abs(o) for o in off].index(2)] = at
-            else:
-                starts[(off[0] + 1) * 9 + (off[1] + 1) * 3 + (off[2] + 1)] = at
-            at += count
-    return starts, bending
-
-
 def level_shapes(shape) -> list[tuple[int, int, int]]:
     """Lattice shapes of the hierarchy, from the jelly's down to the coarsest (every axis <= 2)."""
     shapes = [tuple(int(n) for n in shape)]
@@ -105,9 +82,9 @@ class LatticeMultigrid:
 
     Args:
         model: the model (``multigrid_support`` must hold).
-        system: the arrays of the implicit system it reads at :meth:`setup`: ``spring_block``,
-            ``diag_block`` (m I + sum of spring blocks), ``filters``, ``mass_eff`` (see
-            ``kernels/implicit.py``), as attributes of an object (the integrator).
+        system: the arrays of the implicit system it reads: ``filters`` and ``mass_eff`` (see
+            ``kernels/implicit.py``), as attributes of an object (the integrator). The spring
+            blocks are recomputed from the linearisation point that :meth:`jacobians` keeps.
         omega: damping of the block-Jacobi sweeps on the jelly's lattice.
         coarse_omega: the same on the coarse levels.
         sweeps: pre- and post-smoothing sweeps on every coarse level (the fine level always does
@@ -123,7 +100,6 @@ class LatticeMultigrid:
         sweeps: int = DEFAULT_SWEEPS,
         fine_cycle: str | None = None,
         setup_every: int | None = None,
-        on_the_fly: bool = True,
     ):
         ok, reason = multigrid_support(model)
         if not ok:
@@ -146,24 +122,20 @@ class LatticeMultigrid:
         if int(setup_every) != setup_every or setup_every < 1:
             raise ValueError(f"setup_every must be an integer >= 1 (got {setup_every!r})")
         self.setup_every = int(setup_every)
-        self.on_the_fly = bool(on_the_fly)
         device = model.device
         scalar, vec3 = model.scalar, model.vec3
         mat33 = wp.types.matrix((3, 3), scalar)
         self.kernels = model.kernels
         layout = model.lattice.layout
         self.shapes = level_shapes(layout.shape[0])
-        starts, bending = spring_block_starts(self.shapes[0], int(layout.types[0]))
-        self.spring_start = wp.array(starts, dtype=wp.int32, device=device)
-        self.bend_start = wp.array(bending, dtype=wp.int32, device=device)
         n = model.particle_count
         # Level 0: smoother inverses, the split operator's stencil, and the V-cycle's vectors.
         self.dinv0 = wp.zeros(n, dtype=mat33, device=device)
-        self.a0 = wp.zeros((n, km.STENCIL), dtype=mat33, device=device) if len(self.shapes) > 1 else None
+        self.a0 = wp.zeros((km.STENCIL, n), dtype=mat33, device=device) if len(self.shapes) > 1 else None
         self.rowsum0 = wp.zeros(n, dtype=mat33, device=device)
         self.x0 = wp.zeros(n, dtype=vec3, device=device)
-        # A lattice of at most 2x2x2 has no coarse level and builds no stencil (mg_fine_setup writes here).
-        self.dummy_stencil = wp.zeros((n if self.a0 is None else 1, km.STENCIL), dtype=mat33, device=device)
+        # A lattice of at most 2x2x2 has no coarse level and builds no stencil (mg_fine_setup_lattice writes here).
+        self.dummy_stencil = wp.zeros((km.STENCIL, n if self.a0 is None else 1), dtype=mat33, device=device)
         self.y0 = wp.zeros(n, dtype=vec3, device=device)
         # The linearisation point of the system (written by jacobians()): the products and the
         # setup recompute the spring blocks from it.
@@ -186,7 +158,7 @@ class LatticeMultigrid:
                 {
                     "shape": wp.vec3i(*shape),
                     "count": count,
-                    "a": wp.zeros((count, km.STENCIL), dtype=mat33, device=device),
+                    "a": wp.zeros((km.STENCIL, count), dtype=mat33, device=device),
                     "dinv": wp.zeros(count, dtype=mat33, device=device),
                     "rowsum": wp.zeros(count, dtype=mat33, device=device),
                     "b": wp.zeros(count, dtype=vec3, device=device),
@@ -197,7 +169,7 @@ class LatticeMultigrid:
         coarsest = self.levels[-1]["count"] if self.levels else 0
         # The coarsest factorisation is float64 in either precision (kernels/multigrid.py: mg_coarse_factor).
         self.chol = wp.zeros((3 * coarsest, 3 * coarsest), dtype=wp.float64, device=device)
-        self.work = wp.zeros(3 * coarsest, dtype=wp.float64, device=device)
+        self.coarse_inv = wp.zeros((3 * coarsest, 3 * coarsest), dtype=wp.float64, device=device)
 
     @property
     def level_count(self) -> int:
@@ -206,7 +178,7 @@ class LatticeMultigrid:
 
     def nbytes(self) -> int:
         """Bytes of the device arrays held here."""
-        arrays = [self.dinv0, self.rowsum0, self.x0, self.y0, self.chol, self.work] + ([self.a0] if self.a0 is not None else [])
+        arrays = [self.dinv0, self.rowsum0, self.x0, self.y0, self.q_lin, self.chol, self.coarse_inv] + ([self.a0] if self.a0 is not None else [])
         for lv in self.levels:
             arrays += [lv["a"], lv["dinv"], lv["rowsum"], lv["b"], lv["x"], lv["t"]]
         return sum(a.capacity for a in arrays)
@@ -263,45 +235,27 @@ class LatticeMultigrid:
         wp.capture_if(self.setup_flag, self.build)
 
     def build(self):
-        """Build the hierarchy for the current system (its spring blocks, diagonal, filters, masses)."""
+        """Build the hierarchy for the current system (its linearisation point, filters, masses)."""
         model = self.model
         device = model.device
         k = self.kernels
         s = self.system
         fine_shape = wp.vec3i(*self.shapes[0])
         fine_out = [self.a0 if self.a0 is not None else self.dummy_stencil, self.rowsum0, self.dinv0]
-        if self.on_the_fly:
-            wp.launch(
-                k.mg_fine_setup_lattice,
-                dim=model.particle_count,
-                inputs=[self.h, fine_shape, self.types, *self.tables, self.q_lin, s.mass_eff, s.filters],
-                outputs=fine_out,
-                device=device,
-            )
-        else:
-            wp.launch(
-                k.mg_fine_setup,
-                dim=model.particle_count,
-                inputs=[
-                    fine_shape,
-                    model.particle_mass,
-                    s.mass_eff,
-                    s.filters,
-                    s.diag_block,
-                    s.spring_block,
-                    self.bend_start,
-                    self.spring_start,
-                ],
-                outputs=fine_out,
-                device=device,
-            )
+        wp.launch(
+            k.mg_fine_setup_lattice,
+            dim=model.particle_count,
+            inputs=[self.h, fine_shape, self.types, *self.tables, self.q_lin, s.mass_eff, s.filters],
+            outputs=fine_out,
+            device=device,
+        )
         if not self.levels:
             return
         below_shape, below_a, below_rowsum = fine_shape, self.a0, self.rowsum0
         for lv in self.levels:
             wp.launch(
                 k.mg_galerkin,
-                dim=(lv["count"], km.HALF),
+                dim=(km.HALF, lv["count"]),
                 inputs=[below_shape, lv["shape"], below_a, below_rowsum],
                 outputs=[lv["a"], lv["rowsum"], lv["dinv"]],
                 device=device,
@@ -312,7 +266,7 @@ class LatticeMultigrid:
             k.mg_coarse_factor,
             dim=1,
             inputs=[last["shape"], last["a"], last["rowsum"]],
-            outputs=[self.chol],
+            outputs=[self.chol, self.coarse_inv],
             device=device,
         )
 
@@ -328,7 +282,7 @@ class LatticeMultigrid:
             # A lattice of at most 2 x 2 x 2: two block-Jacobi sweeps.
             wp.launch(k.mg_fine_pre, dim=n, inputs=[omega, s.mass_eff, self.dinv0, r], outputs=[self.x0, self.y0],
                       device=device)
-            self._spring_product(self.x0)
+            self.product(self.x0, self.y0, self.scratch, 0)
             self._fine_post(r, z, scalars, slot)
             return
         # Level 0, down: one sweep from 0, then the filtered residual restricted.
@@ -349,7 +303,7 @@ class LatticeMultigrid:
                 k.mg_fine_pre, dim=n, inputs=[omega, s.mass_eff, self.dinv0, r], outputs=[self.x0, self.y0],
                 device=device,
             )
-            self._spring_product(self.x0)
+            self.product(self.x0, self.y0, self.scratch, 0)
             wp.launch(
                 k.mg_restrict,
                 dim=first["count"],
@@ -378,9 +332,9 @@ class LatticeMultigrid:
         last = self.levels[-1]
         wp.launch(
             k.mg_coarse_solve,
-            dim=1,
-            inputs=[last["shape"], self.chol, last["b"]],
-            outputs=[self.work, last["x"]],
+            dim=last["count"],
+            inputs=[last["shape"], self.coarse_inv, last["b"]],
+            outputs=[last["x"]],
             device=device,
         )
         # Up: prolongate the correction, then the same sweeps again (a symmetric cycle).
@@ -411,26 +365,10 @@ class LatticeMultigrid:
             outputs=[self.x0, self.y0],
             device=device,
         )
-        self._spring_product(self.x0)
+        self.product(self.x0, self.y0, self.scratch, 0)
         self._fine_post(r, z, scalars, slot)
 
     # -- pieces ---------------------------------------------------------------------------------
-
-    def _spring_product(self, x):
-        """y0 += (spring part of A) x (y0 holds M x)."""
-        model = self.model
-        count = model.spring_count
-        if self.on_the_fly:
-            self.product(x, self.y0, self.scratch, 0)
-        elif count:
-            wp.launch(
-                model.kernels.spring_mv,
-                dim=(ki.tile_blocks(count), ki.TILE),
-                block_dim=ki.TILE,
-                inputs=[count, 0, model.spring_indices, self.system.spring_block, x],
-                outputs=[self.y0, self.scratch],
-                device=model.device,
-            )
 
     def _fine_post(self, r, z, scalars, slot):
         n = self.model.particle_count
