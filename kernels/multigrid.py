@@ -45,6 +45,7 @@ Every kernel exists for float32 and float64 and runs on the CPU and CUDA. The ho
 ``softsim_warp/core/multigrid.py``.
 """
 
+import numpy as np
 import warp as wp
 
 from .implicit import TILE
@@ -140,6 +141,26 @@ def build(scalar):
         transverse = wp.max(scalar(1.0) - rest * inv, scalar(0.0))
         hks = h * h * ks
         return h * kd + hks * (scalar(1.0) - transverse), hks * transverse, dhat
+
+    tiny = float(np.finfo(np.float32 if scalar == wp.float32 else np.float64).tiny)
+
+    @wp.func
+    def pair_product(qi: vec3, qj: vec3, pi: vec3, pj: vec3, rest: scalar, ks: scalar, kd: scalar, h: scalar):
+        """(B (p_i - p_j), (p_i - p_j).B (p_i - p_j)) for the spring (i, j), without branches.
+
+        Same block as pair_coefficients; the smallest normal number added to |d|^2 keeps 1/|d|
+        finite at q_i = q_j, where d^ = 0 and the transverse factor is 0 (rest > 0): a zero block, as
+        spring_jacobian gives there.
+        """
+        d = qi - qj
+        inv = scalar(1.0) / wp.sqrt(wp.dot(d, d) + scalar(tiny))
+        dhat = d * inv
+        transverse = wp.max(scalar(1.0) - rest * inv, scalar(0.0))
+        hks = h * h * ks
+        alpha = h * kd + hks * (scalar(1.0) - transverse)
+        dp = pi - pj
+        t = alpha * wp.dot(dhat, dp) * dhat + (hks * transverse) * dp
+        return t, wp.dot(dp, t)
 
     @wp.func
     def pair_block(d: vec3, rest: scalar, ks: scalar, kd: scalar, h: scalar):
@@ -246,33 +267,32 @@ def build(scalar):
             # is met from both ends, so half of it here. Summing these non-negative terms keeps
             # float32 accurate, where sum_i p_i.(A p)_i would cancel for smooth p.
             spring_quad = scalar(0.0)
+            # Branch-free: an absent neighbour (outside the lattice, or of a spring type the jelly
+            # lacks) is the particle itself, whose zero distance and zero p_i - p_j give exactly
+            # zero; every load is unconditional.
+            row = shape[1] * shape[2]
             for di in range(-1, 2):
                 for dj in range(-1, 2):
                     for dk in range(-1, 2):
                         if di != 0 or dj != 0 or dk != 0:
                             ty = neighbour_type(di, dj, dk)
-                            if ((types >> ty) & 1) != 0 and inside(c[0] + di, c[1] + dj, c[2] + dk, shape):
-                                j = node_index(c[0] + di, c[1] + dj, c[2] + dk, shape)
-                                alpha, beta, dhat = pair_coefficients(
-                                    qi - q[j], rest[0, (di + 1) * 9 + (dj + 1) * 3 + dk + 1], ks[0, ty], kd[0, ty], h
-                                )
-                                dp = pi - p[j]
-                                along = wp.dot(dhat, dp)
-                                t = alpha * along * dhat + beta * dp
-                                acc = acc + t
-                                spring_quad = spring_quad + wp.dot(dp, t)
-            if ((types >> 2) & 1) != 0:
-                for axis in range(3):
-                    for side in range(2):
-                        o = wp.vec3i(0, 0, 0)
-                        o[axis] = 4 * side - 2
-                        if inside(c[0] + o[0], c[1] + o[1], c[2] + o[2], shape):
-                            j = node_index(c[0] + o[0], c[1] + o[1], c[2] + o[2], shape)
-                            alpha, beta, dhat = pair_coefficients(qi - q[j], rest[0, 27 + axis], ks[0, 2], kd[0, 2], h)
-                            dp = pi - p[j]
-                            t = alpha * wp.dot(dhat, dp) * dhat + beta * dp
+                            ok = ((types >> ty) & 1) != 0 and inside(c[0] + di, c[1] + dj, c[2] + dk, shape)
+                            j = wp.where(ok, i + di * row + dj * shape[2] + dk, i)
+                            t, e = pair_product(
+                                qi, q[j], pi, p[j], rest[0, (di + 1) * 9 + (dj + 1) * 3 + dk + 1], ks[0, ty], kd[0, ty], h
+                            )
                             acc = acc + t
-                            spring_quad = spring_quad + wp.dot(dp, t)
+                            spring_quad = spring_quad + e
+            has_bending = ((types >> 2) & 1) != 0
+            for axis in range(3):
+                for side in range(2):
+                    o = wp.vec3i(0, 0, 0)
+                    o[axis] = 4 * side - 2
+                    ok = has_bending and inside(c[0] + o[0], c[1] + o[1], c[2] + o[2], shape)
+                    j = wp.where(ok, i + o[0] * row + o[1] * shape[2] + o[2], i)
+                    t, e = pair_product(qi, q[j], pi, p[j], rest[0, 27 + axis], ks[0, 2], kd[0, 2], h)
+                    acc = acc + t
+                    spring_quad = spring_quad + e
             y_out[i] = acc
             quad = wp.dot(pi, mp) + half * spring_quad
         wp.tile_atomic_add(scalars_out, wp.tile_sum(wp.tile(quad)), offset=slot)
