@@ -70,7 +70,7 @@ def _cg_iteration_parts(integ):
             integ._spring_mv(integ.p)
         wp.launch(
             k.cg_update, dim=(blocks, ki.TILE), block_dim=ki.TILE,
-            inputs=[n, integ.filters, precond, integ.p, integ.ap],
+            inputs=[n, int(mg is None), integ.filters, precond, integ.p, integ.ap],
             outputs=[integ.x, integ.r, integ.z, integ.scalars], device=device,
         )
         wp.launch(k.cg_end_iteration, dim=1, inputs=[integ.cg_max_iterations], outputs=[integ.scalars, integ.ints],

@@ -508,14 +508,41 @@ def build(scalar):
         # stiffness terms on smooth x, and translations see exactly R (the mass) on every level.
         xi = x[node]
         r = b[node] - rowsum[node] * xi
-        for slot in range(STENCIL):
-            o = slot_offset(slot)
-            if slot != CENTER and inside(c[0] + o[0], c[1] + o[1], c[2] + o[2], shape):
-                r = r - a[slot, node] * (x[node_index(c[0] + o[0], c[1] + o[1], c[2] + o[2], shape)] - xi)
+        # Constant loops (unrolled) and branch-free: a neighbour outside the level stands as the node
+        # itself, whose x_J - x_I = 0 adds exactly nothing, so every load is unconditional and the
+        # compiler can issue them together (the slot loop with guarded loads was latency-bound).
+        row = shape[1] * shape[2]
+        for ox in range(3):
+            for oy in range(3):
+                for oz in range(3):
+                    if ox != 1 or oy != 1 or oz != 1:
+                        ok = inside(c[0] + ox - 1, c[1] + oy - 1, c[2] + oz - 1, shape)
+                        j = wp.where(ok, node + (ox - 1) * row + (oy - 1) * shape[2] + oz - 1, node)
+                        r = r - a[ox * 9 + oy * 3 + oz, node] * (x[j] - xi)
         if mode == 0:
             y_out[node] = r
         else:
             y_out[node] = x[node] + omega * (dinv[node] * r)
+
+    @wp.func
+    def interpolate(c: wp.vec3i, shape: wp.vec3i, coarse_shape: wp.vec3i, e: wp.array(dtype=vec3)):
+        """(P e) at fine node c: the 2 x 2 x 2 coarse candidates, unrolled and branch-free (weight 0, clamped address)."""
+        f = wp.vec3i(
+            first_coarse(c[0], shape[0], coarse_shape[0]),
+            first_coarse(c[1], shape[1], coarse_shape[1]),
+            first_coarse(c[2], shape[2], coarse_shape[2]),
+        )
+        acc = vec3(scalar(0.0))
+        for ax in range(2):
+            wx = axis_weight(c[0], f[0] + ax, shape[0], coarse_shape[0])
+            jx = wp.min(f[0] + ax, coarse_shape[0] - 1)
+            for ay in range(2):
+                wxy = wx * axis_weight(c[1], f[1] + ay, shape[1], coarse_shape[1])
+                jy = wp.min(f[1] + ay, coarse_shape[1] - 1)
+                for az in range(2):
+                    w = wxy * axis_weight(c[2], f[2] + az, shape[2], coarse_shape[2])
+                    acc = acc + w * e[node_index(jx, jy, wp.min(f[2] + az, coarse_shape[2] - 1), coarse_shape)]
+        return acc
 
     @wp.kernel(module="unique")
     def mg_restrict(
@@ -535,24 +562,26 @@ def build(scalar):
             first_fine(c[1], shape[1], coarse_shape[1]),
             first_fine(c[2], shape[2], coarse_shape[2]),
         )
+        # Constant loops (unrolled) over the 3 x 3 x 3 candidates, branch-free: a candidate outside
+        # the level has weight 0 and loads a clamped address.
+        wx = vec3(axis_weight(f[0], c[0], shape[0], coarse_shape[0]), axis_weight(f[0] + 1, c[0], shape[0], coarse_shape[0]),
+                  axis_weight(f[0] + 2, c[0], shape[0], coarse_shape[0]))
+        wy = vec3(axis_weight(f[1], c[1], shape[1], coarse_shape[1]), axis_weight(f[1] + 1, c[1], shape[1], coarse_shape[1]),
+                  axis_weight(f[1] + 2, c[1], shape[1], coarse_shape[1]))
+        wz = vec3(axis_weight(f[2], c[2], shape[2], coarse_shape[2]), axis_weight(f[2] + 1, c[2], shape[2], coarse_shape[2]),
+                  axis_weight(f[2] + 2, c[2], shape[2], coarse_shape[2]))
         acc = vec3(scalar(0.0))
-        for ix in range(f[0], f[0] + 3):
-            wx = axis_weight(ix, c[0], shape[0], coarse_shape[0])
-            if wx == scalar(0.0):
-                continue
-            for iy in range(f[1], f[1] + 3):
-                wxy = wx * axis_weight(iy, c[1], shape[1], coarse_shape[1])
-                if wxy == scalar(0.0):
-                    continue
-                for iz in range(f[2], f[2] + 3):
-                    w = wxy * axis_weight(iz, c[2], shape[2], coarse_shape[2])
-                    if w == scalar(0.0):
-                        continue
-                    i = node_index(ix, iy, iz, shape)
+        for ax in range(3):
+            ix = wp.clamp(f[0] + ax, 0, shape[0] - 1)
+            for ay in range(3):
+                iy = wp.clamp(f[1] + ay, 0, shape[1] - 1)
+                wxy = wx[ax] * wy[ay]
+                for az in range(3):
+                    i = node_index(ix, iy, wp.clamp(f[2] + az, 0, shape[2] - 1), shape)
                     res = r[i]
                     if fine_level != 0:
                         res = filters[i] * (res - y[i])
-                    acc = acc + w * res
+                    acc = acc + (wxy * wz[az]) * res
         b_out[node] = acc
 
     @wp.kernel(module="unique")
@@ -568,26 +597,7 @@ def build(scalar):
         y_out: wp.array(dtype=vec3),
     ):
         i = wp.tid()
-        c = node_coord(i, shape)
-        f = wp.vec3i(
-            first_coarse(c[0], shape[0], coarse_shape[0]),
-            first_coarse(c[1], shape[1], coarse_shape[1]),
-            first_coarse(c[2], shape[2], coarse_shape[2]),
-        )
-        acc = vec3(scalar(0.0))
-        for ax in range(2):
-            wx = axis_weight(c[0], f[0] + ax, shape[0], coarse_shape[0])
-            if wx == scalar(0.0):
-                continue
-            for ay in range(2):
-                wxy = wx * axis_weight(c[1], f[1] + ay, shape[1], coarse_shape[1])
-                if wxy == scalar(0.0):
-                    continue
-                for az in range(2):
-                    w = wxy * axis_weight(c[2], f[2] + az, shape[2], coarse_shape[2])
-                    if w == scalar(0.0):
-                        continue
-                    acc = acc + w * e[node_index(f[0] + ax, f[1] + ay, f[2] + az, coarse_shape)]
+        acc = interpolate(node_coord(i, shape), shape, coarse_shape, e)
         if fine_level != 0:
             xi = x[i] + filters[i] * acc
             x[i] = xi
@@ -653,26 +663,7 @@ def build(scalar):
         i = blk * TILE + lane
         rz = scalar(0.0)
         if i < n:
-            c = node_coord(i, shape)
-            f = wp.vec3i(
-                first_coarse(c[0], shape[0], coarse_shape[0]),
-                first_coarse(c[1], shape[1], coarse_shape[1]),
-                first_coarse(c[2], shape[2], coarse_shape[2]),
-            )
-            acc = vec3(scalar(0.0))
-            for ax in range(2):
-                wx = axis_weight(c[0], f[0] + ax, shape[0], coarse_shape[0])
-                if wx == scalar(0.0):
-                    continue
-                for ay in range(2):
-                    wxy = wx * axis_weight(c[1], f[1] + ay, shape[1], coarse_shape[1])
-                    if wxy == scalar(0.0):
-                        continue
-                    for az in range(2):
-                        w = wxy * axis_weight(c[2], f[2] + az, shape[2], coarse_shape[2])
-                        if w == scalar(0.0):
-                            continue
-                        acc = acc + w * e[node_index(f[0] + ax, f[1] + ay, f[2] + az, coarse_shape)]
+            acc = interpolate(node_coord(i, shape), shape, coarse_shape, e)
             ri = r[i]
             zi = omega * (dinv[i] * ri) + filters[i] * acc
             z_out[i] = zi

@@ -250,8 +250,8 @@ class ImplicitIntegrator(Integrator):
         self._host_stats = np.zeros(ki.STAT_SLOTS, dtype=np.int64)
         if solver in ("bsr", "warp_cg"):
             self._setup_bsr()
-        # Multigrid: the V-cycle replaces z = P r in the CG loop; cg_update and init_residual get a
-        # zero block array as P (their r.z is 0) and the V-cycle adds r.z itself.
+        # Multigrid: the V-cycle replaces z = P r in the CG loop; init_residual gets a zero block
+        # array as P (its r.z is 0), cg_update skips P, and the V-cycle adds r.z itself.
         self.multigrid = None
         if self.preconditioner == "multigrid":
             self.multigrid = LatticeMultigrid(model, self)
@@ -457,7 +457,7 @@ class ImplicitIntegrator(Integrator):
                 k.cg_update,
                 dim=(pblocks, ki.TILE),
                 block_dim=ki.TILE,
-                inputs=[n, self.filters, precond, self.p, self.ap],
+                inputs=[n, int(mg is None), self.filters, precond, self.p, self.ap],
                 outputs=[self.x, self.r, self.z, self.scalars],
                 device=device,
             )
