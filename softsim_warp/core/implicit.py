@@ -239,6 +239,11 @@ class ImplicitIntegrator(Integrator):
             self.contact_restitution = wp.zeros(n, dtype=scalar, device=device)
             self.contact_approach = vectors()
             self.energy_gained = wp.zeros(1, dtype=wp.int32, device=device)
+            if s:
+                # measure_spring_restitution reads the spring list, which a lattice model copies to
+                # the device on first use: copy it now, not inside a captured step (multigrid reads
+                # no spring list, and a CPU graph replayed that copy from freed host memory).
+                _ = model.spring_indices
         # Mass plus the contact friction damper per particle (kernels/implicit.py: constrain_contacts);
         # the plain mass outside the contact solve.
         self.mass_eff = wp.clone(model.particle_mass) if self.contact_solve else model.particle_mass

@@ -128,6 +128,7 @@ class LatticeMultigrid:
         self.kernels = model.kernels
         layout = model.lattice.layout
         self.shapes = level_shapes(layout.shape[0])
+        self.fine_shape = wp.vec3i(*self.shapes[0])
         n = model.particle_count
         # Level 0: smoother inverses, the split operator's stencil, and the V-cycle's vectors.
         self.dinv0 = wp.zeros(n, dtype=mat33, device=device)
@@ -148,7 +149,6 @@ class LatticeMultigrid:
         # build flag, on the device.
         self.setup_state = wp.array([0, 1], dtype=wp.int32, device=device)
         self.setup_flag = wp.zeros(1, dtype=wp.int32, device=device)
-        self.builds = 0
         self.scratch = wp.zeros(1, dtype=scalar, device=device)
         # Coarse levels 1..L: stencils, inverses of their diagonal blocks, b, x, and a sweep's output.
         self.levels = []
@@ -195,7 +195,7 @@ class LatticeMultigrid:
         wp.launch(
             self.kernels.mg_lattice_jacobians,
             dim=model.particle_count,
-            inputs=[self.h, model.scalar(kv_scale), wp.vec3i(*self.shapes[0]), self.types, *self.tables, q, qd_k],
+            inputs=[self.h, model.scalar(kv_scale), self.fine_shape, self.types, *self.tables, q, qd_k],
             outputs=[diag_out, rhs_out, self.q_lin],
             device=model.device,
         )
@@ -208,7 +208,7 @@ class LatticeMultigrid:
             self.kernels.mg_lattice_mv,
             dim=(ki.tile_blocks(n), ki.TILE),
             block_dim=ki.TILE,
-            inputs=[n, slot, self.h, wp.vec3i(*self.shapes[0]), self.types, *self.tables, self.q_lin,
+            inputs=[n, slot, self.h, self.fine_shape, self.types, *self.tables, self.q_lin,
                     self.system.mass_eff, p],
             outputs=[y, scalars],
             device=model.device,
@@ -240,7 +240,7 @@ class LatticeMultigrid:
         device = model.device
         k = self.kernels
         s = self.system
-        fine_shape = wp.vec3i(*self.shapes[0])
+        fine_shape = self.fine_shape
         fine_out = [self.a0 if self.a0 is not None else self.dummy_stencil, self.rowsum0, self.dinv0]
         wp.launch(
             k.mg_fine_setup_lattice,
@@ -287,7 +287,7 @@ class LatticeMultigrid:
             return
         # Level 0, down: one sweep from 0, then the filtered residual restricted.
         additive = self.fine_cycle == "additive"
-        fine_shape = wp.vec3i(*self.shapes[0])
+        fine_shape = self.fine_shape
         first = self.levels[0]
         if additive:
             # z = omega D^-1 r + S P V(P^T r): no spring product on the lattice.
