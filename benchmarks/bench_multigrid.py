@@ -57,7 +57,7 @@ def _cg_iteration_parts(integ):
     blocks = (n + ki.TILE - 1) // ki.TILE
     mg = integ.multigrid
     precond = integ.precond if mg is None else integ.no_precond
-    lattice_product = mg is not None
+    lattice_product = mg is not None and mg.gather
 
     def run():
         wp.launch(

@@ -95,7 +95,7 @@ from .multigrid import LatticeMultigrid, auto_min_particles, multigrid_support
 
 # "jacobi": 3x3 block-Jacobi; "diagonal": the inverse of the diagonal; "multigrid": a V-cycle on
 # the lattice of a one-jelly model (core/multigrid.py); "auto": multigrid where it applies and pays
-# (multigrid.auto_min_particles: 14^3 on the CPU, 30^3 on CUDA), else jacobi. "block_jacobi" is another name of "jacobi".
+# (multigrid.auto_min_particles: 12^3 on the CPU, 30^3 on CUDA), else jacobi. "block_jacobi" is another name of "jacobi".
 PRECONDITIONERS = ("auto", "multigrid", "jacobi", "diagonal", "block_jacobi")
 LINEARIZATIONS = ("predictor", "baraff_witkin")
 SOLVERS = ("matrix_free", "bsr", "warp_cg")
@@ -204,8 +204,9 @@ class ImplicitIntegrator(Integrator):
         self.ap = vectors()
         self.diag_block = wp.zeros(n, dtype=self.mat33, device=device)
         self.precond = wp.zeros(n, dtype=self.mat33, device=device)
-        # Multigrid recomputes the spring blocks from positions (core/multigrid.py) and stores none.
-        self.spring_block = wp.zeros(0 if self.preconditioner == "multigrid" else s, dtype=self.mat33, device=device)
+        # Multigrid on CUDA recomputes the spring blocks from positions (core/multigrid.py) and stores none.
+        gather = self.preconditioner == "multigrid" and device.is_cuda
+        self.spring_block = wp.zeros(0 if gather else s, dtype=self.mat33, device=device)
         self.scalars = wp.zeros(ki.SCALAR_SLOTS, dtype=scalar, device=device)
         self.ints = wp.zeros(2, dtype=wp.int32, device=device)
         self.stats_array = wp.zeros(ki.STAT_SLOTS, dtype=wp.int32, device=device)
@@ -409,7 +410,7 @@ class ImplicitIntegrator(Integrator):
         mg = self.multigrid
         precond = self.precond if mg is None else self.no_precond
         # The lattice product writes all of A p (mass included) and p.A p.
-        lattice_product = mg is not None
+        lattice_product = mg is not None and mg.gather
         if lattice_product:
             def spring_mv(vec):
                 mg.product(vec, self.ap, self.scalars, ki.PAP)

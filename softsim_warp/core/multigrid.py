@@ -9,10 +9,11 @@ coarse operators, damped block-Jacobi smoothing and an exact solve on the coarse
 x 2) lattice. The method, and why each piece is what it is, is in ``kernels/multigrid.py``; the
 measurements in docs/IMPLICIT.md.
 
-Everything runs on the device without host reads: :meth:`LatticeMultigrid.setup` (once per
-linear system, after the system's blocks and filters are built) and :meth:`apply` (once per CG
-iteration) only launch kernels, so both are captured into the step's graph and the CG loop's
-``wp.capture_while`` body.
+Everything runs on the device without host reads: :meth:`LatticeMultigrid.jacobians` (the
+system's spring part, from the linearisation point: no spring blocks are stored),
+:meth:`setup` (before each linear solve: builds the hierarchy, or keeps the last one),
+:meth:`product` and :meth:`apply` (once per CG iteration) only launch kernels, so all are
+captured into the step's graph and the CG loop's ``wp.capture_while`` body.
 
 Which models qualify (:func:`multigrid_support`): one jelly that is the whole model, on the
 lattice path (its springs are the standard stencil). Everything else (several jellies or worlds,
@@ -41,13 +42,16 @@ DEFAULT_SWEEPS = 1
 # products per V-cycle); "additive": z = omega D^-1 r + P V(P^T r) (no spring product; about 1.5x
 # the CG iterations).
 DEFAULT_FINE_CYCLE = "additive"
-# Free solves per hierarchy build (LatticeMultigrid.setup; docs/IMPLICIT.md): 1 rebuilds for every solve.
+# Free solves per hierarchy build (LatticeMultigrid.setup; docs/IMPLICIT.md): on the spinning 100^3
+# jelly on an H100, builds every 1, 2, 4, 8 solves took 30.4, 25.1, 22.1, 21.4 ms a step with 19.3,
+# 19.3, 19.4, 19.8 CG iterations; 4 keeps the iterations within 1 % of rebuilding every solve.
 DEFAULT_SETUP_EVERY = 4
 # Particles from which the default ("auto") preconditioner is multigrid: on the CPU block-Jacobi is
-# faster up to about 14^3 (free flight: 8.3 against 9.2 ms a step at 12^3, 13.8 against 13.3 at
-# 14^3, 23.3 against 15.3 at 16^3; docs/IMPLICIT.md); on an H100 up to about 30^3 (1.58 against
-# 4.24 ms a step at 20^3, 8.44 against 7.33 at 40^3; benchmarks/results/bench_multigrid_cuda_h100.json).
-AUTO_MIN_PARTICLES = 14**3
+# faster up to about 11^3 (free flight: 4.9 against 7.0 ms a step at 10^3, 6.6 against 6.4 at 11^3,
+# 8.7 against 7.6 at 12^3, 14.6 against 11.1 at 14^3; docs/IMPLICIT.md); on an H100 up to about 30^3
+# (1.58 against 4.24 ms a step at 20^3 for multigrid with stored blocks and a build every solve,
+# 8.44 against 4.85 for the present one at 40^3; the crossover has not been measured again).
+AUTO_MIN_PARTICLES = 12**3
 AUTO_MIN_PARTICLES_CUDA = 30**3
 
 
@@ -100,6 +104,7 @@ class LatticeMultigrid:
         sweeps: int = DEFAULT_SWEEPS,
         fine_cycle: str | None = None,
         setup_every: int | None = None,
+        gather: bool | None = None,
     ):
         ok, reason = multigrid_support(model)
         if not ok:
@@ -122,6 +127,12 @@ class LatticeMultigrid:
         if int(setup_every) != setup_every or setup_every < 1:
             raise ValueError(f"setup_every must be an integer >= 1 (got {setup_every!r})")
         self.setup_every = int(setup_every)
+        # The spring blocks recomputed from positions by one thread per particle (CUDA), or stored
+        # per spring and summed with atomics (the CPU, where Warp runs the threads one after
+        # another and the recomputation took twice as long: docs/IMPLICIT.md).
+        self.gather = model.device.is_cuda if gather is None else bool(gather)
+        if not self.gather and system.spring_block.shape[0] != model.spring_count:
+            raise ValueError("gather=False needs the integrator's spring_block for every spring")
         device = model.device
         scalar, vec3 = model.scalar, model.vec3
         mat33 = wp.types.matrix((3, 3), scalar)
@@ -184,14 +195,26 @@ class LatticeMultigrid:
         return sum(a.capacity for a in arrays)
 
     def jacobians(self, h, kv_scale, q: wp.array, qd_k: wp.array, diag_out: wp.array, rhs_out: wp.array):
-        """The system's spring part at the linearisation point q (instead of eval_spring_jacobians).
+        """The system's spring part at the linearisation point q, kept for :meth:`product` and :meth:`setup`.
 
         Writes each particle's sum of spring blocks into ``diag_out`` and ``kv_scale`` df/dx qd_k
-        into ``rhs_out`` (every element), and keeps q for :meth:`product` and :meth:`setup`; no
-        spring blocks are stored.
+        into ``rhs_out``. With ``gather`` every element is written and no spring block is stored;
+        without, ``eval_spring_jacobians`` adds them (both zeroed by the caller) and stores the
+        blocks in the integrator's ``spring_block``.
         """
         model = self.model
         self.h = model.scalar(h)
+        if not self.gather:
+            wp.copy(self.q_lin, q)
+            wp.launch(
+                self.kernels.eval_spring_jacobians,
+                dim=model.spring_count,
+                inputs=[self.h, model.scalar(kv_scale), model.spring_indices, model.spring_rest_length,
+                        model.spring_stiffness, model.spring_damping, q, qd_k],
+                outputs=[self.system.spring_block, diag_out, rhs_out],
+                device=model.device,
+            )
+            return
         wp.launch(
             self.kernels.mg_lattice_jacobians,
             dim=model.particle_count,
@@ -201,7 +224,7 @@ class LatticeMultigrid:
         )
 
     def product(self, p: wp.array, y: wp.array, scalars: wp.array, slot: int):
-        """y = A p (mass and springs, every element written); scalars[slot] += p.A p."""
+        """y = A p (mass and springs, every element written) by the gather; scalars[slot] += p.A p."""
         model = self.model
         n = model.particle_count
         wp.launch(
@@ -282,7 +305,7 @@ class LatticeMultigrid:
             # A lattice of at most 2 x 2 x 2: two block-Jacobi sweeps.
             wp.launch(k.mg_fine_pre, dim=n, inputs=[omega, s.mass_eff, self.dinv0, r], outputs=[self.x0, self.y0],
                       device=device)
-            self.product(self.x0, self.y0, self.scratch, 0)
+            self._spring_product(self.x0)
             self._fine_post(r, z, scalars, slot)
             return
         # Level 0, down: one sweep from 0, then the filtered residual restricted.
@@ -303,7 +326,7 @@ class LatticeMultigrid:
                 k.mg_fine_pre, dim=n, inputs=[omega, s.mass_eff, self.dinv0, r], outputs=[self.x0, self.y0],
                 device=device,
             )
-            self.product(self.x0, self.y0, self.scratch, 0)
+            self._spring_product(self.x0)
             wp.launch(
                 k.mg_restrict,
                 dim=first["count"],
@@ -365,10 +388,25 @@ class LatticeMultigrid:
             outputs=[self.x0, self.y0],
             device=device,
         )
-        self.product(self.x0, self.y0, self.scratch, 0)
+        self._spring_product(self.x0)
         self._fine_post(r, z, scalars, slot)
 
     # -- pieces ---------------------------------------------------------------------------------
+
+    def _spring_product(self, x):
+        """y0 = A x, y0 holding M x."""
+        model = self.model
+        if self.gather:
+            self.product(x, self.y0, self.scratch, 0)
+        elif model.spring_count:
+            wp.launch(
+                model.kernels.spring_mv,
+                dim=(ki.tile_blocks(model.spring_count), ki.TILE),
+                block_dim=ki.TILE,
+                inputs=[model.spring_count, 0, model.spring_indices, self.system.spring_block, x],
+                outputs=[self.y0, self.scratch],
+                device=model.device,
+            )
 
     def _fine_post(self, r, z, scalars, slot):
         n = self.model.particle_count
@@ -410,4 +448,5 @@ class LatticeMultigrid:
             "multigrid_sweeps": self.sweeps,
             "multigrid_fine_cycle": self.fine_cycle,
             "multigrid_setup_every": self.setup_every,
+            "multigrid_gather": self.gather,
         }
