@@ -4,7 +4,8 @@ The stiff jelly of ``bench_implicit.py`` (0.5 m cube of 1 kg, every spring type 
 in free flight) takes ``--steps`` implicit steps of ``--dt`` at each size with each preconditioner.
 Reported per case: ms per step (on CUDA the steps replay a captured graph), CG iterations per step
 (mean/max), unconverged solves, and the time of each part of the solve, each timed alone over
-repeated launches: the multigrid setup (Galerkin hierarchy, once per linear solve), one V-cycle,
+repeated launches: the multigrid setup (one build of the Galerkin hierarchy, which a free-flight step
+does on one in ``setup_every`` of its solves), one V-cycle,
 and one CG iteration without its preconditioner (the spring product and the vector updates);
 "per step" multiplies them by the step's solves and iterations. The device memory of the
 hierarchy is in the JSON.
@@ -54,17 +55,23 @@ def _cg_iteration_parts(integ):
     k = model.kernels
     n = model.particle_count
     blocks = (n + ki.TILE - 1) // ki.TILE
-    precond = integ.precond if integ.multigrid is None else integ.no_precond
+    mg = integ.multigrid
+    precond = integ.precond if mg is None else integ.no_precond
+    lattice_product = mg is not None and mg.gather
 
     def run():
         wp.launch(
             k.cg_direction, dim=(blocks, ki.TILE), block_dim=ki.TILE,
-            inputs=[n, 1, integ.mass_eff, integ.z], outputs=[integ.p, integ.ap, integ.scalars], device=device,
+            inputs=[n, int(not lattice_product), integ.mass_eff, integ.z], outputs=[integ.p, integ.ap, integ.scalars],
+            device=device,
         )
-        integ._spring_mv(integ.p)
+        if lattice_product:
+            mg.product(integ.p, integ.ap, integ.scalars, ki.PAP)
+        else:
+            integ._spring_mv(integ.p)
         wp.launch(
             k.cg_update, dim=(blocks, ki.TILE), block_dim=ki.TILE,
-            inputs=[n, integ.filters, precond, integ.p, integ.ap],
+            inputs=[n, int(mg is None), integ.filters, precond, integ.p, integ.ap],
             outputs=[integ.x, integ.r, integ.z, integ.scalars], device=device,
         )
         wp.launch(k.cg_end_iteration, dim=1, inputs=[integ.cg_max_iterations], outputs=[integ.scalars, integ.ints],
@@ -74,11 +81,11 @@ def _cg_iteration_parts(integ):
 
 
 def measure(size: int, preconditioner: str, device, steps: int, dt: float, ks: float, precision: str,
-            repeats: int, fine_cycle=None) -> dict:
+            repeats: int, fine_cycle=None, options=None) -> dict:
     model = stiff_jelly(size, ks, device, precision)
     integ = ImplicitIntegrator(model, preconditioner=preconditioner)
-    if fine_cycle is not None and integ.multigrid is not None:
-        integ.multigrid = LatticeMultigrid(model, integ, fine_cycle=fine_cycle)
+    if (fine_cycle is not None or options) and integ.multigrid is not None:
+        integ.multigrid = LatticeMultigrid(model, integ, fine_cycle=fine_cycle, **(options or {}))
     compile_s, seconds, finite = _time_steps(integ, model, dt, steps)
     stats = integ.stats()
     solves_per_step = stats["cg_solves"] / max(stats["cg_steps"], 1)
@@ -86,7 +93,9 @@ def measure(size: int, preconditioner: str, device, steps: int, dt: float, ks: f
     parts = {"cg_iteration_ms": 1e3 * _time_call(_cg_iteration_parts(integ), device, repeats)}
     mg = integ.multigrid
     if mg is not None:
-        parts["setup_ms"] = 1e3 * _time_call(mg.setup, device, repeats)
+        # One build of the hierarchy; a step builds on solves_per_step / setup_every of its solves
+        # (free flight: no contact constraints, which would rebuild every solve).
+        parts["setup_ms"] = 1e3 * _time_call(mg.build, device, repeats)
         parts["vcycle_ms"] = 1e3 * _time_call(
             lambda: mg.apply(integ.r, integ.z, integ.scalars, ki.RZ_NEW), device, repeats
         )
@@ -94,7 +103,7 @@ def measure(size: int, preconditioner: str, device, steps: int, dt: float, ks: f
         parts["setup_ms"] = 0.0
         parts["vcycle_ms"] = 0.0
     per_step = {
-        "setup_ms": parts["setup_ms"] * solves_per_step,
+        "setup_ms": parts["setup_ms"] * solves_per_step / (mg.setup_every if mg is not None else 1),
         "vcycle_ms": parts["vcycle_ms"] * (its + solves_per_step),
         "cg_iterations_ms": parts["cg_iteration_ms"] * its,
     }
@@ -105,6 +114,7 @@ def measure(size: int, preconditioner: str, device, steps: int, dt: float, ks: f
         "springs": model.spring_count,
         "preconditioner": integ.preconditioner,
         "fine_cycle": integ.multigrid.fine_cycle if integ.multigrid is not None else None,
+        "setup_every": integ.multigrid.setup_every if integ.multigrid is not None else None,
         "precision": precision,
         "ks": ks,
         "dt": dt,
@@ -129,7 +139,8 @@ def main(argv=None) -> int:
     p.add_argument("--sizes", type=int, nargs="+", default=[10, 20], help="particles per axis")
     p.add_argument(
         "--preconditioners", nargs="+", default=["jacobi", "multigrid"],
-        help="jacobi, multigrid (its default cycle), multigrid:multiplicative, multigrid:additive",
+        help="jacobi, multigrid (its defaults), multigrid:multiplicative, multigrid:additive; integer options of "
+        "LatticeMultigrid after slashes, e.g. multigrid/setup_every=1/sweeps=2",
     )
     p.add_argument("--ks", type=float, default=1.0e5, help="spring stiffness of every type [N/m]")
     p.add_argument("--dt", type=float, default=0.01, help="implicit step [s]")
@@ -151,9 +162,13 @@ def main(argv=None) -> int:
     rows = []
     for size in args.sizes:
         for pc in args.preconditioners:
-            name, _, cycle = pc.partition(":")
-            r = measure(size, name, device, args.steps, args.dt, args.ks, args.precision, args.repeats, cycle or None)
-            r["preconditioner"] = pc if cycle else r["preconditioner"]
+            head, *opts = pc.split("/")
+            name, _, cycle = head.partition(":")
+            options = {key: int(value) for key, value in (o.split("=") for o in opts)}
+            r = measure(
+                size, name, device, args.steps, args.dt, args.ks, args.precision, args.repeats, cycle or None, options
+            )
+            r["preconditioner"] = pc if (cycle or opts) else r["preconditioner"]
             per = r["parts_ms_per_step"]
             print(
                 f"{size:5d} {r['particles']:9d} {r['preconditioner']:>24} {r['ms_per_step']:9.2f} "

@@ -855,6 +855,7 @@ def build(scalar):
     @wp.kernel(module="unique")
     def cg_update(
         n: int,
+        use_precond: int,
         filters: wp.array(dtype=mat33),
         precond: wp.array(dtype=mat33),
         p: wp.array(dtype=vec3),
@@ -875,10 +876,13 @@ def build(scalar):
             alpha = wp.where(pap > scalar(0.0), scalars[RZ] / pap, scalar(0.0))
             x[i] = x[i] + alpha * p[i]
             ri = r[i] - alpha * (filters[i] * ap[i])
-            zi = precond[i] * ri
             r[i] = ri
-            z_out[i] = zi
-            rz = wp.dot(ri, zi)
+            if use_precond != 0:
+                # (Without: a preconditioner applied after this kernel, multigrid's V-cycle, writes z
+                # and r.z; reading P and writing z here would be a quarter of the kernel's traffic.)
+                zi = precond[i] * ri
+                z_out[i] = zi
+                rz = wp.dot(ri, zi)
             rr = wp.dot(ri, ri)
         wp.tile_atomic_add(scalars, wp.tile_sum(wp.tile(rz)), offset=RZ_NEW)
         wp.tile_atomic_add(scalars, wp.tile_sum(wp.tile(rr)), offset=RR_NEW)

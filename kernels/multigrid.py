@@ -11,7 +11,9 @@ translations and (for a nearly undeformed jelly) the rotations that make the sti
 nearly singular.
 
 Coarse operators are Galerkin products, stored dense: 27 3x3 blocks per node, one per neighbour
-offset (slot ``(ox + 1) 9 + (oy + 1) 3 + (oz + 1)``, 13 the node itself). The fine operator used
+offset (slot ``(ox + 1) 9 + (oy + 1) 3 + (oz + 1)``, 13 the node itself), slot-major (``a[slot,
+node]``: the threads of a warp, consecutive nodes, load one slot's blocks from consecutive
+addresses; node-major, the stencil product ran at a fifth of the memory bandwidth). The fine operator used
 for the first product is the projected system
 
     A^ = S A S + s (I - S)       (s: a diagonal scale of the row; S = I on free particles)
@@ -43,6 +45,7 @@ Every kernel exists for float32 and float64 and runs on the CPU and CUDA. The ho
 ``softsim_warp/core/multigrid.py``.
 """
 
+import numpy as np
 import warp as wp
 
 from .implicit import TILE
@@ -117,76 +120,215 @@ def build(scalar):
     def slot_offset(slot: int):
         return wp.vec3i(slot // 9 - 1, (slot // 3) % 3 - 1, slot % 3 - 1)
 
-    @wp.func
-    def spring_index(
-        a: wp.vec3i, o: wp.vec3i, start: int, shape: wp.vec3i
-    ):
-        """Index of the spring from lattice node a at offset o (lexicographically positive), block ``start``.
-
-        The standard spring list (``lattice.lattice_springs``) holds each offset's springs as one
-        block, their first nodes in lattice order over the box where a + o is inside.
-        """
-        lx = wp.max(0, -o[0])
-        ly = wp.max(0, -o[1])
-        lz = wp.max(0, -o[2])
-        ey = shape[1] - wp.abs(o[1])
-        ez = shape[2] - wp.abs(o[2])
-        return start + ((a[0] - lx) * ey + (a[1] - ly)) * ez + (a[2] - lz)
+    # -- the jelly's lattice, from positions --------------------------------------------------------
+    # One jelly's springs are implicit in the lattice (kernels/lattice.py: 26 neighbours in the
+    # 3x3x3 block, structural or shear, and 6 bending at +-2 along an axis), with one rest length
+    # per offset and one ks, kd per type. Each spring's block B = h kd d^d^T + h^2 ks [d^d^T +
+    # max(0, 1 - r/|d|) (I - d^d^T)] (kernels/implicit.py: spring_jacobian) is alpha d^d^T + beta I,
+    # so the kernels below recompute it from the linearisation point wherever they need it, one
+    # thread per particle gathering over its neighbours: no spring list, no stored blocks, no
+    # atomics.
 
     @wp.func
-    def neighbour_block(
-        i: wp.vec3i,
-        e: wp.vec3i,
-        shape: wp.vec3i,
-        spring_start: wp.array(dtype=wp.int32),
-        bend_start: wp.array(dtype=wp.int32),
-        spring_block: wp.array(dtype=mat33),
-    ):
-        """The spring block of the fine operator with split bending springs between i and i + e (e != 0, |e| <= 1).
+    def pair_coefficients(d: vec3, rest: scalar, ks: scalar, kd: scalar, h: scalar):
+        """(alpha, beta, d^) of a spring's block B = alpha d^d^T + beta I; zeros at |d| = 0 (as spring_jacobian)."""
+        length2 = wp.dot(d, d)
+        if length2 == scalar(0.0):
+            return scalar(0.0), scalar(0.0), vec3(scalar(0.0))
+        # One square root and one division per spring (the kernels evaluate 32 to 35 per particle).
+        inv = scalar(1.0) / wp.sqrt(length2)
+        dhat = d * inv
+        transverse = wp.max(scalar(1.0) - rest * inv, scalar(0.0))
+        hks = h * h * ks
+        return h * kd + hks * (scalar(1.0) - transverse), hks * transverse, dhat
 
-        Both nodes must be inside the lattice.
+    tiny = float(np.finfo(np.float32 if scalar == wp.float32 else np.float64).tiny)
+
+    @wp.func
+    def pair_product(qi: vec3, qj: vec3, pi: vec3, pj: vec3, rest: scalar, ks: scalar, kd: scalar, h: scalar):
+        """(B (p_i - p_j), (p_i - p_j).B (p_i - p_j)) for the spring (i, j), without branches.
+
+        Same block as pair_coefficients; the smallest normal number added to |d|^2 keeps 1/|d|
+        finite at q_i = q_j, where d^ = 0 and the transverse factor is 0 (rest > 0): a zero block, as
+        spring_jacobian gives there.
         """
-        # The spring is listed from its lexicographically smaller end.
-        positive = e[0] > 0 or (e[0] == 0 and (e[1] > 0 or (e[1] == 0 and e[2] > 0)))
-        a = i
-        o = e
-        if not positive:
-            a = i + e
-            o = -e
-        blk = mat33(scalar(0.0))
-        slot = (o[0] + 1) * 9 + (o[1] + 1) * 3 + (o[2] + 1)
-        start = spring_start[slot]
-        if start >= 0:
-            blk = spring_block[spring_index(a, o, start, shape)]
-        nonzero = wp.abs(o[0]) + wp.abs(o[1]) + wp.abs(o[2])
-        if nonzero == 1:
-            # An axis edge (a, a + o): half of the bending spring centred on a and of the one
-            # starting at a, each with twice its block.
-            axis = 0
-            if o[1] != 0:
-                axis = 1
-            if o[2] != 0:
-                axis = 2
-            bs = bend_start[axis]
-            if bs >= 0:
-                o2 = 2 * o
-                if a[axis] >= 1:
-                    blk = blk + scalar(2.0) * spring_block[spring_index(a - o, o2, bs, shape)]
-                if a[axis] + 2 < shape[axis]:
-                    blk = blk + scalar(2.0) * spring_block[spring_index(a, o2, bs, shape)]
-        return blk
+        d = qi - qj
+        inv = scalar(1.0) / wp.sqrt(wp.dot(d, d) + scalar(tiny))
+        dhat = d * inv
+        transverse = wp.max(scalar(1.0) - rest * inv, scalar(0.0))
+        hks = h * h * ks
+        alpha = h * kd + hks * (scalar(1.0) - transverse)
+        dp = pi - pj
+        t = alpha * wp.dot(dhat, dp) * dhat + (hks * transverse) * dp
+        return t, wp.dot(dp, t)
+
+    @wp.func
+    def pair_block(d: vec3, rest: scalar, ks: scalar, kd: scalar, h: scalar):
+        """The spring's block B as a matrix."""
+        alpha, beta, dhat = pair_coefficients(d, rest, ks, kd, h)
+        return alpha * wp.outer(dhat, dhat) + beta * wp.identity(n=3, dtype=scalar)
+
+    @wp.func
+    def neighbour_type(di: int, dj: int, dk: int):
+        """Spring type of a 3x3x3-block offset: 0 structural (one nonzero component), 1 shear."""
+        return wp.min(wp.abs(di) + wp.abs(dj) + wp.abs(dk) - 1, 1)
 
     @wp.kernel(module="unique")
-    def mg_fine_setup(
+    def mg_lattice_jacobians(
+        h: scalar,
+        kv_scale: scalar,
         shape: wp.vec3i,
-        # System (kernels/implicit.py: build_system / constrain_last_system):
-        particle_mass: wp.array(dtype=scalar),
+        types: int,
+        # Model (the jelly's rows of the lattice tables, kernels/lattice.py):
+        rest: wp.array2d(dtype=scalar),
+        ks: wp.array2d(dtype=scalar),
+        kd: wp.array2d(dtype=scalar),
+        # Linearisation point and velocity iterate:
+        q: wp.array(dtype=vec3),
+        qd_k: wp.array(dtype=vec3),
+        # Out: sum of the particle's spring blocks, kv_scale df/dx v_k (as eval_spring_jacobians
+        # accumulates them, every element written) and the linearisation point the products read
+        diag_block_out: wp.array(dtype=mat33),
+        rhs_out: wp.array(dtype=vec3),
+        q_lin_out: wp.array(dtype=vec3),
+    ):
+        i = wp.tid()
+        c = node_coord(i, shape)
+        qi = q[i]
+        vi = qd_k[i]
+        q_lin_out[i] = qi
+        diag = mat33(scalar(0.0))
+        kv = vec3(scalar(0.0))
+        hks_to_s = scalar(0.0)
+        if h != scalar(0.0):
+            hks_to_s = scalar(1.0) / (h * h)
+        for di in range(-1, 2):
+            for dj in range(-1, 2):
+                for dk in range(-1, 2):
+                    if di != 0 or dj != 0 or dk != 0:
+                        ty = neighbour_type(di, dj, dk)
+                        if ((types >> ty) & 1) != 0 and inside(c[0] + di, c[1] + dj, c[2] + dk, shape):
+                            j = node_index(c[0] + di, c[1] + dj, c[2] + dk, shape)
+                            alpha, beta, dhat = pair_coefficients(
+                                qi - q[j], rest[0, (di + 1) * 9 + (dj + 1) * 3 + dk + 1], ks[0, ty], kd[0, ty], h
+                            )
+                            diag = diag + alpha * wp.outer(dhat, dhat) + beta * wp.identity(n=3, dtype=scalar)
+                            if kv_scale != scalar(0.0):
+                                # S = (B - h kd d^d^T) / h^2: df_i/dx v = -S (v_i - v_j).
+                                dv = vi - qd_k[j]
+                                sa = (alpha - h * kd[0, ty]) * hks_to_s
+                                sb = beta * hks_to_s
+                                kv = kv - kv_scale * (sa * wp.dot(dhat, dv) * dhat + sb * dv)
+        if ((types >> 2) & 1) != 0:
+            for axis in range(3):
+                for side in range(2):
+                    o = wp.vec3i(0, 0, 0)
+                    o[axis] = 4 * side - 2
+                    if inside(c[0] + o[0], c[1] + o[1], c[2] + o[2], shape):
+                        j = node_index(c[0] + o[0], c[1] + o[1], c[2] + o[2], shape)
+                        alpha, beta, dhat = pair_coefficients(qi - q[j], rest[0, 27 + axis], ks[0, 2], kd[0, 2], h)
+                        diag = diag + alpha * wp.outer(dhat, dhat) + beta * wp.identity(n=3, dtype=scalar)
+                        if kv_scale != scalar(0.0):
+                            dv = vi - qd_k[j]
+                            sa = (alpha - h * kd[0, 2]) * hks_to_s
+                            sb = beta * hks_to_s
+                            kv = kv - kv_scale * (sa * wp.dot(dhat, dv) * dhat + sb * dv)
+        diag_block_out[i] = diag
+        rhs_out[i] = kv
+
+    @wp.kernel(module="unique")
+    def mg_lattice_mv(
+        n: int,
+        slot: int,
+        h: scalar,
+        shape: wp.vec3i,
+        types: int,
+        rest: wp.array2d(dtype=scalar),
+        ks: wp.array2d(dtype=scalar),
+        kd: wp.array2d(dtype=scalar),
+        # System: the linearisation point (mg_lattice_jacobians) and the mass plus friction damper
+        q: wp.array(dtype=vec3),
+        mass_eff: wp.array(dtype=scalar),
+        p: wp.array(dtype=vec3),
+        # Out: y = A p = M p + sum_j B_ij (p_i - p_j) (every element written); scalars[slot] += p.A p
+        y_out: wp.array(dtype=vec3),
+        scalars_out: wp.array(dtype=scalar),
+    ):
+        blk, lane = wp.tid()
+        i = blk * TILE + lane
+        quad = scalar(0.0)
+        if i < n:
+            c = node_coord(i, shape)
+            qi = q[i]
+            pi = p[i]
+            mp = mass_eff[i] * pi
+            acc = mp
+            # p.A p = sum_i p_i.M p_i + sum over springs of (p_i - p_j).B (p_i - p_j): each spring
+            # is met from both ends, so half of it here. Summing these non-negative terms keeps
+            # float32 accurate, where sum_i p_i.(A p)_i would cancel for smooth p.
+            spring_quad = scalar(0.0)
+            # Branch-free: an absent neighbour (outside the lattice, or of a spring type the jelly
+            # lacks) is the particle itself, whose zero distance and zero p_i - p_j give exactly
+            # zero; every load is unconditional.
+            row = shape[1] * shape[2]
+            for di in range(-1, 2):
+                for dj in range(-1, 2):
+                    for dk in range(-1, 2):
+                        if di != 0 or dj != 0 or dk != 0:
+                            ty = neighbour_type(di, dj, dk)
+                            ok = ((types >> ty) & 1) != 0 and inside(c[0] + di, c[1] + dj, c[2] + dk, shape)
+                            j = wp.where(ok, i + di * row + dj * shape[2] + dk, i)
+                            t, e = pair_product(
+                                qi, q[j], pi, p[j], rest[0, (di + 1) * 9 + (dj + 1) * 3 + dk + 1], ks[0, ty], kd[0, ty], h
+                            )
+                            acc = acc + t
+                            spring_quad = spring_quad + e
+            has_bending = ((types >> 2) & 1) != 0
+            for axis in range(3):
+                for side in range(2):
+                    o = wp.vec3i(0, 0, 0)
+                    o[axis] = 4 * side - 2
+                    ok = has_bending and inside(c[0] + o[0], c[1] + o[1], c[2] + o[2], shape)
+                    j = wp.where(ok, i + o[0] * row + o[1] * shape[2] + o[2], i)
+                    t, e = pair_product(qi, q[j], pi, p[j], rest[0, 27 + axis], ks[0, 2], kd[0, 2], h)
+                    acc = acc + t
+                    spring_quad = spring_quad + e
+            y_out[i] = acc
+            quad = wp.dot(pi, mp) + half * spring_quad
+        wp.tile_atomic_add(scalars_out, wp.tile_sum(wp.tile(quad)), offset=slot)
+
+    @wp.func
+    def shifted(c: wp.vec3i, axis: int, delta: int):
+        """c moved by delta along axis."""
+        return wp.vec3i(
+            c[0] + wp.where(axis == 0, delta, 0), c[1] + wp.where(axis == 1, delta, 0), c[2] + wp.where(axis == 2, delta, 0)
+        )
+
+    @wp.func
+    def bending_block(
+        a: wp.vec3i, axis: int, shape: wp.vec3i, rest: wp.array2d(dtype=scalar), ks: scalar, kd: scalar, h: scalar,
+        q: wp.array(dtype=vec3),
+    ):
+        """Block of the bending spring (a, a + 2 e_axis), zero where it does not exist."""
+        if a[axis] < 0 or a[axis] + 2 >= shape[axis]:
+            return mat33(scalar(0.0))
+        b = shifted(a, axis, 2)
+        qa = q[node_index(a[0], a[1], a[2], shape)]
+        qb = q[node_index(b[0], b[1], b[2], shape)]
+        return pair_block(qa - qb, rest[0, 27 + axis], ks, kd, h)
+
+    @wp.kernel(module="unique")
+    def mg_fine_setup_lattice(
+        h: scalar,
+        shape: wp.vec3i,
+        types: int,
+        rest: wp.array2d(dtype=scalar),
+        ks: wp.array2d(dtype=scalar),
+        kd: wp.array2d(dtype=scalar),
+        # System: linearisation point, mass plus friction damper, constraint filters
+        q: wp.array(dtype=vec3),
         mass_eff: wp.array(dtype=scalar),
         filters: wp.array(dtype=mat33),
-        diag_block: wp.array(dtype=mat33),
-        spring_block: wp.array(dtype=mat33),
-        bend_start: wp.array(dtype=wp.int32),
-        spring_start: wp.array(dtype=wp.int32),
         # Out: the split, projected operator as a 27-block stencil, its row sums, the smoother's block inverses
         a_out: wp.array2d(dtype=mat33),
         rowsum_out: wp.array(dtype=mat33),
@@ -195,45 +337,64 @@ def build(scalar):
         i = wp.tid()
         c = node_coord(i, shape)
         identity = wp.identity(n=3, dtype=scalar)
-        d = diag_block[i] + (mass_eff[i] - particle_mass[i]) * identity
-        # Splitting a bending spring (a, c) with middle b: 2B on a and c (B there already), 4B on b.
-        extra = mat33(scalar(0.0))
-        for axis in range(3):
-            bs = bend_start[axis]
-            if bs >= 0:
-                o2 = wp.vec3i(0, 0, 0)
-                o2[axis] = 2
-                o1 = wp.vec3i(0, 0, 0)
-                o1[axis] = 1
-                if c[axis] + 2 < shape[axis]:
-                    extra = extra + spring_block[spring_index(c, o2, bs, shape)]
-                if c[axis] >= 2:
-                    extra = extra + spring_block[spring_index(c - o2, o2, bs, shape)]
-                if c[axis] >= 1 and c[axis] + 1 < shape[axis]:
-                    extra = extra + scalar(4.0) * spring_block[spring_index(c - o1, o2, bs, shape)]
+        qi = q[i]
         sf = filters[i]
-        free = identity - sf
+        has_bending = ((types >> 2) & 1) != 0
+        ks_b = ks[0, 2]
+        kd_b = kd[0, 2]
+        # d: the sum of every spring block at i (its 32 neighbours) plus the mass; extra: the split
+        # bending springs' excess on the diagonal, B on each end of a bending spring at i and 4 B
+        # on the one centred on i.
+        d = mass_eff[i] * identity
+        extra = mat33(scalar(0.0))
+        if has_bending:
+            for axis in range(3):
+                b_lo = bending_block(shifted(c, axis, -2), axis, shape, rest, ks_b, kd_b, h, q)
+                b_hi = bending_block(c, axis, shape, rest, ks_b, kd_b, h, q)
+                b_c = bending_block(shifted(c, axis, -1), axis, shape, rest, ks_b, kd_b, h, q)
+                d = d + b_lo + b_hi
+                extra = extra + b_lo + b_hi + scalar(4.0) * b_c
+        # Off-diagonal blocks and the row sum without its constrained part, formed without
+        # cancellation: S M S + sum_j S B_ij (S_i - S_j) (+ s (I - S) below).
+        rowsum = sf * (mass_eff[i] * identity) * sf
+        for slot in range(STENCIL):
+            if slot != CENTER:
+                o = slot_offset(slot)
+                blk = mat33(scalar(0.0))
+                if inside(c[0] + o[0], c[1] + o[1], c[2] + o[2], shape):
+                    j = node_index(c[0] + o[0], c[1] + o[1], c[2] + o[2], shape)
+                    nb = mat33(scalar(0.0))
+                    ty = neighbour_type(o[0], o[1], o[2])
+                    if ((types >> ty) & 1) != 0:
+                        nb = pair_block(qi - q[j], rest[0, slot], ks[0, ty], kd[0, ty], h)
+                        d = d + nb
+                    if has_bending and ty == 0:
+                        # An axis edge (i, i + o): twice each of the two bending springs through it,
+                        # the one centred on i and the one beyond i + o or i.
+                        axis = 0
+                        if o[1] != 0:
+                            axis = 1
+                        if o[2] != 0:
+                            axis = 2
+                        far = c
+                        if o[axis] < 0:
+                            far = shifted(c, axis, -2)
+                        nb = nb + scalar(2.0) * (
+                            bending_block(shifted(c, axis, -1), axis, shape, rest, ks_b, kd_b, h, q)
+                            + bending_block(far, axis, shape, rest, ks_b, kd_b, h, q)
+                        )
+                    sj = filters[j]
+                    blk = -(sf * nb * sj)
+                    rowsum = rowsum + sf * nb * (sf - sj)
+                a_out[slot, i] = blk
         # Constrained directions: an identity row scaled like the rest of the row.
         s = (d[0, 0] + d[1, 1] + d[2, 2]) / scalar(3.0)
         if s <= scalar(0.0):
             s = scalar(1.0)
+        free = identity - sf
         dinv_out[i] = sf * wp.inverse(sf * d * sf + s * free) * sf
-        # Row sum, formed without cancellation: S M S + s (I - S) + sum_j S B_ij (S_i - S_j), which is
-        # exactly m I on a free particle with free neighbours (the springs do not resist translation).
-        rowsum = sf * (mass_eff[i] * identity) * sf + s * free
-        for slot in range(STENCIL):
-            o = slot_offset(slot)
-            blk = mat33(scalar(0.0))
-            if slot == CENTER:
-                blk = sf * (d + extra) * sf + s * free
-            elif inside(c[0] + o[0], c[1] + o[1], c[2] + o[2], shape):
-                j = node_index(c[0] + o[0], c[1] + o[1], c[2] + o[2], shape)
-                sj = filters[j]
-                nb = neighbour_block(c, o, shape, spring_start, bend_start, spring_block)
-                blk = -(sf * nb * sj)
-                rowsum = rowsum + sf * nb * (sf - sj)
-            a_out[i, slot] = blk
-        rowsum_out[i] = rowsum
+        a_out[CENTER, i] = sf * (d + extra) * sf + s * free
+        rowsum_out[i] = rowsum + s * free
 
     @wp.kernel(module="unique")
     def mg_galerkin(
@@ -247,13 +408,13 @@ def build(scalar):
         rowsum_out: wp.array(dtype=mat33),
         dinv_out: wp.array(dtype=mat33),
     ):
-        node, t = wp.tid()
+        t, node = wp.tid()
         slot = CENTER + t
         o = slot_offset(slot)
         ci = node_coord(node, coarse_shape)
         cj = ci + o
         if not inside(cj[0], cj[1], cj[2], coarse_shape):
-            a_out[node, slot] = mat33(scalar(0.0))
+            a_out[slot, node] = mat33(scalar(0.0))
             return
         # (R A P)_IJ = sum over fine pairs (i, j), |i - j| <= 1, of P_iI A_ij P_jJ; P factors by axis.
         acc = mat33(scalar(0.0))
@@ -300,10 +461,10 @@ def build(scalar):
                                     continue
                                 i = node_index(ix, iy, iz, shape)
                                 slot_ij = (jx - ix + 1) * 9 + (jy - iy + 1) * 3 + (jz - iz + 1)
-                                acc = acc + w * a_fine[i, slot_ij]
+                                acc = acc + w * a_fine[slot_ij, i]
         if slot == CENTER:
             sym = half * (acc + wp.transpose(acc))
-            a_out[node, slot] = sym
+            a_out[slot, node] = sym
             dinv_out[node] = wp.inverse(sym)
             # Row sums restrict exactly (the rows of P sum to 1): sum_J (P^T A P)_IJ = sum_i P_iI rowsum_i.
             rs = mat33(scalar(0.0))
@@ -322,8 +483,8 @@ def build(scalar):
                         rs = rs + w * rowsum_fine[node_index(ix, iy, iz, shape)]
             rowsum_out[node] = rs
         else:
-            a_out[node, slot] = acc
-            a_out[node_index(cj[0], cj[1], cj[2], coarse_shape), STENCIL - 1 - slot] = wp.transpose(acc)
+            a_out[slot, node] = acc
+            a_out[STENCIL - 1 - slot, node_index(cj[0], cj[1], cj[2], coarse_shape)] = wp.transpose(acc)
 
     @wp.kernel(module="unique")
     def mg_stencil_op(
@@ -347,14 +508,41 @@ def build(scalar):
         # stiffness terms on smooth x, and translations see exactly R (the mass) on every level.
         xi = x[node]
         r = b[node] - rowsum[node] * xi
-        for slot in range(STENCIL):
-            o = slot_offset(slot)
-            if slot != CENTER and inside(c[0] + o[0], c[1] + o[1], c[2] + o[2], shape):
-                r = r - a[node, slot] * (x[node_index(c[0] + o[0], c[1] + o[1], c[2] + o[2], shape)] - xi)
+        # Constant loops (unrolled) and branch-free: a neighbour outside the level stands as the node
+        # itself, whose x_J - x_I = 0 adds exactly nothing, so every load is unconditional and the
+        # compiler can issue them together (the slot loop with guarded loads was latency-bound).
+        row = shape[1] * shape[2]
+        for ox in range(3):
+            for oy in range(3):
+                for oz in range(3):
+                    if ox != 1 or oy != 1 or oz != 1:
+                        ok = inside(c[0] + ox - 1, c[1] + oy - 1, c[2] + oz - 1, shape)
+                        j = wp.where(ok, node + (ox - 1) * row + (oy - 1) * shape[2] + oz - 1, node)
+                        r = r - a[ox * 9 + oy * 3 + oz, node] * (x[j] - xi)
         if mode == 0:
             y_out[node] = r
         else:
             y_out[node] = x[node] + omega * (dinv[node] * r)
+
+    @wp.func
+    def interpolate(c: wp.vec3i, shape: wp.vec3i, coarse_shape: wp.vec3i, e: wp.array(dtype=vec3)):
+        """(P e) at fine node c: the 2 x 2 x 2 coarse candidates, unrolled and branch-free (weight 0, clamped address)."""
+        f = wp.vec3i(
+            first_coarse(c[0], shape[0], coarse_shape[0]),
+            first_coarse(c[1], shape[1], coarse_shape[1]),
+            first_coarse(c[2], shape[2], coarse_shape[2]),
+        )
+        acc = vec3(scalar(0.0))
+        for ax in range(2):
+            wx = axis_weight(c[0], f[0] + ax, shape[0], coarse_shape[0])
+            jx = wp.min(f[0] + ax, coarse_shape[0] - 1)
+            for ay in range(2):
+                wxy = wx * axis_weight(c[1], f[1] + ay, shape[1], coarse_shape[1])
+                jy = wp.min(f[1] + ay, coarse_shape[1] - 1)
+                for az in range(2):
+                    w = wxy * axis_weight(c[2], f[2] + az, shape[2], coarse_shape[2])
+                    acc = acc + w * e[node_index(jx, jy, wp.min(f[2] + az, coarse_shape[2] - 1), coarse_shape)]
+        return acc
 
     @wp.kernel(module="unique")
     def mg_restrict(
@@ -374,24 +562,26 @@ def build(scalar):
             first_fine(c[1], shape[1], coarse_shape[1]),
             first_fine(c[2], shape[2], coarse_shape[2]),
         )
+        # Constant loops (unrolled) over the 3 x 3 x 3 candidates, branch-free: a candidate outside
+        # the level has weight 0 and loads a clamped address.
+        wx = vec3(axis_weight(f[0], c[0], shape[0], coarse_shape[0]), axis_weight(f[0] + 1, c[0], shape[0], coarse_shape[0]),
+                  axis_weight(f[0] + 2, c[0], shape[0], coarse_shape[0]))
+        wy = vec3(axis_weight(f[1], c[1], shape[1], coarse_shape[1]), axis_weight(f[1] + 1, c[1], shape[1], coarse_shape[1]),
+                  axis_weight(f[1] + 2, c[1], shape[1], coarse_shape[1]))
+        wz = vec3(axis_weight(f[2], c[2], shape[2], coarse_shape[2]), axis_weight(f[2] + 1, c[2], shape[2], coarse_shape[2]),
+                  axis_weight(f[2] + 2, c[2], shape[2], coarse_shape[2]))
         acc = vec3(scalar(0.0))
-        for ix in range(f[0], f[0] + 3):
-            wx = axis_weight(ix, c[0], shape[0], coarse_shape[0])
-            if wx == scalar(0.0):
-                continue
-            for iy in range(f[1], f[1] + 3):
-                wxy = wx * axis_weight(iy, c[1], shape[1], coarse_shape[1])
-                if wxy == scalar(0.0):
-                    continue
-                for iz in range(f[2], f[2] + 3):
-                    w = wxy * axis_weight(iz, c[2], shape[2], coarse_shape[2])
-                    if w == scalar(0.0):
-                        continue
-                    i = node_index(ix, iy, iz, shape)
+        for ax in range(3):
+            ix = wp.clamp(f[0] + ax, 0, shape[0] - 1)
+            for ay in range(3):
+                iy = wp.clamp(f[1] + ay, 0, shape[1] - 1)
+                wxy = wx[ax] * wy[ay]
+                for az in range(3):
+                    i = node_index(ix, iy, wp.clamp(f[2] + az, 0, shape[2] - 1), shape)
                     res = r[i]
                     if fine_level != 0:
                         res = filters[i] * (res - y[i])
-                    acc = acc + w * res
+                    acc = acc + (wxy * wz[az]) * res
         b_out[node] = acc
 
     @wp.kernel(module="unique")
@@ -407,26 +597,7 @@ def build(scalar):
         y_out: wp.array(dtype=vec3),
     ):
         i = wp.tid()
-        c = node_coord(i, shape)
-        f = wp.vec3i(
-            first_coarse(c[0], shape[0], coarse_shape[0]),
-            first_coarse(c[1], shape[1], coarse_shape[1]),
-            first_coarse(c[2], shape[2], coarse_shape[2]),
-        )
-        acc = vec3(scalar(0.0))
-        for ax in range(2):
-            wx = axis_weight(c[0], f[0] + ax, shape[0], coarse_shape[0])
-            if wx == scalar(0.0):
-                continue
-            for ay in range(2):
-                wxy = wx * axis_weight(c[1], f[1] + ay, shape[1], coarse_shape[1])
-                if wxy == scalar(0.0):
-                    continue
-                for az in range(2):
-                    w = wxy * axis_weight(c[2], f[2] + az, shape[2], coarse_shape[2])
-                    if w == scalar(0.0):
-                        continue
-                    acc = acc + w * e[node_index(f[0] + ax, f[1] + ay, f[2] + az, coarse_shape)]
+        acc = interpolate(node_coord(i, shape), shape, coarse_shape, e)
         if fine_level != 0:
             xi = x[i] + filters[i] * acc
             x[i] = xi
@@ -492,26 +663,7 @@ def build(scalar):
         i = blk * TILE + lane
         rz = scalar(0.0)
         if i < n:
-            c = node_coord(i, shape)
-            f = wp.vec3i(
-                first_coarse(c[0], shape[0], coarse_shape[0]),
-                first_coarse(c[1], shape[1], coarse_shape[1]),
-                first_coarse(c[2], shape[2], coarse_shape[2]),
-            )
-            acc = vec3(scalar(0.0))
-            for ax in range(2):
-                wx = axis_weight(c[0], f[0] + ax, shape[0], coarse_shape[0])
-                if wx == scalar(0.0):
-                    continue
-                for ay in range(2):
-                    wxy = wx * axis_weight(c[1], f[1] + ay, shape[1], coarse_shape[1])
-                    if wxy == scalar(0.0):
-                        continue
-                    for az in range(2):
-                        w = wxy * axis_weight(c[2], f[2] + az, shape[2], coarse_shape[2])
-                        if w == scalar(0.0):
-                            continue
-                        acc = acc + w * e[node_index(f[0] + ax, f[1] + ay, f[2] + az, coarse_shape)]
+            acc = interpolate(node_coord(i, shape), shape, coarse_shape, e)
             ri = r[i]
             zi = omega * (dinv[i] * ri) + filters[i] * acc
             z_out[i] = zi
@@ -519,12 +671,32 @@ def build(scalar):
         wp.tile_atomic_add(scalars_out, wp.tile_sum(wp.tile(rz)), offset=slot)
 
     @wp.kernel(module="unique")
+    def mg_setup_due(
+        every: int,
+        constrained: int,
+        # In/out: [solves since the last build, hierarchy stale]; out: whether this solve builds
+        state: wp.array(dtype=wp.int32),
+        flag_out: wp.array(dtype=wp.int32),
+    ):
+        # One thread. A solve with contact constraints builds (its filters are new), and leaves
+        # the hierarchy stale for the next free solve; free solves build every `every`-th time.
+        due = constrained != 0 or state[1] != 0 or state[0] >= every
+        if due:
+            state[0] = 1
+        else:
+            state[0] = state[0] + 1
+        state[1] = constrained
+        flag_out[0] = wp.where(due, 1, 0)
+
+    @wp.kernel(module="unique")
     def mg_coarse_factor(
         shape: wp.vec3i,
         a: wp.array2d(dtype=mat33),
         rowsum: wp.array(dtype=mat33),
-        # Out: the Cholesky factor L (lower triangle) of the dense coarsest matrix, in float64
+        # Out: the Cholesky factor L (lower triangle) of the dense coarsest matrix, and the matrix's
+        # inverse from it, in float64
         chol_out: wp.array2d(dtype=wp.float64),
+        inv_out: wp.array2d(dtype=wp.float64),
     ):
         nodes = shape[0] * shape[1] * shape[2]
         m = 3 * nodes
@@ -543,7 +715,7 @@ def build(scalar):
                 o = slot_offset(slot)
                 if slot != CENTER and inside(c[0] + o[0], c[1] + o[1], c[2] + o[2], shape):
                     other = node_index(c[0] + o[0], c[1] + o[1], c[2] + o[2], shape)
-                    blk = a[node, slot]
+                    blk = a[slot, node]
                     for p in range(3):
                         for q in range(3):
                             v = wp.float64(blk[p, q])
@@ -561,34 +733,41 @@ def build(scalar):
                 for s in range(k):
                     v = v - chol_out[r, s] * chol_out[k, s]
                 chol_out[r, k] = v / pivot
+        # The inverse, column by column (L L^T x = e_col), so that each V-cycle's coarsest solve is
+        # one small matrix product over parallel threads instead of two triangular solves on one.
+        for col in range(m):
+            for k in range(m):
+                v = wp.where(k == col, wp.float64(1.0), wp.float64(0.0))
+                for s in range(k):
+                    v = v - chol_out[k, s] * inv_out[s, col]
+                inv_out[k, col] = v / chol_out[k, k]
+            for kk in range(m):
+                k = m - 1 - kk
+                v = inv_out[k, col]
+                for s in range(k + 1, m):
+                    v = v - chol_out[s, k] * inv_out[s, col]
+                inv_out[k, col] = v / chol_out[k, k]
 
     @wp.kernel(module="unique")
     def mg_coarse_solve(
         shape: wp.vec3i,
-        chol: wp.array2d(dtype=wp.float64),
+        inv: wp.array2d(dtype=wp.float64),
         b: wp.array(dtype=vec3),
-        # Out: x = A^-1 b on the coarsest level (work: a [3 nodes] float64 scratch vector)
-        work: wp.array(dtype=wp.float64),
+        # Out: x = A^-1 b on the coarsest level, one thread per node
         x_out: wp.array(dtype=vec3),
     ):
-        nodes = shape[0] * shape[1] * shape[2]
-        m = 3 * nodes
-        for k in range(m):
-            v = wp.float64(b[k // 3][k % 3])
-            for s in range(k):
-                v = v - chol[k, s] * work[s]
-            work[k] = v / chol[k, k]
-        for kk in range(m):
-            k = m - 1 - kk
-            v = work[k]
-            for s in range(k + 1, m):
-                v = v - chol[s, k] * work[s]
-            work[k] = v / chol[k, k]
-        for node in range(nodes):
-            x_out[node] = vec3(scalar(work[3 * node]), scalar(work[3 * node + 1]), scalar(work[3 * node + 2]))
+        node = wp.tid()
+        m = 3 * shape[0] * shape[1] * shape[2]
+        x = wp.vec3d(wp.float64(0.0))
+        for s in range(m):
+            bs = wp.float64(b[s // 3][s % 3])
+            x = x + bs * wp.vec3d(inv[3 * node, s], inv[3 * node + 1, s], inv[3 * node + 2, s])
+        x_out[node] = vec3(scalar(x[0]), scalar(x[1]), scalar(x[2]))
 
     return {
-        "mg_fine_setup": mg_fine_setup,
+        "mg_lattice_jacobians": mg_lattice_jacobians,
+        "mg_lattice_mv": mg_lattice_mv,
+        "mg_fine_setup_lattice": mg_fine_setup_lattice,
         "mg_galerkin": mg_galerkin,
         "mg_stencil_op": mg_stencil_op,
         "mg_restrict": mg_restrict,
@@ -596,6 +775,7 @@ def build(scalar):
         "mg_fine_pre": mg_fine_pre,
         "mg_fine_post": mg_fine_post,
         "mg_fine_additive": mg_fine_additive,
+        "mg_setup_due": mg_setup_due,
         "mg_coarse_factor": mg_coarse_factor,
         "mg_coarse_solve": mg_coarse_solve,
     }

@@ -25,8 +25,8 @@ from softsim_warp.core.multigrid import (
     DEFAULT_OMEGA,
     level_shapes,
     multigrid_support,
-    spring_block_starts,
 )
+from softsim_warp.kernels import implicit as ki
 from softsim_warp.kernels.multigrid import coarse_size
 
 # The benchmark's stiff jelly (benchmarks/bench_implicit.py): a 0.5 m cube of 1 kg, every spring
@@ -104,38 +104,35 @@ def test_interpolation_reproduces_linear_fields():
         np.testing.assert_allclose(p.sum(axis=1), 1.0)
 
 
-def test_spring_block_starts_match_the_spring_list():
-    model = stiff_jelly(5)
-    shape = model.lattice.layout.shape[0]
-    starts, bending = spring_block_starts(shape, int(model.lattice.layout.types[0]))
-    pairs = model.spring_indices_host
-    coords = np.stack(np.unravel_index(np.arange(model.particle_count), tuple(shape)), axis=1)
-    for slot, start in enumerate(starts):
-        if start < 0:
-            continue
-        off = np.array([slot // 9 - 1, (slot // 3) % 3 - 1, slot % 3 - 1])
-        np.testing.assert_array_equal(coords[pairs[start, 1]] - coords[pairs[start, 0]], off)
-    for axis, start in enumerate(bending):
-        off = np.zeros(3, dtype=int)
-        off[axis] = 2
-        np.testing.assert_array_equal(coords[pairs[start, 1]] - coords[pairs[start, 0]], off)
-
-
 # -- dense references ------------------------------------------------------------------------------
+
+
+def spring_blocks(model, q, h):
+    """Each spring's block h kd d^d^T + h^2 ks [d^d^T + max(0, 1 - r/|d|) (I - d^d^T)] (kernels/implicit.py), float64."""
+    pairs = model.spring_indices_host
+    rest, ks, kd = (a.numpy().astype(np.float64) for a in (model.spring_rest_length, model.spring_stiffness,
+                                                            model.spring_damping))
+    d = q[pairs[:, 0]].astype(np.float64) - q[pairs[:, 1]].astype(np.float64)
+    length = np.linalg.norm(d, axis=1)
+    dhat = d / length[:, None]
+    along = dhat[:, :, None] * dhat[:, None, :]
+    transverse = np.maximum(1.0 - rest / length, 0.0)
+    stiff = ks[:, None, None] * (along + transverse[:, None, None] * (np.eye(3) - along))
+    return (h * kd)[:, None, None] * along + h * h * stiff
 
 
 def dense_operators(integ):
     """(A, A_split, S): the fine system, the operator with split bending springs (projected), the filters.
 
-    Built in float64 NumPy from the spring list and the integrator's spring blocks, masses and
-    filters, independently of the multigrid kernels.
+    Built in float64 NumPy from the spring list, its rest lengths, ks and kd, and the integrator's
+    linearisation point, masses and filters, independently of the multigrid kernels.
     """
     model = integ.model
     n = model.particle_count
     shape = tuple(model.lattice.layout.shape[0])
     coords = np.stack(np.unravel_index(np.arange(n), shape), axis=1)
     pairs = model.spring_indices_host
-    blocks = integ.spring_block.numpy().astype(np.float64)
+    blocks = spring_blocks(model, integ.multigrid.q_lin.numpy(), DT)
     me = integ.mass_eff.numpy().astype(np.float64)
     filters = integ.filters.numpy().astype(np.float64)
 
@@ -183,7 +180,7 @@ def dense_stencil(level):
             d = c + o
             if np.all(d >= 0) and np.all(d < shape):
                 other = lattice_index(*d, shape)
-                out[3 * node : 3 * node + 3, 3 * other : 3 * other + 3] = st[node, slot]
+                out[3 * node : 3 * node + 3, 3 * other : 3 * other + 3] = st[slot, node]
     return out
 
 
@@ -209,6 +206,106 @@ def test_galerkin_levels_match_dense_products():
         got = dense_stencil(lv)
         np.testing.assert_allclose(got, expected, rtol=1e-10, atol=1e-10 * np.abs(expected).max())
         above, shape = got, tuple(lv["shape"])
+
+
+def test_lattice_gather_equals_the_stored_jacobians(device):
+    """The per-particle gather (Jacobians, product) equals the spring-list kernels to float64 rounding.
+
+    Reference: eval_spring_jacobians (one block per spring, atomically summed) and spring_mv over
+    the spring list, at the same linearisation point, on a jelly deformed by a step and a random
+    stretch, with a random p; the gather recomputes each block from the positions at both ends.
+    """
+    model = stiff_jelly(6, device=device)
+    integ, _ = run(model, 1, preconditioner="multigrid")
+    mg = multigrid.LatticeMultigrid(model, integ, gather=True)
+    mg.q_lin.assign(integ.multigrid.q_lin)
+    rng = np.random.default_rng(7)
+    n, count = model.particle_count, model.spring_count
+    q = mg.q_lin.numpy() * (1.0 + 0.05 * rng.standard_normal((n, 3)))
+    qd = rng.standard_normal((n, 3))
+    p = rng.standard_normal((n, 3))
+    k = model.kernels
+    arr = lambda a: wp.array(a, dtype=model.vec3, device=device)  # noqa: E731
+    q_w, qd_w, p_w = arr(q), arr(qd), arr(p)
+    mat33 = wp.types.matrix((3, 3), model.scalar)
+    blocks = wp.zeros(count, dtype=mat33, device=device)
+    diag_ref = wp.zeros(n, dtype=mat33, device=device)
+    rhs_ref = wp.zeros(n, dtype=model.vec3, device=device)
+    h, kv = model.scalar(DT), model.scalar(DT * DT)
+    wp.launch(
+        k.eval_spring_jacobians, dim=count,
+        inputs=[h, kv, model.spring_indices, model.spring_rest_length, model.spring_stiffness, model.spring_damping,
+                q_w, qd_w],
+        outputs=[blocks, diag_ref, rhs_ref], device=device,
+    )
+    diag = wp.zeros(n, dtype=mat33, device=device)
+    rhs = wp.zeros(n, dtype=model.vec3, device=device)
+    mg.jacobians(DT, DT * DT, q_w, qd_w, diag, rhs)
+    scale = np.abs(diag_ref.numpy()).max()
+    np.testing.assert_allclose(diag.numpy(), diag_ref.numpy(), rtol=0, atol=1e-13 * scale)
+    np.testing.assert_allclose(rhs.numpy(), rhs_ref.numpy(), rtol=0, atol=1e-13 * np.abs(rhs_ref.numpy()).max())
+    # A p = M p + sum over springs (spring_mv accumulates onto y = M p).
+    mass = integ.mass_eff.numpy()
+    y_ref = arr(mass[:, None] * p)
+    s_ref = wp.zeros(1, dtype=model.scalar, device=device)
+    wp.launch(
+        k.spring_mv, dim=(ki.tile_blocks(count), ki.TILE), block_dim=ki.TILE,
+        inputs=[count, 0, model.spring_indices, blocks, p_w], outputs=[y_ref, s_ref], device=device,
+    )
+    y = wp.empty(n, dtype=model.vec3, device=device)
+    y.fill_(wp.inf)  # every element must be written
+    s_fly = wp.zeros(1, dtype=model.scalar, device=device)
+    mg.product(p_w, y, s_fly, 0)
+    quad_ref = float(s_ref.numpy()[0]) + float((mass[:, None] * p * p).sum())
+    np.testing.assert_allclose(y.numpy(), y_ref.numpy(), rtol=0, atol=1e-13 * np.abs(y_ref.numpy()).max())
+    assert abs(float(s_fly.numpy()[0]) - quad_ref) < 1e-13 * quad_ref
+    # And the product is that of the dense float64 operator built in NumPy.
+    a_dense = np.zeros((3 * n, 3 * n))
+    for (ia, ib), blk in zip(model.spring_indices_host, spring_blocks(model, q, DT)):
+        for r, c, sign in ((ia, ia, 1), (ib, ib, 1), (ia, ib, -1), (ib, ia, -1)):
+            a_dense[3 * r : 3 * r + 3, 3 * c : 3 * c + 3] += sign * blk
+    a_dense += np.kron(np.diag(mass), np.eye(3))
+    expected = (a_dense @ p.reshape(-1)).reshape(n, 3)
+    np.testing.assert_allclose(y.numpy(), expected, rtol=0, atol=1e-12 * np.abs(expected).max())
+
+
+def test_setup_is_rebuilt_by_the_rule():
+    """Free solves rebuild every setup_every-th time; a constrained solve and the free solve after it always."""
+    model = stiff_jelly(3)
+    integ = ImplicitIntegrator(model, preconditioner="multigrid")
+    mg = multigrid.LatticeMultigrid(model, integ, setup_every=3)
+    built = []
+    mg.build = lambda: built.append(True)  # the rule only (capture_if calls build when due)
+    flags = []
+    for constrained in (False, False, False, False, False, True, False, False, True, True, False):
+        before = len(built)
+        mg.setup(constrained)
+        flags.append(len(built) - before)
+    assert flags == [1, 0, 0, 1, 0, 1, 1, 0, 1, 1, 1]
+
+
+@pytest.mark.parametrize("every, gather", [(1, True), (5, True), (5, False)])
+def test_lagged_setup_gives_the_same_step_as_jacobi(every, gather):
+    """A hierarchy kept over several solves is a fixed SPD preconditioner: the same steps to the CG tolerance.
+
+    Both products: the spring blocks recomputed per particle (gather, the CUDA default) and stored
+    per spring (the CPU default).
+    """
+    tol = 1.0e-10
+    out = {}
+    for pc in ("jacobi", "multigrid"):
+        model = stiff_jelly(7)
+        integ = ImplicitIntegrator(model, preconditioner=pc, cg_tolerance=tol, cg_max_iterations=2000)
+        if pc == "multigrid":
+            integ.multigrid = multigrid.LatticeMultigrid(model, integ, setup_every=every, gather=gather)
+        a, b = model.state(), model.state()
+        for _ in range(6):
+            integ.step(a, b, DT)
+            a, b = b, a
+        stats = integ.stats()
+        assert stats["cg_unconverged_solves"] == 0 and stats["cg_relative_residual_max"] <= tol * (1 + 1e-6)
+        out[pc] = a.particle_qd.numpy()
+    assert np.abs(out["jacobi"] - out["multigrid"]).max() < 1e3 * tol * np.abs(out["jacobi"]).max()
 
 
 def two_grid_factor(a, a_split, shape, omega):
@@ -360,6 +457,33 @@ def test_contact_and_pins(device, precision):
     assert out["multigrid"][0][:, 1].min() > -1e-3
     bound = 1e-6 if precision == "float64" else 1e-2
     assert np.abs(out["jacobi"][1] - out["multigrid"][1]).max() < bound * max(np.abs(out["jacobi"][1]).max(), 1e-3)
+
+
+def test_captured_steps_with_contact_equal_launched_steps(device):
+    """A jelly dropping onto a plane, stepped by replaying captured graphs (as `softsim run` does) and
+    launch by launch: the same states. The lagged hierarchy's counter lives on the device, and the
+    contact solve's kernels (restitution reads the spring list, which multigrid never makes) are
+    first replayed inside a graph captured before any contact."""
+    from softsim_warp.core.stepper import Stepper
+
+    out = []
+    for graph in (True, False):
+        b = ModelBuilder(gravity=(0.0, -9.8, 0.0))
+        springs = {t: {"ks": KS, "kd": DAMPING[t]} for t in SPRING_TYPE_NAMES}
+        b.add_jelly((5, 5, 5), 0.25, 0.5, springs, center=(0.0, 0.2, 0.0), axis=(1.0, 0.0, 1.0), degrees=20.0)
+        b.add_plane((0.0, 0.0, 0.0), (0.0, 1.0, 0.0), restitution=0.5, friction=0.5)
+        model = b.finalize(device, "float32")
+        integ = ImplicitIntegrator(model, preconditioner="multigrid")
+        assert "spring_indices" in vars(model)  # made before any capture
+        stepper = Stepper(model, integ, DT, use_graph=graph)
+        for _ in range(12):
+            stepper.advance(2)
+        stats = integ.stats()
+        assert stats["cg_unconverged_solves"] == 0 and stats["cg_solves"] > stats["cg_steps"]  # contact solves ran
+        out.append((stepper.state.particle_q.numpy(), stepper.state.particle_qd.numpy()))
+    assert np.isfinite(out[0][0]).all() and out[0][0][:, 1].min() > -1e-2
+    np.testing.assert_allclose(out[0][0], out[1][0], rtol=0, atol=1e-6)
+    np.testing.assert_allclose(out[0][1], out[1][1], rtol=0, atol=1e-4)
 
 
 def test_fallback_and_choice():

@@ -98,7 +98,7 @@ from .multigrid import LatticeMultigrid, auto_min_particles, multigrid_support
 
 # "jacobi": 3x3 block-Jacobi; "diagonal": the inverse of the diagonal; "multigrid": a V-cycle on
 # the lattice of a one-jelly model (core/multigrid.py); "auto": multigrid where it applies and pays
-# (multigrid.auto_min_particles: 14^3 on the CPU, 30^3 on CUDA), else jacobi. "block_jacobi" is another name of "jacobi".
+# (multigrid.auto_min_particles: 12^3 on the CPU, 30^3 on CUDA), else jacobi. "block_jacobi" is another name of "jacobi".
 PRECONDITIONERS = ("auto", "multigrid", "jacobi", "diagonal", "block_jacobi")
 LINEARIZATIONS = ("predictor", "baraff_witkin")
 SOLVERS = ("matrix_free", "bsr", "warp_cg")
@@ -207,7 +207,9 @@ class ImplicitIntegrator(Integrator):
         self.ap = vectors()
         self.diag_block = wp.zeros(n, dtype=self.mat33, device=device)
         self.precond = wp.zeros(n, dtype=self.mat33, device=device)
-        self.spring_block = wp.zeros(s, dtype=self.mat33, device=device)
+        # Multigrid on CUDA recomputes the spring blocks from positions (core/multigrid.py) and stores none.
+        gather = self.preconditioner == "multigrid" and device.is_cuda
+        self.spring_block = wp.zeros(0 if gather else s, dtype=self.mat33, device=device)
         self.scalars = wp.zeros(ki.SCALAR_SLOTS, dtype=scalar, device=device)
         self.ints = wp.zeros(2, dtype=wp.int32, device=device)
         self.stats_array = wp.zeros(ki.STAT_SLOTS, dtype=wp.int32, device=device)
@@ -241,6 +243,11 @@ class ImplicitIntegrator(Integrator):
             self.contact_restitution = wp.zeros(n, dtype=scalar, device=device)
             self.contact_approach = vectors()
             self.energy_gained = wp.zeros(1, dtype=wp.int32, device=device)
+            if s:
+                # measure_spring_restitution reads the spring list, which a lattice model copies to
+                # the device on first use: copy it now, not inside a captured step (multigrid reads
+                # no spring list, and a CPU graph replayed that copy from freed host memory).
+                _ = model.spring_indices
         # Mass plus the contact friction damper per particle (kernels/implicit.py: constrain_contacts);
         # the plain mass outside the contact solve.
         self.mass_eff = wp.clone(model.particle_mass) if self.contact_solve else model.particle_mass
@@ -252,8 +259,8 @@ class ImplicitIntegrator(Integrator):
         self._host_stats = np.zeros(ki.STAT_SLOTS, dtype=np.int64)
         if solver in ("bsr", "warp_cg"):
             self._setup_bsr()
-        # Multigrid: the V-cycle replaces z = P r in the CG loop; cg_update and init_residual get a
-        # zero block array as P (their r.z is 0) and the V-cycle adds r.z itself.
+        # Multigrid: the V-cycle replaces z = P r in the CG loop; init_residual gets a zero block
+        # array as P (its r.z is 0), cg_update skips P, and the V-cycle adds r.z itself.
         self.multigrid = None
         if self.preconditioner == "multigrid":
             self.multigrid = LatticeMultigrid(model, self)
@@ -405,6 +412,11 @@ class ImplicitIntegrator(Integrator):
         spring_mv = self._spring_mv
         mg = self.multigrid
         precond = self.precond if mg is None else self.no_precond
+        # The lattice product writes all of A p (mass included) and p.A p.
+        lattice_product = mg is not None and mg.gather
+        if lattice_product:
+            def spring_mv(vec):
+                mg.product(vec, self.ap, self.scalars, ki.PAP)
 
         # r = b - A x0, z = P r, tolerance and condition.
         if matrix_free:
@@ -434,7 +446,7 @@ class ImplicitIntegrator(Integrator):
                 k.cg_direction,
                 dim=(pblocks, ki.TILE),
                 block_dim=ki.TILE,
-                inputs=[n, int(matrix_free), self.mass_eff, self.z],
+                inputs=[n, int(matrix_free and not lattice_product), self.mass_eff, self.z],
                 outputs=[self.p, self.ap, self.scalars],
                 device=device,
             )
@@ -454,7 +466,7 @@ class ImplicitIntegrator(Integrator):
                 k.cg_update,
                 dim=(pblocks, ki.TILE),
                 block_dim=ki.TILE,
-                inputs=[n, self.filters, precond, self.p, self.ap],
+                inputs=[n, int(mg is None), self.filters, precond, self.p, self.ap],
                 outputs=[self.x, self.r, self.z, self.scalars],
                 device=device,
             )
@@ -506,9 +518,9 @@ class ImplicitIntegrator(Integrator):
             self._pcg_loop()
             self._loop_ran = True
 
-    def _solve(self):
+    def _solve(self, constrained: bool = False):
         if self.multigrid is not None:
-            self.multigrid.setup()
+            self.multigrid.setup(constrained)
         if self.solver != "matrix_free":
             self._assemble_bsr()
         if self.solver == "warp_cg":
@@ -552,7 +564,10 @@ class ImplicitIntegrator(Integrator):
         eval_forces(model, q, qd, self.f)
         self.diag_block.zero_()
         self.rhs.zero_()
-        if model.spring_count:
+        if model.spring_count and self.multigrid is not None:
+            # A lattice jelly: per-particle gather, no spring blocks stored (core/multigrid.py).
+            self.multigrid.jacobians(h, h * h if at_start else scalar(0.0), q, qd, self.diag_block, self.rhs)
+        elif model.spring_count:
             wp.launch(
                 k.eval_spring_jacobians,
                 dim=model.spring_count,
@@ -597,7 +612,7 @@ class ImplicitIntegrator(Integrator):
         )
         if first:
             wp.launch(k.set_step_scale, dim=1, inputs=[self.scalars], outputs=[self.step_bb], device=device)
-        self._solve()
+        self._solve(constrained=not reset_filters)
         self._update(h, state_in, qd, state_out, first)
 
     def step(self, state_in: State, state_out: State, dt: float):
@@ -693,7 +708,7 @@ class ImplicitIntegrator(Integrator):
                 outputs=[self.x, self.rhs, self.precond, self.qd_k, self.ap, self.scalars],
                 device=model.device,
             )
-            self._solve()
+            self._solve(constrained=True)
             self._update(h, state_in, self.qd_k, state_out, False)
             # Then Newton iterations at the result, which take the springs' nonlinearity into
             # account (an impact can turn the jelly by ~0.1 rad in one step).

@@ -9,10 +9,11 @@ coarse operators, damped block-Jacobi smoothing and an exact solve on the coarse
 x 2) lattice. The method, and why each piece is what it is, is in ``kernels/multigrid.py``; the
 measurements in docs/IMPLICIT.md.
 
-Everything runs on the device without host reads: :meth:`LatticeMultigrid.setup` (once per
-linear system, after the system's blocks and filters are built) and :meth:`apply` (once per CG
-iteration) only launch kernels, so both are captured into the step's graph and the CG loop's
-``wp.capture_while`` body.
+Everything runs on the device without host reads: :meth:`LatticeMultigrid.jacobians` (the
+system's spring part, from the linearisation point: no spring blocks are stored),
+:meth:`setup` (before each linear solve: builds the hierarchy, or keeps the last one),
+:meth:`product` and :meth:`apply` (once per CG iteration) only launch kernels, so all are
+captured into the step's graph and the CG loop's ``wp.capture_while`` body.
 
 Which models qualify (:func:`multigrid_support`): one jelly that is the whole model, on the
 lattice path (its springs are the standard stencil). Everything else (several jellies or worlds,
@@ -41,11 +42,16 @@ DEFAULT_SWEEPS = 1
 # products per V-cycle); "additive": z = omega D^-1 r + P V(P^T r) (no spring product; about 1.5x
 # the CG iterations).
 DEFAULT_FINE_CYCLE = "additive"
+# Free solves per hierarchy build (LatticeMultigrid.setup; docs/IMPLICIT.md): on the spinning 100^3
+# jelly on an H100, builds every 1, 2, 4, 8 solves took 30.4, 25.1, 22.1, 21.4 ms a step with 19.3,
+# 19.3, 19.4, 19.8 CG iterations; 4 keeps the iterations within 1 % of rebuilding every solve.
+DEFAULT_SETUP_EVERY = 4
 # Particles from which the default ("auto") preconditioner is multigrid: on the CPU block-Jacobi is
-# faster up to about 14^3 (free flight: 8.3 against 9.2 ms a step at 12^3, 13.8 against 13.3 at
-# 14^3, 23.3 against 15.3 at 16^3; docs/IMPLICIT.md); on an H100 up to about 30^3 (1.58 against
-# 4.24 ms a step at 20^3, 8.44 against 7.33 at 40^3; benchmarks/results/bench_multigrid_cuda_h100.json).
-AUTO_MIN_PARTICLES = 14**3
+# faster up to about 11^3 (free flight: 4.9 against 7.0 ms a step at 10^3, 6.6 against 6.4 at 11^3,
+# 8.7 against 7.6 at 12^3, 14.6 against 11.1 at 14^3; docs/IMPLICIT.md); on an H100 up to about 30^3
+# (1.58 against 4.24 ms a step at 20^3 for multigrid with stored blocks and a build every solve,
+# 8.44 against 4.85 for the present one at 40^3; the crossover has not been measured again).
+AUTO_MIN_PARTICLES = 12**3
 AUTO_MIN_PARTICLES_CUDA = 30**3
 
 
@@ -67,29 +73,6 @@ def multigrid_support(model) -> tuple[bool, str]:
     return True, "lattice"
 
 
-def spring_block_starts(shape, types: int) -> tuple[np.ndarray, np.ndarray]:
-    """First spring index of each stencil offset in the standard spring list.
-
-    Returns ``(starts, bending)``: ``starts[slot]`` for the 27 offsets of the 3x3x3 block
-    (``kernels.multigrid`` slots; -1 where no spring type has that offset) and ``bending[axis]``
-    for the bending offsets (2 along an axis; -1 without bending springs).
-    """
-    starts = np.full(km.STENCIL, -1, dtype=np.int32)
-    bending = np.full(3, -1, dtype=np.int32)
-    at = 0
-    for t, stencil in lattice.STENCILS.items():
-        if not (types >> t) & 1:
-            continue
-        for off in stencil:
-            count = int(np.prod([max(n - abs(o), 0) for n, o in zip(shape, off)]))
-            if max(abs(o) for o in off) == 2:
-                bending[[abs(o) for o in off].index(2)] = at
-            else:
-                starts[(off[0] + 1) * 9 + (off[1] + 1) * 3 + (off[2] + 1)] = at
-            at += count
-    return starts, bending
-
-
 def level_shapes(shape) -> list[tuple[int, int, int]]:
     """Lattice shapes of the hierarchy, from the jelly's down to the coarsest (every axis <= 2)."""
     shapes = [tuple(int(n) for n in shape)]
@@ -103,9 +86,9 @@ class LatticeMultigrid:
 
     Args:
         model: the model (``multigrid_support`` must hold).
-        system: the arrays of the implicit system it reads at :meth:`setup`: ``spring_block``,
-            ``diag_block`` (m I + sum of spring blocks), ``filters``, ``mass_eff`` (see
-            ``kernels/implicit.py``), as attributes of an object (the integrator).
+        system: the arrays of the implicit system it reads: ``filters`` and ``mass_eff`` (see
+            ``kernels/implicit.py``), as attributes of an object (the integrator). The spring
+            blocks are recomputed from the linearisation point that :meth:`jacobians` keeps.
         omega: damping of the block-Jacobi sweeps on the jelly's lattice.
         coarse_omega: the same on the coarse levels.
         sweeps: pre- and post-smoothing sweeps on every coarse level (the fine level always does
@@ -120,6 +103,8 @@ class LatticeMultigrid:
         coarse_omega: float = DEFAULT_COARSE_OMEGA,
         sweeps: int = DEFAULT_SWEEPS,
         fine_cycle: str | None = None,
+        setup_every: int | None = None,
+        gather: bool | None = None,
     ):
         ok, reason = multigrid_support(model)
         if not ok:
@@ -138,24 +123,43 @@ class LatticeMultigrid:
         if fine_cycle not in ("multiplicative", "additive"):
             raise ValueError(f"fine_cycle must be multiplicative or additive (got {fine_cycle!r})")
         self.fine_cycle = fine_cycle
+        setup_every = DEFAULT_SETUP_EVERY if setup_every is None else setup_every
+        if int(setup_every) != setup_every or setup_every < 1:
+            raise ValueError(f"setup_every must be an integer >= 1 (got {setup_every!r})")
+        self.setup_every = int(setup_every)
+        # The spring blocks recomputed from positions by one thread per particle (CUDA), or stored
+        # per spring and summed with atomics (the CPU, where Warp runs the threads one after
+        # another and the recomputation took twice as long: docs/IMPLICIT.md).
+        self.gather = model.device.is_cuda if gather is None else bool(gather)
+        if not self.gather and system.spring_block.shape[0] != model.spring_count:
+            raise ValueError("gather=False needs the integrator's spring_block for every spring")
         device = model.device
         scalar, vec3 = model.scalar, model.vec3
         mat33 = wp.types.matrix((3, 3), scalar)
         self.kernels = model.kernels
         layout = model.lattice.layout
         self.shapes = level_shapes(layout.shape[0])
-        starts, bending = spring_block_starts(self.shapes[0], int(layout.types[0]))
-        self.spring_start = wp.array(starts, dtype=wp.int32, device=device)
-        self.bend_start = wp.array(bending, dtype=wp.int32, device=device)
+        self.fine_shape = wp.vec3i(*self.shapes[0])
         n = model.particle_count
         # Level 0: smoother inverses, the split operator's stencil, and the V-cycle's vectors.
         self.dinv0 = wp.zeros(n, dtype=mat33, device=device)
-        self.a0 = wp.zeros((n, km.STENCIL), dtype=mat33, device=device) if len(self.shapes) > 1 else None
+        self.a0 = wp.zeros((km.STENCIL, n), dtype=mat33, device=device) if len(self.shapes) > 1 else None
         self.rowsum0 = wp.zeros(n, dtype=mat33, device=device)
         self.x0 = wp.zeros(n, dtype=vec3, device=device)
-        # A lattice of at most 2x2x2 has no coarse level and builds no stencil (mg_fine_setup writes here).
-        self.dummy_stencil = wp.zeros((n if self.a0 is None else 1, km.STENCIL), dtype=mat33, device=device)
+        # A lattice of at most 2x2x2 has no coarse level and builds no stencil (mg_fine_setup_lattice writes here).
+        self.dummy_stencil = wp.zeros((km.STENCIL, n if self.a0 is None else 1), dtype=mat33, device=device)
         self.y0 = wp.zeros(n, dtype=vec3, device=device)
+        # The linearisation point of the system (written by jacobians()): the products and the
+        # setup recompute the spring blocks from it.
+        self.q_lin = wp.zeros(n, dtype=vec3, device=device)
+        self.h = scalar(0.0)
+        lat = model.lattice
+        self.types = int(layout.types[0])
+        self.tables = [lat.jelly_rest, lat.jelly_ks, lat.jelly_kd]
+        # Lagged setup (setup_every > 1): [solves since the last build, hierarchy stale] and the
+        # build flag, on the device.
+        self.setup_state = wp.array([0, 1], dtype=wp.int32, device=device)
+        self.setup_flag = wp.zeros(1, dtype=wp.int32, device=device)
         self.scratch = wp.zeros(1, dtype=scalar, device=device)
         # Coarse levels 1..L: stencils, inverses of their diagonal blocks, b, x, and a sweep's output.
         self.levels = []
@@ -165,7 +169,7 @@ class LatticeMultigrid:
                 {
                     "shape": wp.vec3i(*shape),
                     "count": count,
-                    "a": wp.zeros((count, km.STENCIL), dtype=mat33, device=device),
+                    "a": wp.zeros((km.STENCIL, count), dtype=mat33, device=device),
                     "dinv": wp.zeros(count, dtype=mat33, device=device),
                     "rowsum": wp.zeros(count, dtype=mat33, device=device),
                     "b": wp.zeros(count, dtype=vec3, device=device),
@@ -176,7 +180,7 @@ class LatticeMultigrid:
         coarsest = self.levels[-1]["count"] if self.levels else 0
         # The coarsest factorisation is float64 in either precision (kernels/multigrid.py: mg_coarse_factor).
         self.chol = wp.zeros((3 * coarsest, 3 * coarsest), dtype=wp.float64, device=device)
-        self.work = wp.zeros(3 * coarsest, dtype=wp.float64, device=device)
+        self.coarse_inv = wp.zeros((3 * coarsest, 3 * coarsest), dtype=wp.float64, device=device)
 
     @property
     def level_count(self) -> int:
@@ -185,32 +189,87 @@ class LatticeMultigrid:
 
     def nbytes(self) -> int:
         """Bytes of the device arrays held here."""
-        arrays = [self.dinv0, self.rowsum0, self.x0, self.y0, self.chol, self.work] + ([self.a0] if self.a0 is not None else [])
+        arrays = [self.dinv0, self.rowsum0, self.x0, self.y0, self.q_lin, self.chol, self.coarse_inv] + ([self.a0] if self.a0 is not None else [])
         for lv in self.levels:
             arrays += [lv["a"], lv["dinv"], lv["rowsum"], lv["b"], lv["x"], lv["t"]]
         return sum(a.capacity for a in arrays)
 
-    def setup(self):
-        """Build the hierarchy for the current system (its spring blocks, diagonal, filters, masses)."""
+    def jacobians(self, h, kv_scale, q: wp.array, qd_k: wp.array, diag_out: wp.array, rhs_out: wp.array):
+        """The system's spring part at the linearisation point q, kept for :meth:`product` and :meth:`setup`.
+
+        Writes each particle's sum of spring blocks into ``diag_out`` and ``kv_scale`` df/dx qd_k
+        into ``rhs_out``. With ``gather`` every element is written and no spring block is stored;
+        without, ``eval_spring_jacobians`` adds them (both zeroed by the caller) and stores the
+        blocks in the integrator's ``spring_block``.
+        """
+        model = self.model
+        self.h = model.scalar(h)
+        if not self.gather:
+            wp.copy(self.q_lin, q)
+            wp.launch(
+                self.kernels.eval_spring_jacobians,
+                dim=model.spring_count,
+                inputs=[self.h, model.scalar(kv_scale), model.spring_indices, model.spring_rest_length,
+                        model.spring_stiffness, model.spring_damping, q, qd_k],
+                outputs=[self.system.spring_block, diag_out, rhs_out],
+                device=model.device,
+            )
+            return
+        wp.launch(
+            self.kernels.mg_lattice_jacobians,
+            dim=model.particle_count,
+            inputs=[self.h, model.scalar(kv_scale), self.fine_shape, self.types, *self.tables, q, qd_k],
+            outputs=[diag_out, rhs_out, self.q_lin],
+            device=model.device,
+        )
+
+    def product(self, p: wp.array, y: wp.array, scalars: wp.array, slot: int):
+        """y = A p (mass and springs, every element written) by the gather; scalars[slot] += p.A p."""
+        model = self.model
+        n = model.particle_count
+        wp.launch(
+            self.kernels.mg_lattice_mv,
+            dim=(ki.tile_blocks(n), ki.TILE),
+            block_dim=ki.TILE,
+            inputs=[n, slot, self.h, self.fine_shape, self.types, *self.tables, self.q_lin,
+                    self.system.mass_eff, p],
+            outputs=[y, scalars],
+            device=model.device,
+        )
+
+    def setup(self, constrained: bool = False):
+        """Build the hierarchy for the current system, or keep the last one (``setup_every``).
+
+        With ``setup_every`` = k > 1 the hierarchy of free solves is rebuilt every k-th solve
+        (decided on the device); a solve with contact constraints (``constrained``) always
+        rebuilds, and so does the free solve after it. A kept hierarchy is a fixed SPD
+        preconditioner for the solve, so CG converges to the same tolerance.
+        """
+        if self.setup_every == 1:
+            self.build()
+            return
+        wp.launch(
+            self.kernels.mg_setup_due,
+            dim=1,
+            inputs=[self.setup_every, int(constrained)],
+            outputs=[self.setup_state, self.setup_flag],
+            device=self.model.device,
+        )
+        wp.capture_if(self.setup_flag, self.build)
+
+    def build(self):
+        """Build the hierarchy for the current system (its linearisation point, filters, masses)."""
         model = self.model
         device = model.device
         k = self.kernels
         s = self.system
-        fine_shape = wp.vec3i(*self.shapes[0])
+        fine_shape = self.fine_shape
+        fine_out = [self.a0 if self.a0 is not None else self.dummy_stencil, self.rowsum0, self.dinv0]
         wp.launch(
-            k.mg_fine_setup,
+            k.mg_fine_setup_lattice,
             dim=model.particle_count,
-            inputs=[
-                fine_shape,
-                model.particle_mass,
-                s.mass_eff,
-                s.filters,
-                s.diag_block,
-                s.spring_block,
-                self.bend_start,
-                self.spring_start,
-            ],
-            outputs=[self.a0 if self.a0 is not None else self.dummy_stencil, self.rowsum0, self.dinv0],
+            inputs=[self.h, fine_shape, self.types, *self.tables, self.q_lin, s.mass_eff, s.filters],
+            outputs=fine_out,
             device=device,
         )
         if not self.levels:
@@ -219,7 +278,7 @@ class LatticeMultigrid:
         for lv in self.levels:
             wp.launch(
                 k.mg_galerkin,
-                dim=(lv["count"], km.HALF),
+                dim=(km.HALF, lv["count"]),
                 inputs=[below_shape, lv["shape"], below_a, below_rowsum],
                 outputs=[lv["a"], lv["rowsum"], lv["dinv"]],
                 device=device,
@@ -230,7 +289,7 @@ class LatticeMultigrid:
             k.mg_coarse_factor,
             dim=1,
             inputs=[last["shape"], last["a"], last["rowsum"]],
-            outputs=[self.chol],
+            outputs=[self.chol, self.coarse_inv],
             device=device,
         )
 
@@ -251,7 +310,7 @@ class LatticeMultigrid:
             return
         # Level 0, down: one sweep from 0, then the filtered residual restricted.
         additive = self.fine_cycle == "additive"
-        fine_shape = wp.vec3i(*self.shapes[0])
+        fine_shape = self.fine_shape
         first = self.levels[0]
         if additive:
             # z = omega D^-1 r + S P V(P^T r): no spring product on the lattice.
@@ -296,9 +355,9 @@ class LatticeMultigrid:
         last = self.levels[-1]
         wp.launch(
             k.mg_coarse_solve,
-            dim=1,
-            inputs=[last["shape"], self.chol, last["b"]],
-            outputs=[self.work, last["x"]],
+            dim=last["count"],
+            inputs=[last["shape"], self.coarse_inv, last["b"]],
+            outputs=[last["x"]],
             device=device,
         )
         # Up: prolongate the correction, then the same sweeps again (a symmetric cycle).
@@ -335,15 +394,16 @@ class LatticeMultigrid:
     # -- pieces ---------------------------------------------------------------------------------
 
     def _spring_product(self, x):
-        """y0 += (spring part of A) x (y0 holds M x)."""
+        """y0 = A x, y0 holding M x."""
         model = self.model
-        count = model.spring_count
-        if count:
+        if self.gather:
+            self.product(x, self.y0, self.scratch, 0)
+        elif model.spring_count:
             wp.launch(
                 model.kernels.spring_mv,
-                dim=(ki.tile_blocks(count), ki.TILE),
+                dim=(ki.tile_blocks(model.spring_count), ki.TILE),
                 block_dim=ki.TILE,
-                inputs=[count, 0, model.spring_indices, self.system.spring_block, x],
+                inputs=[model.spring_count, 0, model.spring_indices, self.system.spring_block, x],
                 outputs=[self.y0, self.scratch],
                 device=model.device,
             )
@@ -387,4 +447,6 @@ class LatticeMultigrid:
             "multigrid_coarse_omega": float(self.coarse_omega),
             "multigrid_sweeps": self.sweeps,
             "multigrid_fine_cycle": self.fine_cycle,
+            "multigrid_setup_every": self.setup_every,
+            "multigrid_gather": self.gather,
         }
