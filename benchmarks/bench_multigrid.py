@@ -81,11 +81,11 @@ def _cg_iteration_parts(integ):
 
 
 def measure(size: int, preconditioner: str, device, steps: int, dt: float, ks: float, precision: str,
-            repeats: int, fine_cycle=None, options=None) -> dict:
+            repeats: int, options=None) -> dict:
     model = stiff_jelly(size, ks, device, precision)
     integ = ImplicitIntegrator(model, preconditioner=preconditioner)
-    if (fine_cycle is not None or options) and integ.multigrid is not None:
-        integ.multigrid = LatticeMultigrid(model, integ, fine_cycle=fine_cycle, **(options or {}))
+    if options and integ.multigrid is not None:
+        integ.multigrid = LatticeMultigrid(model, integ, **options)
     compile_s, seconds, finite = _time_steps(integ, model, dt, steps)
     stats = integ.stats()
     solves_per_step = stats["cg_solves"] / max(stats["cg_steps"], 1)
@@ -113,7 +113,6 @@ def measure(size: int, preconditioner: str, device, steps: int, dt: float, ks: f
         "particles": model.particle_count,
         "springs": model.spring_count,
         "preconditioner": integ.preconditioner,
-        "fine_cycle": integ.multigrid.fine_cycle if integ.multigrid is not None else None,
         "setup_every": integ.multigrid.setup_every if integ.multigrid is not None else None,
         "precision": precision,
         "ks": ks,
@@ -139,8 +138,8 @@ def main(argv=None) -> int:
     p.add_argument("--sizes", type=int, nargs="+", default=[10, 20], help="particles per axis")
     p.add_argument(
         "--preconditioners", nargs="+", default=["jacobi", "multigrid"],
-        help="jacobi, multigrid (its defaults), multigrid:multiplicative, multigrid:additive; integer options of "
-        "LatticeMultigrid after slashes, e.g. multigrid/setup_every=1/sweeps=2",
+        help="jacobi, multigrid (its defaults); integer options of LatticeMultigrid after slashes, e.g. "
+        "multigrid/setup_every=1/sweeps=2",
     )
     p.add_argument("--ks", type=float, default=1.0e5, help="spring stiffness of every type [N/m]")
     p.add_argument("--dt", type=float, default=0.01, help="implicit step [s]")
@@ -162,13 +161,10 @@ def main(argv=None) -> int:
     rows = []
     for size in args.sizes:
         for pc in args.preconditioners:
-            head, *opts = pc.split("/")
-            name, _, cycle = head.partition(":")
+            name, *opts = pc.split("/")
             options = {key: int(value) for key, value in (o.split("=") for o in opts)}
-            r = measure(
-                size, name, device, args.steps, args.dt, args.ks, args.precision, args.repeats, cycle or None, options
-            )
-            r["preconditioner"] = pc if (cycle or opts) else r["preconditioner"]
+            r = measure(size, name, device, args.steps, args.dt, args.ks, args.precision, args.repeats, options)
+            r["preconditioner"] = pc if opts else r["preconditioner"]
             per = r["parts_ms_per_step"]
             print(
                 f"{size:5d} {r['particles']:9d} {r['preconditioner']:>24} {r['ms_per_step']:9.2f} "
@@ -181,8 +177,9 @@ def main(argv=None) -> int:
     sizes = sorted({r["size"] for r in rows})
     for pc in args.preconditioners:
         its = [by[(s, pc)]["cg_iterations_mean"] for s in sizes if (s, pc) in by]
-        if pc.startswith("multigrid") and len(its) > 1 and min(its) > 0:
-            print(f"{pc} CG iterations, largest / smallest size: {max(its) / min(its):.2f}")
+        if pc.startswith("multigrid") and len(its) > 1 and its[0] > 0:
+            print(f"{pc} CG iterations, largest / smallest size: {its[-1] / its[0]:.2f} (largest / fewest: "
+                  f"{max(its) / min(its):.2f})")
     result = {
         "device": str(device),
         "device_name": device.name,

@@ -546,13 +546,10 @@ def build(scalar):
 
     @wp.kernel(module="unique")
     def mg_restrict(
-        fine_level: int,
         shape: wp.vec3i,
         coarse_shape: wp.vec3i,
-        filters: wp.array(dtype=mat33),
         r: wp.array(dtype=vec3),
-        y: wp.array(dtype=vec3),
-        # Out: coarse right-hand side R res, res = r (coarse levels) or S (r - y) (level 0: y = A x)
+        # Out: the coarse right-hand side R r
         b_out: wp.array(dtype=vec3),
     ):
         node = wp.tid()
@@ -578,32 +575,19 @@ def build(scalar):
                 wxy = wx[ax] * wy[ay]
                 for az in range(3):
                     i = node_index(ix, iy, wp.clamp(f[2] + az, 0, shape[2] - 1), shape)
-                    res = r[i]
-                    if fine_level != 0:
-                        res = filters[i] * (res - y[i])
-                    acc = acc + (wxy * wz[az]) * res
+                    acc = acc + (wxy * wz[az]) * r[i]
         b_out[node] = acc
 
     @wp.kernel(module="unique")
     def mg_prolong(
-        fine_level: int,
         shape: wp.vec3i,
         coarse_shape: wp.vec3i,
-        filters: wp.array(dtype=mat33),
-        mass_eff: wp.array(dtype=scalar),
         e: wp.array(dtype=vec3),
-        # In/out: x += P e (filtered on level 0); out (level 0): y = M x, the start of A x
+        # In/out: x += P e
         x: wp.array(dtype=vec3),
-        y_out: wp.array(dtype=vec3),
     ):
         i = wp.tid()
-        acc = interpolate(node_coord(i, shape), shape, coarse_shape, e)
-        if fine_level != 0:
-            xi = x[i] + filters[i] * acc
-            x[i] = xi
-            y_out[i] = mass_eff[i] * xi
-        else:
-            x[i] = x[i] + acc
+        x[i] = x[i] + interpolate(node_coord(i, shape), shape, coarse_shape, e)
 
     @wp.kernel(module="unique")
     def mg_fine_pre(

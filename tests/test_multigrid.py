@@ -396,14 +396,12 @@ def test_vcycle_is_symmetric_positive_definite():
 # -- the solve -------------------------------------------------------------------------------------
 
 
-@pytest.mark.parametrize("cycle, gain", [("multiplicative", 3.0), ("additive", 2.0)])
-def test_same_step_as_jacobi(device, monkeypatch, cycle, gain):
+def test_same_step_as_jacobi(device):
     """Both preconditioners solve the same system: the steps agree to the CG tolerance (float64).
 
     At this tight tolerance (1e-10) block-Jacobi takes 82 CG iterations per step on the 8^3 jelly,
-    multigrid with the multiplicative fine level 21, with the additive one 36.
+    multigrid 36.
     """
-    monkeypatch.setattr(multigrid, "DEFAULT_FINE_CYCLE", cycle)
     tol = 1.0e-10
     out = {}
     for pc in ("jacobi", "multigrid"):
@@ -415,11 +413,10 @@ def test_same_step_as_jacobi(device, monkeypatch, cycle, gain):
         assert 0.0 < stats["cg_relative_residual_max"] <= tol * (1 + 1e-6)
         assert stats["cg_relative_residual_mean"] <= stats["cg_relative_residual_max"]
         out[pc] = (state.particle_qd.numpy(), stats["cg_iterations_mean"])
-    print(cycle, {pc: v[1] for pc, v in out.items()})
     v_j, v_m = out["jacobi"][0], out["multigrid"][0]
     scale = np.abs(v_j).max()
     assert np.abs(v_j - v_m).max() < 1e3 * tol * scale
-    assert out["multigrid"][1] < out["jacobi"][1] / gain
+    assert out["multigrid"][1] < out["jacobi"][1] / 2.0
 
 
 def test_iterations_do_not_grow_with_resolution(device):

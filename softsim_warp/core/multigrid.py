@@ -37,11 +37,6 @@ from ..kernels import multigrid as km
 DEFAULT_OMEGA = 0.8
 DEFAULT_COARSE_OMEGA = 0.5
 DEFAULT_SWEEPS = 1
-# How the jelly's lattice joins the V-cycle of the coarse levels (docs/IMPLICIT.md):
-# "multiplicative": a block-Jacobi sweep before and after the coarse correction (two spring
-# products per V-cycle); "additive": z = omega D^-1 r + P V(P^T r) (no spring product; about 1.5x
-# the CG iterations).
-DEFAULT_FINE_CYCLE = "additive"
 # Free solves per hierarchy build (LatticeMultigrid.setup; docs/IMPLICIT.md): on the spinning 100^3
 # jelly on an H100, builds every 1, 2, 4, 8 solves took 30.4, 25.1, 22.1, 21.4 ms a step with 19.3,
 # 19.3, 19.4, 19.8 CG iterations; 4 keeps the iterations within 1 % of rebuilding every solve.
@@ -102,7 +97,6 @@ class LatticeMultigrid:
         omega: float = DEFAULT_OMEGA,
         coarse_omega: float = DEFAULT_COARSE_OMEGA,
         sweeps: int = DEFAULT_SWEEPS,
-        fine_cycle: str | None = None,
         setup_every: int | None = None,
         gather: bool | None = None,
     ):
@@ -119,10 +113,6 @@ class LatticeMultigrid:
         self.omega = model.scalar(omega)
         self.coarse_omega = model.scalar(coarse_omega)
         self.sweeps = int(sweeps)
-        fine_cycle = DEFAULT_FINE_CYCLE if fine_cycle is None else fine_cycle
-        if fine_cycle not in ("multiplicative", "additive"):
-            raise ValueError(f"fine_cycle must be multiplicative or additive (got {fine_cycle!r})")
-        self.fine_cycle = fine_cycle
         setup_every = DEFAULT_SETUP_EVERY if setup_every is None else setup_every
         if int(setup_every) != setup_every or setup_every < 1:
             raise ValueError(f"setup_every must be an integer >= 1 (got {setup_every!r})")
@@ -308,32 +298,12 @@ class LatticeMultigrid:
             self._spring_product(self.x0)
             self._fine_post(r, z, scalars, slot)
             return
-        # Level 0, down: one sweep from 0, then the filtered residual restricted.
-        additive = self.fine_cycle == "additive"
+        # The jelly's lattice joins additively: z = omega D^-1 r + S P V(P^T r), no spring product
+        # on the lattice (docs/IMPLICIT.md).
         fine_shape = self.fine_shape
         first = self.levels[0]
-        if additive:
-            # z = omega D^-1 r + S P V(P^T r): no spring product on the lattice.
-            wp.launch(
-                k.mg_restrict,
-                dim=first["count"],
-                inputs=[0, fine_shape, first["shape"], s.filters, r, r],
-                outputs=[first["b"]],
-                device=device,
-            )
-        else:
-            wp.launch(
-                k.mg_fine_pre, dim=n, inputs=[omega, s.mass_eff, self.dinv0, r], outputs=[self.x0, self.y0],
-                device=device,
-            )
-            self._spring_product(self.x0)
-            wp.launch(
-                k.mg_restrict,
-                dim=first["count"],
-                inputs=[1, fine_shape, first["shape"], s.filters, r, self.y0],
-                outputs=[first["b"]],
-                device=device,
-            )
+        wp.launch(k.mg_restrict, dim=first["count"], inputs=[fine_shape, first["shape"], r], outputs=[first["b"]],
+                  device=device)
         # Coarse levels, down: sweeps from 0, residual, restriction.
         for index, lv in enumerate(self.levels[:-1]):
             self._smooth(lv, from_zero=True)
@@ -346,10 +316,7 @@ class LatticeMultigrid:
             )
             below = self.levels[index + 1]
             wp.launch(
-                k.mg_restrict,
-                dim=below["count"],
-                inputs=[0, lv["shape"], below["shape"], s.filters, lv["t"], lv["t"]],
-                outputs=[below["b"]],
+                k.mg_restrict, dim=below["count"], inputs=[lv["shape"], below["shape"], lv["t"]], outputs=[below["b"]],
                 device=device,
             )
         last = self.levels[-1]
@@ -364,32 +331,18 @@ class LatticeMultigrid:
         for index in range(len(self.levels) - 2, -1, -1):
             lv, below = self.levels[index], self.levels[index + 1]
             wp.launch(
-                k.mg_prolong,
-                dim=lv["count"],
-                inputs=[0, lv["shape"], below["shape"], s.filters, s.mass_eff, below["x"]],
-                outputs=[lv["x"], lv["t"]],
+                k.mg_prolong, dim=lv["count"], inputs=[lv["shape"], below["shape"], below["x"]], outputs=[lv["x"]],
                 device=device,
             )
             self._smooth(lv, from_zero=False)
-        if additive:
-            wp.launch(
-                k.mg_fine_additive,
-                dim=(ki.tile_blocks(n), ki.TILE),
-                block_dim=ki.TILE,
-                inputs=[n, slot, omega, fine_shape, first["shape"], s.filters, self.dinv0, r, first["x"]],
-                outputs=[z, scalars],
-                device=device,
-            )
-            return
         wp.launch(
-            k.mg_prolong,
-            dim=n,
-            inputs=[1, fine_shape, first["shape"], s.filters, s.mass_eff, first["x"]],
-            outputs=[self.x0, self.y0],
+            k.mg_fine_additive,
+            dim=(ki.tile_blocks(n), ki.TILE),
+            block_dim=ki.TILE,
+            inputs=[n, slot, omega, fine_shape, first["shape"], s.filters, self.dinv0, r, first["x"]],
+            outputs=[z, scalars],
             device=device,
         )
-        self._spring_product(self.x0)
-        self._fine_post(r, z, scalars, slot)
 
     # -- pieces ---------------------------------------------------------------------------------
 
@@ -446,7 +399,6 @@ class LatticeMultigrid:
             "multigrid_omega": float(self.omega),
             "multigrid_coarse_omega": float(self.coarse_omega),
             "multigrid_sweeps": self.sweeps,
-            "multigrid_fine_cycle": self.fine_cycle,
             "multigrid_setup_every": self.setup_every,
             "multigrid_gather": self.gather,
         }
