@@ -192,7 +192,7 @@ def test_deterministic_refuses_implicit_on_cuda():
 @pytest.mark.parametrize("scene_name", ["mesh_drop", "pile"])
 def test_mesh_and_contact_scenes_are_bitwise_reproducible(device, scene_name):
     """A mesh jelly on mesh stairs (the masked lattice, mesh terrain) and a pile of jellies in contact
-    (hash grid, pair passes): with --deterministic, two runs give the same positions and metrics,
+    (candidate lists, pair passes): with --deterministic, two runs give the same positions and metrics,
     bit for bit, on the CPU and on CUDA."""
     scene = load_scene(scene_name, ["simulation.duration=0.1"])
     runs = []

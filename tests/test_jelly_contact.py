@@ -380,7 +380,7 @@ def test_cpu_bitwise_reproducible():
 
 
 def test_deterministic_on_every_device(device):
-    """The response gathers per particle in the hash grid's order (a stable sort): no atomics, so
+    """The response sums each particle's contacts in ascending partner order: no atomics, so
     --deterministic runs are bitwise identical on CUDA as on the CPU."""
     scene = ss.load_scene("collide", SMALL_COLLIDE)
     runs = []

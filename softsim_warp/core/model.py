@@ -519,7 +519,8 @@ class Model:
         sphere_radius: radius [m], shape [sphere_count], scalar.
         sphere_restitution, sphere_friction: coefficients [1], shape [sphere_count], scalar.
         bowls, spheres: host lists of dicts with the same values (float64).
-        contact_epsilon: distance within which a particle touches a surface [m].
+        contact_epsilon: the layer within which a surface is tested for a particle [m]; it touches
+            once its step brings it within kernels.contact.TOUCH_FRACTION of it, or through it.
         contact_velocity_epsilon: approach speed below which a touching particle rests [m/s].
         restitution_threshold_steps: an approach slower than this many steps of a particle's own
             pressing impulse (h |f.n| / m) is a contact, not an impact [1]; see resolve_contact.

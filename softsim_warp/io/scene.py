@@ -353,7 +353,9 @@ SCHEMA = Table(
                 "fps": Float(60.0, lo=0, lo_open=True, doc="output frames per second"),
                 "gravity": Vec3([0.0, -9.8, 0.0], doc="[m/s^2]"),
                 "precision": Choice(PRECISIONS, "float32"),
-                "contact_epsilon": Float(0.01, lo=0, doc="contact distance tolerance [m]"),
+                "contact_epsilon": Float(
+                    0.01, lo=0, doc="layer within which surfaces are tested [m]; a particle touches within 0.1 % of it"
+                ),
                 "contact_velocity_epsilon": Float(0.01, lo=0, doc="resting-contact speed tolerance [m/s]"),
                 "restitution_threshold_steps": Float(
                     1.0, lo=0, doc="approaches slower than this many steps of pressing impulse are inelastic [1]"
