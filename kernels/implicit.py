@@ -753,8 +753,9 @@ def build(scalar):
             pair = spring_indices[tid]
             # Rows of constrained directions get values too; the filter drops them.
             quad = add_spring_product(spring_block[tid], p, pair[0], pair[1], y_out)
-        total = wp.tile_sum(wp.tile(quad))
-        wp.tile_atomic_add(scalars_out, total, offset=slot)
+        if slot >= 0:
+            total = wp.tile_sum(wp.tile(quad))
+            wp.tile_atomic_add(scalars_out, total, offset=slot)
 
     @wp.kernel(module="unique")
     def init_residual(
@@ -819,7 +820,8 @@ def build(scalar):
         mass_part: int,
         particle_mass: wp.array(dtype=scalar),
         z: wp.array(dtype=vec3),
-        # In/out: direction p <- z + beta p; out (if mass_part): M p, and p.(M p) into PAP
+        # In/out: direction p <- z + beta p; out (mass_part 1): M p, and p.(M p) into PAP; (mass_part
+        # 2): M p only
         p: wp.array(dtype=vec3),
         ap_out: wp.array(dtype=vec3),
         scalars: wp.array(dtype=scalar),
@@ -834,7 +836,8 @@ def build(scalar):
             if mass_part != 0:
                 mp = particle_mass[i] * pi
                 ap_out[i] = mp
-                quad = wp.dot(pi, mp)
+                if mass_part == 1:
+                    quad = wp.dot(pi, mp)
         wp.tile_atomic_add(scalars, wp.tile_sum(wp.tile(quad)), offset=PAP)
 
     @wp.kernel(module="unique")

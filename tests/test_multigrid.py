@@ -441,7 +441,9 @@ def test_contact_and_pins(device, precision):
     out = {}
     for pc in ("jacobi", "multigrid"):
         model = stiff_jelly(0, device=device, precision=precision, plane=True, pinned=pinned, shape=shape)
-        tol = 1e-10 if precision == "float64" else 1e-5
+        # float32 solved to 1e-6: the resting jelly's velocities (4e-6 m/s) are of the size of what
+        # a 1e-5 solve leaves undetermined, so the two preconditioners' answers differ by that much.
+        tol = 1e-10 if precision == "float64" else 1e-6
         integ, state = run(model, 4, preconditioner=pc, cg_tolerance=tol, cg_max_iterations=2000)
         assert integ.preconditioner == pc
         assert integ.stats()["cg_unconverged_solves"] == 0
