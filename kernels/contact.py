@@ -52,6 +52,16 @@ def build(scalar):
     vec3 = wp.types.vector(3, scalar)
 
     @wp.func
+    def rub(vt: vec3, budget: scalar):
+        """Coulomb friction on a tangential velocity: at most ``budget`` of its speed removed, never
+        reversing it (a speed within the budget sticks)."""
+        speed = wp.length(vt)
+        v_new = vec3(scalar(0.0))
+        if speed > budget:
+            v_new = vt * ((speed - budget) / speed)
+        return v_new
+
+    @wp.func
     def resolve_contact(
         x: vec3,
         v: vec3,
@@ -106,25 +116,14 @@ def build(scalar):
             w = -vn - u0
             if stage > 0:
                 if u0 < eps_v or u0 < rest_steps * w:
-                    vt = v - vn * normal
-                    speed = wp.length(vt)
-                    budget = friction * (-vn)
-                    v_new = vec3(scalar(0.0))
-                    if speed > budget:
-                        v_new = vt * ((speed - budget) / speed)
-                    v = v_new
+                    v = rub(v - vn * normal, friction * (-vn))
                 return x, v
             if u0 < eps_v or u0 < rest_steps * w:
                 # Cancel the normal velocity (the particle stays on the surface) and let Coulomb
                 # friction remove at most mu times that normal impulse per unit mass, -vn, of
                 # tangential speed, never reversing it. On a flat surface resting -vn = |N.f| h / m;
                 # on a curved one it also holds the centripetal part m |v|^2 h / R of the normal force.
-                vt = v - vn * normal
-                speed = wp.length(vt)
-                budget = friction * (-vn)
-                v_new = vec3(scalar(0.0))
-                if speed > budget:
-                    v_new = vt * ((speed - budget) / speed)
+                v_new = rub(v - vn * normal, friction * (-vn))
                 # Contact and friction act as forces over the whole step: move the position by
                 # what the integrator would have made of them, so a stuck particle does not creep.
                 # Along the normal that is at most back onto the surface: the approach stops on
@@ -139,14 +138,7 @@ def build(scalar):
             else:
                 # Impact: reflect the approaching normal velocity; Coulomb friction removes at
                 # most mu times the normal impulse (1 + e)(-vn) of tangential speed.
-                vt = v - vn * normal
-                speed = wp.length(vt)
-                budget = friction * (scalar(1.0) + restitution) * (-vn)
-                if speed > budget:
-                    vt = vt * ((speed - budget) / speed)
-                else:
-                    vt = vec3(scalar(0.0))
-                v = vt - restitution * vn * normal
+                v = rub(v - vn * normal, friction * (scalar(1.0) + restitution) * (-vn)) - restitution * vn * normal
         # A particle that moves away after the step (vn >= 0; on a convex surface the tangent of
         # the last step points outward by |v| h / R) is separating: the surface pushes nothing, so
         # neither normal cancellation nor friction applies (cancelling it would glue particles to

@@ -446,9 +446,7 @@ def build(scalar):
                 w, xf, touching, nrm, depth, mesh_first, mesh_id, mesh_closed, mesh_reach, mesh_tri_start, mesh_tris,
                 mesh_points, contact_epsilon,
             )
-            one_surface = int(0)
-            if touching == 1:
-                one_surface = 1
+            one_surface = touching == 1
             if touching != 1:
                 # No single surface (several, or a contact hook's primitive): the direction in
                 # which the response pushed the particle serves as the normal. Prescribing the
@@ -484,7 +482,7 @@ def build(scalar):
                     # are stopped where they began strains a stiff lattice (+1.4 J in a frame of
                     # jelly_drop at ks = 1e5). The constraint impulse opposes the motion either way.
                     land = scalar(0.0)
-                    if one_surface == 1 and wp.dot(v_c, nrm) <= scalar(0.0) and wp.length(qd_n[i]) < eps_v:
+                    if one_surface and wp.dot(v_c, nrm) <= scalar(0.0) and wp.length(qd_n[i]) < eps_v:
                         land = wp.min(wp.max(depth - h * vn, scalar(0.0)) / h, -vn)
                     target = vt - land * nrm
                 if vn < scalar(0.0) and wp.dot(v_c, nrm) > scalar(0.0):
@@ -820,25 +818,20 @@ def build(scalar):
         mass_part: int,
         particle_mass: wp.array(dtype=scalar),
         z: wp.array(dtype=vec3),
-        # In/out: direction p <- z + beta p; out (mass_part 1): M p, and p.(M p) into PAP; (mass_part
-        # 2): M p only
+        # In/out: direction p <- z + beta p; out (if mass_part): M p, the start of A p (p.A p is
+        # summed per particle once the springs have added theirs: dot_accumulate)
         p: wp.array(dtype=vec3),
         ap_out: wp.array(dtype=vec3),
         scalars: wp.array(dtype=scalar),
     ):
         blk, lane = wp.tid()
         i = blk * TILE + lane
-        quad = scalar(0.0)
         if i < n:
             # z and p are filtered, so p stays filtered.
             pi = z[i] + scalars[BETA] * p[i]
             p[i] = pi
             if mass_part != 0:
-                mp = particle_mass[i] * pi
-                ap_out[i] = mp
-                if mass_part == 1:
-                    quad = wp.dot(pi, mp)
-        wp.tile_atomic_add(scalars, wp.tile_sum(wp.tile(quad)), offset=PAP)
+                ap_out[i] = particle_mass[i] * pi
 
     @wp.kernel(module="unique")
     def dot_accumulate(

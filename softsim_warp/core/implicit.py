@@ -450,7 +450,7 @@ class ImplicitIntegrator(Integrator):
                 k.cg_direction,
                 dim=(pblocks, ki.TILE),
                 block_dim=ki.TILE,
-                inputs=[n, 2 * int(matrix_free and not lattice_product), self.mass_eff, self.z],
+                inputs=[n, int(matrix_free and not lattice_product), self.mass_eff, self.z],
                 outputs=[self.p, self.ap, self.scalars],
                 device=device,
             )

@@ -356,7 +356,7 @@ class LatticeMultigrid:
                 model.kernels.spring_mv,
                 dim=(ki.tile_blocks(model.spring_count), ki.TILE),
                 block_dim=ki.TILE,
-                inputs=[model.spring_count, 0, model.spring_indices, self.system.spring_block, x],
+                inputs=[model.spring_count, -1, model.spring_indices, self.system.spring_block, x],
                 outputs=[self.y0, self.scratch],
                 device=model.device,
             )
