@@ -49,6 +49,7 @@ import numpy as np
 import warp as wp
 
 from .implicit import TILE
+from .lattice import REST_SLOTS
 
 wp.set_module_options({"enable_backward": False})
 
@@ -69,6 +70,12 @@ def coarse_size(n: int) -> int:
 def build(scalar):
     vec3 = wp.types.vector(3, scalar)
     mat33 = wp.types.matrix((3, 3), scalar)
+    # The jelly's lattice tables (one jelly) passed by value to the kernels whose neighbour loops
+    # are unrolled: they read them from the launch's parameters, not from memory (on an H100 the
+    # spring product took 150 against 211 us at 100^3 with its 96 table loads per particle).
+    # mg_fine_setup_lattice's slot loop is not unrolled (27 > Warp's unroll limit), and a by-value
+    # table indexed at run time went to local memory (1.3 against 0.9 ms a build): it reads arrays.
+    rest_vec = wp.types.vector(REST_SLOTS, scalar)
     half = scalar(0.5)
 
     @wp.func
@@ -179,10 +186,10 @@ def build(scalar):
         kv_scale: scalar,
         shape: wp.vec3i,
         types: int,
-        # Model (the jelly's rows of the lattice tables, kernels/lattice.py):
-        rest: wp.array2d(dtype=scalar),
-        ks: wp.array2d(dtype=scalar),
-        kd: wp.array2d(dtype=scalar),
+        # Model (the jelly's rows of the lattice tables, kernels/lattice.py, by value):
+        rest: rest_vec,
+        ks: vec3,
+        kd: vec3,
         # Linearisation point and velocity iterate:
         q: wp.array(dtype=vec3),
         qd_k: wp.array(dtype=vec3),
@@ -210,13 +217,13 @@ def build(scalar):
                         if ((types >> ty) & 1) != 0 and inside(c[0] + di, c[1] + dj, c[2] + dk, shape):
                             j = node_index(c[0] + di, c[1] + dj, c[2] + dk, shape)
                             alpha, beta, dhat = pair_coefficients(
-                                qi - q[j], rest[0, (di + 1) * 9 + (dj + 1) * 3 + dk + 1], ks[0, ty], kd[0, ty], h
+                                qi - q[j], rest[(di + 1) * 9 + (dj + 1) * 3 + dk + 1], ks[ty], kd[ty], h
                             )
                             diag = diag + alpha * wp.outer(dhat, dhat) + beta * wp.identity(n=3, dtype=scalar)
                             if kv_scale != scalar(0.0):
                                 # S = (B - h kd d^d^T) / h^2: df_i/dx v = -S (v_i - v_j).
                                 dv = vi - qd_k[j]
-                                sa = (alpha - h * kd[0, ty]) * hks_to_s
+                                sa = (alpha - h * kd[ty]) * hks_to_s
                                 sb = beta * hks_to_s
                                 kv = kv - kv_scale * (sa * wp.dot(dhat, dv) * dhat + sb * dv)
         if ((types >> 2) & 1) != 0:
@@ -226,26 +233,29 @@ def build(scalar):
                     o[axis] = 4 * side - 2
                     if inside(c[0] + o[0], c[1] + o[1], c[2] + o[2], shape):
                         j = node_index(c[0] + o[0], c[1] + o[1], c[2] + o[2], shape)
-                        alpha, beta, dhat = pair_coefficients(qi - q[j], rest[0, 27 + axis], ks[0, 2], kd[0, 2], h)
+                        alpha, beta, dhat = pair_coefficients(qi - q[j], rest[27 + axis], ks[2], kd[2], h)
                         diag = diag + alpha * wp.outer(dhat, dhat) + beta * wp.identity(n=3, dtype=scalar)
                         if kv_scale != scalar(0.0):
                             dv = vi - qd_k[j]
-                            sa = (alpha - h * kd[0, 2]) * hks_to_s
+                            sa = (alpha - h * kd[2]) * hks_to_s
                             sb = beta * hks_to_s
                             kv = kv - kv_scale * (sa * wp.dot(dhat, dv) * dhat + sb * dv)
         diag_block_out[i] = diag
         rhs_out[i] = kv
 
-    @wp.kernel(module="unique")
+    # Fast math (approximate square root and reciprocal, 1 ulp or so) in the CG product only: 98
+    # against 150 us at 100^3 on an H100. The operator stays exactly symmetric: a spring's block is
+    # computed from |d|^2, the same from either end.
+    @wp.kernel(module="unique", module_options={"fast_math": True})
     def mg_lattice_mv(
         n: int,
         slot: int,
         h: scalar,
         shape: wp.vec3i,
         types: int,
-        rest: wp.array2d(dtype=scalar),
-        ks: wp.array2d(dtype=scalar),
-        kd: wp.array2d(dtype=scalar),
+        rest: rest_vec,
+        ks: vec3,
+        kd: vec3,
         # System: the linearisation point (mg_lattice_jacobians) and the mass plus friction damper
         q: wp.array(dtype=vec3),
         mass_eff: wp.array(dtype=scalar),
@@ -279,7 +289,7 @@ def build(scalar):
                             ok = ((types >> ty) & 1) != 0 and inside(c[0] + di, c[1] + dj, c[2] + dk, shape)
                             j = wp.where(ok, i + di * row + dj * shape[2] + dk, i)
                             t, e = pair_product(
-                                qi, q[j], pi, p[j], rest[0, (di + 1) * 9 + (dj + 1) * 3 + dk + 1], ks[0, ty], kd[0, ty], h
+                                qi, q[j], pi, p[j], rest[(di + 1) * 9 + (dj + 1) * 3 + dk + 1], ks[ty], kd[ty], h
                             )
                             acc = acc + t
                             spring_quad = spring_quad + e
@@ -290,7 +300,7 @@ def build(scalar):
                     o[axis] = 4 * side - 2
                     ok = has_bending and inside(c[0] + o[0], c[1] + o[1], c[2] + o[2], shape)
                     j = wp.where(ok, i + o[0] * row + o[1] * shape[2] + o[2], i)
-                    t, e = pair_product(qi, q[j], pi, p[j], rest[0, 27 + axis], ks[0, 2], kd[0, 2], h)
+                    t, e = pair_product(qi, q[j], pi, p[j], rest[27 + axis], ks[2], kd[2], h)
                     acc = acc + t
                     spring_quad = spring_quad + e
             y_out[i] = acc
@@ -496,13 +506,11 @@ def build(scalar):
         dinv: wp.array(dtype=mat33),
         b: wp.array(dtype=vec3),
         x: wp.array(dtype=vec3),
-        # Out: mode 0 the residual b - A x; 1 a Jacobi sweep x + omega D^-1 (b - A x); 2 the sweep from x = 0
+        # Out: mode 0 the residual b - A x; 1 a Jacobi sweep x + omega D^-1 (b - A x) (the sweep
+        # from x = 0 is mg_restrict's)
         y_out: wp.array(dtype=vec3),
     ):
         node = wp.tid()
-        if mode == 2:
-            y_out[node] = omega * (dinv[node] * b[node])
-            return
         c = node_coord(node, shape)
         # A x = R x_I + sum_J A_IJ (x_J - x_I), R the row sum: no cancellation of the large
         # stiffness terms on smooth x, and translations see exactly R (the mass) on every level.
@@ -545,12 +553,65 @@ def build(scalar):
         return acc
 
     @wp.kernel(module="unique")
+    def mg_stencil_op_lanes(
+        lanes: int,
+        mode: int,
+        omega: scalar,
+        shape: wp.vec3i,
+        a: wp.array2d(dtype=mat33),
+        rowsum: wp.array(dtype=mat33),
+        dinv: wp.array(dtype=mat33),
+        b: wp.array(dtype=vec3),
+        x: wp.array(dtype=vec3),
+        # Mode 2: the level below and its correction e, prolongated onto x first
+        coarse_shape: wp.vec3i,
+        e: wp.array(dtype=vec3),
+        # Out: as mg_stencil_op's modes 0 and 1; mode 2 the sweep from x + P e (mg_prolong, then mode 1)
+        y_out: wp.array(dtype=vec3),
+    ):
+        """mg_stencil_op with ``lanes`` threads per node (a block each), for the small levels.
+
+        A one-thread node loads its 26 blocks in turn, each at the memory's latency: on an H100 a
+        level of 14^3 nodes or fewer took 8.2 to 8.3 us a launch whatever its size. Lane l takes
+        the slots l, l + lanes, ... and the block sums them (3.3 to 5.6 us). On the CPU, where a
+        block is one thread, ``lanes`` is 1 and the one thread takes every slot. Mode 2 adds the
+        prolongated correction to each x it reads (a launch less per level and cycle).
+        """
+        node, lane = wp.tid()
+        c = node_coord(node, shape)
+        xi = x[node]
+        if mode == 2:
+            xi = xi + interpolate(c, shape, coarse_shape, e)
+        t = vec3(scalar(0.0))
+        slot = lane
+        while slot < STENCIL:
+            o = slot_offset(slot)
+            cj = c + o
+            if slot != CENTER and inside(cj[0], cj[1], cj[2], shape):
+                xj = x[node_index(cj[0], cj[1], cj[2], shape)]
+                if mode == 2:
+                    xj = xj + interpolate(cj, shape, coarse_shape, e)
+                t = t + a[slot, node] * (xj - xi)
+            slot += lanes
+        total = wp.tile_sum(wp.tile(t, preserve_type=True))
+        if lane == 0:
+            r = b[node] - rowsum[node] * xi - total[0]
+            if mode == 0:
+                y_out[node] = r
+            else:
+                y_out[node] = xi + omega * (dinv[node] * r)
+
+    @wp.kernel(module="unique")
     def mg_restrict(
         shape: wp.vec3i,
         coarse_shape: wp.vec3i,
         r: wp.array(dtype=vec3),
-        # Out: the coarse right-hand side R r
+        omega: scalar,
+        dinv: wp.array(dtype=mat33),
+        # Out: the coarse right-hand side R r, and the coarse level's first smoothing sweep from
+        # zero, omega D^-1 R r (the cycle's next step, done here: one launch less per level)
         b_out: wp.array(dtype=vec3),
+        x_out: wp.array(dtype=vec3),
     ):
         node = wp.tid()
         c = node_coord(node, coarse_shape)
@@ -577,6 +638,7 @@ def build(scalar):
                     i = node_index(ix, iy, wp.clamp(f[2] + az, 0, shape[2] - 1), shape)
                     acc = acc + (wxy * wz[az]) * r[i]
         b_out[node] = acc
+        x_out[node] = omega * (dinv[node] * acc)
 
     @wp.kernel(module="unique")
     def mg_prolong(
@@ -677,10 +739,8 @@ def build(scalar):
         shape: wp.vec3i,
         a: wp.array2d(dtype=mat33),
         rowsum: wp.array(dtype=mat33),
-        # Out: the Cholesky factor L (lower triangle) of the dense coarsest matrix, and the matrix's
-        # inverse from it, in float64
+        # Out: the Cholesky factor L (lower triangle) of the dense coarsest matrix, in float64
         chol_out: wp.array2d(dtype=wp.float64),
-        inv_out: wp.array2d(dtype=wp.float64),
     ):
         nodes = shape[0] * shape[1] * shape[2]
         m = 3 * nodes
@@ -717,36 +777,51 @@ def build(scalar):
                 for s in range(k):
                     v = v - chol_out[r, s] * chol_out[k, s]
                 chol_out[r, k] = v / pivot
-        # The inverse, column by column (L L^T x = e_col), so that each V-cycle's coarsest solve is
-        # one small matrix product over parallel threads instead of two triangular solves on one.
-        for col in range(m):
-            for k in range(m):
-                v = wp.where(k == col, wp.float64(1.0), wp.float64(0.0))
-                for s in range(k):
-                    v = v - chol_out[k, s] * inv_out[s, col]
-                inv_out[k, col] = v / chol_out[k, k]
-            for kk in range(m):
-                k = m - 1 - kk
-                v = inv_out[k, col]
-                for s in range(k + 1, m):
-                    v = v - chol_out[s, k] * inv_out[s, col]
-                inv_out[k, col] = v / chol_out[k, k]
+
+    @wp.kernel(module="unique")
+    def mg_coarse_inverse(
+        chol: wp.array2d(dtype=wp.float64),
+        # Out: the coarsest matrix's inverse, one column per thread (L L^T x = e_col), so that each
+        # V-cycle's coarsest solve is one small matrix product over parallel threads instead of two
+        # triangular solves on one (the columns on one thread took 0.9 ms a build on an H100)
+        inv_out: wp.array2d(dtype=wp.float64),
+    ):
+        col = wp.tid()
+        m = chol.shape[0]
+        for k in range(m):
+            v = wp.where(k == col, wp.float64(1.0), wp.float64(0.0))
+            for s in range(k):
+                v = v - chol[k, s] * inv_out[s, col]
+            inv_out[k, col] = v / chol[k, k]
+        for kk in range(m):
+            k = m - 1 - kk
+            v = inv_out[k, col]
+            for s in range(k + 1, m):
+                v = v - chol[s, k] * inv_out[s, col]
+            inv_out[k, col] = v / chol[k, k]
 
     @wp.kernel(module="unique")
     def mg_coarse_solve(
+        lanes: int,
         shape: wp.vec3i,
         inv: wp.array2d(dtype=wp.float64),
         b: wp.array(dtype=vec3),
-        # Out: x = A^-1 b on the coarsest level, one thread per node
+        # Out: x = A^-1 b on the coarsest level, a block of ``lanes`` threads per node, lane l taking
+        # the columns l, l + lanes, ... (one thread per node on the CPU)
         x_out: wp.array(dtype=vec3),
     ):
-        node = wp.tid()
+        node, lane = wp.tid()
         m = 3 * shape[0] * shape[1] * shape[2]
         x = wp.vec3d(wp.float64(0.0))
-        for s in range(m):
+        s = lane
+        while s < m:
             bs = wp.float64(b[s // 3][s % 3])
             x = x + bs * wp.vec3d(inv[3 * node, s], inv[3 * node + 1, s], inv[3 * node + 2, s])
-        x_out[node] = vec3(scalar(x[0]), scalar(x[1]), scalar(x[2]))
+            s += lanes
+        total = wp.tile_sum(wp.tile(x, preserve_type=True))
+        if lane == 0:
+            x = total[0]
+            x_out[node] = vec3(scalar(x[0]), scalar(x[1]), scalar(x[2]))
 
     return {
         "mg_lattice_jacobians": mg_lattice_jacobians,
@@ -754,6 +829,7 @@ def build(scalar):
         "mg_fine_setup_lattice": mg_fine_setup_lattice,
         "mg_galerkin": mg_galerkin,
         "mg_stencil_op": mg_stencil_op,
+        "mg_stencil_op_lanes": mg_stencil_op_lanes,
         "mg_restrict": mg_restrict,
         "mg_prolong": mg_prolong,
         "mg_fine_pre": mg_fine_pre,
@@ -761,5 +837,6 @@ def build(scalar):
         "mg_fine_additive": mg_fine_additive,
         "mg_setup_due": mg_setup_due,
         "mg_coarse_factor": mg_coarse_factor,
+        "mg_coarse_inverse": mg_coarse_inverse,
         "mg_coarse_solve": mg_coarse_solve,
     }

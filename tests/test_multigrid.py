@@ -208,6 +208,50 @@ def test_galerkin_levels_match_dense_products():
         above, shape = got, tuple(lv["shape"])
 
 
+@pytest.mark.parametrize("mode", [0, 1, 2])
+def test_stencil_product_in_lanes_equals_one_thread(device, mode):
+    """mg_stencil_op_lanes (a block per node, the small levels on CUDA; one thread on the CPU) gives
+    the residual and the sweep of a NumPy reference to float64 rounding, on a random 27-block
+    stencil of a 5 x 4 x 3 level (every boundary case: a neighbour outside the level adds nothing);
+    mode 2, the sweep from x + P e, gives mg_prolong followed by mg_stencil_op's sweep."""
+    model = stiff_jelly(3, device=device)
+    k = model.kernels
+    shape = (5, 4, 3)
+    coarse = tuple(coarse_size(v) for v in shape)
+    count, coarse_count = int(np.prod(shape)), int(np.prod(coarse))
+    rng = np.random.default_rng(11)
+    mat33 = wp.types.matrix((3, 3), wp.float64)
+    blocks = lambda *dims: wp.array(rng.standard_normal((*dims, 3, 3)), dtype=mat33, device=device)  # noqa: E731
+    vecs = lambda m: wp.array(rng.standard_normal((m, 3)), dtype=wp.vec3d, device=device)  # noqa: E731
+    a, rowsum, dinv, b, x, e = blocks(27, count), blocks(count), blocks(count), vecs(count), vecs(count), vecs(coarse_count)
+    args = [min(mode, 1), 0.5, wp.vec3i(*shape), a, rowsum, dinv, b]
+    x_ref = wp.clone(x)
+    if mode == 2:
+        wp.launch(k.mg_prolong, dim=count, inputs=[wp.vec3i(*shape), wp.vec3i(*coarse), e], outputs=[x_ref],
+                  device=device)
+    one = wp.zeros(count, dtype=wp.vec3d, device=device)
+    wp.launch(k.mg_stencil_op, dim=count, inputs=[*args, x_ref], outputs=[one], device=device)
+    lanes = multigrid.LANES if device.is_cuda else 1
+    out = wp.zeros(count, dtype=wp.vec3d, device=device)
+    args[0] = mode
+    wp.launch(k.mg_stencil_op_lanes, dim=(count, lanes), block_dim=lanes,
+              inputs=[lanes, *args, x, wp.vec3i(*coarse), e], outputs=[out], device=device)
+    # The reference in NumPy: r = b - R x_I - sum_J A_IJ (x_J - x_I).
+    a_h, x_h = a.numpy(), x_ref.numpy()
+    r = b.numpy() - np.einsum("nij,nj->ni", rowsum.numpy(), x_h)
+    for node in range(count):
+        c = np.unravel_index(node, shape)
+        for slot in range(27):
+            o = np.array([slot // 9 - 1, (slot // 3) % 3 - 1, slot % 3 - 1])
+            cj = np.array(c) + o
+            if slot != 13 and np.all(cj >= 0) and np.all(cj < shape):
+                j = np.ravel_multi_index(tuple(cj), shape)
+                r[node] -= a_h[slot, node] @ (x_h[j] - x_h[node])
+    expected = r if mode == 0 else x_h + 0.5 * np.einsum("nij,nj->ni", dinv.numpy(), r)
+    np.testing.assert_allclose(one.numpy(), expected, rtol=0, atol=1e-12 * np.abs(expected).max())
+    np.testing.assert_allclose(out.numpy(), expected, rtol=0, atol=1e-12 * np.abs(expected).max())
+
+
 def test_lattice_gather_equals_the_stored_jacobians(device):
     """The per-particle gather (Jacobians, product) equals the spring-list kernels to float64 rounding.
 
@@ -368,11 +412,16 @@ def test_smoothers_converge_on_every_level():
         assert omega * lam < 1.75, (level, lam)
 
 
-def test_vcycle_is_symmetric_positive_definite():
-    """z = B r with B = V-cycle: B symmetric and positive definite, from its columns (float64)."""
+@pytest.mark.parametrize("lanes", [False, True])
+def test_vcycle_is_symmetric_positive_definite(lanes):
+    """z = B r with B = V-cycle: B symmetric and positive definite, from its columns (float64);
+    with ``lanes`` every coarse level takes the lane kernels (CUDA's path for small levels)."""
     model = stiff_jelly(5, pinned=[0])
     integ, _ = run(model, 1, preconditioner="multigrid")
-    mg = integ.multigrid
+    mg = multigrid.LatticeMultigrid(model, integ, lanes=lanes, deep_sweeps=2)
+    mg.q_lin.assign(integ.multigrid.q_lin)
+    mg.h = integ.multigrid.h
+    mg.build()
     n = model.particle_count
     r = wp.zeros(n, dtype=model.vec3, device=model.device)
     z = wp.zeros(n, dtype=model.vec3, device=model.device)

@@ -28,6 +28,7 @@ import warp as wp
 from . import lattice
 from ..kernels import implicit as ki
 from ..kernels import multigrid as km
+from ..kernels.lattice import REST_SLOTS
 
 # Damping of the block-Jacobi sweeps, on the jelly's lattice and on the coarse levels. The fine
 # level's D^-1 A has its spectrum in (0, 2] (each spring block B satisfies (u_a - u_b)^T B
@@ -36,17 +37,28 @@ from ..kernels import multigrid as km
 # so every sweep converges, which the V-cycle needs to be SPD.
 DEFAULT_OMEGA = 0.8
 DEFAULT_COARSE_OMEGA = 0.5
+# Sweeps before and after the coarse correction on the first coarse level, and on the levels below
+# it, where they cost little (H100, 100^3, docs/IMPLICIT.md): 1 and 1 took 19.4 CG iterations and
+# 10.56 ms a step, 1 and 2 16.4 and 10.00 ms, 1 and 3 14.9 and 10.05 ms; the iterations then grow
+# 1.40x from 10^3 to 100^3 instead of 1.50x. (At 40^3 the second sweep costs more than it saves:
+# 2.43 against 2.16 ms a step.)
 DEFAULT_SWEEPS = 1
+DEFAULT_DEEP_SWEEPS = 2
 # Free solves per hierarchy build (LatticeMultigrid.setup; docs/IMPLICIT.md): on the spinning 100^3
-# jelly on an H100, builds every 1, 2, 4, 8 solves took 30.4, 25.1, 22.1, 21.4 ms a step with 19.3,
-# 19.3, 19.4, 19.8 CG iterations; 4 keeps the iterations within 1 % of rebuilding every solve.
-DEFAULT_SETUP_EVERY = 4
+# jelly on an H100, builds every 4 and every 8 solves took 9.90 and 9.60 ms a step with 16.4 and
+# 17.1 CG iterations (10^3: 1.31 and 1.22 ms; 40^3: 2.28 and 2.18 ms).
+DEFAULT_SETUP_EVERY = 8
 # Particles from which the default ("auto") preconditioner is multigrid: on the CPU block-Jacobi is
 # faster up to about 11^3 (free flight: 4.9 against 7.0 ms a step at 10^3, 6.6 against 6.4 at 11^3,
 # 8.7 against 7.6 at 12^3, 14.6 against 11.1 at 14^3; docs/IMPLICIT.md); on an H100 up to about 30^3
 # (1.58 against 4.24 ms a step at 20^3 for multigrid with stored blocks and a build every solve,
 # 8.44 against 4.85 for the present one at 40^3; the crossover has not been measured again).
 AUTO_MIN_PARTICLES = 12**3
+# Coarse levels of at most this many nodes take their stencil products with LANES threads per node
+# on CUDA (kernels/multigrid.py: mg_stencil_op_lanes; H100, per launch: 14^3 5.6 against 8.3 us,
+# 8^3 3.7 against 8.2; 26^3 16.8 against 8.5).
+LANES_MAX_NODES = 14**3
+LANES = 32
 AUTO_MIN_PARTICLES_CUDA = 30**3
 
 
@@ -86,8 +98,13 @@ class LatticeMultigrid:
             blocks are recomputed from the linearisation point that :meth:`jacobians` keeps.
         omega: damping of the block-Jacobi sweeps on the jelly's lattice.
         coarse_omega: the same on the coarse levels.
-        sweeps: pre- and post-smoothing sweeps on every coarse level (the fine level always does
-            one each: its sweeps cost a spring product each).
+        sweeps: pre- and post-smoothing sweeps on the first coarse level (the jelly's lattice
+            joins additively, with no sweep of its own).
+        deep_sweeps: the same on the levels below the first (None: DEFAULT_DEEP_SWEEPS).
+        setup_every: free solves per hierarchy build (None: DEFAULT_SETUP_EVERY).
+        gather: the spring blocks recomputed from positions (None: on CUDA) or stored per spring.
+        lanes: the products of levels of at most LANES_MAX_NODES nodes with a block of threads per
+            node (None: on CUDA; on the CPU a block is one thread, and the same kernel runs there).
     """
 
     def __init__(
@@ -97,8 +114,10 @@ class LatticeMultigrid:
         omega: float = DEFAULT_OMEGA,
         coarse_omega: float = DEFAULT_COARSE_OMEGA,
         sweeps: int = DEFAULT_SWEEPS,
+        deep_sweeps: int | None = None,
         setup_every: int | None = None,
         gather: bool | None = None,
+        lanes: bool | None = None,
     ):
         ok, reason = multigrid_support(model)
         if not ok:
@@ -106,8 +125,11 @@ class LatticeMultigrid:
         for name, value in (("omega", omega), ("coarse_omega", coarse_omega)):
             if not 0.0 < value < 1.0:
                 raise ValueError(f"{name} must be in (0, 1) (got {value!r})")
-        if int(sweeps) != sweeps or sweeps < 1:
-            raise ValueError(f"sweeps must be an integer >= 1 (got {sweeps!r})")
+        deep_sweeps = DEFAULT_DEEP_SWEEPS if deep_sweeps is None else deep_sweeps
+        for name, value in (("sweeps", sweeps), ("deep_sweeps", deep_sweeps)):
+            if int(value) != value or value < 1:
+                raise ValueError(f"{name} must be an integer >= 1 (got {value!r})")
+        self.deep_sweeps = int(deep_sweeps)
         self.model = model
         self.system = system
         self.omega = model.scalar(omega)
@@ -121,6 +143,8 @@ class LatticeMultigrid:
         # per spring and summed with atomics (the CPU, where Warp runs the threads one after
         # another and the recomputation took twice as long: docs/IMPLICIT.md).
         self.gather = model.device.is_cuda if gather is None else bool(gather)
+        self.lanes = model.device.is_cuda if lanes is None else bool(lanes)
+        self.lane_width = LANES if model.device.is_cuda else 1
         if not self.gather and system.spring_block.shape[0] != model.spring_count:
             raise ValueError("gather=False needs the integrator's spring_block for every spring")
         device = model.device
@@ -145,7 +169,15 @@ class LatticeMultigrid:
         self.h = scalar(0.0)
         lat = model.lattice
         self.types = int(layout.types[0])
-        self.tables = [lat.jelly_rest, lat.jelly_ks, lat.jelly_kd]
+        # The jelly's tables by value (kernels/multigrid.py: rest_vec): rest length per stencil
+        # offset, ks and kd per spring type.
+        rest_vec = wp.types.vector(REST_SLOTS, scalar)
+        self.tables = [
+            rest_vec(*(float(v) for v in layout.rest[0])),
+            vec3(*(float(v) for v in layout.ks[0])),
+            vec3(*(float(v) for v in layout.kd[0])),
+        ]
+        self.table_arrays = [lat.jelly_rest, lat.jelly_ks, lat.jelly_kd]
         # Lagged setup (setup_every > 1): [solves since the last build, hierarchy stale] and the
         # build flag, on the device.
         self.setup_state = wp.array([0, 1], dtype=wp.int32, device=device)
@@ -258,7 +290,7 @@ class LatticeMultigrid:
         wp.launch(
             k.mg_fine_setup_lattice,
             dim=model.particle_count,
-            inputs=[self.h, fine_shape, self.types, *self.tables, self.q_lin, s.mass_eff, s.filters],
+            inputs=[self.h, fine_shape, self.types, *self.table_arrays, self.q_lin, s.mass_eff, s.filters],
             outputs=fine_out,
             device=device,
         )
@@ -276,12 +308,10 @@ class LatticeMultigrid:
             below_shape, below_a, below_rowsum = lv["shape"], lv["a"], lv["rowsum"]
         last = self.levels[-1]
         wp.launch(
-            k.mg_coarse_factor,
-            dim=1,
-            inputs=[last["shape"], last["a"], last["rowsum"]],
-            outputs=[self.chol, self.coarse_inv],
+            k.mg_coarse_factor, dim=1, inputs=[last["shape"], last["a"], last["rowsum"]], outputs=[self.chol],
             device=device,
         )
+        wp.launch(k.mg_coarse_inverse, dim=self.chol.shape[0], inputs=[self.chol], outputs=[self.coarse_inv], device=device)
 
     def apply(self, r: wp.array, z: wp.array, scalars: wp.array, slot: int):
         """z = V-cycle(r) for a filtered residual r; adds r.z to ``scalars[slot]``."""
@@ -302,39 +332,37 @@ class LatticeMultigrid:
         # on the lattice (docs/IMPLICIT.md).
         fine_shape = self.fine_shape
         first = self.levels[0]
-        wp.launch(k.mg_restrict, dim=first["count"], inputs=[fine_shape, first["shape"], r], outputs=[first["b"]],
-                  device=device)
-        # Coarse levels, down: sweeps from 0, residual, restriction.
+        # Each restriction also takes the level's first sweep from zero (x = omega D^-1 b).
+        self._restrict(fine_shape, r, first)
+        # Coarse levels, down: the other sweeps, residual, restriction.
         for index, lv in enumerate(self.levels[:-1]):
-            self._smooth(lv, from_zero=True)
-            wp.launch(
-                k.mg_stencil_op,
-                dim=lv["count"],
-                inputs=[0, self.coarse_omega, lv["shape"], lv["a"], lv["rowsum"], lv["dinv"], lv["b"], lv["x"]],
-                outputs=[lv["t"]],
-                device=device,
-            )
-            below = self.levels[index + 1]
-            wp.launch(
-                k.mg_restrict, dim=below["count"], inputs=[lv["shape"], below["shape"], lv["t"]], outputs=[below["b"]],
-                device=device,
-            )
+            self._smooth(lv, first=1)
+            self._stencil_op(lv, 0, lv["x"], lv["t"])
+            self._restrict(lv["shape"], lv["t"], self.levels[index + 1])
         last = self.levels[-1]
+        width = self.lane_width if self.lanes else 1
         wp.launch(
             k.mg_coarse_solve,
-            dim=last["count"],
-            inputs=[last["shape"], self.coarse_inv, last["b"]],
+            dim=(last["count"], width),
+            block_dim=width,
+            inputs=[width, last["shape"], self.coarse_inv, last["b"]],
             outputs=[last["x"]],
             device=device,
         )
-        # Up: prolongate the correction, then the same sweeps again (a symmetric cycle).
+        # Up: prolongate the correction, then the same sweeps again (a symmetric cycle). A level
+        # whose products run in lanes takes the prolongation into its first sweep.
         for index in range(len(self.levels) - 2, -1, -1):
             lv, below = self.levels[index], self.levels[index + 1]
-            wp.launch(
-                k.mg_prolong, dim=lv["count"], inputs=[lv["shape"], below["shape"], below["x"]], outputs=[lv["x"]],
-                device=device,
-            )
-            self._smooth(lv, from_zero=False)
+            if self._lanes(lv):
+                self._stencil_op(lv, 2, lv["x"], lv["t"], below)
+                lv["x"], lv["t"] = lv["t"], lv["x"]
+                self._smooth(lv, first=1)
+            else:
+                wp.launch(
+                    k.mg_prolong, dim=lv["count"], inputs=[lv["shape"], below["shape"], below["x"]],
+                    outputs=[lv["x"]], device=device,
+                )
+                self._smooth(lv, first=0)
         wp.launch(
             k.mg_fine_additive,
             dim=(ki.tile_blocks(n), ki.TILE),
@@ -373,23 +401,44 @@ class LatticeMultigrid:
             device=self.model.device,
         )
 
-    def _smooth(self, lv, from_zero: bool):
-        """``sweeps`` damped block-Jacobi sweeps on a coarse level; the result is in lv["x"]."""
+    def _restrict(self, shape, r, below):
+        """below["b"] = R r, and the first sweep from zero on that level into below["x"]."""
+        wp.launch(
+            self.kernels.mg_restrict,
+            dim=below["count"],
+            inputs=[shape, below["shape"], r, self.coarse_omega, below["dinv"]],
+            outputs=[below["b"], below["x"]],
+            device=self.model.device,
+        )
+
+    def _lanes(self, lv) -> bool:
+        """Whether a coarse level's products run with LANES threads per node (small levels on CUDA)."""
+        return self.lanes and lv["count"] <= LANES_MAX_NODES
+
+    def _stencil_op(self, lv, mode: int, x, y, below=None):
+        """On a coarse level, x into y: mode 0 the residual, 1 a sweep, 2 (lanes only) a sweep from
+        x + P e, e the correction of the level ``below``."""
         k = self.kernels
         device = self.model.device
-        for sweep in range(self.sweeps):
-            zero = from_zero and sweep == 0
+        args = [mode, self.coarse_omega, lv["shape"], lv["a"], lv["rowsum"], lv["dinv"], lv["b"], x]
+        if self._lanes(lv):
+            coarse = [below["shape"], below["x"]] if below is not None else [lv["shape"], x]
             wp.launch(
-                k.mg_stencil_op,
-                dim=lv["count"],
-                inputs=[
-                    2 if zero else 1, self.coarse_omega, lv["shape"], lv["a"], lv["rowsum"], lv["dinv"], lv["b"], lv["x"]
-                ],
-                outputs=[lv["t"]],
-                device=device,
+                k.mg_stencil_op_lanes, dim=(lv["count"], self.lane_width), block_dim=self.lane_width,
+                inputs=[self.lane_width, *args, *coarse],
+                outputs=[y], device=device,
             )
-            lv["x"], lv["t"] = lv["t"], lv["x"]
+        else:
+            wp.launch(k.mg_stencil_op, dim=lv["count"], inputs=args, outputs=[y], device=device)
 
+    def _smooth(self, lv, first: int):
+        """Sweeps ``first`` .. of damped block-Jacobi on a coarse level (``sweeps`` on the first
+        coarse level, ``deep_sweeps`` below it; sweep 0 from zero is the restriction's); the result
+        is in lv["x"]."""
+        sweeps = self.sweeps if lv is self.levels[0] else self.deep_sweeps
+        for _ in range(first, sweeps):
+            self._stencil_op(lv, 1, lv["x"], lv["t"])
+            lv["x"], lv["t"] = lv["t"], lv["x"]
 
     def stats(self) -> dict:
         """The hierarchy, for the metrics summary."""
@@ -399,6 +448,7 @@ class LatticeMultigrid:
             "multigrid_omega": float(self.omega),
             "multigrid_coarse_omega": float(self.coarse_omega),
             "multigrid_sweeps": self.sweeps,
+            "multigrid_deep_sweeps": self.deep_sweeps,
             "multigrid_setup_every": self.setup_every,
             "multigrid_gather": self.gather,
         }

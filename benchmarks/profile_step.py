@@ -1,0 +1,126 @@
+"""Profile: the time of each kernel in a step, from CUDA's activity records (a GPU tool).
+
+Two cases, each stepped uncaptured (kernel by kernel) after warm-up steps, then ``--steps`` steps
+recorded with ``wp.timing_begin`` / ``wp.timing_end``; the table sums each kernel's time over the
+recorded steps and divides by them (ms per step), largest first. Kernels launched inside a graph
+are not recorded by name, so nothing here is captured: the launch gaps of uncaptured steps are not
+in the table (it sums kernel time only), but the total is not the captured step's time either.
+
+* ``implicit``: the stiff spinning jelly of ``bench_implicit.py`` at ``--size``^3, implicit Euler
+  (``--preconditioner``), ``--dt``.
+* ``contact``: the pile of ``softsim bench --contact`` (``--jellies`` jellies of 10^3), symplectic.
+
+Usage::
+
+    python benchmarks/profile_step.py implicit --device cuda:0 --size 100 --out prof_mg.json
+    python benchmarks/profile_step.py contact --device cuda:0 --jellies 1000 --out prof_contact.json
+"""
+
+from __future__ import annotations
+
+import argparse
+import collections
+import json
+import os
+import sys
+
+import warp as wp
+
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+
+
+def _implicit_case(args, device):
+    from bench_implicit import stiff_jelly  # noqa: PLC0415
+
+    from softsim_warp.core.implicit import ImplicitIntegrator  # noqa: PLC0415
+
+    model = stiff_jelly(args.size, args.ks, device, args.precision)
+    integ = ImplicitIntegrator(model, preconditioner=args.preconditioner)
+    integ._graph_ok = False  # the CG loop launch by launch (a captured loop's kernels go unnamed)
+    states = [model.state(), model.state()]
+
+    def step(k):
+        integ.step(states[k % 2], states[1 - k % 2], args.dt)
+
+    return step, integ
+
+
+def _contact_case(args, device):
+    from softsim_warp.commands.bench import JellySpec  # noqa: PLC0415
+    from softsim_warp.commands.bench_contact import build_pile  # noqa: PLC0415
+    from softsim_warp.core.stepper import make_integrator  # noqa: PLC0415
+
+    spec = JellySpec()
+    model = build_pile(args.jellies, 10, spec, device, args.precision, contact=True)
+    integ = make_integrator("symplectic", model)
+    states = [model.state(), model.state()]
+
+    def step(k):
+        integ.step(states[k % 2], states[1 - k % 2], spec.dt)
+
+    return step, integ
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("case", choices=["implicit", "contact"])
+    p.add_argument("--device", default="cuda:0")
+    p.add_argument("--size", type=int, default=100)
+    p.add_argument("--ks", type=float, default=1.0e5)
+    p.add_argument("--dt", type=float, default=0.01)
+    p.add_argument("--preconditioner", default="multigrid")
+    p.add_argument("--jellies", type=int, default=1000)
+    p.add_argument("--precision", default="float32")
+    p.add_argument("--warmup", type=int, default=6)
+    p.add_argument("--steps", type=int, default=8)
+    p.add_argument("--out", default=None)
+    p.add_argument("--sequence", type=int, default=0, help="also print the first N launches of the last step in order")
+    args = p.parse_args(argv)
+    wp.init()
+    device = wp.get_device(args.device)
+    step, integ = (_implicit_case if args.case == "implicit" else _contact_case)(args, device)
+    for k in range(args.warmup):
+        step(k)
+    wp.synchronize_device(device)
+    wp.timing_begin(cuda_filter=wp.TIMING_KERNEL)
+    for k in range(args.steps):
+        step(args.warmup + k)
+    results = wp.timing_end()
+    ms = collections.defaultdict(float)
+    launches = collections.Counter()
+    for r in results:
+        name = r.name.split("forward_kernel_")[0].removeprefix("forward kernel ").split("_cuda_kernel")[0]
+        ms[name] += r.elapsed / args.steps
+        launches[name] += 1
+    if args.sequence:
+        per_step = len(results) // args.steps
+        for r in results[-per_step:][: args.sequence]:
+            print(f"  {r.name.split('_cuda_kernel')[0][-40:]:<40} {1e3 * r.elapsed:8.1f} us")
+    total = sum(ms.values())
+    rows = sorted(ms.items(), key=lambda kv: -kv[1])
+    print(f"{args.case} on {device.name}: kernel time per step {total:.3f} ms over {args.steps} uncaptured steps")
+    print(f"{'kernel':<48} {'ms/step':>9} {'share':>6} {'launches/step':>14}")
+    for name, t in rows:
+        print(f"{name[:48]:<48} {t:9.4f} {100 * t / total:5.1f}% {launches[name] / args.steps:14.1f}")
+    stats = integ.stats() if hasattr(integ, "stats") else {}
+    if stats:
+        print("stats:", {k: v for k, v in stats.items() if isinstance(v, (int, float))})
+    if args.out:
+        with open(args.out, "w") as f:
+            json.dump(
+                {
+                    "case": args.case,
+                    "args": vars(args),
+                    "device_name": device.name,
+                    "kernel_ms_per_step": dict(rows),
+                    "launches_per_step": {k: launches[k] / args.steps for k in ms},
+                    "stats": {k: v for k, v in stats.items() if isinstance(v, (int, float, str))},
+                },
+                f,
+                indent=1,
+            )
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
