@@ -617,10 +617,11 @@ def build(scalar):
     ):
         i = wp.tid()
         ci = count[i]
-        vi = cqd[i]
         if ci == 0:
-            cqd_out[i] = vi
+            # Nothing reads a velocity of a particle without contacts from these buffers: its
+            # partners would be in contact with it, and the position pass leaves it alone.
             return
+        vi = cqd[i]
         wi = cw[i]
         wi_split = w_split[i]
         impulse = vec3(scalar(0.0))

@@ -98,7 +98,7 @@ from .multigrid import LatticeMultigrid, auto_min_particles, multigrid_support
 
 # "jacobi": 3x3 block-Jacobi; "diagonal": the inverse of the diagonal; "multigrid": a V-cycle on
 # the lattice of a one-jelly model (core/multigrid.py); "auto": multigrid where it applies and pays
-# (multigrid.auto_min_particles: 12^3 on the CPU, 30^3 on CUDA), else jacobi. "block_jacobi" is another name of "jacobi".
+# (multigrid.auto_min_particles: 12^3 on the CPU, 20^3 on CUDA), else jacobi. "block_jacobi" is another name of "jacobi".
 PRECONDITIONERS = ("auto", "multigrid", "jacobi", "diagonal", "block_jacobi")
 LINEARIZATIONS = ("predictor", "baraff_witkin")
 SOLVERS = ("matrix_free", "bsr", "warp_cg")

@@ -49,17 +49,17 @@ DEFAULT_DEEP_SWEEPS = 2
 # 17.1 CG iterations (10^3: 1.31 and 1.22 ms; 40^3: 2.28 and 2.18 ms).
 DEFAULT_SETUP_EVERY = 8
 # Particles from which the default ("auto") preconditioner is multigrid: on the CPU block-Jacobi is
-# faster up to about 11^3 (free flight: 4.9 against 7.0 ms a step at 10^3, 6.6 against 6.4 at 11^3,
-# 8.7 against 7.6 at 12^3, 14.6 against 11.1 at 14^3; docs/IMPLICIT.md); on an H100 up to about 30^3
-# (1.58 against 4.24 ms a step at 20^3 for multigrid with stored blocks and a build every solve,
-# 8.44 against 4.85 for the present one at 40^3; the crossover has not been measured again).
+# faster up to about 11^3 (free flight, earlier code: 4.9 against 7.0 ms a step at 10^3, 6.6 against
+# 6.4 at 11^3, 8.7 against 7.6 at 12^3, 14.6 against 11.1 at 14^3; now 17.0 against 21.0 at 10^3
+# and 163 against 82 at 20^3 on a slower day; docs/IMPLICIT.md); on an H100 up to 20^3 (0.67
+# against 1.22 ms a step at 10^3, 1.59 against 1.55 at 20^3, 8.68 against 2.18 at 40^3).
 AUTO_MIN_PARTICLES = 12**3
+AUTO_MIN_PARTICLES_CUDA = 20**3
 # Coarse levels of at most this many nodes take their stencil products with LANES threads per node
 # on CUDA (kernels/multigrid.py: mg_stencil_op_lanes; H100, per launch: 14^3 5.6 against 8.3 us,
 # 8^3 3.7 against 8.2; 26^3 16.8 against 8.5).
 LANES_MAX_NODES = 14**3
 LANES = 32
-AUTO_MIN_PARTICLES_CUDA = 30**3
 
 
 def auto_min_particles(device) -> int:
