@@ -19,7 +19,7 @@ from softsim_warp.core.implicit import ImplicitIntegrator
 from softsim_warp.core.integrators import ExplicitIntegrator
 from softsim_warp.core.lattice import SPRING_TYPE_NAMES
 from softsim_warp.core.model import ModelBuilder
-from softsim_warp.core.profile import NO_PROFILE, OTHER
+from softsim_warp.core.profile import NO_PROFILE, OTHER, StepProfile
 from softsim_warp.core.stepper import Stepper
 
 DT = 0.01
@@ -99,6 +99,24 @@ def test_profiled_run_equals_captured_run_and_its_parts_add_up(case):
     else:
         expected = {"stages", "contact", OTHER}
     assert set(parts) == expected
+
+
+def test_nested_parts_are_charged_exclusively():
+    """A part's seconds exclude those of the parts inside it; a step stopped by an interrupt adds its
+    time to the total but does not count, so the parts always add up to the total."""
+    profile = StepProfile("cpu")
+    with profile.step():
+        with profile.part("outer"):
+            time.sleep(0.05)
+            with profile.part("inner"):
+                time.sleep(0.2)
+    parts = profile.stats()["time_parts_s"]
+    assert list(parts) == ["outer", "inner", OTHER]
+    assert parts["inner"] >= 0.2 and 0.05 <= parts["outer"] < 0.2  # outer holds its own sleep only
+    with pytest.raises(KeyboardInterrupt), profile.step(), profile.part("inner"):
+        raise KeyboardInterrupt
+    assert profile.steps == 1
+    assert sum(profile.seconds.values()) == pytest.approx(profile.total, rel=1e-12)
 
 
 def test_no_profile_no_synchronise(monkeypatch):

@@ -52,7 +52,7 @@ class StepProfile:
     Attributes:
         seconds: seconds per part name, in the order the parts were first entered.
         steps: steps timed (``step()`` contexts closed).
-        total: seconds of those steps, from the synchronise that opens each to the one that closes
+        total: seconds of the steps, from the synchronise that opens each to the one that closes
             it; the sum of ``seconds`` when every part was entered inside a step.
     """
 
@@ -95,12 +95,19 @@ class StepProfile:
 
     @contextlib.contextmanager
     def step(self):
-        """One step: its time not inside a named part goes to :data:`OTHER`."""
-        with self.part(OTHER):
-            start = self._mark
-            yield
-        self.total += self._mark - start
-        self.steps += 1
+        """One step: its time not inside a named part goes to :data:`OTHER`.
+
+        A step stopped by an exception (an interrupt) adds its time to ``total`` but does not
+        count as a step, so the parts still add up to ``total``."""
+        start = None
+        try:
+            with self.part(OTHER):
+                start = self._mark
+                yield
+            self.steps += 1
+        finally:
+            if start is not None:
+                self.total += self._mark - start
 
     def stats(self) -> dict:
         """The metrics summary's keys: steps timed, their seconds, and seconds per part (:data:`OTHER` last)."""

@@ -22,7 +22,7 @@ import warp as wp
 from .implicit import ImplicitIntegrator
 from .integrators import ExplicitIntegrator, Integrator
 from .model import Model, State
-from .profile import StepProfile
+from .profile import NO_PROFILE, StepProfile
 
 # Steps captured in one graph at most. A step launches 2 (symplectic) to 8 (RK4) or 14 (implicit)
 # kernels; measured (Warp 1.19, 27 to 27,000 particles) a captured step holds 7-9 KiB of host memory
@@ -81,9 +81,10 @@ class Stepper:
         self.integrator = integrator
         self.dt = float(dt)
         self.use_graph = (not profile) if use_graph is None else bool(use_graph)
-        self.profile = None
-        if profile:
-            self.profile = integrator.profile = StepProfile(model.device)
+        # The integrator times its parts into the profile; without one (NO_PROFILE, also replacing
+        # an earlier stepper's) it may be captured.
+        self.profile = StepProfile(model.device) if profile else None
+        integrator.profile = NO_PROFILE if self.profile is None else self.profile
         self.states = [model.state(), model.state()]
         self.current = 0
         self._graphs = {}
