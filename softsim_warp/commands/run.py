@@ -15,7 +15,7 @@ from ..core.model import build_model
 from ..core.stepper import make_integrator
 from ..io.outputs import USD_SUFFIXES, Outputs, kept_partial_path, write_json_atomic
 from ..io.resources import check_fits
-from ..io.runinfo import explosion_message, summary_dict, summary_line
+from ..io.runinfo import explosion_message, profile_table, summary_dict, summary_line
 from ..io.simulate import Simulator
 from ..io.usd import UsdWriter
 from . import common
@@ -44,6 +44,9 @@ def add_parser(subparsers, add_common):
     run.add_argument("--metrics", help="write per-frame metrics as JSON")
     run.add_argument("--springs", action="store_true", help="also write springs as BasisCurves")
     run.add_argument("--no-graph", action="store_true", help="launch kernels one by one instead of replaying a captured graph")
+    run.add_argument("--profile", action="store_true",
+                     help="time each part of the step (kernels launched one by one, a device synchronise around "
+                          "each part): a table on stdout, and time_* keys in --metrics")
     run.add_argument("--preview", metavar="GIF", help="also render the written USD to this animated GIF (softsim preview)")
     add_common(run)
 
@@ -86,7 +89,8 @@ def _run_locked(args, signals, scene, out, metrics_path, preview_path) -> int:
         model = build_model(scene, device=device, deterministic=args.deterministic)
         integrator = make_integrator(sim["integrator"], model, scene.data.get("implicit"))
         simulator = Simulator(model, integrator, sim["dt"], sim["fps"], frames,
-                              use_graph=None if not args.no_graph else False, max_speed=sim.get("max_speed"))
+                              use_graph=None if not args.no_graph else False, max_speed=sim.get("max_speed"),
+                              profile=args.profile)
     if signals.received is not None:
         return signals.exit_code()
     writer = UsdWriter(out, model, sim["fps"], springs=args.springs,
@@ -149,6 +153,8 @@ def _run_locked(args, signals, scene, out, metrics_path, preview_path) -> int:
         write_json_atomic(kept_partial_path(metrics_path) if kept else metrics_path,
                           {"summary": summary, "frames": [m.as_dict() for m in result.metrics]})
     print(summary_line(summary, written), file=sys.stderr)
+    if args.profile:
+        print(profile_table(summary))
     if kept:
         print(f"note: {out} existed and the run did not complete: it is unchanged, the frames are in {written}",
               file=sys.stderr)

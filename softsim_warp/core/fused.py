@@ -122,66 +122,69 @@ def step_fused(integrator, state_in, state_out, dt):
     for stage in range(integrator.stage_count):
         q_next, qd_next = bufs[stage % 2]
         outputs = [integrator.acc_q, integrator.acc_qd, q_next, qd_next, state_out.particle_q, state_out.particle_qd]
-        if rows:
-            wp.launch(
-                model.kernels.integrate_lattice_rows_stage,
-                dim=lat.jelly_count,
-                inputs=[
-                    stage,
-                    h,
-                    *lat.stencil_tables,
-                    lat.jelly_world,
-                    lat.particle_coord_k,
-                    model.particle_inv_mass,
-                    model.gravity,
-                    integrator.world_stage_count,
-                    integrator.world_symplectic,
-                    integrator.world_stage_c,
-                    integrator.world_stage_b,
-                    state_in.particle_q,
-                    state_in.particle_qd,
-                    q,
-                    qd,
-                    lat.scratch,
-                    integrator.f,
-                ],
-                outputs=outputs,
-                device=model.device,
-            )
-        else:
-            wp.launch(
-                stage_kernel,
-                dim=model.particle_count,
-                inputs=[
-                    stage,
-                    h,
-                    int(integrator.fuse_contact),
-                    model.particle_inv_mass,
-                    model.particle_world,
-                    model.particle_jelly,
-                    model.gravity,
-                    *tables,
-                    integrator.world_stage_count,
-                    integrator.world_symplectic,
-                    integrator.world_stage_c,
-                    integrator.world_stage_b,
-                    *plane_arrays(model),
-                    model.contact_epsilon,
-                    model.contact_velocity_epsilon,
-                    model.restitution_threshold_steps,
-                    integrator.world_contact_beta,
-                    coef,
-                    state_in.particle_q,
-                    state_in.particle_qd,
-                    q,
-                    qd,
-                ],
-                outputs=outputs,
-                device=model.device,
-            )
+        with integrator.profile.part("stages"):
+            if rows:
+                wp.launch(
+                    model.kernels.integrate_lattice_rows_stage,
+                    dim=lat.jelly_count,
+                    inputs=[
+                        stage,
+                        h,
+                        *lat.stencil_tables,
+                        lat.jelly_world,
+                        lat.particle_coord_k,
+                        model.particle_inv_mass,
+                        model.gravity,
+                        integrator.world_stage_count,
+                        integrator.world_symplectic,
+                        integrator.world_stage_c,
+                        integrator.world_stage_b,
+                        state_in.particle_q,
+                        state_in.particle_qd,
+                        q,
+                        qd,
+                        lat.scratch,
+                        integrator.f,
+                    ],
+                    outputs=outputs,
+                    device=model.device,
+                )
+            else:
+                wp.launch(
+                    stage_kernel,
+                    dim=model.particle_count,
+                    inputs=[
+                        stage,
+                        h,
+                        int(integrator.fuse_contact),
+                        model.particle_inv_mass,
+                        model.particle_world,
+                        model.particle_jelly,
+                        model.gravity,
+                        *tables,
+                        integrator.world_stage_count,
+                        integrator.world_symplectic,
+                        integrator.world_stage_c,
+                        integrator.world_stage_b,
+                        *plane_arrays(model),
+                        model.contact_epsilon,
+                        model.contact_velocity_epsilon,
+                        model.restitution_threshold_steps,
+                        integrator.world_contact_beta,
+                        coef,
+                        state_in.particle_q,
+                        state_in.particle_qd,
+                        q,
+                        qd,
+                    ],
+                    outputs=outputs,
+                    device=model.device,
+                )
         q, qd = q_next, qd_next
         if stage < integrator.stage_count - 1:
-            filter_stage_contacts(
-                model, state_in, q, qd, integrator.world_contact_beta, planes=not integrator.fuse_contact
-            )
-    apply_contacts(model, state_in, state_out, dt, integrator.world_contact_beta, planes=not integrator.fuse_contact)
+            with integrator.profile.part("contact"):
+                filter_stage_contacts(
+                    model, state_in, q, qd, integrator.world_contact_beta, planes=not integrator.fuse_contact
+                )
+    with integrator.profile.part("contact"):
+        apply_contacts(model, state_in, state_out, dt, integrator.world_contact_beta, planes=not integrator.fuse_contact)

@@ -413,6 +413,7 @@ class ImplicitIntegrator(Integrator):
         pblocks = ki.tile_blocks(n)
         matrix_free = self.solver == "matrix_free"
 
+        profile = self.profile
         spring_mv = self._spring_mv
         mg = self.multigrid
         precond = self.precond if mg is None else self.no_precond
@@ -423,10 +424,11 @@ class ImplicitIntegrator(Integrator):
                 mg.product(vec, self.ap, self.scalars, ki.PAP)
 
         # r = b - A x0, z = P r, tolerance and condition.
-        if matrix_free:
-            spring_mv(self.x)
-        else:
-            wp.sparse.bsr_mv(self.bsr, self.x, self.ap, alpha=1.0, beta=0.0)
+        with profile.part("cg_spring_product"):
+            if matrix_free:
+                spring_mv(self.x)
+            else:
+                wp.sparse.bsr_mv(self.bsr, self.x, self.ap, alpha=1.0, beta=0.0)
         wp.launch(
             k.init_residual,
             dim=(pblocks, ki.TILE),
@@ -436,7 +438,8 @@ class ImplicitIntegrator(Integrator):
             device=device,
         )
         if mg is not None:
-            mg.apply(self.r, self.z, self.scalars, ki.RZ_NEW)
+            with profile.part("multigrid_vcycle"):
+                mg.apply(self.r, self.z, self.scalars, ki.RZ_NEW)
         wp.launch(
             k.cg_begin,
             dim=1,
@@ -454,19 +457,21 @@ class ImplicitIntegrator(Integrator):
                 outputs=[self.p, self.ap, self.scalars],
                 device=device,
             )
-            if matrix_free:
-                spring_mv(self.p)
-            else:
-                wp.sparse.bsr_mv(self.bsr, self.p, self.ap, alpha=1.0, beta=0.0)
-            if not lattice_product:
-                wp.launch(
-                    k.dot_accumulate,
-                    dim=(pblocks, ki.TILE),
-                    block_dim=ki.TILE,
-                    inputs=[n, ki.PAP, self.p, self.ap],
-                    outputs=[self.scalars],
-                    device=device,
-                )
+            # A p and p.A p (the lattice product sums p.A p itself).
+            with profile.part("cg_spring_product"):
+                if matrix_free:
+                    spring_mv(self.p)
+                else:
+                    wp.sparse.bsr_mv(self.bsr, self.p, self.ap, alpha=1.0, beta=0.0)
+                if not lattice_product:
+                    wp.launch(
+                        k.dot_accumulate,
+                        dim=(pblocks, ki.TILE),
+                        block_dim=ki.TILE,
+                        inputs=[n, ki.PAP, self.p, self.ap],
+                        outputs=[self.scalars],
+                        device=device,
+                    )
             wp.launch(
                 k.cg_update,
                 dim=(pblocks, ki.TILE),
@@ -476,7 +481,8 @@ class ImplicitIntegrator(Integrator):
                 device=device,
             )
             if mg is not None:
-                mg.apply(self.r, self.z, self.scalars, ki.RZ_NEW)
+                with profile.part("multigrid_vcycle"):
+                    mg.apply(self.r, self.z, self.scalars, ki.RZ_NEW)
             wp.launch(
                 k.cg_end_iteration,
                 dim=1,
@@ -511,7 +517,8 @@ class ImplicitIntegrator(Integrator):
 
     def _solve_pcg(self):
         device = self.model.device
-        if self._graph_ok and not device.is_capturing and self._loop_ran:
+        # A profiled step launches the loop's kernels from Python, so each part can be timed.
+        if self._graph_ok and not device.is_capturing and self._loop_ran and not self.profile.active:
             # The loop only touches this integrator's buffers, so one captured graph serves every
             # solve. (Captured from the second call on, when every kernel module is loaded.)
             if self._solve_graph is None:
@@ -524,36 +531,44 @@ class ImplicitIntegrator(Integrator):
             self._loop_ran = True
 
     def _solve(self, constrained: bool = False):
+        profile = self.profile
         if self.multigrid is not None:
-            self.multigrid.setup(constrained)
+            # The whole setup: the device-side decision (mg_setup_due, capture_if) and any build.
+            with profile.part("multigrid_setup"):
+                self.multigrid.setup(constrained)
         if self.solver != "matrix_free":
-            self._assemble_bsr()
+            with profile.part("system_assembly"):
+                self._assemble_bsr()
         if self.solver == "warp_cg":
-            self._solve_warp_cg()
+            with profile.part("warp_cg_solve"):
+                self._solve_warp_cg()
         else:
-            self._solve_pcg()
+            # The loop's own kernels and control; its products and V-cycles are parts of their own.
+            with profile.part("cg_vector_update"):
+                self._solve_pcg()
 
     # -- the step -------------------------------------------------------------------------------
 
     def _update(self, h, state_in: State, qd_k: wp.array, state_out: State, save_warm: bool, dv_scale=1.0):
         """v_out = qd_k + dv_scale x, q_out = q_n + h v_out; optionally keep x as the next warm start."""
         model = self.model
-        wp.launch(
-            model.kernels.apply_velocity_update,
-            dim=model.particle_count,
-            inputs=[
-                h,
-                model.scalar(dv_scale),
-                int(save_warm),
-                self.fixed,
-                model.gravity,
-                state_in.particle_q,
-                qd_k,
-                self.x,
-            ],
-            outputs=[state_out.particle_q, state_out.particle_qd, self.dv_warm],
-            device=model.device,
-        )
+        with self.profile.part("velocity_update"):
+            wp.launch(
+                model.kernels.apply_velocity_update,
+                dim=model.particle_count,
+                inputs=[
+                    h,
+                    model.scalar(dv_scale),
+                    int(save_warm),
+                    self.fixed,
+                    model.gravity,
+                    state_in.particle_q,
+                    qd_k,
+                    self.x,
+                ],
+                outputs=[state_out.particle_q, state_out.particle_qd, self.dv_warm],
+                device=model.device,
+            )
 
     def _newton_iteration(self, h, state_in: State, state_out: State, at_start: bool, first: bool, reset_filters: bool):
         """Linearise, build and solve one system; write v = v_k + dv and x = x_n + h v to state_out."""
@@ -566,57 +581,59 @@ class ImplicitIntegrator(Integrator):
         q, qd = (
             (state_in.particle_q, state_in.particle_qd) if at_start else (state_out.particle_q, state_out.particle_qd)
         )
-        eval_forces(model, q, qd, self.f)
-        self.diag_block.zero_()
-        self.rhs.zero_()
-        if model.spring_count and self.multigrid is not None:
-            # A lattice jelly: per-particle gather, no spring blocks stored (core/multigrid.py).
-            self.multigrid.jacobians(h, h * h if at_start else scalar(0.0), q, qd, self.diag_block, self.rhs)
-        elif model.spring_count:
+        with self.profile.part("forces_jacobians"):
+            eval_forces(model, q, qd, self.f)
+            self.diag_block.zero_()
+            self.rhs.zero_()
+            if model.spring_count and self.multigrid is not None:
+                # A lattice jelly: per-particle gather, no spring blocks stored (core/multigrid.py).
+                self.multigrid.jacobians(h, h * h if at_start else scalar(0.0), q, qd, self.diag_block, self.rhs)
+            elif model.spring_count:
+                wp.launch(
+                    k.eval_spring_jacobians,
+                    dim=model.spring_count,
+                    inputs=[
+                        h,
+                        h * h if at_start else scalar(0.0),
+                        model.spring_indices,
+                        model.spring_rest_length,
+                        model.spring_stiffness,
+                        model.spring_damping,
+                        q,
+                        qd,
+                    ],
+                    outputs=[self.spring_block, self.diag_block, self.rhs],
+                    device=device,
+                )
+        with self.profile.part("system_assembly"):
+            self.scalars.zero_()
             wp.launch(
-                k.eval_spring_jacobians,
-                dim=model.spring_count,
+                k.build_system,
+                dim=(ki.tile_blocks(n), ki.TILE),
+                block_dim=ki.TILE,
                 inputs=[
+                    n,
                     h,
-                    h * h if at_start else scalar(0.0),
-                    model.spring_indices,
-                    model.spring_rest_length,
-                    model.spring_stiffness,
-                    model.spring_damping,
-                    q,
+                    scalar(1.0) if first and self.warm_start else scalar(0.0),
+                    int(self.preconditioner != "diagonal"),
+                    int(reset_filters),
+                    model.particle_mass,
+                    model.gravity,
+                    self.fixed,
+                    self.mass_eff,
+                    state_in.particle_qd,
                     qd,
+                    self.f,
+                    self.dv_warm,
+                    self.diag_block,
+                    self.rhs,
+                    self.filters,
                 ],
-                outputs=[self.spring_block, self.diag_block, self.rhs],
+                outputs=[self.precond, self.x, self.ap, self.scalars],
                 device=device,
             )
-        self.scalars.zero_()
-        wp.launch(
-            k.build_system,
-            dim=(ki.tile_blocks(n), ki.TILE),
-            block_dim=ki.TILE,
-            inputs=[
-                n,
-                h,
-                scalar(1.0) if first and self.warm_start else scalar(0.0),
-                int(self.preconditioner != "diagonal"),
-                int(reset_filters),
-                model.particle_mass,
-                model.gravity,
-                self.fixed,
-                self.mass_eff,
-                state_in.particle_qd,
-                qd,
-                self.f,
-                self.dv_warm,
-                self.diag_block,
-                self.rhs,
-                self.filters,
-            ],
-            outputs=[self.precond, self.x, self.ap, self.scalars],
-            device=device,
-        )
-        if first:
-            wp.launch(k.set_step_scale, dim=1, inputs=[self.scalars], outputs=[self.step_bb], device=device)
+            if first:
+                wp.launch(k.set_step_scale, dim=1, inputs=[self.scalars], outputs=[self.step_bb], device=device)
         self._solve(constrained=not reset_filters)
         self._update(h, state_in, qd, state_out, first)
 
@@ -635,16 +652,22 @@ class ImplicitIntegrator(Integrator):
             first = it == 0
             self._newton_iteration(h, state_in, state_out, first and baraff_witkin, first, True)
         if self.contact_solve:
-            self._contact_solve(h, state_in, state_out, dt)
+            # Its forces, setups, solves and updates count under their own parts; this part keeps
+            # the constraints, the energy measurements and restitution.
+            with self.profile.part("contact_solve"):
+                self._contact_solve(h, state_in, state_out, dt)
         self._record_step()
-        apply_contacts(model, state_in, state_out, dt, self.world_contact_beta)
+        with self.profile.part("contact"):
+            apply_contacts(model, state_in, state_out, dt, self.world_contact_beta)
 
     def _contact_solve(self, h, state_in: State, state_out: State, dt: float):
         """Newton iterations again, with the contact response's velocities as constraints."""
         model = self.model
         wp.copy(self.q_free, state_out.particle_q)
         wp.copy(self.qd_free, state_out.particle_qd)
-        apply_contacts(model, state_in, state_out, dt, self.world_contact_beta, solve_hooks_only=True, layer_touch=True)
+        with self.profile.part("contact"):
+            apply_contacts(model, state_in, state_out, dt, self.world_contact_beta, solve_hooks_only=True,
+                           layer_touch=True)
         self.any_contact.zero_()
         wp.launch(
             model.kernels.constrain_contacts,
@@ -694,25 +717,26 @@ class ImplicitIntegrator(Integrator):
             # iterate instead (particles bounced by the response, their neighbours not yet)
             # would start Newton from a distorted lattice and can diverge.
             n = model.particle_count
-            self.scalars.zero_()
-            wp.launch(
-                model.kernels.constrain_last_system,
-                dim=(ki.tile_blocks(n), ki.TILE),
-                block_dim=ki.TILE,
-                inputs=[
-                    n,
-                    int(self.preconditioner != "diagonal"),
-                    model.particle_mass,
-                    self.mass_eff,
-                    self.fixed,
-                    self.filters,
-                    self.diag_block,
-                    self.qd_free,
-                    state_out.particle_qd,
-                ],
-                outputs=[self.x, self.rhs, self.precond, self.qd_k, self.ap, self.scalars],
-                device=model.device,
-            )
+            with self.profile.part("system_assembly"):
+                self.scalars.zero_()
+                wp.launch(
+                    model.kernels.constrain_last_system,
+                    dim=(ki.tile_blocks(n), ki.TILE),
+                    block_dim=ki.TILE,
+                    inputs=[
+                        n,
+                        int(self.preconditioner != "diagonal"),
+                        model.particle_mass,
+                        self.mass_eff,
+                        self.fixed,
+                        self.filters,
+                        self.diag_block,
+                        self.qd_free,
+                        state_out.particle_qd,
+                    ],
+                    outputs=[self.x, self.rhs, self.precond, self.qd_k, self.ap, self.scalars],
+                    device=model.device,
+                )
             self._solve(constrained=True)
             self._update(h, state_in, self.qd_k, state_out, False)
             # Then Newton iterations at the result, which take the springs' nonlinearity into
@@ -860,3 +884,11 @@ class ImplicitIntegrator(Integrator):
             "cg_relative_residual_max": float(res[0]),
             "cg_relative_residual_mean": float(res[1]) / int(a[ki.SOLVES]) if a[ki.SOLVES] else 0.0,
         }
+
+    def profile_notes(self) -> list[str]:
+        if self.solver == "warp_cg":
+            return ["warp_cg: warp.optim.linear.cg's products, preconditioner and updates are one part, warp_cg_solve"]
+        if self.multigrid is None:
+            return [f"the {self.preconditioner} preconditioner is applied inside init_residual and cg_update: its "
+                    "time is part of cg_vector_update"]
+        return []

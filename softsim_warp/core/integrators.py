@@ -16,6 +16,7 @@ from .forces import eval_forces
 from .fused import configure_fused, stage_buffers, step_fused
 from .model import NUMPY_SCALARS, Model, State
 from .pins import drive
+from .profile import NO_PROFILE
 
 # Butcher tableaux of the explicit methods, as (c, b): stage s is evaluated at
 # y_n + h c_s k_{s-1}, and y_{n+1} = y_n + h sum_s b_s k_s. All of them have a_{s,j} = 0 except the
@@ -43,6 +44,8 @@ class Integrator:
     """Base class: ``step(state_in, state_out, dt)`` advances one step, contact included."""
 
     name = "base"
+    # Times the parts of each step when a stepper profiles it (core/profile.py); a no-op otherwise.
+    profile = NO_PROFILE
 
     def __init__(self, model: Model):
         self.model = model
@@ -55,6 +58,10 @@ class Integrator:
     def stats(self) -> dict:
         """Per-run statistics for the metrics file (e.g. linear-solver iterations)."""
         return {}
+
+    def profile_notes(self) -> list[str]:
+        """Work that a profile cannot time apart because a kernel of another part does it."""
+        return []
 
     def check_states(self, state_in: State, state_out: State):
         """Refuse states whose arrays live on another device than the model's, or have another
@@ -143,33 +150,42 @@ class ExplicitIntegrator(Integrator):
             step_fused(self, state_in, state_out, dt)
             return
         model = self.model
+        profile = self.profile
         h = model.scalar(dt)
         q, qd = state_in.particle_q, state_in.particle_qd
         for stage in range(self.stage_count):
-            eval_forces(model, q, qd, self.f)
-            wp.launch(
-                model.kernels.integrate_stage,
-                dim=model.particle_count,
-                inputs=[
-                    stage,
-                    h,
-                    model.particle_inv_mass,
-                    model.particle_world,
-                    model.gravity,
-                    self.world_stage_count,
-                    self.world_symplectic,
-                    self.world_stage_c,
-                    self.world_stage_b,
-                    state_in.particle_q,
-                    state_in.particle_qd,
-                    q,
-                    qd,
-                    self.f,
-                ],
-                outputs=[self.acc_q, self.acc_qd, self.q_s, self.qd_s, state_out.particle_q, state_out.particle_qd],
-                device=model.device,
-            )
+            with profile.part("stages"):
+                eval_forces(model, q, qd, self.f)
+                wp.launch(
+                    model.kernels.integrate_stage,
+                    dim=model.particle_count,
+                    inputs=[
+                        stage,
+                        h,
+                        model.particle_inv_mass,
+                        model.particle_world,
+                        model.gravity,
+                        self.world_stage_count,
+                        self.world_symplectic,
+                        self.world_stage_c,
+                        self.world_stage_b,
+                        state_in.particle_q,
+                        state_in.particle_qd,
+                        q,
+                        qd,
+                        self.f,
+                    ],
+                    outputs=[self.acc_q, self.acc_qd, self.q_s, self.qd_s, state_out.particle_q, state_out.particle_qd],
+                    device=model.device,
+                )
             q, qd = self.q_s, self.qd_s
             if stage < self.stage_count - 1:
-                filter_stage_contacts(model, state_in, q, qd, self.world_contact_beta)
-        apply_contacts(model, state_in, state_out, dt, self.world_contact_beta)
+                with profile.part("contact"):
+                    filter_stage_contacts(model, state_in, q, qd, self.world_contact_beta)
+        with profile.part("contact"):
+            apply_contacts(model, state_in, state_out, dt, self.world_contact_beta)
+
+    def profile_notes(self) -> list[str]:
+        if self.fused and self.fuse_contact:
+            return ["plane contact (and its filter between stages) runs inside the fused stage kernel: its time is part of stages"]
+        return []

@@ -22,6 +22,7 @@ import warp as wp
 from .implicit import ImplicitIntegrator
 from .integrators import ExplicitIntegrator, Integrator
 from .model import Model, State
+from .profile import NO_PROFILE, StepProfile
 
 # Steps captured in one graph at most. A step launches 2 (symplectic) to 8 (RK4) or 14 (implicit)
 # kernels; measured (Warp 1.19, 27 to 27,000 particles) a captured step holds 7-9 KiB of host memory
@@ -60,7 +61,11 @@ class Stepper:
         integrator: an :class:`~softsim_warp.core.integrators.Integrator` for it.
         dt: step size [s].
         use_graph: capture each distinct step count (up to :data:`MAX_GRAPH_STEPS`) as a graph and
-            replay it (default on).
+            replay it (default on; off when profiling).
+        profile: time the parts of every step (:class:`~softsim_warp.core.profile.StepProfile`,
+            given to the integrator as ``integrator.profile`` and kept as ``self.profile``). Each
+            part is bracketed by a synchronise, which a captured graph cannot hold, so the steps are
+            launched one by one.
 
     ``state`` is the current state; ``advance(n)`` takes ``n`` steps. Between calls the state may be
     read (``state.particle_q.numpy()``) or written; a captured graph reads whichever of the two
@@ -69,11 +74,17 @@ class Stepper:
     loaded outside the capture (the implicit integrator's conditional graph nodes need that).
     """
 
-    def __init__(self, model: Model, integrator: Integrator, dt: float, use_graph=None):
+    def __init__(self, model: Model, integrator: Integrator, dt: float, use_graph=None, profile=False):
+        if profile and use_graph:
+            raise ValueError("a profiled stepper launches its steps one by one: use_graph must be off")
         self.model = model
         self.integrator = integrator
         self.dt = float(dt)
-        self.use_graph = True if use_graph is None else bool(use_graph)
+        self.use_graph = (not profile) if use_graph is None else bool(use_graph)
+        # The integrator times its parts into the profile; without one (NO_PROFILE, also replacing
+        # an earlier stepper's) it may be captured.
+        self.profile = StepProfile(model.device) if profile else None
+        integrator.profile = NO_PROFILE if self.profile is None else self.profile
         self.states = [model.state(), model.state()]
         self.current = 0
         self._graphs = {}
@@ -98,14 +109,17 @@ class Stepper:
         reset_stats = getattr(self.integrator, "reset_stats", None)  # the warm-up step is not part of the run
         if reset_stats is not None:
             reset_stats()
+        self.integrator.profile.reset()  # nor is its time, which includes compiling
 
     @property
     def state(self) -> State:
         return self.states[self.current]
 
     def _advance_plain(self, n: int):
+        profile = self.integrator.profile
         for _ in range(n):
-            self.integrator.step(self.states[self.current], self.states[1 - self.current], self.dt)
+            with profile.step():
+                self.integrator.step(self.states[self.current], self.states[1 - self.current], self.dt)
             self.current = 1 - self.current
 
     def advance(self, n: int):
@@ -114,6 +128,8 @@ class Stepper:
         if n <= 0:
             return
         if not self.use_graph:
+            if self.profile is not None and not self.warmed_up:
+                self.warm_up()  # compiling is not part of any step's time
             self._advance_plain(n)
             return
         chunk = max(1, int(MAX_GRAPH_STEPS))

@@ -50,7 +50,32 @@ def summary_dict(scene, model, integrator, simulator, result, device) -> dict:
         "explosion": result.explosion,
         "interrupted": result.interrupted,
         **integrator.stats(),
+        **profile_stats(simulator),
     }
+
+
+def profile_stats(simulator) -> dict:
+    """A profiled run's ``time_*`` keys (core/profile.py); none for a run without ``profile``."""
+    if simulator.profile is None:
+        return {}
+    return {**simulator.profile.stats(), "time_notes": simulator.integrator.profile_notes()}
+
+
+def profile_table(s: dict) -> str:
+    """The ``time_*`` keys of a profiled run's summary as a table: seconds, milliseconds a step, share."""
+    steps, total = s["time_steps"], s["time_total_s"]
+    lines = [
+        f"profile: {steps} steps of {s['integrator']} on {s['device']}, {total:.4g} s "
+        "(each part between device synchronises, kernels launched one by one)",
+        f"  {'part':<20} {'seconds':>10} {'ms/step':>10} {'share':>7}",
+    ]
+    rows = list(s["time_parts_s"].items()) + [("total", total)]
+    for name, seconds in rows:
+        per_step = 1e3 * seconds / steps if steps else 0.0
+        share = 100.0 * seconds / total if total > 0 else 0.0
+        lines.append(f"  {name:<20} {seconds:>10.4f} {per_step:>10.3f} {share:>6.1f}%")
+    lines += [f"  note: {note}" for note in s["time_notes"]]
+    return "\n".join(lines)
 
 
 def summary_line(s: dict, out) -> str:

@@ -44,10 +44,13 @@ class Simulator(Stepper):
             on the CPU, Warp 1.19 replays a captured graph in C++, which removes the Python
             launch overhead, 2.6x faster on a 10^3 jelly, see docs/PERFORMANCE.md).
         max_speed: speed treated as an explosion [m/s]; ``None`` derives it from the scene.
+        profile: time the parts of every step, launched one by one
+            (:class:`~softsim_warp.core.stepper.Stepper`); the run's summary then holds them.
     """
 
-    def __init__(self, model: Model, integrator: Integrator, dt: float, fps: float, frames: int, use_graph=None, max_speed=None):
-        super().__init__(model, integrator, dt, use_graph)
+    def __init__(self, model: Model, integrator: Integrator, dt: float, fps: float, frames: int, use_graph=None,
+                 max_speed=None, profile=False):
+        super().__init__(model, integrator, dt, use_graph, profile)
         self.fps = float(fps)
         self.frames = int(frames)
         self.max_speed = speed_bound(model) if max_speed is None else float(max_speed)
