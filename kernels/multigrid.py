@@ -572,8 +572,8 @@ def build(scalar):
         """mg_stencil_op with ``lanes`` threads per node (a block each), for the small levels.
 
         A one-thread node loads its 26 blocks in turn, each at the memory's latency: on an H100 a
-        level of 14^3 nodes or fewer took 8.2 to 8.3 us a launch whatever its size. Lane l takes
-        the slots l, l + lanes, ... and the block sums them (3.3 to 5.6 us). On the CPU, where a
+        level of 14^3 nodes or fewer took 7.2 to 7.9 us a launch whatever its size. Lane l takes
+        the slots l, l + lanes, ... and the block sums them (3.0 to 5.8 us). On the CPU, where a
         block is one thread, ``lanes`` is 1 and the one thread takes every slot. Mode 2 adds the
         prolongated correction to each x it reads (a launch less per level and cycle).
         """

@@ -56,8 +56,8 @@ DEFAULT_SETUP_EVERY = 8
 AUTO_MIN_PARTICLES = 12**3
 AUTO_MIN_PARTICLES_CUDA = 20**3
 # Coarse levels of at most this many nodes take their stencil products with LANES threads per node
-# on CUDA (kernels/multigrid.py: mg_stencil_op_lanes; H100, per launch: 14^3 5.6 against 8.3 us,
-# 8^3 3.7 against 8.2; 26^3 16.8 against 8.5).
+# on CUDA (kernels/multigrid.py: mg_stencil_op_lanes; H100, per launch, benchmarks/
+# bench_multigrid_kernels.py: 14^3 5.8 against 7.9 us, 8^3 3.7 against 7.7; 26^3 20.0 against 8.2).
 LANES_MAX_NODES = 14**3
 LANES = 32
 
