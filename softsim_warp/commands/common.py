@@ -296,8 +296,10 @@ def pause_for_test(phase: str, signals: Signals | None = None):
     wanted = TEST_PAUSES.get(phase)
     if wanted is None:
         return
-    print(f"softsim-test: paused at {phase}", file=sys.stderr, flush=True)
+    # The count before the marker: a signal sent as soon as the test reads the marker may come
+    # before the next line runs, and counted after it, the wait would miss it.
     start = signals.count if signals is not None else 0
+    print(f"softsim-test: paused at {phase}", file=sys.stderr, flush=True)
     deadline = time.monotonic() + 60
     while time.monotonic() < deadline and (signals is None or signals.count - start < wanted):
         time.sleep(0.01)
