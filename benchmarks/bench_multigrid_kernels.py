@@ -19,41 +19,26 @@ import argparse
 import json
 import os
 import sys
-import time
 
 import numpy as np
 import warp as wp
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 
+from softsim_warp.commands.timing import TimedSteps  # noqa: E402
 from softsim_warp.core import multigrid  # noqa: E402
 from softsim_warp.kernels import implicit as ki  # noqa: E402
 from softsim_warp.kernels import multigrid as km  # noqa: E402
 
 
 def _per_launch_us(launch, device, launches: int, repeats: int) -> float:
-    """Median microseconds per launch: a graph of ``launches`` launches replayed ``repeats`` times
-    on CUDA, the launches in a loop on the CPU."""
-    launch()
-    wp.synchronize_device(device)
-    graph = None
-    if device.is_cuda:
-        with wp.ScopedCapture(device=device, force_module_load=False) as capture:
-            for _ in range(launches):
-                launch()
-        graph = capture.graph
-    times = []
+    """Median microseconds per launch over ``repeats`` runs of ``launches`` launches (a replayed graph
+    on CUDA; softsim bench's timing)."""
+    timed = TimedSteps(device, lambda count: [launch() for _ in range(count)], launches, device.is_cuda)
+    timed.prepare()
     for _ in range(repeats):
-        wp.synchronize_device(device)
-        t0 = time.perf_counter()
-        if graph is not None:
-            wp.capture_launch(graph)
-        else:
-            for _ in range(launches):
-                launch()
-        wp.synchronize_device(device)
-        times.append((time.perf_counter() - t0) / launches)
-    return 1e6 * float(np.median(times))
+        timed.time_once()
+    return 1e3 * timed.ms_per_step()
 
 
 def main(argv=None) -> int:

@@ -496,6 +496,17 @@ def build(scalar):
             a_out[slot, node] = acc
             a_out[STENCIL - 1 - slot, node_index(cj[0], cj[1], cj[2], coarse_shape)] = wp.transpose(acc)
 
+    @wp.func
+    def stencil_result(
+        mode: int, omega: scalar, node: int, xi: vec3, r: vec3, dinv: wp.array(dtype=mat33), y_out: wp.array(dtype=vec3)
+    ):
+        """Write a stencil kernel's output for ``node`` from its residual r = b - A x: r itself
+        (mode 0) or the damped Jacobi sweep x + omega D^-1 r (otherwise)."""
+        if mode == 0:
+            y_out[node] = r
+        else:
+            y_out[node] = xi + omega * (dinv[node] * r)
+
     @wp.kernel(module="unique")
     def mg_stencil_op(
         mode: int,
@@ -527,10 +538,7 @@ def build(scalar):
                         ok = inside(c[0] + ox - 1, c[1] + oy - 1, c[2] + oz - 1, shape)
                         j = wp.where(ok, node + (ox - 1) * row + (oy - 1) * shape[2] + oz - 1, node)
                         r = r - a[ox * 9 + oy * 3 + oz, node] * (x[j] - xi)
-        if mode == 0:
-            y_out[node] = r
-        else:
-            y_out[node] = x[node] + omega * (dinv[node] * r)
+        stencil_result(mode, omega, node, xi, r, dinv, y_out)
 
     @wp.func
     def interpolate(c: wp.vec3i, shape: wp.vec3i, coarse_shape: wp.vec3i, e: wp.array(dtype=vec3)):
@@ -595,11 +603,7 @@ def build(scalar):
             slot += lanes
         total = wp.tile_sum(wp.tile(t, preserve_type=True))
         if lane == 0:
-            r = b[node] - rowsum[node] * xi - total[0]
-            if mode == 0:
-                y_out[node] = r
-            else:
-                y_out[node] = xi + omega * (dinv[node] * r)
+            stencil_result(mode, omega, node, xi, b[node] - rowsum[node] * xi - total[0], dinv, y_out)
 
     @wp.kernel(module="unique")
     def mg_restrict(
