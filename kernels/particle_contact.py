@@ -308,20 +308,17 @@ def build(scalar):
     def prepare_contact_particles(
         contact_index: wp.array(dtype=wp.int32),
         contact_axis_neighbors: wp.array2d(dtype=wp.int32),
-        particle_inv_mass: wp.array(dtype=scalar),
         x_build: wp.array(dtype=vec3),
         rebuild_distance: scalar,
         # State before and after the step (particle order):
         qd_prev: wp.array(dtype=vec3),
         q: wp.array(dtype=vec3),
         qd: wp.array(dtype=vec3),
-        # Out (contact order): positions, velocities after and before the step, inverse masses,
-        # the outward normal of the particle's boundary face on each lattice axis (zero where it is
+        # Out (contact order): positions, velocities after and before the step, the outward normal of the particle's boundary face on each lattice axis (zero where it is
         # not on that boundary); the rebuild flag, raised when the particle moved too far
         cq_out: wp.array(dtype=vec3),
         cqd_out: wp.array(dtype=vec3),
         cqd_prev_out: wp.array(dtype=vec3),
-        cw_out: wp.array(dtype=scalar),
         normal_out: wp.array2d(dtype=vec3),
         rebuild_out: wp.array(dtype=wp.int32),
     ):
@@ -331,7 +328,6 @@ def build(scalar):
         cq_out[k] = x
         cqd_out[k] = qd[p]
         cqd_prev_out[k] = qd_prev[p]
-        cw_out[k] = particle_inv_mass[p]
         moved = x - x_build[k]
         if wp.dot(moved, moved) >= rebuild_distance * rebuild_distance:
             rebuild_out[0] = 1  # every writer writes 1: no race in the result

@@ -198,12 +198,12 @@ class ParticleContact:
         )
         self.normal = wp.zeros((n, 3), dtype=vec3, device=device)
         self.jelly_self_contact = arr(np.asarray(self_flags, dtype=np.int32).reshape(-1), wp.int32, np.int32)
-        # Compact copies of the step's result (the passes read these, never what they write), of
-        # the velocities before the step, and of the inverse masses.
+        # Compact copies of the step's result (the passes read these, never what they write) and
+        # of the velocities before the step, and the inverse masses (fixed when the model is built).
         self.cq = wp.zeros(n, dtype=vec3, device=device)
         self.cqd = wp.zeros(n, dtype=vec3, device=device)
         self.cqd_prev = wp.zeros(n, dtype=vec3, device=device)
-        self.cw = wp.zeros(n, dtype=scalar, device=device)
+        self.cw = arr(model.particle_inv_mass.numpy()[np_index], scalar, np_scalar)
         # Candidate lists (slot-major), their build positions, the flag that asks for a rebuild
         # (raised: the first step builds) and the count of builds.
         self.x_build = wp.zeros(n, dtype=vec3, device=device)
@@ -243,14 +243,13 @@ class ParticleContact:
             inputs=[
                 self.contact_index,
                 self.contact_axis_neighbors,
-                model.particle_inv_mass,
                 self.x_build,
                 self.rebuild_distance,
                 state_in.particle_qd,
                 state_out.particle_q,
                 state_out.particle_qd,
             ],
-            outputs=[self.cq, self.cqd, self.cqd_prev, self.cw, self.normal, self.rebuild],
+            outputs=[self.cq, self.cqd, self.cqd_prev, self.normal, self.rebuild],
             device=device,
         )
         wp.launch(
