@@ -314,8 +314,9 @@ def build(scalar):
         qd_prev: wp.array(dtype=vec3),
         q: wp.array(dtype=vec3),
         qd: wp.array(dtype=vec3),
-        # Out (contact order): positions, velocities after and before the step, the outward normal of the particle's boundary face on each lattice axis (zero where it is
-        # not on that boundary); the rebuild flag, raised when the particle moved too far
+        # Out (contact order): positions, velocities after and before the step, the outward normal
+        # of the particle's boundary face on each lattice axis (zero where it is not on that
+        # boundary); the rebuild flag, raised when the particle moved too far
         cq_out: wp.array(dtype=vec3),
         cqd_out: wp.array(dtype=vec3),
         cqd_prev_out: wp.array(dtype=vec3),
