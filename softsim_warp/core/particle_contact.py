@@ -49,7 +49,8 @@ SELF_EXCLUSION = 2.0
 # a pair distance of one spacing gives a particle resting on a face 1 to 4) tests its candidates again.
 MAX_CONTACTS = 16
 # Candidates a particle's list holds; one with more (a jelly crushed to well below its spacing) walks
-# the grid of the last build instead, in the same order.
+# the grid of the last build instead, in the same order. At most 32: find_particle_contacts marks a
+# list's near candidates in the bits of an int32.
 MAX_CANDIDATES = 32
 # The candidate lists' skin, in the smallest pair distance: a list holds the pairs within
 # CANDIDATE_REACH d + skin, and it is rebuilt when a particle has moved skin / 2 since it was built.
@@ -207,6 +208,8 @@ class ParticleContact:
         # Candidate lists (slot-major), their build positions, the flag that asks for a rebuild
         # (raised: the first step builds) and the count of builds.
         self.x_build = wp.zeros(n, dtype=vec3, device=device)
+        if not 0 < MAX_CANDIDATES <= 32:
+            raise ValueError(f"MAX_CANDIDATES must lie in 1..32, got {MAX_CANDIDATES}")
         self.candidates = wp.zeros((MAX_CANDIDATES, n), dtype=wp.int32, device=device)
         self.candidate_count = wp.zeros(n, dtype=wp.int32, device=device)
         self.rebuild = wp.ones(1, dtype=wp.int32, device=device)
