@@ -6,6 +6,10 @@ recorded steps and divides by them (ms per step), largest first. Kernels launche
 are not recorded by name, so nothing here is captured: the launch gaps of uncaptured steps are not
 in the table (it sums kernel time only), but the total is not the captured step's time either.
 
+With ``--captured R``, each launch of one step is instead timed on its own, as R launches captured
+in a graph and replayed (median of 7 replays), in the step's order: the cost a launch has inside
+the captured step, without the launch gaps that uncaptured steps add.
+
 * ``implicit``: the stiff spinning jelly of ``bench_implicit.py`` at ``--size``^3, implicit Euler
   (``--preconditioner``), ``--dt``.
 * ``contact``: the pile of ``softsim bench --contact`` (``--jellies`` jellies of 10^3), symplectic.
@@ -14,6 +18,7 @@ Usage::
 
     python benchmarks/profile_step.py implicit --device cuda:0 --size 100 --out prof_mg.json
     python benchmarks/profile_step.py contact --device cuda:0 --jellies 1000 --out prof_contact.json
+    python benchmarks/profile_step.py contact --device cuda:0 --jellies 1000 --warmup 200 --captured 50
 """
 
 from __future__ import annotations
@@ -23,7 +28,9 @@ import collections
 import json
 import os
 import sys
+import time
 
+import numpy as np
 import warp as wp
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
@@ -61,6 +68,47 @@ def _contact_case(args, device):
     return step, integ
 
 
+def _captured(args, device, step) -> int:
+    """Each launch of one step, timed as ``args.captured`` launches of it in a replayed graph."""
+    launches = []
+    launch = wp.launch
+
+    def record(kernel, dim, inputs=(), outputs=(), device=None, **kwargs):
+        launches.append((kernel, dim, list(inputs), list(outputs), kwargs))
+        return launch(kernel, dim=dim, inputs=inputs, outputs=outputs, device=device, **kwargs)
+
+    wp.launch = record
+    try:
+        step(args.warmup)
+    finally:
+        wp.launch = launch
+    wp.synchronize_device(device)
+    rows = []
+    for kernel, dim, inputs, outputs, kwargs in launches:
+        with wp.ScopedCapture(device=device, force_module_load=False) as capture:
+            for _ in range(args.captured):
+                launch(kernel, dim=dim, inputs=inputs, outputs=outputs, device=device, **kwargs)
+        wp.capture_launch(capture.graph)
+        wall = []
+        for _ in range(7):
+            wp.synchronize_device(device)
+            t0 = time.perf_counter()
+            wp.capture_launch(capture.graph)
+            wp.synchronize_device(device)
+            wall.append(time.perf_counter() - t0)
+        rows.append((kernel.key, dim, 1e3 * float(np.median(wall)) / args.captured))
+    total = sum(t for _, _, t in rows)
+    print(f"{args.case} on {device.name}: {len(rows)} launches a step, each timed as {args.captured} captured launches")
+    print(f"{'kernel':<60} {'dim':>10} {'ms':>9}")
+    for key, dim, t in rows:
+        print(f"{key[-60:]:<60} {dim!s:>10} {t:9.4f}")
+    print(f"{'sum':<60} {'':>10} {total:9.4f}")
+    if args.out:
+        with open(args.out, "w") as f:
+            json.dump({"case": args.case, "args": vars(args), "device_name": device.name, "launch_ms": rows}, f, indent=1)
+    return 0
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("case", choices=["implicit", "contact"])
@@ -75,6 +123,7 @@ def main(argv=None) -> int:
     p.add_argument("--steps", type=int, default=8)
     p.add_argument("--out", default=None)
     p.add_argument("--sequence", type=int, default=0, help="also print the first N launches of the last step in order")
+    p.add_argument("--captured", type=int, default=0, help="time each launch of a step as N captured launches")
     args = p.parse_args(argv)
     wp.init()
     device = wp.get_device(args.device)
@@ -82,6 +131,8 @@ def main(argv=None) -> int:
     for k in range(args.warmup):
         step(k)
     wp.synchronize_device(device)
+    if args.captured:
+        return _captured(args, device, step)
     wp.timing_begin(cuda_filter=wp.TIMING_KERNEL)
     for k in range(args.steps):
         step(args.warmup + k)
