@@ -28,10 +28,10 @@ import collections
 import json
 import os
 import sys
-import time
 
-import numpy as np
 import warp as wp
+
+from softsim_warp.commands.timing import TimedSteps
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 
@@ -69,7 +69,8 @@ def _contact_case(args, device):
 
 
 def _captured(args, device, step) -> int:
-    """Each launch of one step, timed as ``args.captured`` launches of it in a replayed graph."""
+    """Each launch of one step, timed as ``args.captured`` launches of it in a replayed graph
+    (softsim bench's timing: the median of 7 replays)."""
     launches = []
     launch = wp.launch
 
@@ -85,18 +86,16 @@ def _captured(args, device, step) -> int:
     wp.synchronize_device(device)
     rows = []
     for kernel, dim, inputs, outputs, kwargs in launches:
-        with wp.ScopedCapture(device=device, force_module_load=False) as capture:
-            for _ in range(args.captured):
+
+        def repeat(count, kernel=kernel, dim=dim, inputs=inputs, outputs=outputs, kwargs=kwargs):
+            for _ in range(count):
                 launch(kernel, dim=dim, inputs=inputs, outputs=outputs, device=device, **kwargs)
-        wp.capture_launch(capture.graph)
-        wall = []
+
+        timed = TimedSteps(device, repeat, args.captured, use_graph=True)
+        timed.prepare()
         for _ in range(7):
-            wp.synchronize_device(device)
-            t0 = time.perf_counter()
-            wp.capture_launch(capture.graph)
-            wp.synchronize_device(device)
-            wall.append(time.perf_counter() - t0)
-        rows.append((kernel.key, dim, 1e3 * float(np.median(wall)) / args.captured))
+            timed.time_once()
+        rows.append((kernel.key, dim, timed.ms_per_step()))
     total = sum(t for _, _, t in rows)
     print(f"{args.case} on {device.name}: {len(rows)} launches a step, each timed as {args.captured} captured launches")
     print(f"{'kernel':<60} {'dim':>10} {'ms':>9}")
