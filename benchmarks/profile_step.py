@@ -10,6 +10,14 @@ With ``--captured R``, each launch of one step is instead timed on its own, as R
 in a graph and replayed (median of 7 replays), in the step's order: the cost a launch has inside
 the captured step, without the launch gaps that uncaptured steps add.
 
+With ``--passes K,K,...`` (``contact`` only), whole steps are timed as ``softsim bench --contact``
+times them (``--steps`` steps captured in a graph, the median of 7 replays, the cases in turn): the
+step without contact, and the step with contact with K velocity passes for each K (0 included: the
+candidate lists, the contacts and the position pass alone, which no scene runs). What a pass costs
+inside the step, and what the step costs without any. Each case steps its own states from the
+pile's start; the table gives each case's list builds, so that cases whose piles moved differently
+show it.
+
 * ``implicit``: the stiff spinning jelly of ``bench_implicit.py`` at ``--size``^3, implicit Euler
   (``--preconditioner``), ``--dt``.
 * ``contact``: the pile of ``softsim bench --contact`` (``--jellies`` jellies of 10^3), symplectic.
@@ -19,6 +27,7 @@ Usage::
     python benchmarks/profile_step.py implicit --device cuda:0 --size 100 --out prof_mg.json
     python benchmarks/profile_step.py contact --device cuda:0 --jellies 1000 --out prof_contact.json
     python benchmarks/profile_step.py contact --device cuda:0 --jellies 1000 --warmup 200 --captured 50
+    python benchmarks/profile_step.py contact --device cuda:0 --jellies 1000 --steps 100 --passes 0,1,2,4
 """
 
 from __future__ import annotations
@@ -108,6 +117,55 @@ def _captured(args, device, step) -> int:
     return 0
 
 
+def _passes(args, device, model) -> int:
+    """The whole step with each count of velocity passes, against the step without contact."""
+    from softsim_warp.commands.bench import JellySpec  # noqa: PLC0415
+    from softsim_warp.commands.bench_contact import _Ours  # noqa: PLC0415
+
+    hook = model.particle_contact
+    counts = [int(t) for t in args.passes.split(",") if t.strip()]
+    if not counts or min(counts) < 0:
+        raise SystemExit(f"--passes: expected comma-separated counts >= 0, got {args.passes!r}")
+    dt = JellySpec().dt
+
+    def case(contact, passes=0):
+        # Each case steps its own states from the pile's start, as softsim bench --contact's do.
+        timed = _Ours(model, "symplectic", dt, args.steps, True, contact)
+        step = timed.step_fn
+
+        def run(count):
+            hook.iterations = passes
+            step(count)
+
+        timed.step_fn = run
+        builds = hook.builds_done()
+        timed.prepare()
+        timed.builds = hook.builds_done() - builds
+        return timed
+
+    cases = {"no contact": case(False)}
+    for k in counts:
+        cases[f"contact, {k} velocity passes"] = case(True, k)
+    for _ in range(7):
+        for timed in cases.values():
+            builds = hook.builds_done()
+            timed.time_once()
+            timed.builds += hook.builds_done() - builds
+    base = cases["no contact"].ms_per_step()
+    rows = [(name, t.ms_per_step(), t.ms_per_step() / base, t.builds) for name, t in cases.items()]
+    steps = 2 + 8 * cases["no contact"].steps
+    print(f"{args.case} on {device.name}: {args.jellies} jellies, {args.steps} steps captured, median of 7")
+    print(f"{'case':<32} {'ms/step':>9} {'x no contact':>13} {f'list builds in {steps} steps':>28}")
+    for name, ms, ratio, builds in rows:
+        print(f"{name:<32} {ms:9.4f} {ratio:13.2f} {builds if name != 'no contact' else '':>28}")
+    if args.out:
+        with open(args.out, "w") as f:
+            json.dump(
+                {"case": args.case, "args": vars(args), "device_name": device.name, "steps_ms": rows}, f, indent=1
+            )
+    return 0
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("case", choices=["implicit", "contact"])
@@ -123,6 +181,7 @@ def main(argv=None) -> int:
     p.add_argument("--out", default=None)
     p.add_argument("--sequence", type=int, default=0, help="also print the first N launches of the last step in order")
     p.add_argument("--captured", type=int, default=0, help="time each launch of a step as N captured launches")
+    p.add_argument("--passes", default=None, help="contact: time whole steps with these counts of velocity passes")
     args = p.parse_args(argv)
     wp.init()
     device = wp.get_device(args.device)
@@ -132,6 +191,10 @@ def main(argv=None) -> int:
     wp.synchronize_device(device)
     if args.captured:
         return _captured(args, device, step)
+    if args.passes:
+        if args.case != "contact":
+            raise SystemExit("--passes applies to the contact case only")
+        return _passes(args, device, integ.model)
     wp.timing_begin(cuda_filter=wp.TIMING_KERNEL)
     for k in range(args.steps):
         step(args.warmup + k)

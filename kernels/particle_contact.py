@@ -340,16 +340,14 @@ def build(scalar):
         contact_axis_neighbors: wp.array2d(dtype=wp.int32),
         x_build: wp.array(dtype=vec3),
         rebuild_distance: scalar,
-        # State before and after the step (particle order):
-        qd_prev: wp.array(dtype=vec3),
+        # State after the step (particle order):
         q: wp.array(dtype=vec3),
         qd: wp.array(dtype=vec3),
-        # Out (contact order): positions, velocities after and before the step, the outward normal
+        # Out (contact order): positions and velocities after the step, the outward normal
         # of the particle's boundary face on each lattice axis (zero where it is not on that
         # boundary); the rebuild flag, raised when the particle moved too far
         cq_out: wp.array(dtype=vec3),
         cqd_out: wp.array(dtype=vec3),
-        cqd_prev_out: wp.array(dtype=vec3),
         normal_out: wp.array2d(dtype=vec3),
         rebuild_out: wp.array(dtype=wp.int32),
     ):
@@ -358,7 +356,6 @@ def build(scalar):
         x = q[p]
         cq_out[k] = x
         cqd_out[k] = qd[p]
-        cqd_prev_out[k] = qd_prev[p]
         moved = x - x_build[k]
         if wp.dot(moved, moved) >= rebuild_distance * rebuild_distance:
             rebuild_out[0] = 1  # every writer writes 1: no race in the result
@@ -492,7 +489,8 @@ def build(scalar):
         gap: scalar,
         vi_prev: vec3,
         count: int,
-        cqd_prev: wp.array(dtype=vec3),
+        contact_index: wp.array(dtype=wp.int32),
+        qd_prev: wp.array(dtype=vec3),
         contact_list_out: wp.array2d(dtype=wp.int32),
         contact_normal_out: wp.array2d(dtype=vec3),
         contact_gap_out: wp.array2d(dtype=scalar),
@@ -503,7 +501,7 @@ def build(scalar):
             contact_list_out[count, i] = j
             contact_normal_out[count, i] = n
             contact_gap_out[count, i] = gap
-            contact_u0_out[count, i] = -wp.dot(vi_prev - cqd_prev[j], n)
+            contact_u0_out[count, i] = -wp.dot(vi_prev - qd_prev[contact_index[j]], n)
         return count + 1
 
     @wp.kernel(module="unique")
@@ -525,9 +523,11 @@ def build(scalar):
         between_jellies: int,
         self_exclusion: scalar,
         skin: scalar,
-        # State (contact order):
+        # State (contact order), and the velocities before the step (particle order, through
+        # contact_index):
         cq: wp.array(dtype=vec3),
-        cqd_prev: wp.array(dtype=vec3),
+        contact_index: wp.array(dtype=wp.int32),
+        qd_prev: wp.array(dtype=vec3),
         cw: wp.array(dtype=scalar),
         normal: wp.array2d(dtype=vec3),
         # Out: contacts per particle, its split inverse mass (contacts times inverse mass), and the
@@ -542,7 +542,7 @@ def build(scalar):
     ):
         i = wp.tid()
         xi = cq[i]
-        vi_prev = cqd_prev[i]
+        vi_prev = qd_prev[contact_index[i]]
         count = int(0)
         nc = candidate_count[i]
         if nc <= candidates.shape[0]:
@@ -565,7 +565,7 @@ def build(scalar):
                 touches, n, gap = touching_pair(i, j, xi, cq, contact_radius, normal)
                 if touches:
                     count = store_contact(
-                        i, j, n, gap, vi_prev, count, cqd_prev, contact_list_out, contact_normal_out,
+                        i, j, n, gap, vi_prev, count, contact_index, qd_prev, contact_list_out, contact_normal_out,
                         contact_gap_out, contact_u0_out,
                     )
         else:
@@ -577,7 +577,7 @@ def build(scalar):
                 touches, n, gap = pair_contact(i, j, xi, cq, contact_radius, normal)
                 if touches:
                     count = store_contact(
-                        i, j, n, gap, vi_prev, count, cqd_prev, contact_list_out, contact_normal_out,
+                        i, j, n, gap, vi_prev, count, contact_index, qd_prev, contact_list_out, contact_normal_out,
                         contact_gap_out, contact_u0_out,
                     )
                 j = next_candidate(
@@ -600,7 +600,8 @@ def build(scalar):
         eps_v: scalar,
         rest_steps: scalar,
         cq: wp.array(dtype=vec3),
-        cqd_prev: wp.array(dtype=vec3),
+        contact_index: wp.array(dtype=wp.int32),
+        qd_prev: wp.array(dtype=vec3),
         contact_radius: wp.array(dtype=scalar),
         normal: wp.array2d(dtype=vec3),
         w_split: wp.array(dtype=scalar),
@@ -613,7 +614,7 @@ def build(scalar):
         if touches:
             wj_split = w_split[j]
             if wi_split + wj_split > scalar(0.0):
-                u0 = -wp.dot(vi_prev - cqd_prev[j], n)
+                u0 = -wp.dot(vi_prev - qd_prev[contact_index[j]], n)
                 p = pair_impulse(n, vi, cqd[j], u0, wi_split, wj_split, friction, restitution, eps_v, rest_steps)
         return p
 
@@ -640,9 +641,10 @@ def build(scalar):
         restitution: scalar,
         eps_v: scalar,
         rest_steps: scalar,
-        # State and contacts (contact order):
+        # State and contacts (contact order; the velocities before the step in particle order):
         cq: wp.array(dtype=vec3),
-        cqd_prev: wp.array(dtype=vec3),
+        contact_index: wp.array(dtype=wp.int32),
+        qd_prev: wp.array(dtype=vec3),
         cw: wp.array(dtype=scalar),
         normal: wp.array2d(dtype=vec3),
         count: wp.array(dtype=wp.int32),
@@ -677,13 +679,13 @@ def build(scalar):
         else:
             # More contacts than the list holds: the candidates again, in the same order.
             xi = cq[i]
-            vi_prev = cqd_prev[i]
+            vi_prev = qd_prev[contact_index[i]]
             nc = candidate_count[i]
             if nc <= candidates.shape[0]:
                 for a in range(nc):
                     impulse = impulse + velocity_term(
                         i, candidates[a, i], xi, vi, vi_prev, wi_split, friction, restitution, eps_v, rest_steps,
-                        cq, cqd_prev, contact_radius, normal, w_split, cqd,
+                        cq, contact_index, qd_prev, contact_radius, normal, w_split, cqd,
                     )
             else:
                 j = next_candidate(
@@ -693,7 +695,7 @@ def build(scalar):
                 while j >= 0:
                     impulse = impulse + velocity_term(
                         i, j, xi, vi, vi_prev, wi_split, friction, restitution, eps_v, rest_steps,
-                        cq, cqd_prev, contact_radius, normal, w_split, cqd,
+                        cq, contact_index, qd_prev, contact_radius, normal, w_split, cqd,
                     )
                     j = next_candidate(
                         i, j, grid_head, grid_next, inv_cell, shift, x_build, contact_jelly, contact_world,

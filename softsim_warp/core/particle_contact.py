@@ -199,11 +199,11 @@ class ParticleContact:
         )
         self.normal = wp.zeros((n, 3), dtype=vec3, device=device)
         self.jelly_self_contact = arr(np.asarray(self_flags, dtype=np.int32).reshape(-1), wp.int32, np.int32)
-        # Compact copies of the step's result (the passes read these, never what they write) and
-        # of the velocities before the step, and the inverse masses (fixed when the model is built).
+        # Compact copies of the step's result (the passes read these, never what they write), and
+        # the inverse masses (fixed when the model is built). The velocities before the step are
+        # read where they are (state_in, through contact_index): only for the contacts found.
         self.cq = wp.zeros(n, dtype=vec3, device=device)
         self.cqd = wp.zeros(n, dtype=vec3, device=device)
-        self.cqd_prev = wp.zeros(n, dtype=vec3, device=device)
         self.cw = arr(model.particle_inv_mass.numpy()[np_index], scalar, np_scalar)
         # Candidate lists (slot-major), their build positions, the flag that asks for a rebuild
         # (raised: the first step builds) and the count of builds.
@@ -248,11 +248,10 @@ class ParticleContact:
                 self.contact_axis_neighbors,
                 self.x_build,
                 self.rebuild_distance,
-                state_in.particle_qd,
                 state_out.particle_q,
                 state_out.particle_qd,
             ],
-            outputs=[self.cq, self.cqd, self.cqd_prev, self.normal, self.rebuild],
+            outputs=[self.cq, self.cqd, self.normal, self.rebuild],
             device=device,
         )
         wp.launch(
@@ -294,7 +293,7 @@ class ParticleContact:
         wp.launch(
             k.find_particle_contacts,
             dim=n,
-            inputs=[*walk, self.cq, self.cqd_prev, self.cw, self.normal],
+            inputs=[*walk, self.cq, self.contact_index, state_in.particle_qd, self.cw, self.normal],
             outputs=[
                 self.contacts, self.w_split, self.contact_list, self.contact_normal, self.contact_gap, self.contact_u0
             ],
@@ -313,7 +312,8 @@ class ParticleContact:
                     model.contact_velocity_epsilon,
                     model.restitution_threshold_steps,
                     self.cq,
-                    self.cqd_prev,
+                    self.contact_index,
+                    state_in.particle_qd,
                     self.cw,
                     self.normal,
                     self.contacts,
