@@ -487,7 +487,6 @@ def build(scalar):
         j: int,
         n: vec3,
         gap: scalar,
-        vi_prev: vec3,
         count: int,
         contact_index: wp.array(dtype=wp.int32),
         qd_prev: wp.array(dtype=vec3),
@@ -496,12 +495,14 @@ def build(scalar):
         contact_gap_out: wp.array2d(dtype=scalar),
         contact_u0_out: wp.array2d(dtype=scalar),
     ):
-        """Touching pair (i, j) into slot ``count`` of i's lists (while they have room); returns the new count."""
+        """Touching pair (i, j) into slot ``count`` of i's lists (while they have room), with its approach
+        speed before the step from the velocities before it (``qd_prev``, particle order); returns the
+        new count."""
         if count < contact_list_out.shape[0]:
             contact_list_out[count, i] = j
             contact_normal_out[count, i] = n
             contact_gap_out[count, i] = gap
-            contact_u0_out[count, i] = -wp.dot(vi_prev - qd_prev[contact_index[j]], n)
+            contact_u0_out[count, i] = -wp.dot(qd_prev[contact_index[i]] - qd_prev[contact_index[j]], n)
         return count + 1
 
     @wp.kernel(module="unique")
@@ -542,7 +543,6 @@ def build(scalar):
     ):
         i = wp.tid()
         xi = cq[i]
-        vi_prev = qd_prev[contact_index[i]]
         count = int(0)
         nc = candidate_count[i]
         if nc <= candidates.shape[0]:
@@ -565,7 +565,7 @@ def build(scalar):
                 touches, n, gap = touching_pair(i, j, xi, cq, contact_radius, normal)
                 if touches:
                     count = store_contact(
-                        i, j, n, gap, vi_prev, count, contact_index, qd_prev, contact_list_out, contact_normal_out,
+                        i, j, n, gap, count, contact_index, qd_prev, contact_list_out, contact_normal_out,
                         contact_gap_out, contact_u0_out,
                     )
         else:
@@ -577,7 +577,7 @@ def build(scalar):
                 touches, n, gap = pair_contact(i, j, xi, cq, contact_radius, normal)
                 if touches:
                     count = store_contact(
-                        i, j, n, gap, vi_prev, count, contact_index, qd_prev, contact_list_out, contact_normal_out,
+                        i, j, n, gap, count, contact_index, qd_prev, contact_list_out, contact_normal_out,
                         contact_gap_out, contact_u0_out,
                     )
                 j = next_candidate(
