@@ -117,15 +117,26 @@ def _captured(args, device, step) -> int:
     return 0
 
 
-def _passes(args, device, model) -> int:
+def _pass_counts(args) -> list[int]:
+    """``--passes`` as counts of velocity passes (a one-line exit for anything else)."""
+    if args.case != "contact":
+        raise SystemExit("--passes applies to the contact case only")
+    try:
+        counts = [int(t) for t in args.passes.split(",") if t.strip()]
+    except ValueError:
+        counts = []
+    if not counts or min(counts) < 0:
+        raise SystemExit(f"--passes: expected comma-separated counts >= 0, got {args.passes!r}")
+    return counts
+
+
+def _passes(args, device, model, repeats=7) -> int:
     """The whole step with each count of velocity passes, against the step without contact."""
     from softsim_warp.commands.bench import JellySpec  # noqa: PLC0415
     from softsim_warp.commands.bench_contact import _Ours  # noqa: PLC0415
 
     hook = model.particle_contact
-    counts = [int(t) for t in args.passes.split(",") if t.strip()]
-    if not counts or min(counts) < 0:
-        raise SystemExit(f"--passes: expected comma-separated counts >= 0, got {args.passes!r}")
+    counts = _pass_counts(args)
     dt = JellySpec().dt
 
     def case(contact, passes=0):
@@ -146,15 +157,16 @@ def _passes(args, device, model) -> int:
     cases = {"no contact": case(False)}
     for k in counts:
         cases[f"contact, {k} velocity passes"] = case(True, k)
-    for _ in range(7):
+    for _ in range(repeats):
         for timed in cases.values():
             builds = hook.builds_done()
             timed.time_once()
             timed.builds += hook.builds_done() - builds
     base = cases["no contact"].ms_per_step()
     rows = [(name, t.ms_per_step(), t.ms_per_step() / base, t.builds) for name, t in cases.items()]
-    steps = 2 + 8 * cases["no contact"].steps
-    print(f"{args.case} on {device.name}: {args.jellies} jellies, {args.steps} steps captured, median of 7")
+    # Steps each case ran: two first steps, the graph's replay in prepare, then the timed replays.
+    steps = 2 + (1 + repeats) * cases["no contact"].steps
+    print(f"{args.case} on {device.name}: {args.jellies} jellies, {args.steps} steps captured, median of {repeats}")
     print(f"{'case':<32} {'ms/step':>9} {'x no contact':>13} {f'list builds in {steps} steps':>28}")
     for name, ms, ratio, builds in rows:
         print(f"{name:<32} {ms:9.4f} {ratio:13.2f} {builds if name != 'no contact' else '':>28}")
@@ -183,6 +195,8 @@ def main(argv=None) -> int:
     p.add_argument("--captured", type=int, default=0, help="time each launch of a step as N captured launches")
     p.add_argument("--passes", default=None, help="contact: time whole steps with these counts of velocity passes")
     args = p.parse_args(argv)
+    if args.passes:
+        _pass_counts(args)
     wp.init()
     device = wp.get_device(args.device)
     step, integ = (_implicit_case if args.case == "implicit" else _contact_case)(args, device)
@@ -192,8 +206,6 @@ def main(argv=None) -> int:
     if args.captured:
         return _captured(args, device, step)
     if args.passes:
-        if args.case != "contact":
-            raise SystemExit("--passes applies to the contact case only")
         return _passes(args, device, integ.model)
     wp.timing_begin(cuda_filter=wp.TIMING_KERNEL)
     for k in range(args.steps):
