@@ -98,6 +98,20 @@ def axis_neighbors(shape, local, present=None) -> np.ndarray:
     return out
 
 
+def face_order(shape, surface, present=None):
+    """``surface`` (lattice points) grouped by the sides their lattice neighbours are missing on:
+    each face's particles together, then each edge's, then each corner's, each group in lattice
+    order. Returns the reordered points and each one's number of missing sides (1 on a face, 2 on
+    an edge, 3 at a corner; more on a mesh jelly's thin parts)."""
+    surface = np.asarray(surface)
+    nb = axis_neighbors(shape, surface, present)
+    missing = nb[:, :6] == surface[:, None]
+    sides = missing.sum(axis=1)
+    key = (missing * (1 << np.arange(6))).sum(axis=1)
+    order = np.lexsort((surface, key, sides))
+    return surface[order], sides[order]
+
+
 def jelly_radius(info, thickness=None) -> float:
     """Contact radius of a jelly's particles [m]: half the pair distance between two of its particles."""
     if thickness is not None:
@@ -110,7 +124,8 @@ class ParticleContact:
 
     Attributes:
         count: contact particles (surface particles of the jellies taking part).
-        contact_index: particle index of each contact particle, shape [count], int32, ascending.
+        contact_index: particle index of each contact particle, shape [count], int32: the face
+            particles of every jelly, then the edges', then the corners' (:func:`face_order`).
         contact_jelly, contact_world: its jelly and world, shape [count], int32.
         contact_radius: its contact radius [m] (a pair touches within the sum), shape [count], scalar.
         contact_rest: its rest position in its jelly's frame [m] (self-contact exclusion), shape
@@ -141,7 +156,7 @@ class ParticleContact:
         self_flags = [bool(getattr(j, "self_contact", False)) for j in jellies]
         taking_part = [between_jellies or s for s in self_flags]
         device, scalar, vec3 = model.device, model.scalar, model.vec3
-        index, jelly, world, radius, rest, neighbors = [], [], [], [], [], []
+        index, jelly, world, radius, rest, neighbors, sides = [], [], [], [], [], [], []
         for jid, (info, part) in enumerate(zip(jellies, taking_part)):
             if not part:
                 continue
@@ -153,7 +168,8 @@ class ParticleContact:
                 present[info.lattice_index] = True
                 to_particle = np.full(points, -1)
                 to_particle[info.lattice_index] = np.arange(info.lattice_index.size)
-            surface = np.flatnonzero(surface_mask(info.shape, present))
+            surface, n_sides = face_order(info.shape, np.flatnonzero(surface_mask(info.shape, present)), present)
+            sides.append(n_sides)
             local = to_particle[surface]
             index.append(local + info.particle_start)
             jelly.append(np.full(local.size, jid))
@@ -164,7 +180,17 @@ class ParticleContact:
             nb = axis_neighbors(info.shape, surface, present)
             nb = np.where(nb >= 0, to_particle[np.maximum(nb, 0)], -1)
             neighbors.append(np.where(nb >= 0, nb + info.particle_start, -1))
-        cat = (lambda parts, shape: np.concatenate(parts) if parts else np.zeros(shape))
+        # The contact order: every jelly's face particles first (jelly by jelly, face by face),
+        # then the edges' and then the corners' (:func:`face_order`). The 32 threads of a warp then
+        # lie on one face of one jelly, so they meet the same neighbouring surface, with about as
+        # many candidates and contacts each and their partners close together in memory; a 10^3
+        # jelly's 384 face particles are 12 whole warps. (Lattice order mixes four faces in a warp
+        # of its middle layers, and a warp waits for its lane with the most pairs.)
+        order = np.argsort(np.concatenate(sides), kind="stable") if sides else np.zeros(0, dtype=np.int64)
+
+        def cat(parts, shape):
+            return np.concatenate(parts)[order] if parts else np.zeros(shape)
+
         np_index = cat(index, (0,)).astype(np.int32)
         self.count = int(np_index.size)
         self.between_jellies = int(bool(between_jellies))
