@@ -709,29 +709,26 @@ def build(scalar):
         j: int,
         n: vec3,
         gap: scalar,
-        xi: vec3,
-        yi: vec3,
+        shift_i: vec3,
         vi: vec3,
         wi: scalar,
         wi_split: scalar,
         h: scalar,
         beta_h: scalar,
-        cq: wp.array(dtype=vec3),
         cqd: wp.array(dtype=vec3),
         w_split: wp.array(dtype=scalar),
         cqd_new: wp.array(dtype=vec3),
     ):
-        """Position and velocity change of i from touching pair (i, j) in the position pass: (dx, dv)."""
+        """Position and velocity change of i from touching pair (i, j) in the position pass: (dx, dv).
+        ``shift_i`` is what the impulses move i by, beta h dv_i."""
         dx = vec3(scalar(0.0))
         dv = vec3(scalar(0.0))
         split = wi_split + w_split[j]
         if split > scalar(0.0):
             # What overlap the moved positions keep is projected out along the pair's normal,
             # split like the impulses (positions only: no momentum).
-            xj = cq[j]
             vj = cqd_new[j]
-            yj = xj + beta_h * (vj - cqd[j])
-            moved = gap + wp.dot((yi - xi) - (yj - xj), n)
+            moved = gap + wp.dot(shift_i - beta_h * (vj - cqd[j]), n)
             if moved < scalar(0.0):
                 dx = (-moved * wi / split) * n
                 # The projection is a motion of the step: what approach velocity the iterations
@@ -799,15 +796,16 @@ def build(scalar):
         beta_h = h * world_contact_beta[contact_world[i]]
         xi = cq[i]
         vi = cqd_new[i]
-        yi = xi + beta_h * (vi - cqd[i])
+        shift_i = beta_h * (vi - cqd[i])
+        yi = xi + shift_i
         wi_split = w_split[i]
         dx = vec3(scalar(0.0))
         dv = vec3(scalar(0.0))
         if ci <= contact_list.shape[0]:
             for a in range(ci):
                 ddx, ddv = position_term(
-                    i, contact_list[a, i], contact_normal[a, i], contact_gap[a, i], xi, yi, vi, wi, wi_split, h,
-                    beta_h, cq, cqd, w_split, cqd_new,
+                    i, contact_list[a, i], contact_normal[a, i], contact_gap[a, i], shift_i, vi, wi, wi_split, h,
+                    beta_h, cqd, w_split, cqd_new,
                 )
                 dx = dx + ddx
                 dv = dv + ddv
@@ -833,7 +831,7 @@ def build(scalar):
                 touches, n, gap = pair_contact(i, j, xi, cq, contact_radius, normal)
                 if touches:
                     ddx, ddv = position_term(
-                        i, j, n, gap, xi, yi, vi, wi, wi_split, h, beta_h, cq, cqd, w_split, cqd_new
+                        i, j, n, gap, shift_i, vi, wi, wi_split, h, beta_h, cqd, w_split, cqd_new
                     )
                     dx = dx + ddx
                     dv = dv + ddv
