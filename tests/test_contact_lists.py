@@ -180,3 +180,36 @@ def test_full_lists_step_bitwise_the_same(monkeypatch, cap):
     if cap == "MAX_CANDIDATES":
         assert (short.candidate_count.numpy() == 3).any()
     assert np.array_equal(q_full, q_short) and np.array_equal(v_full, v_short)
+
+
+def test_face_order_groups_each_face():
+    """The contact particles are every jelly's surface particles, numbered face by face: all
+    particles on one boundary face first (each face's together, in lattice order), then those on
+    two (each edge's together), then the corners; so a warp's threads share a face."""
+    model = _pile()
+    hook = model.particle_contact
+    index = hook.contact_index.numpy()
+    per_jelly = SIZE**3 - (SIZE - 2) ** 3
+    assert hook.count == 8 * per_jelly
+    expected = set()
+    for j in model.jellies:
+        local = np.flatnonzero(particle_contact.surface_mask(j.shape))
+        expected |= set((local + j.particle_start).tolist())
+    assert sorted(index.tolist()) == sorted(expected)
+    # Each particle's boundary faces, from its lattice coordinates.
+    start = np.array([j.particle_start for j in model.jellies])
+    jelly = np.searchsorted(start, index, side="right") - 1
+    ijk = np.stack(np.unravel_index(index - start[jelly], (SIZE,) * 3), axis=1)
+    sides = np.concatenate([ijk == 0, ijk == SIZE - 1], axis=1)
+    faces = sides.sum(axis=1)
+    assert np.all(np.diff(faces) >= 0)
+    face = SIZE - 2  # particles on one face of a 4^3 jelly: a 2x2 patch each
+    assert np.count_nonzero(faces == 1) == 8 * 6 * face**2
+    # Within the particles of one face count, one group per (jelly, set of faces), each contiguous
+    # and in ascending particle order.
+    key = jelly * 64 + (sides * (1 << np.arange(6))).sum(axis=1)
+    runs = np.flatnonzero(np.diff(key) != 0) + 1
+    groups = np.split(np.arange(index.size), runs)
+    assert len(groups) == len(set(key.tolist())) == 8 * 26
+    for g in groups:
+        assert np.all(np.diff(index[g]) > 0)
