@@ -88,7 +88,7 @@ def test_candidate_lists_match_brute_force(self_contact):
     # Jitter by up to 0.4 spacings: pairs across the reach, and with self-contact, pairs of one
     # jelly far apart in the rest shape that come close.
     q = model.particle_q_host + rng.uniform(-0.4, 0.4, model.particle_q_host.shape) * SPACING
-    state = _step_hook(model, model.state(), q)
+    _step_hook(model, model.state(), q)
     assert hook.builds_done() == 1
     x = q[hook.contact_index.numpy()].astype(np.float32).astype(np.float64)
     expected = _brute_force(hook, x, hook.skin_host)
