@@ -130,13 +130,12 @@ def _pass_counts(args) -> list[int]:
     return counts
 
 
-def _passes(args, device, model, repeats=7) -> int:
+def _passes(args, device, model, counts, repeats=7) -> int:
     """The whole step with each count of velocity passes, against the step without contact."""
     from softsim_warp.commands.bench import JellySpec  # noqa: PLC0415
     from softsim_warp.commands.bench_contact import _Ours  # noqa: PLC0415
 
     hook = model.particle_contact
-    counts = _pass_counts(args)
     dt = JellySpec().dt
 
     def case(contact, passes=0):
@@ -195,8 +194,7 @@ def main(argv=None) -> int:
     p.add_argument("--captured", type=int, default=0, help="time each launch of a step as N captured launches")
     p.add_argument("--passes", default=None, help="contact: time whole steps with these counts of velocity passes")
     args = p.parse_args(argv)
-    if args.passes:
-        _pass_counts(args)
+    counts = _pass_counts(args) if args.passes else None
     wp.init()
     device = wp.get_device(args.device)
     step, integ = (_implicit_case if args.case == "implicit" else _contact_case)(args, device)
@@ -206,7 +204,7 @@ def main(argv=None) -> int:
     if args.captured:
         return _captured(args, device, step)
     if args.passes:
-        return _passes(args, device, integ.model)
+        return _passes(args, device, integ.model, counts)
     wp.timing_begin(cuda_filter=wp.TIMING_KERNEL)
     for k in range(args.steps):
         step(args.warmup + k)

@@ -104,18 +104,17 @@ def axis_neighbors(shape, local, present=None) -> np.ndarray:
     return out
 
 
-def face_order(shape, surface, present=None):
-    """``surface`` (lattice points) grouped by the sides their lattice neighbours are missing on:
-    each face's particles together, then each edge's, then each corner's, each group in lattice
-    order. Returns the reordered points and each one's number of missing sides (1 on a face, 2 on
-    an edge, 3 at a corner; more on a mesh jelly's thin parts)."""
-    surface = np.asarray(surface)
-    nb = axis_neighbors(shape, surface, present)
-    missing = nb[:, :6] == surface[:, None]
+def face_order(surface, neighbors):
+    """The order that groups lattice points ``surface`` (ascending) by the sides their lattice
+    neighbours are missing on, from their :func:`axis_neighbors` rows: each face's points together,
+    then each edge's, then each corner's, each group in lattice order. Returns the order and each
+    ordered point's number of missing sides (1 on a face, 2 on an edge, 3 at a corner; more on a
+    mesh jelly's thin parts)."""
+    missing = neighbors[:, :6] == np.asarray(surface)[:, None]
     sides = missing.sum(axis=1)
     key = (missing * (1 << np.arange(6))).sum(axis=1)
     order = np.lexsort((surface, key, sides))
-    return surface[order], sides[order]
+    return order, sides[order]
 
 
 def jelly_radius(info, thickness=None) -> float:
@@ -174,7 +173,10 @@ class ParticleContact:
                 present[info.lattice_index] = True
                 to_particle = np.full(points, -1)
                 to_particle[info.lattice_index] = np.arange(info.lattice_index.size)
-            surface, n_sides = face_order(info.shape, np.flatnonzero(surface_mask(info.shape, present)), present)
+            surface = np.flatnonzero(surface_mask(info.shape, present))
+            nb = axis_neighbors(info.shape, surface, present)
+            by_face, n_sides = face_order(surface, nb)
+            surface, nb = surface[by_face], nb[by_face]
             sides.append(n_sides)
             local = to_particle[surface]
             index.append(local + info.particle_start)
@@ -183,7 +185,6 @@ class ParticleContact:
             radius.append(np.full(local.size, jelly_radius(info, thickness)))
             size = [s * (n - 1) for s, n in zip(info.spacing, info.shape)]
             rest.append(lattice.lattice_points(info.shape, size)[surface])
-            nb = axis_neighbors(info.shape, surface, present)
             nb = np.where(nb >= 0, to_particle[np.maximum(nb, 0)], -1)
             neighbors.append(np.where(nb >= 0, nb + info.particle_start, -1))
         # The contact order: every jelly's face particles first (jelly by jelly, face by face),
