@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import platform
 import re
 import shlex
@@ -81,9 +82,22 @@ def run_case(name, kind, args, device, quick):
     return report, cmd
 
 
+def unbounded(value):
+    """A stability report as the command holds it: its JSON writes an infinite dt (no limit found,
+    or none predicted) as null, which the table prints as inf."""
+    if isinstance(value, list):
+        return [unbounded(v) for v in value]
+    if isinstance(value, dict):
+        return {k: math.inf if v is None and k in ("predicted", "dt", "unstable_dt") else unbounded(v)
+                for k, v in value.items()}
+    return value
+
+
 def table(report):
     if "limits" in report:
         from softsim_warp.commands.stability import format_table  # noqa: PLC0415
+
+        return format_table(unbounded(report))
     else:
         from softsim_warp.commands.accuracy import format_table  # noqa: PLC0415
     return format_table(report)

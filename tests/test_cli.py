@@ -78,7 +78,7 @@ def test_user_errors_are_one_line(tmp_path):
 
 def test_scenes_lists_builtins():
     r = softsim("scenes")
-    assert r.returncode == 0 and r.stdout.startswith("jelly_drop") or "jelly_drop " in r.stdout
+    assert r.returncode == 0 and (r.stdout.startswith("jelly_drop") or "jelly_drop " in r.stdout)
 
 
 def test_bare_softsim_prints_usage_and_exits_2(capsys):
@@ -139,3 +139,4 @@ def test_preview_refuses_flags_it_has_no_use_for(tmp_path, capsys):
         assert main(["preview", str(tmp_path / "x.usdc"), "--png", str(tmp_path / "x.png"), *flag]) == 2
         err = capsys.readouterr().err.strip().splitlines()
         assert len(err) == 1 and "unrecognized arguments" in err[0] and flag[0] in err[0], err
+        assert "see softsim preview --help" in err[0], err

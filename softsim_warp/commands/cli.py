@@ -31,13 +31,18 @@ SUBCOMMANDS = (run, scenes, compare, preview, bench, accuracy, stability, sweep)
 
 
 class _Parser(argparse.ArgumentParser):
-    """argparse with its errors turned into the one-line ``error: command line: <flag>: ...`` form."""
+    """argparse with its errors turned into the one-line ``error: command line: <flag>: ...`` form.
+
+    ``command`` is the subcommand the command line names (set by ``_main`` before parsing), so an
+    unrecognized flag points to that subcommand's help."""
+
+    command = None
 
     def error(self, message):
-        raise _argparse_error(message)
+        raise _argparse_error(message, self.command)
 
 
-def _argparse_error(message: str) -> CommandLineError:
+def _argparse_error(message: str, command: str | None = None) -> CommandLineError:
     m = re.match(r"argument (\S+): (.*)$", message, re.S)
     key, text = (m.group(1), m.group(2)) if m else ("arguments", message)
     if key.startswith("-") and "/" in key:  # "-h/--help": name the long form
@@ -48,7 +53,8 @@ def _argparse_error(message: str) -> CommandLineError:
         return CommandLineError(key, what, m.group(2))
     m = re.match(r"^unrecognized arguments: (.*)$", text, re.S)
     if m:
-        return CommandLineError("arguments", "unrecognized arguments; see softsim run --help", m.group(1))
+        see = f"softsim {command} --help" if command else "softsim --help"
+        return CommandLineError("arguments", f"unrecognized arguments; see {see}", m.group(1))
     m = re.match(r"^the following arguments are required: (.*)$", text, re.S)
     if m:
         return CommandLineError(m.group(1), "is required")
@@ -130,8 +136,9 @@ def _main(argv) -> int:
             parser.print_usage(sys.stderr)
             print("run `softsim -h` for the commands, `softsim <command> -h` for one of them", file=sys.stderr)
             return 2
-        args = parser.parse_args(argv)
         commands = {m.COMMAND: m.run for m in SUBCOMMANDS}
+        parser.command = next((a for a in argv if a in commands), None)
+        args = parser.parse_args(argv)
         notice = functools.partial(common.compile_notice, getattr(args, "quiet", False))
         stepper.WARM_UP_HOOKS.append(notice)
         try:
