@@ -61,7 +61,7 @@ def test_free_flight_orders():
         order = report["orders"][m]["order"]
         assert len(report["orders"][m]["dts_fitted"]) == 3, report["orders"][m]
         # error ~ C dt^p: the slope of log(error) against log(dt) is p.
-        assert abs(order - EXPECTED_ORDER[m]) <= 0.25, (m, order, report["orders"][m])
+        assert abs(order - EXPECTED_ORDER[m]) <= 0.1, (m, order, report["orders"][m])  # within 0.04 measured
 
 
 def test_free_flight_centre_of_mass_is_a_parabola():
@@ -91,7 +91,8 @@ def test_stability_limit_matches_linear_prediction(method):
     limit = stability.measure_limit(model, method, guess=predicted, steps=1000, max_dt=0.1, rtol=0.02)
     measured = math.sqrt(limit["dt"] * limit["unstable_dt"])  # middle of the final 2% bracket
     assert limit["bound"] == ""
-    assert abs(measured / predicted - 1.0) <= 0.15, (method, measured, predicted)
+    # The 2 % bracket around the prediction, and 1 % more (0.5 to 1.6 % is measured).
+    assert abs(measured / predicted - 1.0) <= 0.03, (method, measured, predicted)
 
 
 def test_float32_agrees_with_float64(device):
