@@ -101,6 +101,26 @@ def small(tmp_path):
     return write_stage(tmp_path / "small.usda", np.linspace(2.0, 0.5, 3))
 
 
+@pytest.mark.parametrize(
+    "flags, line",
+    [
+        (["--frame", "99"], "--frame: out of range, allowed 0..2 (got 99)"),
+        (["--time", "100"], "--time: out of range, allowed 0..0.0666667 s (got 100)"),
+        (["--size", "0x0"], "--size: must be (width, height) in pixels, 16..8192 (got (0, 0))"),
+    ],
+)
+def test_bad_value_names_its_flag_and_value(capfd, tmp_path, small, flags, line):
+    """Every refusal reads ``<file>: <flag>: <what is wrong> (got <value>)``."""
+    rc, err = _preview(capfd, small, "--png", tmp_path / "p.png", *flags)
+    assert rc == 2 and err == [f"error: {small}: {line}"]
+
+
+def test_missing_file_names_the_usd_and_its_path(capfd, tmp_path):
+    path = tmp_path / "nope.usdc"
+    rc, err = _preview(capfd, path, "--png", tmp_path / "p.png")
+    assert rc == 2 and err == [f"error: {path}: usd: USD file not found (got '{path}')"]
+
+
 # --------------------------------------------------------------------------------------------------
 # Files that are not USD
 # --------------------------------------------------------------------------------------------------

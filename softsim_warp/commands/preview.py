@@ -102,13 +102,23 @@ class _Shown:
         return self.text
 
 
+# preview.py's names of its parameters, as the command line's flags.
+_FLAGS = {"frame": "--frame", "time": "--time", "fps": "--fps", "size": "--size", "max_frames": "max_frames",
+          "output": "output"}
+
+
 def _user_error(e: ValueError) -> UserError:
-    """preview.py's ``"<file>: <what is wrong> (got <value>)"`` as a one-line UserError with its parts."""
+    """preview.py's bad input as a one-line UserError with its parts: ``"<file>: <parameter>: <what is
+    wrong> (got <value>)"`` for a parameter, ``"<file>: <what is wrong>"`` for the USD file itself (the
+    key is then ``usd`` and the value the file)."""
     source, _, message = str(e).partition(": ")
-    m = re.match(r"^(.*) \(got (.*)\)$", message, re.S)
-    if m:
-        return UserError(source, "preview", m.group(1), _Shown(m.group(2)), has_value=True)
-    return UserError(source, "preview", message or "cannot render")
+    key, _, rest = message.partition(": ")
+    if key in _FLAGS and rest:
+        m = re.match(r"^(.*) \(got (.*)\)$", rest, re.S)
+        if m:
+            return UserError(source, _FLAGS[key], m.group(1), _Shown(m.group(2)), has_value=True)
+        return UserError(source, _FLAGS[key], rest)
+    return UserError(source, "usd", message or "cannot render", source, has_value=True)
 
 
 def render_gif_or_error(usd_path, gif_path, fps=None):

@@ -112,17 +112,17 @@ def render_png(usd_path, png_path, frame=None, time=None, size=(800, 600)):
     with np.errstate(all="ignore"):  # NaN and inf points are dropped, not warned about
         scene = _Scene(usd_path)
         if frame is not None and time is not None:
-            raise ValueError(f"{scene.path}: give frame or time, not both (got frame={frame}, time={time})")
+            raise ValueError(f"{scene.path}: frame: give frame or time, not both (got frame={frame}, time={time})")
         if time is not None:
             t = _as_number(scene.path, "time", time)
             lo, hi = scene.start / scene.fps, scene.end / scene.fps
             if not (lo - 1e-9 <= t <= hi + 1e-9):
-                raise ValueError(f"{scene.path}: time {t:g} s out of range, allowed {lo:g}..{hi:g} s")
+                raise ValueError(f"{scene.path}: time: out of range, allowed {lo:g}..{hi:g} s (got {t:g})")
             frame = min(max(t * scene.fps, scene.start), scene.end)
         elif frame is not None:
             f = _as_number(scene.path, "frame", frame)
             if not (scene.start - 1e-9 <= f <= scene.end + 1e-9):
-                raise ValueError(f"{scene.path}: frame {frame} out of range, allowed {scene.start:g}..{scene.end:g}")
+                raise ValueError(f"{scene.path}: frame: out of range, allowed {scene.start:g}..{scene.end:g} (got {frame:g})")
             frame = min(max(f, scene.start), scene.end)
         else:
             frame = scene.end
@@ -167,7 +167,7 @@ def render_gif(usd_path, gif_path, fps=None, size=(640, 480), max_frames=None, p
         except (TypeError, ValueError, OverflowError):
             ok = False
         if not ok:
-            raise ValueError(f"{os.fspath(usd_path)}: max_frames must be an integer >= 1 (got {max_frames!r})")
+            raise ValueError(f"{os.fspath(usd_path)}: max_frames: must be an integer >= 1 (got {max_frames!r})")
         max_frames = int(max_frames)
     with np.errstate(all="ignore"):  # NaN and inf points are dropped, not warned about
         scene = _Scene(usd_path)
@@ -176,7 +176,7 @@ def render_gif(usd_path, gif_path, fps=None, size=(640, 480), max_frames=None, p
         else:
             fps = _as_number(scene.path, "fps", fps)
             if not fps > 0:
-                raise ValueError(f"{scene.path}: fps must be > 0 (got {fps:g})")
+                raise ValueError(f"{scene.path}: fps: must be > 0 (got {fps:g})")
         frames, step = _gif_frames(scene.start, scene.end, scene.fps, fps, max_frames)
 
         from PIL import Image
@@ -300,9 +300,9 @@ def _as_number(path, name, value):
     try:
         out = float(value)
     except (TypeError, ValueError):
-        raise ValueError(f"{path}: {name} must be a number (got {value!r})") from None
+        raise ValueError(f"{path}: {name}: must be a number (got {value!r})") from None
     if not math.isfinite(out):
-        raise ValueError(f"{path}: {name} must be finite (got {value!r})")
+        raise ValueError(f"{path}: {name}: must be finite (got {value!r})")
     return out
 
 
@@ -313,14 +313,14 @@ def _check_size(usd_path, size):
     except (TypeError, ValueError):
         ok = False
     if not ok:
-        raise ValueError(f"{os.fspath(usd_path)}: size must be (width, height) in pixels, 16..8192 (got {size!r})")
+        raise ValueError(f"{os.fspath(usd_path)}: size: must be (width, height) in pixels, 16..8192 (got {size!r})")
     return width, height
 
 
 def _check_out_dir(out_path):
     folder = os.path.dirname(os.path.abspath(os.fspath(out_path)))
     if not os.path.isdir(folder):
-        raise ValueError(f"{os.fspath(out_path)}: output folder does not exist: {folder}")
+        raise ValueError(f"{os.fspath(out_path)}: output: the folder does not exist (got {folder!r})")
 
 
 # --------------------------------------------------------------------------------------------------
