@@ -140,3 +140,11 @@ def test_preview_refuses_flags_it_has_no_use_for(tmp_path, capsys):
         err = capsys.readouterr().err.strip().splitlines()
         assert len(err) == 1 and "unrecognized arguments" in err[0] and flag[0] in err[0], err
         assert "see softsim preview --help" in err[0], err
+
+
+def test_switch_given_a_value_is_one_line(capsys):
+    from softsim_warp.commands.cli import main  # noqa: PLC0415
+
+    assert main(["run", "jelly_drop", "--deterministic=yes"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err == ["error: command line: --deterministic: is a switch and takes no value (got 'yes')"]

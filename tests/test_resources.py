@@ -69,6 +69,10 @@ def test_usd_frames_count_towards_memory(tmp_path, monkeypatch, capsys):
     err = capsys.readouterr().err
     assert code == 2
     assert "scene too large" in err and "1,000,000,001 USD frames" in err and "available" in err
+    # The frames, not the jelly, are what is too large: the line names them.
+    assert err.startswith("error: scene.toml: simulation.frames: scene too large") and err.rstrip().endswith(
+        "(got 1000000000)"
+    )
 
 
 class _FakeGpu:

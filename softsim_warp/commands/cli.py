@@ -51,6 +51,9 @@ def _argparse_error(message: str, command: str | None = None) -> CommandLineErro
     if m:  # "invalid float value: 'abc'", "invalid choice: 'x' (choose from ...)"
         what = m.group(1) + (f"; choose from {m.group(4)}" if m.group(4) else "")
         return CommandLineError(key, what, m.group(2))
+    m = re.match(r"^ignored explicit argument '(.*)'$", text, re.S)
+    if m:  # "--deterministic=yes": a switch given a value
+        return CommandLineError(key, "is a switch and takes no value", m.group(1))
     m = re.match(r"^unrecognized arguments: (.*)$", text, re.S)
     if m:
         see = f"softsim {command} --help" if command else "softsim --help"

@@ -304,6 +304,8 @@ def check_fits(
     host_available = available_host_bytes() if host_available is None else host_available
     if host_available is not None and host_need > host_available:
         where = "host memory" if device.is_cuda else f"memory on {device}"
+        if est.usd * 2 > host_need:  # the frames kept for the USD file, not the jellies, are too many
+            key, value = "simulation.frames", frames
         raise SceneError(
             scene.source,
             key,
