@@ -5,6 +5,7 @@ import subprocess
 import sys
 
 import pytest
+import warp as wp
 
 from pxr import Usd, UsdGeom
 
@@ -148,3 +149,15 @@ def test_switch_given_a_value_is_one_line(capsys):
     assert main(["run", "jelly_drop", "--deterministic=yes"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert err == ["error: command line: --deterministic: is a switch and takes no value (got 'yes')"]
+
+
+@pytest.mark.skipif(wp.get_cuda_device_count() > 0, reason="a GPU is present: --device cuda resolves")
+def test_absent_cuda_is_one_line_without_driver_noise(capfd):
+    """Without a GPU, `--device cuda` is refused in one line; Warp's driver errors (printed by its C
+    code when it looks up the current context) must not come first."""
+    from softsim_warp.commands.cli import main  # noqa: PLC0415
+
+    capfd.readouterr()
+    assert main(["run", "jelly_drop", "--device", "cuda"]) == 2
+    err = [line for line in capfd.readouterr().err.splitlines() if line.strip()]
+    assert err == ["error: command line: --device: device not available here; available: cpu (got 'cuda')"]

@@ -181,6 +181,9 @@ def resolve_device(name: str, debug=False):
     if not re.fullmatch(r"cpu|cuda(:\d+)?", name or ""):
         names = ", ".join(d.alias for d in wp.get_devices())
         raise CommandLineError("--device", f"unknown device name; use cpu or cuda:N (available here: {names})", name)
+    if name.startswith("cuda") and wp.get_cuda_device_count() == 0:
+        # Without a GPU, Warp's lookup of "cuda" (the current context) prints driver errors first.
+        raise CommandLineError("--device", "device not available here; available: cpu", name)
     try:
         return wp.get_device(name)
     except (RuntimeError, ValueError, TypeError):
