@@ -161,3 +161,19 @@ def test_absent_cuda_is_one_line_without_driver_noise(capfd):
     assert main(["run", "jelly_drop", "--device", "cuda"]) == 2
     err = [line for line in capfd.readouterr().err.splitlines() if line.strip()]
     assert err == ["error: command line: --device: device not available here; available: cpu (got 'cuda')"]
+
+
+def test_energy_change_without_energy_to_compare_with():
+    """A jelly that has not moved between the frames compared has no energy available above its
+    lowest state: the relative change would divide rounding by rounding, so it is not given."""
+    from types import SimpleNamespace  # noqa: PLC0415
+
+    from softsim_warp.io.runinfo import energy_drift  # noqa: PLC0415
+
+    still = [SimpleNamespace(total_energy=-12.5, gravity_energy=-12.5), SimpleNamespace(total_energy=-12.5 + 1e-15,
+                                                                                      gravity_energy=-12.5)]
+    drift, rel = energy_drift(still)
+    assert 0 < drift < 1e-14 and rel != rel  # NaN
+    falling = [SimpleNamespace(total_energy=0.0, gravity_energy=0.0), SimpleNamespace(total_energy=-0.5,
+                                                                                     gravity_energy=-2.0)]
+    assert energy_drift(falling) == (-0.5, -0.25)

@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import warp as wp
 
@@ -13,12 +15,16 @@ def energy_drift(metrics) -> tuple[float, float]:
 
     The gravity energy's zero is arbitrary, so the relative drift divides by E_0 minus the lowest
     gravity energy seen: the energy the jelly could give up by falling plus what it started with.
+    The relative change is NaN where that energy is nothing but rounding (a jelly at rest that has not
+    moved yet), since any change divided by it is meaningless.
     """
     if len(metrics) < 2:
         return 0.0, 0.0
     e0, e1 = metrics[0].total_energy, metrics[-1].total_energy
     lowest = min(m.gravity_energy for m in metrics)
-    scale = max(e0 - lowest, 1e-300)
+    scale = e0 - lowest
+    if not scale > 1e-9 * max(abs(e0), abs(e1), abs(lowest), 1e-300):
+        return e1 - e0, math.nan
     return e1 - e0, (e1 - e0) / scale
 
 
@@ -85,9 +91,12 @@ def summary_line(s: dict, out) -> str:
     energy gained is the warning sign of a step too large for the method."""
     status = s.get("status", "complete")
     ended = "" if status == "complete" else f"{status.upper()}: "
-    drift, rel = s["energy_drift"], 100 * s["energy_drift_relative"]
+    drift, rel = s["energy_drift"], s["energy_drift_relative"]
+    rel = None if rel is None else 100 * rel
     if s["frames"] < 2:
         energy = ""  # one frame: no change to report
+    elif rel is None or not math.isfinite(rel):  # no energy to compare with (JSON writes NaN as null)
+        energy = f"; energy change {drift:.4g} J"
     elif drift <= 0:
         energy = f"; {abs(drift):.4g} J ({abs(rel):.1f}% of the energy available) dissipated by damping, friction and contact"
     else:
