@@ -106,7 +106,10 @@ def test_compare_vary_product_names_and_agreement(tmp_path):
 @pytest.mark.parametrize(
     "argv, needle",
     [
-        (["--vary", "simulation.dt=0.001,0.002"], "simulation.dt: every copy shares one clock"),
+        (["--vary", "simulation.dt=0.001,0.002"], "command line: --vary: simulation.dt: every copy shares one clock"),
+        (["--vary", "=1,2"], "command line: --vary: expected a dotted key such as simulation.dt before '=' (got '=1')"),
+        (["--vary", "jelly.5.size=1,2"], "command line: --vary: jelly.5: index out of range"),
+        (["--vary", "jelly.0.size=1,"], "command line: --vary: jelly.0.size: empty value in the list (got '1,')"),
         (["--integrators", "euler,bogus"], "--integrators: unknown integrator"),
         (["--integrators", "euler,euler"], "lists an integrator twice"),
         (["--vary", "jelly.0.springs.structural.ks=1,1"], "repeats a value"),

@@ -264,3 +264,24 @@ def test_full_disk_keeps_the_previous_output(tmp_path):
     assert len(lines) == 1 and lines[0].startswith("error: ") and "out.usdc" in lines[0], proc.stderr
     assert (tmp_path / "out.usdc").read_bytes() == good
     assert not list(tmp_path.glob(".*partial-*"))
+
+
+def test_interrupted_compare_says_so(tmp_path):
+    """SIGINT during `softsim compare`: exit 130, and its summary lines say interrupted, not complete."""
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "softsim_warp", "compare", "jelly_drop", "--integrators", "euler,symplectic",
+         "--frames", "100000", "--no-graph", "--out", "c.usdc", "--set", "jelly.0.resolution=[3,3,3]"],
+        cwd=tmp_path, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
+    )
+    err = b""
+    while err.count(b"/100001") < 3:
+        chunk = proc.stderr.read1(4096)
+        if not chunk:
+            break
+        err += chunk
+    proc.send_signal(signal.SIGINT)
+    err += proc.stderr.read()
+    assert proc.wait(timeout=120) == 130, err.decode(errors="replace")
+    text = err.decode(errors="replace")
+    assert "jelly_drop [euler]: euler, interrupted" in text and "complete" not in text, text
+    assert "INTERRUPTED: jelly_drop: 2 copies" in text, text

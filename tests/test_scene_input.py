@@ -389,7 +389,7 @@ DEEP_RES = "[" * DEEP + "1" + "]" * DEEP
         (["pipe.toml"], "pipe.toml: scene: is not a regular file"),
         (["adir.toml"], "adir.toml: scene: is a directory"),
         (["a\0b.toml"], "scene: a file name cannot contain a NUL character"),
-        (["compare", "ok.toml", "--vary", "jelly.²=1,2"], '--set jelly."\\u00b2": expected an index'),
+        (["compare", "ok.toml", "--vary", "jelly.²=1,2"], 'command line: --vary: jelly."\\u00b2": expected an index'),
         (["compare", "ok.toml", "--vary", f"jelly.0.resolution={DEEP_RES},3"], "jelly.0.resolution: arrays and inline"),
         (["compare", "ok.toml", "--vary", "jelly.0.resolution=0x" + "f" * 5000 + ",3"], "number too long"),
         (["compare", "deep.toml"], "deep.toml: line 11, column 114: arrays and inline tables nested deeper"),

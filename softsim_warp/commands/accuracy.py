@@ -37,7 +37,8 @@ import numpy as np
 from ..core.errors import CommandLineError
 from ..core.model import build_model
 from ..core.stepper import make_integrator
-from ..io.outputs import Outputs, save_report
+from ..io.mesh_scene import add_asset_inputs
+from ..io.outputs import JSON_SUFFIXES, Outputs, save_report
 from ..io.resources import MAX_RUN_DAYS, scene_counts, step_seconds_floor
 from ..io.simulate import Simulator
 from .common import (ALL_INTEGRATORS, ProgressLog, check_positive, load_for_cli, parse_methods, parse_positive_list,
@@ -572,11 +573,13 @@ def run(args) -> int:
     dts = parse_positive_list(args.dts, "--dts") if args.dts else None
     for flag in ("duration", "reference_dt", "fps"):
         check_positive(getattr(args, flag), "--" + flag.replace("_", "-"))
+    scene = load_for_cli(args)
     outputs = Outputs()
     outputs.add_input("scene", args.scene)
-    outputs.add("--out", args.out)
+    add_asset_inputs(outputs, scene)
+    # --plot first: `--out r.png --plot r.png` is two outputs in one file before it is a bad extension.
     outputs.add("--plot", args.plot, (".png", ".pdf", ".svg"))
-    scene = load_for_cli(args)
+    outputs.add("--out", args.out, JSON_SUFFIXES, streams=True)
     fps = args.fps or scene.sim["fps"]
     for d in dts or ():
         if d > 1.0 / fps:

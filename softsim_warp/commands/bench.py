@@ -34,6 +34,7 @@ from ..core.errors import CommandLineError
 from ..core.integrators import ExplicitIntegrator
 from ..core.model import ModelBuilder, build_model
 from ..core.stepper import make_integrator
+from ..io.mesh_scene import scene_file_assets
 from ..io.outputs import Outputs, save_report
 from ..io.resources import check_counts, lattice_spring_count
 from ..io.scene import load_scene
@@ -46,6 +47,9 @@ COMMAND = "bench"
 DEFAULT_INTEGRATORS = ("euler", "symplectic", "midpoint", "rk4")
 STAGES = {"euler": 1, "symplectic": 1, "midpoint": 2, "rk4": 4}
 BATCH_MAX_PARTICLES = 1_000_000
+# Flags of bench_contact (flag -> argparse dest) that only ``--contact`` uses, and their defaults.
+CONTACT_FLAGS = {"--jellies": "jellies", "--contact-size": "contact_size"}
+_CONTACT_DEFAULTS = {}
 
 
 @dataclass(frozen=True)
@@ -382,8 +386,43 @@ def add_parser(subparsers, add_common):
     p.add_argument("--out", help="write the results as JSON")
     p.add_argument("--plot", help="write a log-log plot of particle-steps/s over particle count (PNG)")
     bench_contact.add_arguments(p)
+    # --jellies and --contact-size apply only with --contact: their default is None here, so that
+    # run() can tell whether they were given; it fills in bench_contact's defaults for --contact.
+    for dest in CONTACT_FLAGS.values():
+        _CONTACT_DEFAULTS[dest] = p.get_default(dest)
+    p.set_defaults(**dict.fromkeys(CONTACT_FLAGS.values()))
     add_common(p)
     return p
+
+
+def _check_flags(args):
+    """Refuse values no benchmark can use and flags that the chosen benchmark would ignore.
+
+    ``--set`` changes a scene, so it needs ``--scene`` (the size sweep builds :class:`JellySpec`'s
+    jelly, ``--contact`` its piles); ``--jellies`` and ``--contact-size`` need ``--contact``.
+    """
+    for flag, value in (("--implicit-peer-ks", args.implicit_peer_ks), ("--implicit-peer-dt", args.implicit_peer_dt)):
+        if not (math.isfinite(value) and value > 0):
+            raise CommandLineError(flag, "must be a finite number > 0", value)
+    if args.contact:
+        own = "not with --contact, which times its own piles of jellies"
+        if args.scene is not None:
+            raise CommandLineError("--scene", own, args.scene)
+        if args.variants:
+            raise CommandLineError("--variants", own, "--variants")
+        if args.plot is not None:
+            raise CommandLineError("--plot", "not with --contact, which draws no plot (only --out)", args.plot)
+        for dest, default in _CONTACT_DEFAULTS.items():
+            if getattr(args, dest) is None:
+                setattr(args, dest, default)
+    else:
+        for flag, dest in CONTACT_FLAGS.items():
+            if getattr(args, dest) is not None:
+                raise CommandLineError(flag, "applies only with --contact", getattr(args, dest))
+    if args.overrides and not args.scene:
+        value = args.overrides[0] if len(args.overrides) == 1 else args.overrides
+        why = "changes a scene, so it applies only with --scene (the size sweep and --contact build their own jellies)"
+        raise CommandLineError("--set", why, value)
 
 
 def _versions(peer):
@@ -430,8 +469,12 @@ def run(args) -> int:
             raise CommandLineError(flag, f"must be at least {low}", value)
     if args.peer and args.scene:
         raise CommandLineError("--peer", "compares the size sweep only; leave out --scene", args.peer)
+    _check_flags(args)
     outputs = Outputs()
     outputs.add_input("--scene", args.scene)
+    if args.scene:  # its mesh files are inputs too (their paths only: the scene is loaded below)
+        for key, asset in scene_file_assets(args.scene, args.overrides):
+            outputs.add_input(key, asset)
     outputs.add("--out", args.out, (".json",))
     outputs.add("--plot", args.plot, (".png",))
     device = resolve_device(args.device)
@@ -446,6 +489,8 @@ def run(args) -> int:
 
     wp.config.quiet = True
     wp.init()
+    # The scene and its --set values are validated before anything is measured.
+    scene = load_scene(args.scene, args.overrides) if args.scene else None
     spec = JellySpec()
     bandwidth = measure_copy_bandwidth(device)
     use_graph = not args.no_graph
@@ -453,9 +498,7 @@ def run(args) -> int:
         return bench_contact.run_contact(args, device, spec, _versions(args.peer), _device_name(device))
     results, peers, gpu_clocks = [], [], []
 
-    if args.scene:
-
-        scene = load_scene(args.scene, args.overrides)
+    if scene is not None:
         groups = [
             (
                 scene.name,

@@ -34,7 +34,8 @@ from ..core.errors import CommandLineError, SceneError, UserError
 from ..core.integrators import ExplicitIntegrator
 from ..core.stepper import make_integrator
 from ..io import scene as scene_mod
-from ..io.outputs import USD_SUFFIXES, Outputs, kept_partial_path, save_atomic, write_json_atomic
+from ..io.mesh_scene import add_asset_inputs
+from ..io.outputs import JSON_SUFFIXES, USD_SUFFIXES, Outputs, kept_partial_path, save_atomic, write_json_atomic
 from ..io.resources import check_fits
 from ..io.scene import parse_override
 from ..io.simulate import Simulator
@@ -88,8 +89,9 @@ def run(args) -> int:
     plan = plan_variants(args)
     outputs = Outputs()
     outputs.add_input("scene", plan.source)
+    add_asset_inputs(outputs, *(v.data for v in plan.variants))
     out = outputs.add("--out", args.out or f"{Path(plan.source).stem}_compare.usdc", USD_SUFFIXES)
-    outputs.add("--metrics", args.metrics)
+    outputs.add("--metrics", args.metrics, JSON_SUFFIXES, streams=True)
     outputs.add("--plot", args.plot, (".png",))
     if args.columns is not None and args.columns < 1:
         raise CommandLineError("--columns", "must be an integer >= 1", args.columns)
@@ -117,9 +119,13 @@ def run(args) -> int:
         if progress is not None:
             progress.close()
     for v in result.variants:
-        state = f"exploded at t = {v.exploded['time']:.4g} s ({v.exploded['reason']})" if v.exploded else "complete"
+        if v.exploded:
+            state = f"exploded at t = {v.exploded['time']:.4g} s ({v.exploded['reason']})"
+        else:
+            state = "interrupted" if result.interrupted else "complete"
         print(f"{plan.name} [{v.name}]: {v.integrator}, {state}", file=sys.stderr)
-    print(f"{plan.name}: {len(result.variants)} copies, {result.frames_written} frames, {result.steps} steps at "
+    ended = "INTERRUPTED: " if result.interrupted else ""
+    print(f"{ended}{plan.name}: {len(result.variants)} copies, {result.frames_written} frames, {result.steps} steps at "
           f"dt={plan.dt:g} s in {result.wall_seconds:.2f} s -> {result.written_path}", file=sys.stderr)
     if result.interrupted:
         return 128 + int(signals.received)
@@ -193,7 +199,7 @@ def _parse_vary(items) -> list[tuple[str, list]]:
     varies = []
     for item in items:
         if "=" not in item:
-            raise SceneError("--vary", item, "expected KEY=V1,V2,...")
+            raise SceneError("--vary", None, "expected KEY=V1,V2,...", item)
         key, raw = item.split("=", 1)
         key = key.strip()
         values = []
@@ -216,7 +222,20 @@ def _parse_vary(items) -> list[tuple[str, list]]:
 
 
 def plan_variants(args) -> Plan:
-    """Load the scene (with --set and flags), expand --integrators x --vary and validate every copy."""
+    """Load the scene (with --set and flags), expand --integrators x --vary and validate every copy.
+
+    An error in a --vary item is an error of that flag: ``command line: --vary: <key>: ...``."""
+    try:
+        return _plan_variants(args)
+    except SceneError as e:
+        if e.source != "--vary":
+            raise
+        key = e.key.removeprefix("--set ") if e.key else None
+        message = f"{key}: {e.message}" if key and key != "--set" else e.message
+        raise (CommandLineError("--vary", message, e.value) if e.has_value else CommandLineError("--vary", message)) from None
+
+
+def _plan_variants(args) -> Plan:
 
     path, source, base = scene_mod.read_scene_data(args.scene)
     common.init_warp_for_meshes(base, args)

@@ -13,7 +13,8 @@ from pathlib import Path
 
 from ..core.model import build_model
 from ..core.stepper import make_integrator
-from ..io.outputs import USD_SUFFIXES, Outputs, kept_partial_path, write_json_atomic
+from ..io.mesh_scene import add_asset_inputs
+from ..io.outputs import JSON_SUFFIXES, USD_SUFFIXES, Outputs, kept_partial_path, write_json_atomic
 from ..io.resources import check_fits
 from ..io.runinfo import explosion_message, profile_table, summary_dict, summary_line
 from ..io.simulate import Simulator
@@ -67,8 +68,9 @@ def _run(args, signals) -> int:
     scene = load_for_cli(args)
     outputs = Outputs()
     outputs.add_input("scene", scene.source)
+    add_asset_inputs(outputs, scene)
     out = outputs.add("--out", args.out or f"{Path(scene.source).stem}.usdc", USD_SUFFIXES)
-    metrics_path = outputs.add("--metrics", args.metrics)
+    metrics_path = outputs.add("--metrics", args.metrics, JSON_SUFFIXES, streams=True)
     preview_path = outputs.add("--preview", args.preview, (".gif",))
     if signals.received is not None:
         return signals.exit_code()

@@ -49,7 +49,8 @@ from ..core.errors import CommandLineError
 from ..core.model import NUMPY_SCALARS, build_model
 from ..core.stability_model import free_jelly, free_jelly_model as lattice_model, predict_model_dt
 from ..core.stepper import make_integrator
-from ..io.outputs import Outputs, save_report
+from ..io.mesh_scene import add_asset_inputs
+from ..io.outputs import JSON_SUFFIXES, Outputs, save_report
 from ..io.simulate import Simulator
 from .common import (ALL_INTEGRATORS, ProgressLog, check_positive, load_for_cli, parse_methods, parse_positive_list,
                      resolve_device)
@@ -541,11 +542,13 @@ def run(args) -> int:
         raise CommandLineError("--lattice", "must be an integer >= 2", args.lattice)
     if not (0 < args.rtol < 1):
         raise CommandLineError("--rtol", "must be > 0 and < 1", args.rtol)
+    scene = load_for_cli(args)
     outputs = Outputs()
     outputs.add_input("scene", args.scene)
-    outputs.add("--out", args.out)
+    add_asset_inputs(outputs, scene)
+    # --plot first: `--out r.png --plot r.png` is two outputs in one file before it is a bad extension.
     outputs.add("--plot", args.plot, (".png", ".pdf", ".svg"))
-    scene = load_for_cli(args)
+    outputs.add("--out", args.out, JSON_SUFFIXES, streams=True)
     if not 0 <= args.jelly < len(scene.jellies):
         raise CommandLineError("--jelly", f"this scene has jellies 0 to {len(scene.jellies) - 1}", args.jelly)
     device = resolve_device(args.device)

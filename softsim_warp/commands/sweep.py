@@ -14,7 +14,8 @@ import time
 from ..core.errors import CommandLineError
 from ..io import scene as scene_mod
 from ..io import sweep as engine
-from ..io.outputs import Outputs
+from ..io.mesh_scene import add_asset_inputs
+from ..io.outputs import Outputs, is_stream, kept_partial_path, target_of
 from ..io.resources import check_fits
 from . import common
 
@@ -50,7 +51,8 @@ def add_parser(subparsers, add_common):
     g.add_argument("--scheduler", metavar="ADDRESS", help="run on an existing Dask cluster (tcp://host:8786)")
     p.add_argument("--batch", type=int,
                    help="worlds per task (default: what fits in memory, spread over the workers)")
-    p.add_argument("--resume", action="store_true", help="keep the rows already in --out (and its parts); run the rest")
+    resume = "keep the rows already in --out (or its .partial file) and its parts; run the rest"
+    p.add_argument("--resume", action="store_true", help=resume)
     p.add_argument("--reference", action="store_true",
                    help="also run each variant in float64 with rk4 and report the error against it")
     p.add_argument("--find-stable-dt", action="store_true",
@@ -78,8 +80,8 @@ def _check_args(args):
         raise CommandLineError("--reference", "not with --find-stable-dt", "--reference")
     if not 0 < args.rtol < 1:
         raise CommandLineError("--rtol", "must be > 0 and < 1", args.rtol)
-    if args.scheduler is not None and not args.scheduler.strip():
-        raise CommandLineError("--scheduler", "expected an address such as tcp://host:8786", args.scheduler)
+    if args.scheduler is not None:
+        args.scheduler = engine.check_scheduler_address(args.scheduler)
     if not (args.device in ("cpu", "cuda") or args.device.startswith("cuda:")):
         raise CommandLineError("--device", "use cpu, cuda:N, or cuda (every GPU, one worker each)", args.device)
 
@@ -198,6 +200,7 @@ def run(args) -> int:
         engine.require(module)
     outputs = Outputs()
     outputs.add_input("scene", source)
+    add_asset_inputs(outputs, *(v.data for v in variants))
     out = outputs.add("--out", args.out or f"{path.stem}_sweep.parquet", engine.RESULT_SUFFIXES)
     plot_path = outputs.add("--plot", args.plot, (".png", ".pdf", ".svg"))
     device = args.device
@@ -230,6 +233,8 @@ def run(args) -> int:
             raise CommandLineError("--metric", f"not a numeric column of this sweep; choose from {', '.join(numeric)}",
                                    args.metric)
     by_id = {v.id: v for v in variants}
+    # A figure that existed is replaced only by the complete sweep's (as the results file).
+    plot_existed = plot_path is not None and target_of(plot_path).exists() and not is_stream(plot_path)
 
     with common.Signals() as signals, outputs:
         common.ACTIVE_SIGNALS = signals
@@ -237,12 +242,13 @@ def run(args) -> int:
         done = store.done_ids()
         stale = done - set(by_id)
         if stale:
-            raise CommandLineError("--resume", f"'{out}' holds {len(stale)} rows that are not variants of this sweep "
-                                   "(another scene, --set or --vary); use another --out", str(out))
+            why = f"'{store.results}' holds {len(stale)} rows that are not variants of this sweep"
+            raise CommandLineError("--resume", f"{why} (another scene, --set or --vary); use another --out", str(out))
         todo = [v for v in variants if v.id not in done]
         say = (lambda line: None) if args.quiet else (lambda line: print(line, file=sys.stderr, flush=True))
         if done:
-            say(f"{name}: {len(done)} of {len(variants)} rows already in {out}; running the other {len(todo)}")
+            rest = f"running the other {len(todo)}"
+            say(f"{name}: {len(done)} of {len(variants)} rows already in {store.results}; {rest}")
         outcome = engine.Outcome()
         t0 = time.perf_counter()
         cluster = None
@@ -307,16 +313,22 @@ def run(args) -> int:
             store.consolidate(final=True)
         wall = time.perf_counter() - t0
         rows = sorted(store.rows.values(), key=lambda r: r["index"])
-        _summary(say, name, rows, len(variants), len(todo), wall, out, mode)
+        complete = len(rows) == len(variants)
+        _summary(say, name, rows, len(variants), len(todo), wall, out if complete else store.results, mode)
         if plot_path is not None and rows:
             from ..io.sweep_plot import plot_sweep  # noqa: PLC0415
 
+            if not complete and (store.keep_out or plot_existed) and not is_stream(plot_path):
+                plot_path = kept_partial_path(plot_path)
             keys = plotted_keys(axes, variants)
             plot_sweep(rows, keys, plot_path, mode=mode, metric=args.metric, title=f"{name}: {len(rows)} variants",
                        sampled=args.samples is not None)
+    kept = _kept(store, out, len(variants))
     if outcome.interrupted or signals.received is not None:
-        print(f"{name}: interrupted; {len(store.rows)} of {len(variants)} rows kept in {out}; "
-              "run again with --resume for the rest", file=sys.stderr)
+        if complete:
+            print(f"{name}: interrupted after the last row; {kept}", file=sys.stderr)
+        else:
+            print(f"{name}: interrupted; {kept}; run again with --resume for the rest", file=sys.stderr)
         return signals.exit_code()
     if outcome.scheduler_lost or outcome.lost:
         if outcome.scheduler_lost:
@@ -324,10 +336,22 @@ def run(args) -> int:
         else:
             why = (f"the tasks of {len(outcome.lost)} variants gave no rows (first: {outcome.errors[0]}; a task is "
                    "given up after its worker died 3 times)")
-        print(f"error: {out}: {why}; {len(store.rows)} of {len(variants)} rows kept; run again with --resume "
-              "for the rest", file=sys.stderr)
+        print(f"error: {out}: {why}; {kept}; run again with --resume for the rest", file=sys.stderr)
         return 1
     return 0
+
+
+def _kept(store, out, total) -> str:
+    """Where the rows of a sweep that stopped are, for its last message."""
+    if len(store.rows) == total:
+        return f"all {total} rows are in {out}"
+    if not store.rows:
+        where = "no row finished"
+    else:
+        where = f"{len(store.rows)} of {total} rows kept in {store.results}"
+    if store.keep_out and target_of(out).exists():
+        where += f"; {out}, which predates this sweep, is unchanged"
+    return where
 
 
 def _summary(say, name, rows, total, ran, wall, out, mode):

@@ -12,6 +12,7 @@ from __future__ import annotations
 import functools
 import math
 import os
+import re
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -156,12 +157,44 @@ def _load_trimesh(path, source, key):
     return MeshAsset(points, np.full(faces.shape[0], 3), faces.ravel(), primvars, Path(path).stem)
 
 
+USD_EXPECTED = "a USD file with a Mesh"
+_PXR_NAMESPACE = re.compile(r"pxrInternal_\w*?__pxrReserved__::")
+
+
+def _usd_error_gist(exc) -> str:
+    """The first message of a (multi-line, ``pxr.Tf.ErrorException``) USD error, on one line.
+
+    Each of the exception's errors reads ``Error in '<function>' at line N in file F : '<message>'``;
+    the first one is the cause (the later ones only say that the stage could not be opened).
+    """
+    for text in [str(a) for a in getattr(exc, "args", ())] or [str(exc)]:
+        found = re.search(r" in file \S+ : '(.*)'\s*$", text, re.DOTALL)
+        message = _PXR_NAMESPACE.sub("", found.group(1) if found else text)
+        first = next((line.strip() for line in message.splitlines() if line.strip()), "")
+        if first:
+            return first
+    return type(exc).__name__
+
+
 def _load_usd(path, prim_path, every, source, key):
+    from pxr import Tf  # noqa: PLC0415
+
+    try:
+        return _read_usd(path, prim_path, every, source, key)
+    except Tf.ErrorException as e:
+        # Not USD (text in a .usdc), a syntax error in a .usda, a damaged crate file whose values
+        # fail to read: the file's fault, one line.
+        raise SceneError(
+            source, key, f"cannot be read as USD ({_usd_error_gist(e)}); give {USD_EXPECTED}", path
+        ) from None
+
+
+def _read_usd(path, prim_path, every, source, key):
     from pxr import Sdf, Usd, UsdGeom, UsdPhysics  # noqa: PLC0415
 
     stage = Usd.Stage.Open(path, Usd.Stage.LoadAll)
     if stage is None:
-        raise SceneError(source, key, "cannot open the USD file", path)
+        raise SceneError(source, key, f"cannot be opened as USD; give {USD_EXPECTED}", path)
     # An authored metersPerUnit converts to metres; without one the file is taken to be in metres,
     # softsim's unit (not USD's fallback of centimetres: most hand-made and script-made files mean metres).
     meters = UsdGeom.GetStageMetersPerUnit(stage) if UsdGeom.StageHasAuthoredMetersPerUnit(stage) else 1.0

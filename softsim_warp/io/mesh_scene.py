@@ -53,6 +53,57 @@ def resolve_meshes(data: dict, ctx, base=None):
         _mesh_jelly(i, j, ctx, base)
 
 
+def _entries(value) -> list:
+    """A ``[[table]]`` list as written (a single ``[table]`` counts as entry 0; validation allows it)."""
+    if isinstance(value, dict):
+        return [value]
+    return value if isinstance(value, list) else []
+
+
+def scene_assets(data: dict, source=None) -> list[tuple[str, Path]]:
+    """The mesh files a scene reads, as ``(key, path)``: ``("mesh.0.path", ...)`` for terrain,
+    ``("jelly.1.mesh", ...)`` for a mesh jelly, in the scene's order.
+
+    ``data`` is a validated scene's (its paths are resolved already) or a scene as read, before
+    validation (its paths are resolved here as :func:`resolve_meshes` will: against the directory
+    of the scene file ``source``). Values that are not a file name are left out: validation refuses them.
+    A command declares these as inputs (``Outputs.add_input``), so that no output overwrites them.
+    """
+    base = scene_base(source) if source is not None else None
+    found = []
+    for kind, name in (("mesh", "path"), ("jelly", "mesh")):
+        for i, entry in enumerate(_entries(data.get(kind))):
+            path = entry.get(name) if isinstance(entry, dict) else None
+            if not isinstance(path, str) or not path or "\0" in path:
+                continue
+            if base is not None:
+                path = _resolve(path, base)
+            found.append((f"{kind}.{i}.{name}", Path(path)))
+    return found
+
+
+def scene_file_assets(name_or_path: str, overrides=()) -> list[tuple[str, Path]]:
+    """:func:`scene_assets` of a scene file or built-in scene with ``--set`` overrides applied,
+    without validating it or reading its meshes (for a command that loads the scene later)."""
+    from .scene import apply_overrides, parse_override, read_scene_data  # noqa: PLC0415 - scene imports this module
+
+    _, source, data = read_scene_data(name_or_path)
+    apply_overrides(data, [parse_override(item) for item in overrides])
+    return scene_assets(data, source)
+
+
+def add_asset_inputs(outputs, *scenes) -> None:
+    """Declare the mesh files of each scene (a validated ``Scene``, or its ``data``) as inputs of
+    ``outputs`` (an ``io.outputs.Outputs``), each ``(key, path)`` once, so that no output of the
+    command can be one of them. Call it before adding the outputs."""
+    seen = set()
+    for scene in scenes:
+        for key, path in scene_assets(getattr(scene, "data", scene)):
+            if (key, path) not in seen:
+                seen.add((key, path))
+                outputs.add_input(key, path)
+
+
 def _flat_axes(points, triangles, lo, hi) -> list[bool]:
     """Per axis, whether some face of the mesh (with area) lies in one of its two bounding-box planes.
 

@@ -31,6 +31,7 @@ from pathlib import Path
 from ..core.errors import CommandLineError
 
 USD_SUFFIXES = (".usdc", ".usda", ".usd")
+JSON_SUFFIXES = (".json",)
 
 
 def target_of(path) -> Path:
@@ -173,8 +174,7 @@ def check_writable(path, flag: str, suffixes=None) -> Path:
     p = Path(path)
     if p.is_dir():
         raise CommandLineError(flag, "is a directory; give a file name", str(p))
-    if suffixes and p.suffix not in suffixes:
-        raise CommandLineError(flag, f"unsupported file extension; use one of {', '.join(suffixes)}", str(p))
+    check_suffix(p, flag, suffixes)
     target = target_of(p)
     if target.is_dir():
         raise CommandLineError(flag, "links to a directory; give a file name", str(p))
@@ -201,6 +201,14 @@ def check_writable(path, flag: str, suffixes=None) -> Path:
     os.close(fd)
     os.unlink(probe)
     return p
+
+
+def check_suffix(path, flag: str, suffixes=None) -> None:
+    """Refuse an output whose extension is not one of ``suffixes`` (any extension when None)."""
+    p = Path(path)
+    if suffixes and p.suffix not in suffixes:
+        allowed = suffixes[0] if len(suffixes) == 1 else "one of " + ", ".join(suffixes)
+        raise CommandLineError(flag, f"unsupported file extension; use {allowed}", str(p))
 
 
 def _identity(path):
@@ -236,15 +244,24 @@ class Outputs:
         self._locks = []  # (fd, lock path)
 
     def add_input(self, flag: str, path) -> None:
-        if path is not None and Path(path).exists():
+        """Declare an input file (the scene, a mesh asset) that no output may be; ``flag`` names it in errors."""
+        if path is not None and os.path.exists(path):  # False, not an error, for a name the system refuses
             self._inputs.append((flag, Path(path), _identity(path)))
 
-    def add(self, flag: str, path, suffixes=None) -> Path | None:
-        """Check the output ``path`` of ``flag`` (writable, not an input, not another output); returns it."""
+    def add(self, flag: str, path, suffixes=None, streams=False) -> Path | None:
+        """Check the output ``path`` of ``flag`` (writable, not an input, not another output, one of
+        ``suffixes``); returns it.
+
+        An output that is an input or another output is reported as such, before its extension.
+        ``streams``: a device or FIFO (``/dev/stdout``) is taken whatever its name, for an output
+        whose format does not follow from its extension (JSON); otherwise it needs one of ``suffixes`` too.
+        """
         if path is None:
             return None
-        p = check_writable(path, flag, suffixes)
+        p = check_writable(path, flag)
         if is_stream(p):  # /dev/null twice, or --metrics /dev/stdout with a plot to /dev/stdout: no file to lose
+            if not streams:
+                check_suffix(p, flag, suffixes)
             return p
         ident = _identity(p)
         for other_flag, other, other_ident in self._inputs:
@@ -253,6 +270,7 @@ class Outputs:
         for other_flag, other, other_ident in self._outputs:
             if ident == other_ident:
                 raise CommandLineError(flag, f"is the same file as {other_flag}", str(p))
+        check_suffix(p, flag, suffixes)
         self._outputs.append((flag, p, ident))
         return p
 

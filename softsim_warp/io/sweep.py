@@ -18,7 +18,9 @@ The pieces, in the order ``softsim sweep`` uses them:
 * **Rows** (:class:`RowStore`): each finished task's rows go to a part file at once (written to a
   temporary and renamed); the results file (Parquet, or CSV by extension) is rewritten atomically
   from all parts every few seconds and at the end. A sweep stopped by Ctrl-C, a lost worker or a
-  lost scheduler keeps every finished row, and ``--resume`` runs only the missing ones.
+  lost scheduler keeps every finished row, and ``--resume`` runs only the missing ones. A results
+  file that existed before a sweep (not a ``--resume`` of it) is replaced only by the complete
+  table: until then the rows go to ``<stem>.partial<ext>`` beside it.
 * **Engine** (:func:`start_cluster`, :func:`run_tasks`): a ``distributed.LocalCluster`` of worker
   processes (one thread each), or an existing cluster at ``--scheduler``; a task whose worker dies
   is rerun elsewhere by the scheduler.
@@ -46,7 +48,7 @@ import numpy as np
 from ..core.errors import CommandLineError, SceneError, UserError
 from . import scene as scene_mod
 from .checks import SHELLS, TERRAIN_SDF
-from .outputs import commit, discard, save_atomic, target_of
+from .outputs import commit, discard, is_stream, kept_partial_path, save_atomic, target_of
 from .resources import available_host_bytes, estimate
 
 # Values one axis may have, and variants one sweep may plan: beyond these a typo (1:2:1e9) is more
@@ -55,6 +57,8 @@ MAX_AXIS_VALUES = 100_000
 MAX_VARIANTS = 1_000_000
 # Seconds between rewrites of the results file while tasks finish (parts are written at once).
 CONSOLIDATE_SECONDS = 5.0
+# In a sweep's parts folder: this sweep may not replace --out until it is complete (RowStore.keep_out).
+KEEP_OUT_MARK = "keep-out"
 # Share of a worker's memory (device memory on CUDA, host memory on the CPU) one batch may take.
 MEMORY_SHARE = 0.5
 # Worlds in one batch at most (the per-frame host work grows with them).
@@ -887,6 +891,12 @@ class RowStore:
     temporary and renamed, so a part is whole or absent. :meth:`consolidate` rewrites the results
     file atomically from the rows it had, the parts and nothing else; after a complete sweep the
     parts are removed. Rows are told apart by ``variant_id``; a later row of an id replaces none.
+
+    A file at ``out`` that existed before this sweep (and is not being resumed) is another result:
+    it is replaced only by the complete table. Until then (``keep_out``) the consolidated rows go to
+    ``<stem>.partial<ext>`` beside it (:func:`~softsim_warp.io.outputs.kept_partial_path`), and the
+    parts folder says so (:data:`KEEP_OUT_MARK`), so that ``--resume`` reads that file and the
+    parts, leaves ``out`` alone until the table is complete, and then removes the partial file.
     """
 
     def __init__(self, out, schema, resume=False):
@@ -896,14 +906,24 @@ class RowStore:
         self.schema = schema
         target = target_of(self.out)
         self.parts = target.with_name(f".{target.name}.parts")
+        self.partial = kept_partial_path(self.out)
         self.rows = {}  # variant_id -> row dict
         self._part = 0
         self._last = time.monotonic()
+        self._own_partial = False  # the partial file holds this sweep's rows (read or written here)
         if resume:
+            self.keep_out = (self.parts / KEEP_OUT_MARK).exists()
             self._load()
         elif self.parts.exists():
             raise CommandLineError("--out", f"the rows of an unfinished sweep are in '{self.parts}': add --resume to "
                                    "finish that sweep, or remove the folder to start again", str(out))
+        else:
+            self.keep_out = target.exists() and not is_stream(target)
+
+    @property
+    def results(self) -> Path:
+        """Where the rows are consolidated while the sweep is not complete: ``out``, or its partial file."""
+        return self.partial if self.keep_out else self.out
 
     def _read(self, path):
         if path.suffix == ".csv":
@@ -916,8 +936,8 @@ class RowStore:
 
     def _load(self):
         sources = []
-        if self.out.exists():
-            sources.append(self.out)
+        if self.results.exists():
+            sources.append(self.results)
         if self.parts.exists():
             sources += sorted(self.parts.glob("part-*.parquet"))
         want = set(self.schema.names)
@@ -933,6 +953,7 @@ class RowStore:
                                        str(path))
             for row in table.to_pylist():
                 self.rows.setdefault(row["variant_id"], row)
+            self._own_partial |= path == self.partial
             m = re.match(r"part-(\d+)", path.stem)
             if m:
                 self._part = max(self._part, int(m.group(1)) + 1)
@@ -946,6 +967,10 @@ class RowStore:
         if not rows:
             return
         self.parts.mkdir(exist_ok=True)
+        mark = self.parts / KEEP_OUT_MARK
+        if self.keep_out and not mark.exists():  # before the first part: --resume must know
+            note = f"'{self.out.name}' predates this sweep: its rows go to '{self.partial.name}' until it is complete"
+            mark.write_text(note + "\n")
         table = self._table(rows)
         path = self.parts / f"part-{self._part:06d}.parquet"
         self._part += 1
@@ -969,17 +994,27 @@ class RowStore:
         return time.monotonic() - self._last >= CONSOLIDATE_SECONDS
 
     def consolidate(self, final=False):
-        """Rewrite the results file from every row kept, in plan order; ``final`` removes the parts."""
+        """Rewrite the results file from every row kept, in plan order.
+
+        ``final`` (the table is complete) writes ``out`` itself and then removes the parts and the
+        partial file of a ``keep_out`` sweep (when it held this sweep's rows); otherwise the rows go
+        to :attr:`results`.
+        """
         rows = sorted(self.rows.values(), key=lambda r: (r["index"], r["variant_id"]))
         table = self._table(rows)
+        path = self.out if final else self.results
         if self.out.suffix == ".csv":
             csv = require("pyarrow.csv")
-            save_atomic(self.out, lambda tmp: csv.write_csv(table, tmp), "--out")
+            save_atomic(path, lambda tmp: csv.write_csv(table, tmp), "--out")
         else:
-            save_atomic(self.out, lambda tmp: self.pq.write_table(table, tmp), "--out")
+            save_atomic(path, lambda tmp: self.pq.write_table(table, tmp), "--out")
         self._last = time.monotonic()
-        if final and self.parts.exists():
-            shutil.rmtree(self.parts, ignore_errors=True)
+        self._own_partial |= path == self.partial
+        if final:
+            if self._own_partial:
+                discard(self.partial)
+            if self.parts.exists():
+                shutil.rmtree(self.parts, ignore_errors=True)
 
 
 def read_results(path):
@@ -1016,6 +1051,44 @@ class Cluster:
                 pass
 
 
+SCHEDULER_SCHEMES = ("tcp", "tls", "ws", "wss")
+SCHEDULER_EXPECTED = "expected a scheduler address tcp://HOST:PORT (or tls://, ws://, wss://; tcp:// may be left out)"
+
+
+def check_scheduler_address(address: str) -> str:
+    """``--scheduler``'s address as ``scheme://HOST:PORT``, or a one-line error saying what is wrong.
+
+    The form distributed's ``Client`` connects to: ``[SCHEME://]HOST:PORT``, SCHEME one of
+    :data:`SCHEDULER_SCHEMES` (tcp when left out), an IPv6 host in brackets, PORT from 1 to 65535.
+    Only the form is checked; whether a scheduler answers there is :func:`start_cluster`'s to find.
+    """
+    text = str(address).strip()
+    scheme, sep, rest = text.partition("://")
+    if not sep:
+        scheme, rest = "tcp", text
+    if rest.startswith("["):  # [::1]:8786
+        host, close, port = rest[1:].partition("]")
+        port = port[1:] if close and port.startswith(":") else None
+    else:
+        host, colon, port = rest.rpartition(":")
+        host, port = (host, port) if colon else (rest, None)
+    if not text:
+        why = "empty"
+    elif scheme.lower() not in SCHEDULER_SCHEMES:
+        why = f"unknown scheme '{scheme}'"
+    elif "/" in rest or any(c.isspace() for c in rest):
+        why = "not HOST:PORT after the scheme"
+    elif not host:
+        why = "no host"
+    elif not port:
+        why = "no port"
+    elif not (port.isdecimal() and 1 <= int(port) <= 65535):
+        why = "the port must be an integer from 1 to 65535"
+    else:
+        return f"{scheme.lower()}://{rest}"  # distributed knows the schemes in lower case
+    raise CommandLineError("--scheduler", f"{why}; {SCHEDULER_EXPECTED}", address)
+
+
 def default_workers(device: str) -> int:
     if device.startswith("cuda"):
         return 1
@@ -1036,10 +1109,15 @@ def start_cluster(device: str, workers: int | None = None, scheduler: str | None
     distributed = require("distributed")
     dashboard_ok = _has_bokeh()
     if scheduler:
+        scheduler = check_scheduler_address(scheduler)
         try:
             client = distributed.Client(scheduler, timeout="30s")
         except (OSError, TimeoutError) as e:
-            raise CommandLineError("--scheduler", f"cannot reach the scheduler: {e}", scheduler) from None
+            why = str(e).replace(": ", ", ") or type(e).__name__  # the line keeps its four ': '-separated parts
+            raise CommandLineError("--scheduler", f"cannot reach the scheduler ({why})", scheduler) from None
+        except ValueError as e:  # an address distributed cannot parse after all
+            why = str(e).replace(": ", ", ")  # the line keeps its four ': '-separated parts
+            raise CommandLineError("--scheduler", f"{SCHEDULER_EXPECTED} ({why})", scheduler) from None
         n = len(client.scheduler_info().get("workers", {}))
         dashboard = client.dashboard_link if dashboard_ok else None
         task_device = "cuda:0" if device == "cuda" else device
