@@ -16,9 +16,9 @@ from pxr import Usd, UsdGeom
 
 from softsim_warp.commands import cli
 from softsim_warp.core.errors import CommandLineError
-from softsim_warp.io.mesh_scene import scene_assets, scene_file_assets
+from softsim_warp.io.mesh_scene import scene_assets
 from softsim_warp.io.outputs import JSON_SUFFIXES, Outputs
-from softsim_warp.io.scene import load_scene, read_scene_data
+from softsim_warp.io.scene import load_scene, read_scene_data, scene_file_assets
 
 pytestmark = pytest.mark.skipif(sys.platform == "win32", reason="POSIX files")
 

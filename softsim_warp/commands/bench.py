@@ -34,10 +34,9 @@ from ..core.errors import CommandLineError
 from ..core.integrators import ExplicitIntegrator
 from ..core.model import ModelBuilder, build_model
 from ..core.stepper import make_integrator
-from ..io.mesh_scene import scene_file_assets
 from ..io.outputs import Outputs, save_report
 from ..io.resources import check_counts, lattice_spring_count
-from ..io.scene import load_scene
+from ..io.scene import load_scene, scene_file_assets
 from . import bench_contact
 from .bench_newton import NewtonJelly, implicit_peer, newton_version
 from .common import ProgressLog, resolve_device

@@ -82,16 +82,6 @@ def scene_assets(data: dict, source=None) -> list[tuple[str, Path]]:
     return found
 
 
-def scene_file_assets(name_or_path: str, overrides=()) -> list[tuple[str, Path]]:
-    """:func:`scene_assets` of a scene file or built-in scene with ``--set`` overrides applied,
-    without validating it or reading its meshes (for a command that loads the scene later)."""
-    from .scene import apply_overrides, parse_override, read_scene_data  # noqa: PLC0415 - scene imports this module
-
-    _, source, data = read_scene_data(name_or_path)
-    apply_overrides(data, [parse_override(item) for item in overrides])
-    return scene_assets(data, source)
-
-
 def add_asset_inputs(outputs, *scenes) -> None:
     """Declare the mesh files of each scene (a validated ``Scene``, or its ``data``) as inputs of
     ``outputs`` (an ``io.outputs.Outputs``), each ``(key, path)`` once, so that no output of the
