@@ -17,7 +17,6 @@ from softsim_warp.commands import bench, bench_contact
 from softsim_warp.commands.cli import build_parser, main
 
 sys.path.insert(0, str(Path(__file__).parent))
-from robustness_cases import BASE
 
 # The smallest benchmark: a 3^3 jelly, a few steps, one repeat, one integrator.
 TINY = ["bench", "--sizes", "3", "--steps", "2", "--repeats", "1", "--integrators", "euler", "--quiet"]
@@ -64,10 +63,8 @@ def test_plot_with_contact_is_refused(tmp_path, capsys):
 
 
 @pytest.fixture
-def scene(tmp_path):
-    path = tmp_path / "base.toml"
-    path.write_text(BASE)
-    return path
+def scene(base_scene):
+    return base_scene
 
 
 @pytest.mark.parametrize(

@@ -119,19 +119,16 @@ def test_failed_run_keeps_the_good_output(tmp_path, monkeypatch, capsys):
     assert not list(tmp_path.glob(".*partial-*")), "temporaries left behind"
 
 
-def test_interrupted_run_does_not_replace_an_existing_output(tmp_path):
-    """SIGINT during a run whose output existed: the old file stays, the frames go to out.partial.usdc."""
-    from pxr import Usd
-
-    assert cli.main(["run", "jelly_drop", "--frames", "2", *SMALL, "--out", str(tmp_path / "out.usdc")]) == 0
-    good = (tmp_path / "out.usdc").read_bytes()
+def _interrupted(tmp_path, command, *argv) -> bytes:
+    """stderr of ``softsim <command> jelly_drop`` (3^3, 100,000 frames, no graphs) sent SIGINT after its
+    third frame; asserts the exit code 130."""
     proc = subprocess.Popen(
-        [sys.executable, "-m", "softsim_warp", "run", "jelly_drop", "--frames", "100000", "--no-graph",
-         "--out", "out.usdc", "--set", "jelly.0.resolution=[3,3,3]"],
+        [sys.executable, "-m", "softsim_warp", command, "jelly_drop", "--frames", "100000", "--no-graph",
+         "--set", "jelly.0.resolution=[3,3,3]", *argv],
         cwd=tmp_path, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
     )
     err = b""
-    while b"/100001" not in err or err.count(b"/100001") < 3:
+    while err.count(b"/100001") < 3:
         chunk = proc.stderr.read1(4096)
         if not chunk:
             break
@@ -139,6 +136,16 @@ def test_interrupted_run_does_not_replace_an_existing_output(tmp_path):
     proc.send_signal(signal.SIGINT)
     err += proc.stderr.read()
     assert proc.wait(timeout=120) == 130, err.decode(errors="replace")
+    return err
+
+
+def test_interrupted_run_does_not_replace_an_existing_output(tmp_path):
+    """SIGINT during a run whose output existed: the old file stays, the frames go to out.partial.usdc."""
+    from pxr import Usd
+
+    assert cli.main(["run", "jelly_drop", "--frames", "2", *SMALL, "--out", str(tmp_path / "out.usdc")]) == 0
+    good = (tmp_path / "out.usdc").read_bytes()
+    err = _interrupted(tmp_path, "run", "--out", "out.usdc")
     assert (tmp_path / "out.usdc").read_bytes() == good
     kept = Usd.Stage.Open(str(tmp_path / "out.partial.usdc"))
     assert kept.GetRootLayer().customLayerData["softsim:status"] == "interrupted"
@@ -268,20 +275,8 @@ def test_full_disk_keeps_the_previous_output(tmp_path):
 
 def test_interrupted_compare_says_so(tmp_path):
     """SIGINT during `softsim compare`: exit 130, and its summary lines say interrupted, not complete."""
-    proc = subprocess.Popen(
-        [sys.executable, "-m", "softsim_warp", "compare", "jelly_drop", "--integrators", "euler,symplectic",
-         "--frames", "100000", "--no-graph", "--out", "c.usdc", "--set", "jelly.0.resolution=[3,3,3]"],
-        cwd=tmp_path, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
+    text = _interrupted(tmp_path, "compare", "--integrators", "euler,symplectic", "--out", "c.usdc").decode(
+        errors="replace"
     )
-    err = b""
-    while err.count(b"/100001") < 3:
-        chunk = proc.stderr.read1(4096)
-        if not chunk:
-            break
-        err += chunk
-    proc.send_signal(signal.SIGINT)
-    err += proc.stderr.read()
-    assert proc.wait(timeout=120) == 130, err.decode(errors="replace")
-    text = err.decode(errors="replace")
     assert "jelly_drop [euler]: euler, interrupted" in text and "complete" not in text, text
     assert "INTERRUPTED: jelly_drop: 2 copies" in text, text

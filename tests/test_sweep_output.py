@@ -24,17 +24,14 @@ from softsim_warp.io import sweep as engine
 from softsim_warp.io.sweep import check_scheduler_address, read_results
 
 sys.path.insert(0, str(Path(__file__).parent))
-from robustness_cases import BASE
 from test_sweep import _env, _wait_for
 
 KS = "jelly.0.springs.structural.ks"
 
 
 @pytest.fixture
-def scene(tmp_path):
-    path = tmp_path / "base.toml"
-    path.write_text(BASE)
-    return path
+def scene(base_scene):
+    return base_scene
 
 
 # ---------------------------------------------------------------------------------------------
