@@ -19,6 +19,7 @@ from softsim_warp.core.errors import CommandLineError
 from softsim_warp.io.mesh_scene import scene_assets
 from softsim_warp.io.outputs import JSON_SUFFIXES, Outputs
 from softsim_warp.io.scene import load_scene, read_scene_data, scene_file_assets
+from tests.test_outputs import _one_line_error
 
 pytestmark = pytest.mark.skipif(sys.platform == "win32", reason="POSIX files")
 
@@ -73,14 +74,6 @@ def _snapshot(directory):
         p.name: (p.read_bytes() if p.is_file() and not p.is_symlink() else os.readlink(p) if p.is_symlink() else None)
         for p in directory.iterdir()
     }
-
-
-def _one_line_error(capsys, *needles):
-    err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 1 and err[0].startswith("error: "), err
-    for needle in needles:
-        assert needle in err[0], err[0]
-    return err[0]
 
 
 # ---------------------------------------------------------------------------------------------

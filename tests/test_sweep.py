@@ -146,6 +146,21 @@ def test_a_failing_variant_fails_alone(monkeypatch):
 # No finished row lost
 
 
+def _interrupt_after_two_parts(command, marks, parts) -> str:
+    """Run a sweep ``command`` (tasks slowed down), send SIGINT once two tasks' rows are written to
+    ``parts``; asserts exit 130 and returns stderr."""
+    proc = subprocess.Popen(command, env=_env(marks, delay=0.7), stderr=subprocess.PIPE, text=True)
+    try:
+        _wait_for(lambda: len(list(parts.glob("part-*.parquet"))) >= 2)
+        proc.send_signal(signal.SIGINT)
+        _, err = proc.communicate(timeout=60)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert proc.returncode == 130, err
+    return err
+
+
 def _cli(*argv):
     return [sys.executable, "-m", "softsim_warp", "sweep", "seed_bowl", *SMALL, *argv, "--quiet"]
 
@@ -183,16 +198,8 @@ def test_interrupt_then_resume_recomputes_nothing_and_misses_nothing(tmp_path):
     out = tmp_path / "res.parquet"
     argv = ("--duration", "0.3", "--vary", f"{KS}=1000,2000,3000,4000,5000,6000", "--workers", "1", "--batch", "1",
             "--out", str(out))
-    proc = subprocess.Popen(_cli(*argv), env=_env(marks, delay=0.7), stderr=subprocess.PIPE, text=True)
-    try:
-        parts = tmp_path / ".res.parquet.parts"
-        _wait_for(lambda: len(list(parts.glob("part-*.parquet"))) >= 2)  # two tasks' rows written
-        proc.send_signal(signal.SIGINT)
-        _, err = proc.communicate(timeout=60)
-    finally:
-        if proc.poll() is None:
-            proc.kill()
-    assert proc.returncode == 130, err
+    parts = tmp_path / ".res.parquet.parts"
+    err = _interrupt_after_two_parts(_cli(*argv), marks, parts)  # two tasks' rows written
     assert "--resume" in err
     first = {r["variant_id"]: r for r in read_results(out)}
     assert 2 <= len(first) < 6

@@ -9,7 +9,6 @@ old file with the complete table. Tiny scenes: the 3^3 jelly of tests/robustness
 
 from __future__ import annotations
 
-import signal
 import subprocess
 import sys
 from pathlib import Path
@@ -24,7 +23,7 @@ from softsim_warp.io import sweep as engine
 from softsim_warp.io.sweep import check_scheduler_address, read_results
 
 sys.path.insert(0, str(Path(__file__).parent))
-from test_sweep import _env, _wait_for
+from test_sweep import _env, _interrupt_after_two_parts
 
 KS = "jelly.0.springs.structural.ks"
 
@@ -105,15 +104,7 @@ def test_interrupted_sweep_keeps_the_old_file_and_resume_replaces_it(tmp_path, s
         "--plot",
         str(plot),
     ]
-    proc = subprocess.Popen(_cli(scene, *argv), env=_env(marks, delay=0.7), stderr=subprocess.PIPE, text=True)
-    try:
-        _wait_for(lambda: len(list(parts.glob("part-*.parquet"))) >= 2)
-        proc.send_signal(signal.SIGINT)
-        _, err = proc.communicate(timeout=60)
-    finally:
-        if proc.poll() is None:
-            proc.kill()
-    assert proc.returncode == 130, err
+    err = _interrupt_after_two_parts(_cli(scene, *argv), marks, parts)
     assert out.read_bytes() == old  # the earlier table, byte for byte
     assert plot.read_bytes() == b"an earlier figure"
     kept = read_results(partial)
