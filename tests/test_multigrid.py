@@ -530,8 +530,11 @@ def test_captured_steps_with_contact_equal_launched_steps(device):
         assert stats["cg_unconverged_solves"] == 0 and stats["cg_solves"] > stats["cg_steps"]  # contact solves ran
         out.append((stepper.state.particle_q.numpy(), stepper.state.particle_qd.numpy()))
     assert np.isfinite(out[0][0]).all() and out[0][0][:, 1].min() > -1e-2
-    np.testing.assert_allclose(out[0][0], out[1][0], rtol=0, atol=1e-6)
-    np.testing.assert_allclose(out[0][1], out[1][1], rtol=0, atol=1e-4)
+    if device.is_cpu:  # the same kernels in the same order: the same bits
+        assert np.array_equal(out[0][0], out[1][0]) and np.array_equal(out[0][1], out[1][1])
+    else:  # the implicit solve's sums use atomics, whose order varies on CUDA
+        np.testing.assert_allclose(out[0][0], out[1][0], rtol=0, atol=1e-6)
+        np.testing.assert_allclose(out[0][1], out[1][1], rtol=0, atol=1e-4)
 
 
 def test_fallback_and_choice():
