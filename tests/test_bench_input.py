@@ -44,6 +44,10 @@ def _one_line(capsys) -> str:
         (["--contact", "--set", "foo.bar=1"], "command line: --set: changes a scene"),
         (["--contact", "--scene", "jelly_drop"], "command line: --scene: not with --contact"),
         (["--contact", "--variants"], "command line: --variants: not with --contact"),
+        (["--contact", "--paths", "lattice"], "command line: --paths: not with --contact"),
+        (["--contact", "--copies", "2"], "command line: --copies: not with --contact"),
+        (["--implicit-peer-dt", "0.02"], "command line: --implicit-peer-dt: sets the implicit integrator's run"),
+        (["--peer", "newton", "--implicit-peer-ks", "1e4"], "--implicit-peer-ks: sets the implicit integrator's run"),
     ],
 )
 def test_bad_flag_is_one_line(tmp_path, capsys, argv, line):

@@ -49,6 +49,10 @@ BATCH_MAX_PARTICLES = 1_000_000
 # Flags of bench_contact (flag -> argparse dest) that only ``--contact`` uses, and their defaults.
 CONTACT_FLAGS = {"--jellies": "jellies", "--contact-size": "contact_size"}
 _CONTACT_DEFAULTS = {}
+# The implicit integrator against Newton's VBD runs only with --peer newton and implicit among
+# --integrators (without --scene or --contact); its two flags are refused where it does not run.
+IMPLICIT_PEER_FLAGS = {"--implicit-peer-ks": "implicit_peer_ks", "--implicit-peer-dt": "implicit_peer_dt"}
+_IMPLICIT_PEER_DEFAULTS = {}
 
 
 @dataclass(frozen=True)
@@ -390,6 +394,9 @@ def add_parser(subparsers, add_common):
     for dest in CONTACT_FLAGS.values():
         _CONTACT_DEFAULTS[dest] = p.get_default(dest)
     p.set_defaults(**dict.fromkeys(CONTACT_FLAGS.values()))
+    for dest in IMPLICIT_PEER_FLAGS.values():  # likewise: None unless given
+        _IMPLICIT_PEER_DEFAULTS[dest] = p.get_default(dest)
+    p.set_defaults(**dict.fromkeys(IMPLICIT_PEER_FLAGS.values()))
     add_common(p)
     return p
 
@@ -400,15 +407,27 @@ def _check_flags(args):
     ``--set`` changes a scene, so it needs ``--scene`` (the size sweep builds :class:`JellySpec`'s
     jelly, ``--contact`` its piles); ``--jellies`` and ``--contact-size`` need ``--contact``.
     """
-    for flag, value in (("--implicit-peer-ks", args.implicit_peer_ks), ("--implicit-peer-dt", args.implicit_peer_dt)):
+    for flag, dest in IMPLICIT_PEER_FLAGS.items():
+        value = getattr(args, dest)
+        if value is None:
+            setattr(args, dest, _IMPLICIT_PEER_DEFAULTS[dest])
+            continue
         if not (math.isfinite(value) and value > 0):
             raise CommandLineError(flag, "must be a finite number > 0", value)
+        methods = [m.strip() for m in str(args.integrators).split(",")]
+        if args.peer != "newton" or "implicit" not in methods or args.scene is not None or args.contact:
+            why = "sets the implicit integrator's run against Newton's VBD: give --peer newton and implicit in --integrators"
+            raise CommandLineError(flag, why + " (and neither --scene nor --contact)", value)
     if args.contact:
         own = "not with --contact, which times its own piles of jellies"
         if args.scene is not None:
             raise CommandLineError("--scene", own, args.scene)
         if args.variants:
             raise CommandLineError("--variants", own, "--variants")
+        if args.paths != "auto":
+            raise CommandLineError("--paths", own, args.paths)
+        if args.copies != 1:
+            raise CommandLineError("--copies", own, args.copies)
         if args.plot is not None:
             raise CommandLineError("--plot", "not with --contact, which draws no plot (only --out)", args.plot)
         for dest, default in _CONTACT_DEFAULTS.items():
