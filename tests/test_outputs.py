@@ -203,10 +203,13 @@ def test_leftover_temporaries_of_dead_runs_are_removed(tmp_path, monkeypatch):
     dead = subprocess.run([sys.executable, "-c", "import os; print(os.getpid())"], capture_output=True, text=True)
     leftover = tmp_path / f".out.partial-{int(dead.stdout)}.usdc"
     leftover.write_bytes(b"x" * 100)
+    # The temporary of out.partial.usdc, which a run of out.usdc writes when out.usdc existed.
+    kept = tmp_path / f".out.partial.partial-{int(dead.stdout)}.usdc"
+    kept.write_bytes(b"x" * 100)
     other = tmp_path / ".other.partial-1.usdc"  # another output's temporary: not ours to touch
     other.write_bytes(b"y")
     assert cli.main(RUN + ["--out", "out.usdc"]) == 0
-    assert not leftover.exists() and other.exists()
+    assert not leftover.exists() and not kept.exists() and other.exists()
 
 
 def test_json_outputs_are_strict(tmp_path, monkeypatch):

@@ -315,12 +315,15 @@ class Outputs:
         os.ftruncate(fd, 0)
         os.write(fd, str(os.getpid()).encode())
         self._locks.append((fd, lock_path))
-        # We hold the lock: temporaries of this output from processes that are gone are leftovers.
-        for leftover in glob.glob(glob.escape(os.fspath(target.with_name(f".{target.stem}.partial-"))) + "*"):
-            pid = leftover[len(os.fspath(target.with_name(f".{target.stem}.partial-"))):]
-            pid = pid[: len(pid) - len(target.suffix)] if target.suffix else pid
-            if pid.isdecimal() and int(pid) != os.getpid() and not _pid_alive(int(pid)):
-                discard(leftover)
+        # We hold the lock: temporaries of this output, and of the <stem>.partial<ext> that a run of it
+        # keeps when it may not replace it, from processes that are gone are leftovers.
+        for written in (target, kept_partial_path(target)):
+            prefix = os.fspath(written.with_name(f".{written.stem}.partial-"))
+            for leftover in glob.glob(glob.escape(prefix) + "*"):
+                pid = leftover[len(prefix):]
+                pid = pid[: len(pid) - len(written.suffix)] if written.suffix else pid
+                if pid.isdecimal() and int(pid) != os.getpid() and not _pid_alive(int(pid)):
+                    discard(leftover)
 
     def release(self):
         for fd, lock_path in reversed(self._locks):
