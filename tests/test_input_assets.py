@@ -18,7 +18,7 @@ from softsim_warp.commands import cli
 from softsim_warp.core.errors import CommandLineError
 from softsim_warp.io.mesh_scene import scene_assets
 from softsim_warp.io.outputs import JSON_SUFFIXES, Outputs
-from softsim_warp.io.scene import load_scene, read_scene_data, scene_file_assets
+from softsim_warp.io.scene import load_scene
 from tests.test_outputs import _one_line_error
 
 pytestmark = pytest.mark.skipif(sys.platform == "win32", reason="POSIX files")
@@ -155,7 +155,7 @@ def test_a_run_with_mesh_assets_leaves_them_alone(workdir, capsys):
     assert (workdir / "out.usda").stat().st_size > 0 and (workdir / "m.json").stat().st_size > 0
 
 
-def test_scene_assets_of_a_scene_as_read_and_as_validated(workdir):
+def test_scene_assets_of_a_validated_scene(workdir):
     (workdir / "both.toml").write_text(
         SIM
         + '[[jelly]]\nmesh = "blob.usda"\nresolution = 4\ncenter = [0.0, 0.5, 0.0]\ntotal_mass = 0.1\n'
@@ -168,10 +168,10 @@ def test_scene_assets_of_a_scene_as_read_and_as_validated(workdir):
         ("mesh.1.path", workdir / "o.usda"),
         ("jelly.0.mesh", workdir / "blob.usda"),
     ]
-    _, source, raw = read_scene_data("both.toml")
-    assert scene_assets(raw, source) == expected
     assert scene_assets(load_scene("both.toml").data) == expected
-    assert scene_file_assets("both.toml", ['mesh.1.path="h.usda"'])[1] == ("mesh.1.path", workdir / "h.usda")
+    # --set values count: the files the scene reads after them.
+    changed = load_scene("both.toml", ['mesh.1.path="open.usda"']).data
+    assert scene_assets(changed)[1] == ("mesh.1.path", workdir / "open.usda")
     assert scene_assets(load_scene("jelly_drop").data) == []
 
 

@@ -34,9 +34,10 @@ from ..core.errors import CommandLineError
 from ..core.integrators import ExplicitIntegrator
 from ..core.model import ModelBuilder, build_model
 from ..core.stepper import make_integrator
+from ..io.mesh_scene import add_asset_inputs
 from ..io.outputs import Outputs, save_report
 from ..io.resources import check_counts, lattice_spring_count
-from ..io.scene import load_scene, scene_file_assets
+from ..io.scene import load_scene
 from . import bench_contact
 from .bench_newton import NewtonJelly, implicit_peer, newton_version
 from .common import ProgressLog, resolve_device
@@ -46,13 +47,13 @@ COMMAND = "bench"
 DEFAULT_INTEGRATORS = ("euler", "symplectic", "midpoint", "rk4")
 STAGES = {"euler": 1, "symplectic": 1, "midpoint": 2, "rk4": 4}
 BATCH_MAX_PARTICLES = 1_000_000
-# Flags of bench_contact (flag -> argparse dest) that only ``--contact`` uses, and their defaults.
+# Flags (flag -> argparse dest) of one benchmark only, refused where they would be ignored: those of
+# bench_contact that only ``--contact`` uses, and those of the implicit integrator's run against
+# Newton's VBD (only with --peer newton and implicit among --integrators, without --scene or --contact).
 CONTACT_FLAGS = {"--jellies": "jellies", "--contact-size": "contact_size"}
-_CONTACT_DEFAULTS = {}
-# The implicit integrator against Newton's VBD runs only with --peer newton and implicit among
-# --integrators (without --scene or --contact); its two flags are refused where it does not run.
 IMPLICIT_PEER_FLAGS = {"--implicit-peer-ks": "implicit_peer_ks", "--implicit-peer-dt": "implicit_peer_dt"}
-_IMPLICIT_PEER_DEFAULTS = {}
+# Their defaults: the parser's default is None, so that run() can tell whether they were given.
+_DEFAULTS = {}
 
 
 @dataclass(frozen=True)
@@ -389,14 +390,10 @@ def add_parser(subparsers, add_common):
     p.add_argument("--out", help="write the results as JSON")
     p.add_argument("--plot", help="write a log-log plot of particle-steps/s over particle count (PNG)")
     bench_contact.add_arguments(p)
-    # --jellies and --contact-size apply only with --contact: their default is None here, so that
-    # run() can tell whether they were given; it fills in bench_contact's defaults for --contact.
-    for dest in CONTACT_FLAGS.values():
-        _CONTACT_DEFAULTS[dest] = p.get_default(dest)
-    p.set_defaults(**dict.fromkeys(CONTACT_FLAGS.values()))
-    for dest in IMPLICIT_PEER_FLAGS.values():  # likewise: None unless given
-        _IMPLICIT_PEER_DEFAULTS[dest] = p.get_default(dest)
-    p.set_defaults(**dict.fromkeys(IMPLICIT_PEER_FLAGS.values()))
+    # The flags of one benchmark default to None here; _check_flags fills in their defaults.
+    for dest in (*CONTACT_FLAGS.values(), *IMPLICIT_PEER_FLAGS.values()):
+        _DEFAULTS[dest] = p.get_default(dest)
+        p.set_defaults(**{dest: None})
     add_common(p)
     return p
 
@@ -405,12 +402,12 @@ def _check_flags(args):
     """Refuse values no benchmark can use and flags that the chosen benchmark would ignore.
 
     ``--set`` changes a scene, so it needs ``--scene`` (the size sweep builds :class:`JellySpec`'s
-    jelly, ``--contact`` its piles); ``--jellies`` and ``--contact-size`` need ``--contact``.
+    jelly, ``--contact`` its piles); ``--jellies`` and ``--contact-size`` need ``--contact``. Then the
+    flags of the benchmark that runs get their defaults where they were not given.
     """
     for flag, dest in IMPLICIT_PEER_FLAGS.items():
         value = getattr(args, dest)
         if value is None:
-            setattr(args, dest, _IMPLICIT_PEER_DEFAULTS[dest])
             continue
         if not (math.isfinite(value) and value > 0):
             raise CommandLineError(flag, "must be a finite number > 0", value)
@@ -430,9 +427,6 @@ def _check_flags(args):
             raise CommandLineError("--copies", own, args.copies)
         if args.plot is not None:
             raise CommandLineError("--plot", "not with --contact, which draws no plot (only --out)", args.plot)
-        for dest, default in _CONTACT_DEFAULTS.items():
-            if getattr(args, dest) is None:
-                setattr(args, dest, default)
     else:
         for flag, dest in CONTACT_FLAGS.items():
             if getattr(args, dest) is not None:
@@ -441,6 +435,10 @@ def _check_flags(args):
         value = args.overrides[0] if len(args.overrides) == 1 else args.overrides
         why = "changes a scene, so it applies only with --scene (the size sweep and --contact build their own jellies)"
         raise CommandLineError("--set", why, value)
+    # The defaults of what will run: the contact flags stay None without --contact.
+    for dest in (*IMPLICIT_PEER_FLAGS.values(), *(CONTACT_FLAGS.values() if args.contact else ())):
+        if getattr(args, dest) is None:
+            setattr(args, dest, _DEFAULTS[dest])
 
 
 def _versions(peer):
@@ -488,11 +486,16 @@ def run(args) -> int:
     if args.peer and args.scene:
         raise CommandLineError("--peer", "compares the size sweep only; leave out --scene", args.peer)
     _check_flags(args)
+    import warp as wp  # noqa: PLC0415
+
+    wp.config.quiet = True
+    wp.init()
+    # The scene and its --set values are validated before any output is checked or anything measured.
+    scene = load_scene(args.scene, args.overrides) if args.scene else None
     outputs = Outputs()
     outputs.add_input("--scene", args.scene)
-    if args.scene:  # its mesh files are inputs too (their paths only: the scene is loaded below)
-        for key, asset in scene_file_assets(args.scene, args.overrides):
-            outputs.add_input(key, asset)
+    if scene is not None:
+        add_asset_inputs(outputs, scene)
     outputs.add("--out", args.out, (".json",))
     outputs.add("--plot", args.plot, (".png",))
     device = resolve_device(args.device)
@@ -503,12 +506,6 @@ def run(args) -> int:
         except RuntimeError as exc:
             raise CommandLineError("--peer", str(exc), args.peer) from None
 
-    import warp as wp  # noqa: PLC0415
-
-    wp.config.quiet = True
-    wp.init()
-    # The scene and its --set values are validated before anything is measured.
-    scene = load_scene(args.scene, args.overrides) if args.scene else None
     spec = JellySpec()
     bandwidth = measure_copy_bandwidth(device)
     use_graph = not args.no_graph

@@ -53,33 +53,17 @@ def resolve_meshes(data: dict, ctx, base=None):
         _mesh_jelly(i, j, ctx, base)
 
 
-def _entries(value) -> list:
-    """A ``[[table]]`` list as written (a single ``[table]`` counts as entry 0; validation allows it)."""
-    if isinstance(value, dict):
-        return [value]
-    return value if isinstance(value, list) else []
-
-
-def scene_assets(data: dict, source=None) -> list[tuple[str, Path]]:
-    """The mesh files a scene reads, as ``(key, path)``: ``("mesh.0.path", ...)`` for terrain,
-    ``("jelly.1.mesh", ...)`` for a mesh jelly, in the scene's order.
-
-    ``data`` is a validated scene's (its paths are resolved already) or a scene as read, before
-    validation (its paths are resolved here as :func:`resolve_meshes` will: against the directory
-    of the scene file ``source``). Values that are not a file name are left out: validation refuses them.
-    A command declares these as inputs (``Outputs.add_input``), so that no output overwrites them.
+def scene_assets(data: dict) -> list[tuple[str, Path]]:
+    """The mesh files a validated scene reads (its paths resolved), as ``(key, path)``:
+    ``("mesh.0.path", ...)`` for terrain, ``("jelly.1.mesh", ...)`` for a mesh jelly, in the scene's
+    order. A command declares these as inputs (``Outputs.add_input``), so that no output overwrites them.
     """
-    base = scene_base(source) if source is not None else None
-    found = []
-    for kind, name in (("mesh", "path"), ("jelly", "mesh")):
-        for i, entry in enumerate(_entries(data.get(kind))):
-            path = entry.get(name) if isinstance(entry, dict) else None
-            if not isinstance(path, str) or not path or "\0" in path:
-                continue
-            if base is not None:
-                path = _resolve(path, base)
-            found.append((f"{kind}.{i}.{name}", Path(path)))
-    return found
+    return [
+        (f"{kind}.{i}.{name}", Path(entry[name]))
+        for kind, name in (("mesh", "path"), ("jelly", "mesh"))
+        for i, entry in enumerate(data.get(kind, []))
+        if entry.get(name)
+    ]
 
 
 def add_asset_inputs(outputs, *scenes) -> None:

@@ -164,7 +164,7 @@ def save_report(data, out=None, plot_path=None, plot=None):
         save_atomic(plot_path, lambda tmp: plot(data, tmp), "--plot")
 
 
-def check_writable(path, flag: str, suffixes=None) -> Path:
+def check_writable(path, flag: str) -> Path:
     """Refuse an output path that cannot be written, before any simulation work is done.
 
     The target's directory is probed by creating (and removing) the temporary file the command
@@ -174,7 +174,6 @@ def check_writable(path, flag: str, suffixes=None) -> Path:
     p = Path(path)
     if p.is_dir():
         raise CommandLineError(flag, "is a directory; give a file name", str(p))
-    check_suffix(p, flag, suffixes)
     target = target_of(p)
     if target.is_dir():
         raise CommandLineError(flag, "links to a directory; give a file name", str(p))

@@ -22,7 +22,7 @@ from ..core.errors import COMMAND_LINE, SceneError
 from ..core.model import jelly_points
 from ..core.pins import FACES, INTERPOLATIONS, select_particles
 from .checks import check_scene
-from .mesh_scene import resolve_meshes, scene_assets
+from .mesh_scene import resolve_meshes
 
 INTEGRATORS = ("euler", "symplectic", "midpoint", "rk4", "implicit")
 PRECISIONS = ("float32", "float64")
@@ -931,12 +931,3 @@ def scene_from_dict(data: dict, source="<dict>") -> Scene:
     """Validate an in-memory scene (the Python API's way to make one without a file)."""
     validated = validate(_copy_tree(data, source), source)
     return Scene(validated, source=source, name=validated.get("name", "scene"))
-
-
-def scene_file_assets(name_or_path: str, overrides=()) -> list[tuple[str, Path]]:
-    """The mesh files (``mesh_scene.scene_assets``) of a scene file or built-in scene with ``--set``
-    overrides applied, without validating it or reading its meshes (for a command that loads the
-    scene later)."""
-    _, source, data = read_scene_data(name_or_path)
-    apply_overrides(data, [parse_override(item) for item in overrides])
-    return scene_assets(data, source)
