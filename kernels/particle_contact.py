@@ -443,42 +443,43 @@ def build(scalar):
         world = contact_world[i]
         cap = candidates_out.shape[0]
         n = int(0)
-        for dz in range(-1, 2):
-            for dy in range(-1, 2):
-                for dx in range(-1, 2):
-                    b = cell_bucket(wp.vec3i(c[0] + dx, c[1] + dy, c[2] + dz), world, shift)
-                    j = grid_head[table, b]
-                    while j >= 0:
-                        # Positions of this build: cq, which x_build holds for i only so far.
-                        if j != i and n <= cap:
-                            r = xi - cq[j]
-                            reach = scalar(CANDIDATE_REACH) * (contact_radius[i] + contact_radius[j]) + skin
-                            if wp.dot(r, r) < reach * reach:
-                                if pair_allowed(
-                                    i, j, contact_jelly, contact_world, contact_radius, contact_rest,
-                                    jelly_self_contact, between_jellies, self_exclusion,
-                                ):
-                                    # Insert in ascending order; a bucket met twice (two cells
-                                    # hashed alike) gives the same particle twice: keep one.
-                                    s = int(0)
-                                    while s < n:
-                                        if candidates_out[s, i] >= j:
-                                            break
-                                        s += 1
-                                    fresh = True
-                                    if s < n:
-                                        fresh = candidates_out[s, i] != j
-                                    if fresh:
-                                        if n == cap:
-                                            n = cap + 1  # overflow: the grid walk takes over
-                                        else:
-                                            t = n
-                                            while t > s:
-                                                candidates_out[t, i] = candidates_out[t - 1, i]
-                                                t -= 1
-                                            candidates_out[s, i] = j
-                                            n += 1
-                        j = grid_next[j]
+        # One loop over the 27 cells (x fastest), not three nested ones: Warp unrolls a constant
+        # loop of up to max_unroll (16) iterations, and three loops of 3 became 27 copies of the
+        # bucket walk (216 registers a thread, an eighth of the SM's threads resident).
+        for o in range(27):
+            b = cell_bucket(wp.vec3i(c[0] + o % 3 - 1, c[1] + (o // 3) % 3 - 1, c[2] + o // 9 - 1), world, shift)
+            j = grid_head[table, b]
+            while j >= 0:
+                # Positions of this build: cq, which x_build holds for i only so far.
+                if j != i and n <= cap:
+                    r = xi - cq[j]
+                    reach = scalar(CANDIDATE_REACH) * (contact_radius[i] + contact_radius[j]) + skin
+                    if wp.dot(r, r) < reach * reach:
+                        if pair_allowed(
+                            i, j, contact_jelly, contact_world, contact_radius, contact_rest,
+                            jelly_self_contact, between_jellies, self_exclusion,
+                        ):
+                            # Insert in ascending order; a bucket met twice (two cells
+                            # hashed alike) gives the same particle twice: keep one.
+                            s = int(0)
+                            while s < n:
+                                if candidates_out[s, i] >= j:
+                                    break
+                                s += 1
+                            fresh = True
+                            if s < n:
+                                fresh = candidates_out[s, i] != j
+                            if fresh:
+                                if n == cap:
+                                    n = cap + 1  # overflow: the grid walk takes over
+                                else:
+                                    t = n
+                                    while t > s:
+                                        candidates_out[t, i] = candidates_out[t - 1, i]
+                                        t -= 1
+                                    candidates_out[s, i] = j
+                                    n += 1
+                j = grid_next[j]
         candidate_count_out[i] = n
 
     @wp.func
@@ -569,21 +570,20 @@ def build(scalar):
                         contact_gap_out, contact_u0_out,
                     )
         else:
-            j = next_candidate(
-                i, -1, grid_head, grid_next, inv_cell, shift, x_build, contact_jelly, contact_world, contact_radius,
-                contact_rest, jelly_self_contact, between_jellies, self_exclusion, skin,
-            )
-            while j >= 0:
+            j = int(-1)
+            while True:
+                j = next_candidate(
+                    i, j, grid_head, grid_next, inv_cell, shift, x_build, contact_jelly, contact_world,
+                    contact_radius, contact_rest, jelly_self_contact, between_jellies, self_exclusion, skin,
+                )
+                if j < 0:
+                    break
                 touches, n, gap = pair_contact(i, j, xi, cq, contact_radius, normal)
                 if touches:
                     count = store_contact(
                         i, j, n, gap, count, contact_index, qd_prev, contact_list_out, contact_normal_out,
                         contact_gap_out, contact_u0_out,
                     )
-                j = next_candidate(
-                    i, j, grid_head, grid_next, inv_cell, shift, x_build, contact_jelly, contact_world,
-                    contact_radius, contact_rest, jelly_self_contact, between_jellies, self_exclusion, skin,
-                )
         count_out[i] = count
         w_split_out[i] = scalar(count) * cw[i]
 
@@ -688,18 +688,17 @@ def build(scalar):
                         cq, contact_index, qd_prev, contact_radius, normal, w_split, cqd,
                     )
             else:
-                j = next_candidate(
-                    i, -1, grid_head, grid_next, inv_cell, shift, x_build, contact_jelly, contact_world,
-                    contact_radius, contact_rest, jelly_self_contact, between_jellies, self_exclusion, skin,
-                )
-                while j >= 0:
-                    impulse = impulse + velocity_term(
-                        i, j, xi, vi, vi_prev, wi_split, friction, restitution, eps_v, rest_steps,
-                        cq, contact_index, qd_prev, contact_radius, normal, w_split, cqd,
-                    )
+                j = int(-1)
+                while True:
                     j = next_candidate(
                         i, j, grid_head, grid_next, inv_cell, shift, x_build, contact_jelly, contact_world,
                         contact_radius, contact_rest, jelly_self_contact, between_jellies, self_exclusion, skin,
+                    )
+                    if j < 0:
+                        break
+                    impulse = impulse + velocity_term(
+                        i, j, xi, vi, vi_prev, wi_split, friction, restitution, eps_v, rest_steps,
+                        cq, contact_index, qd_prev, contact_radius, normal, w_split, cqd,
                     )
         cqd_out[i] = vi + wi * impulse
 
