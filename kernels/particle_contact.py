@@ -93,11 +93,14 @@ def build(scalar):
 
     @wp.func
     def facing_normal(normal: wp.array2d(dtype=vec3), i: int, direction: vec3):
-        """The outward face normal of contact particle i most aligned with ``direction`` (zero if none)."""
+        """The outward face normal of contact particle i most aligned with ``direction`` (zero if none).
+
+        ``normal[s, i]`` (slot-major) holds the particle's boundary-face normals in axis order, in
+        the first slots; the slots after its last face are zero."""
         best = vec3(scalar(0.0))
         best_dot = scalar(-2.0)
-        for a in range(3):
-            n = normal[i, a]
+        for s in range(3):
+            n = normal[s, i]
             if wp.length_sq(n) > scalar(0.0):
                 c = wp.dot(n, direction)
                 if c > best_dot:
@@ -343,9 +346,10 @@ def build(scalar):
         # State after the step (particle order):
         q: wp.array(dtype=vec3),
         qd: wp.array(dtype=vec3),
-        # Out (contact order): positions and velocities after the step, the outward normal
-        # of the particle's boundary face on each lattice axis (zero where it is not on that
-        # boundary); the rebuild flag, raised when the particle moved too far
+        # Out (contact order): positions and velocities after the step; the outward normals of
+        # the particle's boundary faces, in axis order in the first slots (slot-major: a face
+        # particle, most of them, writes one slot; the others stay zero from allocation); the
+        # rebuild flag, raised when the particle moved too far
         cq_out: wp.array(dtype=vec3),
         cqd_out: wp.array(dtype=vec3),
         normal_out: wp.array2d(dtype=vec3),
@@ -364,9 +368,9 @@ def build(scalar):
         # on whose boundary the particle lies (-1 elsewhere). A face's normal is the cross product
         # of its two in-face directions, so a sheared jelly's faces keep their own normal (the
         # inward lattice line tilts with the shear); it is oriented away from the inward neighbour.
+        faces = int(0)
         for a in range(3):
             inward = contact_axis_neighbors[k, 6 + a]
-            n = vec3(scalar(0.0))
             if inward >= 0:
                 out = x - q[inward]
                 b = (a + 1) % 3
@@ -378,10 +382,12 @@ def build(scalar):
                     m = out  # a face one particle wide: the lattice line is all there is
                 if wp.dot(m, out) < scalar(0.0):
                     m = -m
+                n = vec3(scalar(0.0))
                 length = wp.length(m)
                 if length > scalar(0.0):
                     n = m / length
-            normal_out[k, a] = n
+                normal_out[faces, k] = n
+                faces += 1
 
     @wp.kernel(module="unique")
     def insert_contact_grid(

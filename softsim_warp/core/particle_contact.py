@@ -233,7 +233,9 @@ class ParticleContact:
         self.contact_axis_neighbors = wp.array(
             cat(neighbors, (0, 9)).astype(np.int32).reshape(-1, 9), dtype=wp.int32, device=device
         )
-        self.normal = wp.zeros((n, 3), dtype=vec3, device=device)
+        # Boundary-face normals, slot-major: a particle's faces in its first slots
+        # (prepare_contact_particles writes only those), the slots after them zero from here.
+        self.normal = wp.zeros((3, n), dtype=vec3, device=device)
         self.jelly_self_contact = arr(np.asarray(self_flags, dtype=np.int32).reshape(-1), wp.int32, np.int32)
         # Compact copies of the step's result (the passes read these, never what they write), and
         # the inverse masses (fixed when the model is built). The velocities before the step are
