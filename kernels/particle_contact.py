@@ -501,15 +501,18 @@ def build(scalar):
         contact_normal_out: wp.array2d(dtype=vec3),
         contact_gap_out: wp.array2d(dtype=scalar),
         contact_u0_out: wp.array2d(dtype=scalar),
+        restitution: scalar,
     ):
         """Touching pair (i, j) into slot ``count`` of i's lists (while they have room), with its approach
         speed before the step from the velocities before it (``qd_prev``, particle order); returns the
-        new count."""
+        new count. Only a restitution above zero reads the approach speed (:func:`pair_impulse`):
+        without one it is neither computed nor stored."""
         if count < contact_list_out.shape[0]:
             contact_list_out[count, i] = j
             contact_normal_out[count, i] = n
             contact_gap_out[count, i] = gap
-            contact_u0_out[count, i] = -wp.dot(qd_prev[contact_index[i]] - qd_prev[contact_index[j]], n)
+            if restitution != scalar(0.0):
+                contact_u0_out[count, i] = -wp.dot(qd_prev[contact_index[i]] - qd_prev[contact_index[j]], n)
         return count + 1
 
     @wp.kernel(module="unique")
@@ -531,6 +534,7 @@ def build(scalar):
         between_jellies: int,
         self_exclusion: scalar,
         skin: scalar,
+        restitution: scalar,
         # State (contact order), and the velocities before the step (particle order, through
         # contact_index):
         cq: wp.array(dtype=vec3),
@@ -573,7 +577,7 @@ def build(scalar):
                 if touches:
                     count = store_contact(
                         i, j, n, gap, count, contact_index, qd_prev, contact_list_out, contact_normal_out,
-                        contact_gap_out, contact_u0_out,
+                        contact_gap_out, contact_u0_out, restitution,
                     )
         else:
             j = int(-1)
@@ -588,7 +592,7 @@ def build(scalar):
                 if touches:
                     count = store_contact(
                         i, j, n, gap, count, contact_index, qd_prev, contact_list_out, contact_normal_out,
-                        contact_gap_out, contact_u0_out,
+                        contact_gap_out, contact_u0_out, restitution,
                     )
         count_out[i] = count
         w_split_out[i] = scalar(count) * cw[i]
@@ -678,9 +682,12 @@ def build(scalar):
                 j = contact_list[a, i]
                 wj_split = w_split[j]
                 if wi_split + wj_split > scalar(0.0):
+                    u0 = scalar(0.0)
+                    if restitution != scalar(0.0):
+                        u0 = contact_u0[a, i]  # stored by find only with a restitution (store_contact)
                     impulse = impulse + pair_impulse(
-                        contact_normal[a, i], vi, cqd[j], contact_u0[a, i], wi_split, wj_split, friction,
-                        restitution, eps_v, rest_steps,
+                        contact_normal[a, i], vi, cqd[j], u0, wi_split, wj_split, friction, restitution, eps_v,
+                        rest_steps,
                     )
         else:
             # More contacts than the list holds: the candidates again, in the same order.

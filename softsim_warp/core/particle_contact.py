@@ -331,7 +331,7 @@ class ParticleContact:
         wp.launch(
             k.find_particle_contacts,
             dim=n,
-            inputs=[*walk, self.cq, self.contact_index, state_in.particle_qd, self.cw, self.normal],
+            inputs=[*walk, self.restitution, self.cq, self.contact_index, state_in.particle_qd, self.cw, self.normal],
             outputs=[
                 self.contacts, self.w_split, self.contact_list, self.contact_normal, self.contact_gap, self.contact_u0
             ],
