@@ -11,7 +11,7 @@ The response runs after the integrator's step, on its result, like terrain conta
    jelly, with self-contact, far enough apart in the rest shape) of its world within the candidate
    reach plus a skin, in ascending index order, found through a hashed cell grid;
 3. ``find_particle_contacts`` tests each candidate and stores the touching pairs with their normal,
-   gap and approach speed before the step;
+   gap and, with a restitution above zero, approach speed before the step;
 4. ``resolve_contact_velocities`` (Jacobi iterations) and ``resolve_contact_positions`` apply them.
 
 Why no contact is missed: a pair is left out of the lists only when its distance at the build was

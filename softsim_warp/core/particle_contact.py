@@ -60,9 +60,10 @@ PASS_BLOCK = 128
 
 # The candidate lists' skin, in the smallest pair distance: a list holds the pairs within
 # CANDIDATE_REACH d + skin, and it is rebuilt when a particle has moved skin / 2 since it was built.
-# 0.375 against 0.25: builds fall from 48 to 26 in the 1,602 steps of the pile of 1,000, and the step
-# takes 0.261 ms against 0.282 on the H100 (side by side, two rounds each); 0.5 (19 builds) gained
-# nothing more, its longer lists costing the contacts' search what the builds saved (docs/CONTACT.md).
+# 0.375 against 0.25: builds fall from 48 to 26 in the 1,602 steps of the pile of 1,000; the step
+# took 0.261 ms against 0.282 on the H100 (side by side, two rounds each, with the builds of then,
+# 2.5 times dearer than now); 0.5 (19 builds) gained nothing more, its longer lists costing the
+# contacts' search what the builds saved (docs/CONTACT.md, "The skin").
 SKIN = 0.375
 # What rebuild_distance keeps below skin / 2, in skins: room for the rounding of the distances.
 SKIN_ROUNDING = 1.0 / 64.0
