@@ -265,7 +265,9 @@ class ParticleContact:
         self.contact_list = wp.zeros((MAX_CONTACTS, n), dtype=wp.int32, device=device)
         self.contact_normal = wp.zeros((MAX_CONTACTS, n), dtype=vec3, device=device)
         self.contact_gap = wp.zeros((MAX_CONTACTS, n), dtype=scalar, device=device)
-        self.contact_u0 = wp.zeros((MAX_CONTACTS, n), dtype=scalar, device=device)
+        # The approach speed only with a restitution, the one reader (store_contact writes it only then).
+        u0_shape = (MAX_CONTACTS, n) if float(self.restitution) != 0.0 else (1, 1)
+        self.contact_u0 = wp.zeros(u0_shape, dtype=scalar, device=device)
         self.iterations = int(iterations)
         self.cqd_iter = [wp.zeros(n, dtype=vec3, device=device) for _ in range(min(self.iterations, 2))]
 
