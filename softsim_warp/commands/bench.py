@@ -52,8 +52,6 @@ BATCH_MAX_PARTICLES = 1_000_000
 # Newton's VBD (only with --peer newton and implicit among --integrators, without --scene or --contact).
 CONTACT_FLAGS = {"--jellies": "jellies", "--contact-size": "contact_size"}
 IMPLICIT_PEER_FLAGS = {"--implicit-peer-ks": "implicit_peer_ks", "--implicit-peer-dt": "implicit_peer_dt"}
-# Their defaults: the parser's default is None, so that run() can tell whether they were given.
-_DEFAULTS = {}
 
 
 @dataclass(frozen=True)
@@ -390,10 +388,10 @@ def add_parser(subparsers, add_common):
     p.add_argument("--out", help="write the results as JSON")
     p.add_argument("--plot", help="write a log-log plot of particle-steps/s over particle count (PNG)")
     bench_contact.add_arguments(p)
-    # The flags of one benchmark default to None here; _check_flags fills in their defaults.
-    for dest in (*CONTACT_FLAGS.values(), *IMPLICIT_PEER_FLAGS.values()):
-        _DEFAULTS[dest] = p.get_default(dest)
-        p.set_defaults(**{dest: None})
+    # The flags of one benchmark default to None, so that _check_flags can tell whether they were
+    # given; their own defaults travel in the namespace (flag_defaults) for the benchmark that runs.
+    dests = (*CONTACT_FLAGS.values(), *IMPLICIT_PEER_FLAGS.values())
+    p.set_defaults(flag_defaults={d: p.get_default(d) for d in dests}, **dict.fromkeys(dests))
     add_common(p)
     return p
 
@@ -438,7 +436,7 @@ def _check_flags(args):
     # The defaults of what will run: the contact flags stay None without --contact.
     for dest in (*IMPLICIT_PEER_FLAGS.values(), *(CONTACT_FLAGS.values() if args.contact else ())):
         if getattr(args, dest) is None:
-            setattr(args, dest, _DEFAULTS[dest])
+            setattr(args, dest, args.flag_defaults[dest])
 
 
 def _versions(peer):
