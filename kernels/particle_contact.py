@@ -337,6 +337,40 @@ def build(scalar):
                 j = grid_next[j]
         return best
 
+    @wp.func
+    def candidate_after(
+        i: int,
+        j: int,
+        a: int,
+        nc: int,
+        candidates: wp.array2d(dtype=wp.int32),
+        grid_head: wp.array2d(dtype=wp.int32),
+        grid_next: wp.array(dtype=wp.int32),
+        inv_cell: scalar,
+        shift: int,
+        x_build: wp.array(dtype=vec3),
+        contact_jelly: wp.array(dtype=wp.int32),
+        contact_world: wp.array(dtype=wp.int32),
+        contact_radius: wp.array(dtype=scalar),
+        contact_rest: wp.array(dtype=vec3),
+        jelly_self_contact: wp.array(dtype=wp.int32),
+        between_jellies: int,
+        self_exclusion: scalar,
+        skin: scalar,
+    ):
+        """The candidate of i after candidate j, the a-th (from 0) of i's ``nc`` candidates: from its
+        list, or from the grid (:func:`next_candidate`) when the list overflowed (``nc`` above what
+        it holds); -1 after the last. The passes' paths for a particle with more contacts than its
+        contact list holds visit the candidates through this, in ascending order."""
+        if nc <= candidates.shape[0]:
+            if a < nc:
+                return candidates[a, i]
+            return -1
+        return next_candidate(
+            i, j, grid_head, grid_next, inv_cell, shift, x_build, contact_jelly, contact_world, contact_radius,
+            contact_rest, jelly_self_contact, between_jellies, self_exclusion, skin,
+        )
+
     @wp.kernel(module="unique")
     def prepare_contact_particles(
         contact_index: wp.array(dtype=wp.int32),
@@ -363,20 +397,20 @@ def build(scalar):
         moved = x - x_build[k]
         if wp.dot(moved, moved) >= rebuild_distance * rebuild_distance:
             rebuild_out[0] = 1  # every writer writes 1: no race in the result
-        # contact_axis_neighbors[k] holds the lattice neighbours at -x, +x, -y, +y, -z, +z (the
-        # particle itself where there is none) and, in slots 6..8, the inward neighbour of each axis
-        # on whose boundary the particle lies (-1 elsewhere). A face's normal is the cross product
+        # contact_axis_neighbors[:, k] (slot-major) holds the lattice neighbours at -x, +x, -y, +y,
+        # -z, +z (the particle itself where there is none) and, in slots 6..8, the inward neighbour
+        # of each axis on whose boundary the particle lies (-1 elsewhere). A face's normal is the cross product
         # of its two in-face directions, so a sheared jelly's faces keep their own normal (the
         # inward lattice line tilts with the shear); it is oriented away from the inward neighbour.
         faces = int(0)
         for a in range(3):
-            inward = contact_axis_neighbors[k, 6 + a]
+            inward = contact_axis_neighbors[6 + a, k]
             if inward >= 0:
                 out = x - q[inward]
                 b = (a + 1) % 3
                 c = (a + 2) % 3
-                tb = q[contact_axis_neighbors[k, 2 * b + 1]] - q[contact_axis_neighbors[k, 2 * b]]
-                tc = q[contact_axis_neighbors[k, 2 * c + 1]] - q[contact_axis_neighbors[k, 2 * c]]
+                tb = q[contact_axis_neighbors[2 * b + 1, k]] - q[contact_axis_neighbors[2 * b, k]]
+                tc = q[contact_axis_neighbors[2 * c + 1, k]] - q[contact_axis_neighbors[2 * c, k]]
                 m = wp.cross(tb, tc)
                 if wp.length_sq(m) == scalar(0.0):
                     m = out  # a face one particle wide: the lattice line is all there is
@@ -580,12 +614,16 @@ def build(scalar):
                         contact_gap_out, contact_u0_out, restitution,
                     )
         else:
+            # The list overflowed: the grid walk.
             j = int(-1)
+            a = int(0)
             while True:
-                j = next_candidate(
-                    i, j, grid_head, grid_next, inv_cell, shift, x_build, contact_jelly, contact_world,
-                    contact_radius, contact_rest, jelly_self_contact, between_jellies, self_exclusion, skin,
+                j = candidate_after(
+                    i, j, a, nc, candidates, grid_head, grid_next, inv_cell, shift, x_build, contact_jelly,
+                    contact_world, contact_radius, contact_rest, jelly_self_contact, between_jellies,
+                    self_exclusion, skin,
                 )
+                a += 1
                 if j < 0:
                     break
                 touches, n, gap = pair_contact(i, j, xi, cq, contact_radius, normal)
@@ -694,25 +732,21 @@ def build(scalar):
             xi = cq[i]
             vi_prev = qd_prev[contact_index[i]]
             nc = candidate_count[i]
-            if nc <= candidates.shape[0]:
-                for a in range(nc):
-                    impulse = impulse + velocity_term(
-                        i, candidates[a, i], xi, vi, vi_prev, wi_split, friction, restitution, eps_v, rest_steps,
-                        cq, contact_index, qd_prev, contact_radius, normal, w_split, cqd,
-                    )
-            else:
-                j = int(-1)
-                while True:
-                    j = next_candidate(
-                        i, j, grid_head, grid_next, inv_cell, shift, x_build, contact_jelly, contact_world,
-                        contact_radius, contact_rest, jelly_self_contact, between_jellies, self_exclusion, skin,
-                    )
-                    if j < 0:
-                        break
-                    impulse = impulse + velocity_term(
-                        i, j, xi, vi, vi_prev, wi_split, friction, restitution, eps_v, rest_steps,
-                        cq, contact_index, qd_prev, contact_radius, normal, w_split, cqd,
-                    )
+            j = int(-1)
+            a = int(0)
+            while True:
+                j = candidate_after(
+                    i, j, a, nc, candidates, grid_head, grid_next, inv_cell, shift, x_build, contact_jelly,
+                    contact_world, contact_radius, contact_rest, jelly_self_contact, between_jellies,
+                    self_exclusion, skin,
+                )
+                a += 1
+                if j < 0:
+                    break
+                impulse = impulse + velocity_term(
+                    i, j, xi, vi, vi_prev, wi_split, friction, restitution, eps_v, rest_steps,
+                    cq, contact_index, qd_prev, contact_radius, normal, w_split, cqd,
+                )
         cqd_out[i] = vi + wi * impulse
 
     @wp.func
@@ -827,17 +861,12 @@ def build(scalar):
             j = int(-1)
             a = int(0)
             while True:
-                if nc <= candidates.shape[0]:
-                    if a < nc:
-                        j = candidates[a, i]
-                    else:
-                        j = -1
-                    a += 1
-                else:
-                    j = next_candidate(
-                        i, j, grid_head, grid_next, inv_cell, shift, x_build, contact_jelly, contact_world,
-                        contact_radius, contact_rest, jelly_self_contact, between_jellies, self_exclusion, skin,
-                    )
+                j = candidate_after(
+                    i, j, a, nc, candidates, grid_head, grid_next, inv_cell, shift, x_build, contact_jelly,
+                    contact_world, contact_radius, contact_rest, jelly_self_contact, between_jellies,
+                    self_exclusion, skin,
+                )
+                a += 1
                 if j < 0:
                     break
                 touches, n, gap = pair_contact(i, j, xi, cq, contact_radius, normal)
