@@ -433,11 +433,12 @@ def _slope(theta_deg, mu, integrator="symplectic"):
 @pytest.mark.parametrize("theta, mu", [(15.0, 0.5), (25.0, 0.5), (10.0, 0.2)])
 def test_block_sticks_below_friction_angle(theta, mu):
     """tan(theta) < mu: the block settles onto the slab, the two soft jellies shearing under the load
-    along the slope (less than 3 cm: 0.4, 2.9 and 0.8 cm are measured), and then stays: less than
-    1 mm over the last 0.5 s (a block sliding at 30 degrees moves 46 cm in it) and no acceleration."""
+    along the slope (less than half the block's lattice spacing of 0.1 m: 0.4, 2.9 and 0.8 cm are
+    measured), and then stays: less than 1 mm over the last 0.5 s (a block sliding at 30 degrees
+    moves 46 cm in it) and no acceleration."""
     assert math.tan(math.radians(theta)) < mu
     moved, accel, _, late = _slope(theta, mu)
-    assert abs(moved) < 0.03 and abs(late) < 1e-3 and abs(accel) < 0.01
+    assert abs(moved) < 0.05 and abs(late) < 1e-3 and abs(accel) < 0.01
 
 
 @pytest.mark.parametrize(
