@@ -360,8 +360,9 @@ def build(scalar):
     ):
         """The candidate of i after candidate j, the a-th (from 0) of i's ``nc`` candidates: from its
         list, or from the grid (:func:`next_candidate`) when the list overflowed (``nc`` above what
-        it holds); -1 after the last. The passes' paths for a particle with more contacts than its
-        contact list holds visit the candidates through this, in ascending order."""
+        it holds); -1 after the last. The velocity and position passes' paths for a particle with
+        more contacts than its contact list holds visit the candidates through this, in ascending
+        order (find, which tests the candidates again only for an overflowed list, walks the grid)."""
         if nc <= candidates.shape[0]:
             if a < nc:
                 return candidates[a, i]
@@ -399,9 +400,10 @@ def build(scalar):
             rebuild_out[0] = 1  # every writer writes 1: no race in the result
         # contact_axis_neighbors[:, k] (slot-major) holds the lattice neighbours at -x, +x, -y, +y,
         # -z, +z (the particle itself where there is none) and, in slots 6..8, the inward neighbour
-        # of each axis on whose boundary the particle lies (-1 elsewhere). A face's normal is the cross product
-        # of its two in-face directions, so a sheared jelly's faces keep their own normal (the
-        # inward lattice line tilts with the shear); it is oriented away from the inward neighbour.
+        # of each axis on whose boundary the particle lies (-1 elsewhere). A face's normal is the
+        # cross product of its two in-face directions, so a sheared jelly's faces keep their own
+        # normal (the inward lattice line tilts with the shear); it is oriented away from the
+        # inward neighbour.
         faces = int(0)
         for a in range(3):
             inward = contact_axis_neighbors[6 + a, k]
@@ -616,14 +618,11 @@ def build(scalar):
         else:
             # The list overflowed: the grid walk.
             j = int(-1)
-            a = int(0)
             while True:
-                j = candidate_after(
-                    i, j, a, nc, candidates, grid_head, grid_next, inv_cell, shift, x_build, contact_jelly,
-                    contact_world, contact_radius, contact_rest, jelly_self_contact, between_jellies,
-                    self_exclusion, skin,
+                j = next_candidate(
+                    i, j, grid_head, grid_next, inv_cell, shift, x_build, contact_jelly, contact_world,
+                    contact_radius, contact_rest, jelly_self_contact, between_jellies, self_exclusion, skin,
                 )
-                a += 1
                 if j < 0:
                     break
                 touches, n, gap = pair_contact(i, j, xi, cq, contact_radius, normal)

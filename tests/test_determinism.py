@@ -199,7 +199,8 @@ def test_mesh_and_contact_scenes_are_bitwise_reproducible(device, scene_name):
     runs = []
     for _ in range(2):
         model = build_model(scene, device=device, deterministic=True)
-        sim = Simulator(model, make_integrator("symplectic", model), scene.sim["dt"], scene.sim["fps"], scene.frame_count())
+        integrator = make_integrator("symplectic", model)
+        sim = Simulator(model, integrator, scene.sim["dt"], scene.sim["fps"], scene.frame_count())
         positions = []
 
         class Keep:

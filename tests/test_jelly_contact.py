@@ -311,10 +311,10 @@ def test_contact_keeps_the_springs_stable_step():
     from softsim_warp.core.stability_analysis import predict_lattice_dt
 
     scene = ss.load_scene("stack")
-    info = ss.build_model(scene, device="cpu").jellies[0]  # the three jellies are alike
-    springs = [scene.data["jelly"][0]["springs"][t] for t in ("structural", "shear", "bending")]
+    jelly = scene.data["jelly"][0]  # the three jellies are alike
+    springs = [jelly["springs"][t] for t in ("structural", "shear", "bending")]
     limit = predict_lattice_dt(
-        info.shape, scene.data["jelly"][0]["size"], 1.0 / np.prod(info.shape),  # 1 kg each
+        tuple(jelly["resolution"]), jelly["size"], jelly["particle_mass"],
         [s["ks"] for s in springs], [s["kd"] for s in springs], methods=("symplectic",),
     )["symplectic"]
     assert scene.sim["dt"] <= limit < 1.1 * scene.sim["dt"]  # the scene itself runs at 0.93 of it
@@ -374,15 +374,14 @@ def test_self_contact_excludes_rest_neighbours(monkeypatch):
     frames = 120  # 2 s: it lands at about 0.35 s
 
     def final(overrides):
-        model, out = _frames(ss.load_scene("jelly_drop", base + overrides), frames=frames, every=frames)
-        return model, out[-1][0]
+        return _frames(ss.load_scene("jelly_drop", base + overrides), frames=frames, every=frames)[1][-1][0]
 
-    _, q_off = final([])
-    model, q_on = final(["jelly.0.self_contact=true"])
+    q_off = final([])
+    q_on = final(["jelly.0.self_contact=true"])
     assert np.array_equal(q_on, q_off)
     assert q_on[:, 1].min() < 0.05  # it came down onto the ground
     monkeypatch.setattr(particle_contact, "SELF_EXCLUSION", 1.0)
-    _, q_near = final(["jelly.0.self_contact=true"])
+    q_near = final(["jelly.0.self_contact=true"])
     assert not np.array_equal(q_near, q_off)
 
 

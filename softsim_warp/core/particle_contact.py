@@ -232,9 +232,8 @@ class ParticleContact:
         rest_host = cat(rest, (0, 3)) if any(self_flags) else np.zeros((1, 3))
         self.contact_rest = arr(rest_host, vec3, np_scalar)
         # Slot-major, [9, count]: a warp reads each slot of its particles in one coalesced load.
-        self.contact_axis_neighbors = wp.array(
-            np.ascontiguousarray(cat(neighbors, (0, 9)).astype(np.int32).reshape(-1, 9).T), dtype=wp.int32, device=device
-        )
+        neighbors_host = cat(neighbors, (0, 9)).astype(np.int32).reshape(-1, 9)
+        self.contact_axis_neighbors = wp.array(np.ascontiguousarray(neighbors_host.T), dtype=wp.int32, device=device)
         # Boundary-face normals, slot-major: a particle's faces in its first slots
         # (prepare_contact_particles writes only those), the slots after them zero from here.
         self.normal = wp.zeros((3, n), dtype=vec3, device=device)
