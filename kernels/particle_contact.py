@@ -39,6 +39,8 @@ import functools
 
 import warp as wp
 
+from . import integration
+
 wp.set_module_options({"enable_backward": False})
 
 # Pairs closer than this many pair distances are candidates: a particle resting on the other
@@ -60,6 +62,45 @@ FIBONACCI = wp.constant(wp.uint32(0x9E3779B9))
 @functools.cache
 def build(scalar):
     vec3 = wp.types.vector(3, scalar)
+    ctype = "float" if scalar == wp.float32 else "double"
+    integration_funcs = integration.build(scalar)
+    # The hot loads and stores address the hook's arrays (and the contiguous particle state) from
+    # their data pointers, with the element size a constant (integration.load_contiguous): Warp's
+    # a[i] wraps a negative index and multiplies by the run-time 64-bit strides, on the chain of
+    # dependent loads (list slot, partner, partner's values) that the passes wait on.
+    ld3 = integration_funcs["load_contiguous"]
+    st3 = integration_funcs["store_contiguous"]
+    ldi = integration_funcs["int_contiguous"]
+    lds = integration_funcs["scalar_contiguous"]
+
+    @wp.func_native("return ((const int*)a.data)[s * a.shape[1] + i];")
+    def ldi2(a: wp.array2d(dtype=wp.int32), s: int, i: int) -> int:
+        """``a[s, i]`` of a contiguous int32 table from its data pointer."""
+
+    @wp.func_native("((int*)a.data)[s * a.shape[1] + i] = value;")
+    def sti2(a: wp.array2d(dtype=wp.int32), s: int, i: int, value: int):
+        """``a[s, i] = value`` of a contiguous int32 table."""
+
+    @wp.func_native(f"return (({ctype}*)a.data)[s * a.shape[1] + i];")
+    def lds2(a: wp.array2d(dtype=scalar), s: int, i: int) -> scalar:
+        """``a[s, i]`` of a contiguous scalar table."""
+
+    @wp.func_native(f"(({ctype}*)a.data)[s * a.shape[1] + i] = value;")
+    def sts2(a: wp.array2d(dtype=scalar), s: int, i: int, value: scalar):
+        """``a[s, i] = value`` of a contiguous scalar table."""
+
+    @wp.func_native(
+        f"const {ctype}* t = (const {ctype}*)a.data + 3 * (s * a.shape[1] + i);\n"
+        f"return wp::vec_t<3, {ctype}>(t[0], t[1], t[2]);"
+    )
+    def ld32(a: wp.array2d(dtype=vec3), s: int, i: int) -> vec3:
+        """``a[s, i]`` of a contiguous vec3 table."""
+
+    @wp.func_native(
+        f"{ctype}* t = ({ctype}*)a.data + 3 * (s * a.shape[1] + i);\nt[0] = value[0]; t[1] = value[1]; t[2] = value[2];"
+    )
+    def st32(a: wp.array2d(dtype=vec3), s: int, i: int, value: vec3):
+        """``a[s, i] = value`` of a contiguous vec3 table."""
 
     @wp.func
     def pair_allowed(
@@ -100,7 +141,7 @@ def build(scalar):
         best = vec3(scalar(0.0))
         best_dot = scalar(-2.0)
         for s in range(3):
-            n = normal[s, i]
+            n = ld32(normal, s, i)
             if wp.length_sq(n) > scalar(0.0):
                 c = wp.dot(n, direction)
                 if c > best_dot:
@@ -164,9 +205,9 @@ def build(scalar):
         """Whether candidate j lies within CANDIDATE_REACH d of i (and not on it): the pairs that
         :func:`touching_pair` tests further. Every test of a pair goes through here, so all passes
         agree on it bit for bit."""
-        r = xi - cq[j]
+        r = xi - ld3(cq, j)
         dist2 = wp.dot(r, r)
-        reach_d = scalar(CANDIDATE_REACH) * (contact_radius[i] + contact_radius[j])
+        reach_d = scalar(CANDIDATE_REACH) * (lds(contact_radius, i) + lds(contact_radius, j))
         return dist2 < reach_d * reach_d and dist2 > scalar(0.0)
 
     @wp.func
@@ -181,8 +222,8 @@ def build(scalar):
         """Whether a near pair (i, j) (:func:`near_pair`) touches: closer than d along its contact
         normal. Returns (touches, normal from j to i, separation along it minus d: negative when
         touching)."""
-        d = contact_radius[i] + contact_radius[j]
-        xj = cq[j]
+        d = lds(contact_radius, i) + lds(contact_radius, j)
+        xj = ld3(cq, j)
         r = xi - xj
         n = pair_normal(i, j, xi, xj, wp.sqrt(wp.dot(r, r)), d, normal)
         gap = wp.dot(r, n) - d
@@ -391,11 +432,11 @@ def build(scalar):
         rebuild_out: wp.array(dtype=wp.int32),
     ):
         k = wp.tid()
-        p = contact_index[k]
-        x = q[p]
-        cq_out[k] = x
-        cqd_out[k] = qd[p]
-        moved = x - x_build[k]
+        p = ldi(contact_index, k)
+        x = ld3(q, p)
+        st3(cq_out, k, x)
+        st3(cqd_out, k, ld3(qd, p))
+        moved = x - ld3(x_build, k)
         if wp.dot(moved, moved) >= rebuild_distance * rebuild_distance:
             rebuild_out[0] = 1  # every writer writes 1: no race in the result
         # contact_axis_neighbors[:, k] (slot-major) holds the lattice neighbours at -x, +x, -y, +y,
@@ -406,13 +447,13 @@ def build(scalar):
         # inward neighbour.
         faces = int(0)
         for a in range(3):
-            inward = contact_axis_neighbors[6 + a, k]
+            inward = ldi2(contact_axis_neighbors, 6 + a, k)
             if inward >= 0:
-                out = x - q[inward]
+                out = x - ld3(q, inward)
                 b = (a + 1) % 3
                 c = (a + 2) % 3
-                tb = q[contact_axis_neighbors[2 * b + 1, k]] - q[contact_axis_neighbors[2 * b, k]]
-                tc = q[contact_axis_neighbors[2 * c + 1, k]] - q[contact_axis_neighbors[2 * c, k]]
+                tb = ld3(q, ldi2(contact_axis_neighbors, 2 * b + 1, k)) - ld3(q, ldi2(contact_axis_neighbors, 2 * b, k))
+                tc = ld3(q, ldi2(contact_axis_neighbors, 2 * c + 1, k)) - ld3(q, ldi2(contact_axis_neighbors, 2 * c, k))
                 m = wp.cross(tb, tc)
                 if wp.length_sq(m) == scalar(0.0):
                     m = out  # a face one particle wide: the lattice line is all there is
@@ -422,7 +463,7 @@ def build(scalar):
                 length = wp.length(m)
                 if length > scalar(0.0):
                     n = m / length
-                normal_out[faces, k] = n
+                st32(normal_out, faces, k, n)
                 faces += 1
 
     @wp.kernel(module="unique")
@@ -544,9 +585,9 @@ def build(scalar):
         new count. Only a restitution above zero reads the approach speed (:func:`pair_impulse`):
         without one it is neither computed nor stored."""
         if count < contact_list_out.shape[0]:
-            contact_list_out[count, i] = j
-            contact_normal_out[count, i] = n
-            contact_gap_out[count, i] = gap
+            sti2(contact_list_out, count, i, j)
+            st32(contact_normal_out, count, i, n)
+            sts2(contact_gap_out, count, i, gap)
             if restitution != scalar(0.0):
                 contact_u0_out[count, i] = -wp.dot(qd_prev[contact_index[i]] - qd_prev[contact_index[j]], n)
         return count + 1
@@ -589,9 +630,9 @@ def build(scalar):
         contact_u0_out: wp.array2d(dtype=scalar),
     ):
         i = wp.tid()
-        xi = cq[i]
+        xi = ld3(cq, i)
         count = int(0)
-        nc = candidate_count[i]
+        nc = ldi(candidate_count, i)
         if nc <= candidates.shape[0]:
             # Two loops: the cheap distance test of every candidate first, then the contact normal
             # and gap of the near ones only (about 2 of 5 in a pile). A warp then runs the costly
@@ -599,7 +640,7 @@ def build(scalar):
             near = int(0)
             near_count = int(0)
             for a in range(nc):
-                if near_pair(i, candidates[a, i], xi, cq, contact_radius):
+                if near_pair(i, ldi2(candidates, a, i), xi, cq, contact_radius):
                     near = near | (1 << a)
                     near_count += 1
             # Iteration k takes each lane's k-th near candidate (in ascending order).
@@ -607,7 +648,7 @@ def build(scalar):
             for _k in range(near_count):
                 while ((near >> a) & 1) == 0:
                     a += 1
-                j = candidates[a, i]
+                j = ldi2(candidates, a, i)
                 a += 1
                 touches, n, gap = touching_pair(i, j, xi, cq, contact_radius, normal)
                 if touches:
@@ -632,7 +673,7 @@ def build(scalar):
                         contact_gap_out, contact_u0_out, restitution,
                     )
         count_out[i] = count
-        w_split_out[i] = scalar(count) * cw[i]
+        w_split_out[i] = scalar(count) * lds(cw, i)
 
     @wp.func
     def velocity_term(
@@ -705,25 +746,25 @@ def build(scalar):
         cqd_out: wp.array(dtype=vec3),
     ):
         i = wp.tid()
-        ci = count[i]
+        ci = ldi(count, i)
         if ci == 0:
             # Nothing reads a velocity of a particle without contacts from these buffers: its
             # partners would be in contact with it, and the position pass leaves it alone.
             return
-        vi = cqd[i]
-        wi = cw[i]
-        wi_split = w_split[i]
+        vi = ld3(cqd, i)
+        wi = lds(cw, i)
+        wi_split = lds(w_split, i)
         impulse = vec3(scalar(0.0))
         if ci <= contact_list.shape[0]:
             for a in range(ci):
-                j = contact_list[a, i]
-                wj_split = w_split[j]
+                j = ldi2(contact_list, a, i)
+                wj_split = lds(w_split, j)
                 if wi_split + wj_split > scalar(0.0):
                     u0 = scalar(0.0)
                     if restitution != scalar(0.0):
                         u0 = contact_u0[a, i]  # stored by find only with a restitution (store_contact)
                     impulse = impulse + pair_impulse(
-                        contact_normal[a, i], vi, cqd[j], u0, wi_split, wj_split, friction, restitution, eps_v,
+                        ld32(contact_normal, a, i), vi, ld3(cqd, j), u0, wi_split, wj_split, friction, restitution, eps_v,
                         rest_steps,
                     )
         else:
@@ -746,7 +787,7 @@ def build(scalar):
                     i, j, xi, vi, vi_prev, wi_split, friction, restitution, eps_v, rest_steps,
                     cq, contact_index, qd_prev, contact_radius, normal, w_split, cqd,
                 )
-        cqd_out[i] = vi + wi * impulse
+        st3(cqd_out, i, vi + wi * impulse)
 
     @wp.func
     def position_term(
@@ -768,12 +809,12 @@ def build(scalar):
         ``shift_i`` is what the impulses move i by, beta h dv_i."""
         dx = vec3(scalar(0.0))
         dv = vec3(scalar(0.0))
-        split = wi_split + w_split[j]
+        split = wi_split + lds(w_split, j)
         if split > scalar(0.0):
             # What overlap the moved positions keep is projected out along the pair's normal,
             # split like the impulses (positions only: no momentum).
-            vj = cqd_new[j]
-            moved = gap + wp.dot(shift_i - beta_h * (vj - cqd[j]), n)
+            vj = ld3(cqd_new, j)
+            moved = gap + wp.dot(shift_i - beta_h * (vj - ld3(cqd, j)), n)
             if moved < scalar(0.0):
                 dx = (-moved * wi / split) * n
                 # The projection is a motion of the step: what approach velocity the iterations
@@ -831,25 +872,25 @@ def build(scalar):
             # No other thread of this launch reads these two (the grid walk reads both tables).
             builds[0] = builds[0] + 1
             rebuild[0] = 0
-        ci = count[i]
+        ci = ldi(count, i)
         if ci == 0:
             return
-        pi = contact_index[i]
-        wi = cw[i]
+        pi = ldi(contact_index, i)
+        wi = lds(cw, i)
         # The impulses act over the whole step: positions move by what the integrator makes of a
         # velocity change, beta h dv (as for terrain, kernels/contact.py).
         beta_h = h * world_contact_beta[contact_world[i]]
-        xi = cq[i]
-        vi = cqd_new[i]
-        shift_i = beta_h * (vi - cqd[i])
+        xi = ld3(cq, i)
+        vi = ld3(cqd_new, i)
+        shift_i = beta_h * (vi - ld3(cqd, i))
         yi = xi + shift_i
-        wi_split = w_split[i]
+        wi_split = lds(w_split, i)
         dx = vec3(scalar(0.0))
         dv = vec3(scalar(0.0))
         if ci <= contact_list.shape[0]:
             for a in range(ci):
                 ddx, ddv = position_term(
-                    i, contact_list[a, i], contact_normal[a, i], contact_gap[a, i], shift_i, vi, wi, wi_split, h,
+                    i, ldi2(contact_list, a, i), ld32(contact_normal, a, i), lds2(contact_gap, a, i), shift_i, vi, wi, wi_split, h,
                     beta_h, cqd, w_split, cqd_new,
                 )
                 dx = dx + ddx
@@ -875,8 +916,8 @@ def build(scalar):
                     )
                     dx = dx + ddx
                     dv = dv + ddv
-        q_out[pi] = yi + dx
-        qd_out[pi] = vi + dv
+        st3(q_out, pi, yi + dx)
+        st3(qd_out, pi, vi + dv)
 
     return {
         "pair_allowed": pair_allowed,

@@ -32,6 +32,7 @@ import numpy as np
 import warp as wp
 
 from . import lattice
+from .lattice_model import LatticeData
 from ..kernels.particle_contact import CANDIDATE_REACH
 
 # Defaults of the scene keys [simulation] jelly_contact_friction and jelly_contact_restitution.
@@ -281,6 +282,8 @@ class ParticleContact:
         k = model.kernels
         device = model.device
         n = self.count
+        # The kernels address the particle state from its data pointer, like the fused stages.
+        LatticeData.check_contiguous(state_out.particle_q, state_out.particle_qd)
         wp.launch(
             k.prepare_contact_particles,
             dim=n,
