@@ -764,8 +764,8 @@ def build(scalar):
                     if restitution != scalar(0.0):
                         u0 = contact_u0[a, i]  # stored by find only with a restitution (store_contact)
                     impulse = impulse + pair_impulse(
-                        ld32(contact_normal, a, i), vi, ld3(cqd, j), u0, wi_split, wj_split, friction, restitution, eps_v,
-                        rest_steps,
+                        ld32(contact_normal, a, i), vi, ld3(cqd, j), u0, wi_split, wj_split, friction, restitution,
+                        eps_v, rest_steps,
                     )
         else:
             # More contacts than the list holds: the candidates again, in the same order.
@@ -890,8 +890,8 @@ def build(scalar):
         if ci <= contact_list.shape[0]:
             for a in range(ci):
                 ddx, ddv = position_term(
-                    i, ldi2(contact_list, a, i), ld32(contact_normal, a, i), lds2(contact_gap, a, i), shift_i, vi, wi, wi_split, h,
-                    beta_h, cqd, w_split, cqd_new,
+                    i, ldi2(contact_list, a, i), ld32(contact_normal, a, i), lds2(contact_gap, a, i), shift_i, vi, wi,
+                    wi_split, h, beta_h, cqd, w_split, cqd_new,
                 )
                 dx = dx + ddx
                 dv = dv + ddv

@@ -213,3 +213,21 @@ def test_face_order_groups_each_face():
     assert len(groups) == len(set(key.tolist())) == 8 * 26
     for g in groups:
         assert np.all(np.diff(index[g]) > 0)
+
+
+def test_capacity_is_a_user_error():
+    """The kernels address the contact tables with 32-bit element offsets: the largest offset of the
+    largest table (the contacts' normals, 3 MAX_CONTACTS scalars a contact particle) fits at the limit
+    and not one particle beyond it, and a model beyond it is refused with a one-line scene error."""
+    from softsim_warp.core.errors import SceneError
+
+    limit = particle_contact.MAX_CONTACT_PARTICLES
+    widest = max(3 * particle_contact.MAX_CONTACTS, particle_contact.MAX_CANDIDATES)
+    assert widest * limit - 1 <= 2**31 - 1 < widest * (limit + 1) - 1
+    particle_contact.check_capacity(limit, (2**31 - 1) // 3)
+    for count, particles in ((limit + 1, limit + 1), (10, (2**31 - 1) // 3 + 1)):
+        with pytest.raises(SceneError) as err:
+            particle_contact.check_capacity(count, particles)
+        line = str(err.value)
+        assert "\n" not in line and line.startswith("scene: simulation.jelly_contact: ")
+        assert f"(got [{count}, {particles}])" in line

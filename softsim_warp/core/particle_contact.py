@@ -31,9 +31,10 @@ import math
 import numpy as np
 import warp as wp
 
-from . import lattice
-from .lattice_model import LatticeData
 from ..kernels.particle_contact import CANDIDATE_REACH
+from . import lattice
+from .errors import SceneError
+from .lattice_model import LatticeData
 
 # Defaults of the scene keys [simulation] jelly_contact_friction and jelly_contact_restitution.
 DEFAULT_FRICTION = 0.5
@@ -58,6 +59,10 @@ MAX_CANDIDATES = 32
 # 0.2824, 0.2829 ms; docs/CONTACT.md). A thread's work varies with its contacts, and a block holds
 # its share of the SM until its slowest warp is done; smaller blocks likely waste less of it.
 PASS_BLOCK = 128
+# The kernels address their slot-major tables with 32-bit element offsets (kernels/particle_contact.py:
+# the loads from the data pointer); the largest table, the contacts' normals, holds 3 MAX_CONTACTS
+# scalars a contact particle. 44,739,242 contact particles: about 90 million particles in jellies.
+MAX_CONTACT_PARTICLES = (2**31 - 1) // max(3 * MAX_CONTACTS, MAX_CANDIDATES, 9)
 
 # The candidate lists' skin, in the smallest pair distance: a list holds the pairs within
 # CANDIDATE_REACH d + skin, and it is rebuilt when a particle has moved skin / 2 since it was built.
@@ -205,6 +210,7 @@ class ParticleContact:
 
         np_index = cat(index, (0,)).astype(np.int32)
         self.count = int(np_index.size)
+        check_capacity(self.count, model.particle_count)
         self.between_jellies = int(bool(between_jellies))
         self.friction = scalar(friction)
         self.restitution = scalar(restitution)
@@ -404,6 +410,19 @@ class ParticleContact:
 def wanted(between_jellies: bool, jellies) -> bool:
     """Whether a model needs the hook: contact between jellies, or a jelly with self-contact."""
     return bool(between_jellies) or any(getattr(j, "self_contact", False) for j in jellies)
+
+
+def check_capacity(count: int, particles: int):
+    """Refuse more particles than the kernels' 32-bit element offsets address (a user error): the
+    contact particles' tables, and the particle state, read and written at 3 scalars a particle."""
+    if count > MAX_CONTACT_PARTICLES or 3 * particles > 2**31 - 1:
+        raise SceneError(
+            "scene",
+            "simulation.jelly_contact",
+            f"contact between jellies and self-contact take at most {MAX_CONTACT_PARTICLES:,} surface particles "
+            f"in a model of at most {(2**31 - 1) // 3:,} particles; turn them off or use coarser jellies",
+            [count, particles],
+        )
 
 
 def attach(
