@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 import warp as wp
 
+import softsim_warp as ss
 from softsim_warp.core import particle_contact
 from softsim_warp.core.model import ModelBuilder
 
@@ -215,19 +216,32 @@ def test_face_order_groups_each_face():
         assert np.all(np.diff(index[g]) > 0)
 
 
-def test_capacity_is_a_user_error():
-    """The kernels address the contact tables with 32-bit element offsets: the largest offset of the
-    largest table (the contacts' normals, 3 MAX_CONTACTS scalars a contact particle) fits at the limit
-    and not one particle beyond it, and a model beyond it is refused with a one-line scene error."""
+def test_capacity_is_a_user_error(monkeypatch):
+    """The kernels address the contact tables with 32-bit element offsets. The largest offset they
+    compute (3 (slots n - 1) in the widest table, the contacts' normals of a built hook) fits at the
+    limit and not one contact particle beyond it, and a model beyond the limit is refused by
+    build_model with a one-line scene error."""
     from softsim_warp.core.errors import SceneError
 
+    hook = ss.build_model(ss.load_scene("collide", ["jelly.0.resolution=3", "jelly.1.resolution=3"])).particle_contact
+    slots = hook.contact_normal.shape[0]
     limit = particle_contact.MAX_CONTACT_PARTICLES
-    widest = max(3 * particle_contact.MAX_CONTACTS, particle_contact.MAX_CANDIDATES)
-    assert widest * limit - 1 <= 2**31 - 1 < widest * (limit + 1) - 1
-    particle_contact.check_capacity(limit, (2**31 - 1) // 3)
-    for count, particles in ((limit + 1, limit + 1), (10, (2**31 - 1) // 3 + 1)):
-        with pytest.raises(SceneError) as err:
-            particle_contact.check_capacity(count, particles)
-        line = str(err.value)
-        assert "\n" not in line and line.startswith("scene: simulation.jelly_contact: ")
-        assert f"(got [{count}, {particles}])" in line
+    assert 3 * (slots * limit - 1) <= 2**31 - 1 < 3 * (slots * (limit + 1) - 1)
+    assert hook.candidates.shape[0] * limit - 1 <= 2**31 - 1
+    assert 3 * (particle_contact.MAX_PARTICLES - 1) <= 2**31 - 1 < 3 * particle_contact.MAX_PARTICLES
+    monkeypatch.setattr(particle_contact, "MAX_CONTACT_PARTICLES", hook.count - 1)
+    with pytest.raises(SceneError) as err:
+        ss.build_model(ss.load_scene("collide", ["jelly.0.resolution=3", "jelly.1.resolution=3"]))
+    line = str(err.value)
+    assert "\n" not in line and line.startswith("scene: simulation.jelly_contact: ")
+    assert f"(got [{hook.count}, {2 * 27}])" in line
+
+
+def test_strided_state_is_refused():
+    """The contact kernels address the particle state from its data pointer: a strided view is refused."""
+    model = ss.build_model(ss.load_scene("collide", ["jelly.0.resolution=3", "jelly.1.resolution=3"]))
+    wide = wp.zeros(2 * model.particle_count, dtype=model.vec3, device=model.device)
+    state_in, state_out = model.state(), model.state()
+    state_out.particle_q = wide[::2]
+    with pytest.raises(ValueError, match="jelly contact kernels need contiguous"):
+        model.particle_contact(model, state_in, state_out, 1.0e-3, wp.ones(1, dtype=model.scalar))

@@ -223,11 +223,11 @@ class LatticeData:
         return True
 
     @staticmethod
-    def check_contiguous(*arrays):
-        """The gather kernels address state arrays from their data pointer: refuse strided views."""
+    def check_contiguous(*arrays, who="the lattice kernels"):
+        """The gather kernels (and ``who`` else) address state arrays from their data pointer: refuse strided views."""
         for a in arrays:
             if not a.is_contiguous:
-                raise ValueError(f"the lattice kernels need contiguous state arrays (got strides {a.strides})")
+                raise ValueError(f"{who} need contiguous state arrays (got strides {a.strides})")
 
     @property
     def stencil_tables(self) -> list:

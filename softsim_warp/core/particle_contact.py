@@ -31,10 +31,10 @@ import math
 import numpy as np
 import warp as wp
 
-from ..kernels.particle_contact import CANDIDATE_REACH
 from . import lattice
 from .errors import SceneError
 from .lattice_model import LatticeData
+from ..kernels.particle_contact import CANDIDATE_REACH
 
 # Defaults of the scene keys [simulation] jelly_contact_friction and jelly_contact_restitution.
 DEFAULT_FRICTION = 0.5
@@ -61,8 +61,12 @@ MAX_CANDIDATES = 32
 PASS_BLOCK = 128
 # The kernels address their slot-major tables with 32-bit element offsets (kernels/particle_contact.py:
 # the loads from the data pointer); the largest table, the contacts' normals, holds 3 MAX_CONTACTS
-# scalars a contact particle. 44,739,242 contact particles: about 90 million particles in jellies.
-MAX_CONTACT_PARTICLES = (2**31 - 1) // max(3 * MAX_CONTACTS, MAX_CANDIDATES, 9)
+# scalars a contact particle (the candidates 32, the face normals and lattice neighbours 9).
+# For n contact particles the largest offsets are 3 (MAX_CONTACTS n - 1), MAX_CANDIDATES n - 1 and
+# 9 n - 1: at most 44,739,242 of them, about 90 million particles in jellies of 10^3. The particle
+# state's largest offset is 3 (particles - 1).
+MAX_CONTACT_PARTICLES = min((2**31 - 1 + 3) // (3 * MAX_CONTACTS), 2**31 // MAX_CANDIDATES, 2**31 // 9)
+MAX_PARTICLES = (2**31 - 1) // 3 + 1
 
 # The candidate lists' skin, in the smallest pair distance: a list holds the pairs within
 # CANDIDATE_REACH d + skin, and it is rebuilt when a particle has moved skin / 2 since it was built.
@@ -289,7 +293,7 @@ class ParticleContact:
         device = model.device
         n = self.count
         # The kernels address the particle state from its data pointer, like the fused stages.
-        LatticeData.check_contiguous(state_out.particle_q, state_out.particle_qd)
+        LatticeData.check_contiguous(state_out.particle_q, state_out.particle_qd, who="the jelly contact kernels")
         wp.launch(
             k.prepare_contact_particles,
             dim=n,
@@ -415,12 +419,12 @@ def wanted(between_jellies: bool, jellies) -> bool:
 def check_capacity(count: int, particles: int):
     """Refuse more particles than the kernels' 32-bit element offsets address (a user error): the
     contact particles' tables, and the particle state, read and written at 3 scalars a particle."""
-    if count > MAX_CONTACT_PARTICLES or 3 * particles > 2**31 - 1:
+    if count > MAX_CONTACT_PARTICLES or particles > MAX_PARTICLES:
         raise SceneError(
             "scene",
             "simulation.jelly_contact",
             f"contact between jellies and self-contact take at most {MAX_CONTACT_PARTICLES:,} surface particles "
-            f"in a model of at most {(2**31 - 1) // 3:,} particles; turn them off or use coarser jellies",
+            f"in a model of at most {MAX_PARTICLES:,} particles; turn them off or use coarser jellies",
             [count, particles],
         )
 
