@@ -72,6 +72,7 @@ def build(scalar):
     st3 = integration_funcs["store_contiguous"]
     ldi = integration_funcs["int_contiguous"]
     lds = integration_funcs["scalar_contiguous"]
+    lds2 = integration_funcs["entry_contiguous"]  # a[s, i] of a contiguous scalar table
 
     @wp.func_native("return ((const int*)a.data)[s * a.shape[1] + i];")
     def ldi2(a: wp.array2d(dtype=wp.int32), s: int, i: int) -> int:
@@ -80,10 +81,6 @@ def build(scalar):
     @wp.func_native("((int*)a.data)[s * a.shape[1] + i] = value;")
     def sti2(a: wp.array2d(dtype=wp.int32), s: int, i: int, value: int):
         """``a[s, i] = value`` of a contiguous int32 table."""
-
-    @wp.func_native(f"return (({ctype}*)a.data)[s * a.shape[1] + i];")
-    def lds2(a: wp.array2d(dtype=scalar), s: int, i: int) -> scalar:
-        """``a[s, i]`` of a contiguous scalar table."""
 
     @wp.func_native(f"(({ctype}*)a.data)[s * a.shape[1] + i] = value;")
     def sts2(a: wp.array2d(dtype=scalar), s: int, i: int, value: scalar):

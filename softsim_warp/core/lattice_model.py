@@ -224,7 +224,7 @@ class LatticeData:
 
     @staticmethod
     def check_contiguous(*arrays, who="the lattice kernels"):
-        """The gather kernels (and ``who`` else) address state arrays from their data pointer: refuse strided views."""
+        """``who`` (by default the lattice kernels) read state arrays from their data pointer: refuse strided views."""
         for a in arrays:
             if not a.is_contiguous:
                 raise ValueError(f"{who} need contiguous state arrays (got strides {a.strides})")

@@ -59,12 +59,10 @@ MAX_CANDIDATES = 32
 # 0.2824, 0.2829 ms; docs/CONTACT.md). A thread's work varies with its contacts, and a block holds
 # its share of the SM until its slowest warp is done; smaller blocks likely waste less of it.
 PASS_BLOCK = 128
-# The kernels address their slot-major tables with 32-bit element offsets (kernels/particle_contact.py:
-# the loads from the data pointer); the largest table, the contacts' normals, holds 3 MAX_CONTACTS
-# scalars a contact particle (the candidates 32, the face normals and lattice neighbours 9).
-# For n contact particles the largest offsets are 3 (MAX_CONTACTS n - 1), MAX_CANDIDATES n - 1 and
-# 9 n - 1: at most 44,739,242 of them, about 90 million particles in jellies of 10^3. The particle
-# state's largest offset is 3 (particles - 1).
+# The kernels address their slot-major tables from the data pointer with 32-bit element offsets. For n
+# contact particles the largest are 3 (MAX_CONTACTS n - 1) (the contacts' normals), MAX_CANDIDATES n - 1
+# and 9 n - 1 (the face normals, the lattice neighbours): at most 44,739,242 contact particles, about
+# 90 million particles in jellies of 10^3. The particle state's largest offset is 3 (particles - 1).
 MAX_CONTACT_PARTICLES = min((2**31 - 1 + 3) // (3 * MAX_CONTACTS), 2**31 // MAX_CANDIDATES, 2**31 // 9)
 MAX_PARTICLES = (2**31 - 1) // 3 + 1
 
