@@ -289,6 +289,58 @@ def build(scalar):
         return p
 
     @wp.func
+    def accumulated_impulse(
+        n: vec3,
+        vi: vec3,
+        vj: vec3,
+        p_old: vec3,
+        u0: scalar,
+        wi_split: scalar,
+        wj_split: scalar,
+        friction: scalar,
+        restitution: scalar,
+        eps_v: scalar,
+        rest_steps: scalar,
+    ):
+        """The pair's impulse on i so far this step after one more iteration (j's is its negative).
+
+        ``p_old`` is the pair's impulse on i so far (warm start included). Its normal part stays a
+        push (at least zero), its tangential part within mu times the normal part, so an iteration
+        can take back what an earlier one (or the warm start) gave too much. Swapping i and j negates
+        every input vector and so the result, exactly."""
+        vrel = vi - vj
+        vn = wp.dot(vrel, n)
+        m_eff = scalar(1.0) / (wi_split + wj_split)
+        target = scalar(0.0)
+        if restitution != scalar(0.0):
+            w = -vn - u0
+            if not (u0 < eps_v or u0 < rest_steps * w):
+                target = restitution * u0
+        lam_old = wp.dot(p_old, n)
+        lam = wp.max(lam_old + (target - vn) * m_eff, scalar(0.0))
+        pt = (p_old - lam_old * n) - (vrel - vn * n) * m_eff
+        cap = friction * lam
+        length = wp.length(pt)
+        if length > cap:
+            pt = pt * (cap / length)
+        return lam * n + pt
+
+    @wp.func
+    def warm_impulse(p_prev: vec3, n: vec3, friction: scalar):
+        """The last step's impulse of a pair, on its new normal: the push part (zero if it would
+        pull), the tangential part within mu times it. Negates exactly with its inputs."""
+        lam = wp.dot(p_prev, n)
+        p = vec3(scalar(0.0))
+        if lam > scalar(0.0):
+            pt = p_prev - lam * n
+            cap = friction * lam
+            length = wp.length(pt)
+            if length > cap:
+                pt = pt * (cap / length)
+            p = lam * n + pt
+        return p
+
+    @wp.func
     def cell_of(x: vec3, inv_cell: scalar):
         """Integer cell coordinates of a point, clamped far beyond any scene."""
         lim = scalar(1.0e9)
@@ -427,8 +479,11 @@ def build(scalar):
         cqd_out: wp.array(dtype=vec3),
         normal_out: wp.array2d(dtype=vec3),
         rebuild_out: wp.array(dtype=wp.int32),
+        phase: wp.array(dtype=wp.int32),
     ):
         k = wp.tid()
+        if k == 0:
+            phase[0] = 1 - phase[0]  # this step's half of the contact tables (nothing else here reads it)
         p = ldi(contact_index, k)
         x = ld3(q, p)
         st3(cq_out, k, x)
@@ -569,6 +624,7 @@ def build(scalar):
         n: vec3,
         gap: scalar,
         count: int,
+        row: int,
         contact_index: wp.array(dtype=wp.int32),
         qd_prev: wp.array(dtype=vec3),
         contact_list_out: wp.array2d(dtype=wp.int32),
@@ -581,13 +637,40 @@ def build(scalar):
         speed before the step from the velocities before it (``qd_prev``, particle order); returns the
         new count. Only a restitution above zero reads the approach speed (:func:`pair_impulse`):
         without one it is neither computed nor stored."""
-        if count < contact_list_out.shape[0]:
-            sti2(contact_list_out, count, i, j)
+        if count < contact_normal_out.shape[0]:
+            sti2(contact_list_out, row + count, i, j)
             st32(contact_normal_out, count, i, n)
             sts2(contact_gap_out, count, i, gap)
             if restitution != scalar(0.0):
                 contact_u0_out[count, i] = -wp.dot(qd_prev[contact_index[i]] - qd_prev[contact_index[j]], n)
         return count + 1
+
+    @wp.func
+    def warm_start(
+        i: int,
+        j: int,
+        n: vec3,
+        prev_ci: int,
+        b: int,
+        prev_row: int,
+        prev: int,
+        contact_list: wp.array2d(dtype=wp.int32),
+        contact_impulse: wp.array2d(dtype=vec3),
+        count: wp.array(dtype=wp.int32),
+        friction: scalar,
+    ):
+        """The warm start of touching pair (i, j): its impulse of the last step (:func:`warm_impulse`)
+        where both particles kept their contacts in their lists then (so both stored it), else zero.
+        ``b`` walks i's last list (ascending, like the new one). Returns (impulse, b)."""
+        p = vec3(scalar(0.0))
+        if prev_ci <= contact_impulse.shape[0] // 2:
+            while b < prev_ci and ldi2(contact_list, prev_row + b, i) < j:
+                b += 1
+            if b < prev_ci:
+                if ldi2(contact_list, prev_row + b, i) == j:
+                    if ldi(count, prev * (count.shape[0] // 2) + j) <= contact_impulse.shape[0] // 2:
+                        p = warm_impulse(ld32(contact_impulse, prev_row + b, i), n, friction)
+        return p, b
 
     @wp.kernel(module="unique")
     def find_particle_contacts(
@@ -609,24 +692,39 @@ def build(scalar):
         self_exclusion: scalar,
         skin: scalar,
         restitution: scalar,
+        friction: scalar,
+        phase: wp.array(dtype=wp.int32),
         # State (contact order), and the velocities before the step (particle order, through
         # contact_index):
         cq: wp.array(dtype=vec3),
+        cqd: wp.array(dtype=vec3),
         contact_index: wp.array(dtype=wp.int32),
         qd_prev: wp.array(dtype=vec3),
         cw: wp.array(dtype=scalar),
         normal: wp.array2d(dtype=vec3),
-        # Out: contacts per particle, its split inverse mass (contacts times inverse mass), and the
-        # first MAX_CONTACTS contacts (slot-major, ascending partner): partner, normal, gap, and
-        # approach speed before the step
+        # In and out: contacts per particle (this step's half, [phase n:], out; the last step's, in),
+        # the contact lists and impulses (this step's rows [phase S:], out; the last step's, in)
         count_out: wp.array(dtype=wp.int32),
-        w_split_out: wp.array(dtype=scalar),
         contact_list_out: wp.array2d(dtype=wp.int32),
+        contact_impulse_out: wp.array2d(dtype=vec3),
+        # Out: its split inverse mass (contacts times inverse mass), the first MAX_CONTACTS contacts'
+        # normal, gap, and approach speed before the step; the velocity after the warm start
+        w_split_out: wp.array(dtype=scalar),
         contact_normal_out: wp.array2d(dtype=vec3),
         contact_gap_out: wp.array2d(dtype=scalar),
         contact_u0_out: wp.array2d(dtype=scalar),
+        cqd_warm_out: wp.array(dtype=vec3),
     ):
         i = wp.tid()
+        cur = phase[0]
+        prev = 1 - cur
+        slots = contact_normal_out.shape[0]
+        n_all = count_out.shape[0] // 2
+        row = cur * slots
+        prev_row = prev * slots
+        prev_ci = ldi(count_out, prev * n_all + i)
+        b = int(0)
+        warm = vec3(scalar(0.0))
         xi = ld3(cq, i)
         count = int(0)
         nc = ldi(candidate_count, i)
@@ -649,8 +747,14 @@ def build(scalar):
                 a += 1
                 touches, n, gap = touching_pair(i, j, xi, cq, contact_radius, normal)
                 if touches:
+                    p0, b = warm_start(
+                        i, j, n, prev_ci, b, prev_row, prev, contact_list_out, contact_impulse_out, count_out, friction
+                    )
+                    warm = warm + p0
+                    if count < slots:
+                        st32(contact_impulse_out, row + count, i, p0)
                     count = store_contact(
-                        i, j, n, gap, count, contact_index, qd_prev, contact_list_out, contact_normal_out,
+                        i, j, n, gap, count, row, contact_index, qd_prev, contact_list_out, contact_normal_out,
                         contact_gap_out, contact_u0_out, restitution,
                     )
         else:
@@ -665,12 +769,20 @@ def build(scalar):
                     break
                 touches, n, gap = pair_contact(i, j, xi, cq, contact_radius, normal)
                 if touches:
+                    p0, b = warm_start(
+                        i, j, n, prev_ci, b, prev_row, prev, contact_list_out, contact_impulse_out, count_out, friction
+                    )
+                    warm = warm + p0
+                    if count < slots:
+                        st32(contact_impulse_out, row + count, i, p0)
                     count = store_contact(
-                        i, j, n, gap, count, contact_index, qd_prev, contact_list_out, contact_normal_out,
+                        i, j, n, gap, count, row, contact_index, qd_prev, contact_list_out, contact_normal_out,
                         contact_gap_out, contact_u0_out, restitution,
                     )
-        count_out[i] = count
+        count_out[cur * n_all + i] = count
         w_split_out[i] = scalar(count) * lds(cw, i)
+        if count > 0:
+            st3(cqd_warm_out, i, ld3(cqd, i) + lds(cw, i) * warm)
 
     @wp.func
     def velocity_term(
@@ -737,13 +849,19 @@ def build(scalar):
         contact_list: wp.array2d(dtype=wp.int32),
         contact_normal: wp.array2d(dtype=vec3),
         contact_u0: wp.array2d(dtype=scalar),
+        phase: wp.array(dtype=wp.int32),
         # The velocities of this iteration
         cqd: wp.array(dtype=vec3),
+        # In and out: the impulses of the contacts so far (this step's rows)
+        contact_impulse: wp.array2d(dtype=vec3),
         # Out: the velocities after this iteration's impulses (contact order)
         cqd_out: wp.array(dtype=vec3),
     ):
         i = wp.tid()
-        ci = ldi(count, i)
+        cur = phase[0]
+        slots = contact_normal.shape[0]
+        n_all = count.shape[0] // 2
+        ci = ldi(count, cur * n_all + i)
         if ci == 0:
             # Nothing reads a velocity of a particle without contacts from these buffers: its
             # partners would be in contact with it, and the position pass leaves it alone.
@@ -752,18 +870,27 @@ def build(scalar):
         wi = lds(cw, i)
         wi_split = lds(w_split, i)
         impulse = vec3(scalar(0.0))
-        if ci <= contact_list.shape[0]:
+        if ci <= slots:
             for a in range(ci):
-                j = ldi2(contact_list, a, i)
+                j = ldi2(contact_list, cur * slots + a, i)
                 wj_split = lds(w_split, j)
                 if wi_split + wj_split > scalar(0.0):
                     u0 = scalar(0.0)
                     if restitution != scalar(0.0):
                         u0 = contact_u0[a, i]  # stored by find only with a restitution (store_contact)
-                    impulse = impulse + pair_impulse(
-                        ld32(contact_normal, a, i), vi, ld3(cqd, j), u0, wi_split, wj_split, friction, restitution,
-                        eps_v, rest_steps,
-                    )
+                    n = ld32(contact_normal, a, i)
+                    if ldi(count, cur * n_all + j) <= slots:
+                        # Both keep the pair in their lists: its impulse accumulates (warm started).
+                        p_old = ld32(contact_impulse, cur * slots + a, i)
+                        p_new = accumulated_impulse(
+                            n, vi, ld3(cqd, j), p_old, u0, wi_split, wj_split, friction, restitution, eps_v, rest_steps
+                        )
+                        st32(contact_impulse, cur * slots + a, i, p_new)
+                        impulse = impulse + (p_new - p_old)
+                    else:
+                        impulse = impulse + pair_impulse(
+                            n, vi, ld3(cqd, j), u0, wi_split, wj_split, friction, restitution, eps_v, rest_steps
+                        )
         else:
             # More contacts than the list holds: the candidates again, in the same order.
             xi = cq[i]
@@ -798,6 +925,7 @@ def build(scalar):
         wi_split: scalar,
         h: scalar,
         beta_h: scalar,
+        friction: scalar,
         cqd: wp.array(dtype=vec3),
         w_split: wp.array(dtype=scalar),
         cqd_new: wp.array(dtype=vec3),
@@ -818,9 +946,18 @@ def build(scalar):
                 # left (they converge slowly where a particle presses on one with many contacts) is
                 # taken off up to the projected distance per step, so a pressed particle does not
                 # keep a velocity it never moves by. Only approach is removed, never separation added.
-                vn = wp.dot(vi - vj, n)
+                vrel = vi - vj
+                vn = wp.dot(vrel, n)
                 if vn < scalar(0.0):
-                    dv = (wp.min(-vn, -moved / h) * wi / split) * n
+                    # A normal impulse, so Coulomb friction takes up to mu times it of the tangential
+                    # relative velocity, as in the velocity iterations.
+                    jn = wp.min(-vn, -moved / h)
+                    dv = jn * n
+                    vt = vrel - vn * n
+                    speed = wp.length(vt)
+                    if speed > scalar(0.0):
+                        dv = dv - (wp.min(speed, friction * jn) / speed) * vt
+                    dv = dv * (wi / split)
         return dx, dv
 
     @wp.kernel(module="unique")
@@ -844,6 +981,7 @@ def build(scalar):
         self_exclusion: scalar,
         skin: scalar,
         h: scalar,
+        friction: scalar,
         world_contact_beta: wp.array(dtype=scalar),
         # The step's result, surface normals, the contacts, and the velocities before and after
         # the impulses (contact order):
@@ -857,6 +995,7 @@ def build(scalar):
         contact_gap: wp.array2d(dtype=scalar),
         cqd: wp.array(dtype=vec3),
         cqd_new: wp.array(dtype=vec3),
+        phase: wp.array(dtype=wp.int32),
         # In and out: the rebuild flag (lowered) and the count of builds (one more after a build)
         rebuild: wp.array(dtype=wp.int32),
         builds: wp.array(dtype=wp.int32),
@@ -869,7 +1008,9 @@ def build(scalar):
             # No other thread of this launch reads these two (the grid walk reads both tables).
             builds[0] = builds[0] + 1
             rebuild[0] = 0
-        ci = ldi(count, i)
+        cur = phase[0]
+        slots = contact_normal.shape[0]
+        ci = ldi(count, cur * (count.shape[0] // 2) + i)
         if ci == 0:
             return
         pi = ldi(contact_index, i)
@@ -884,11 +1025,11 @@ def build(scalar):
         wi_split = lds(w_split, i)
         dx = vec3(scalar(0.0))
         dv = vec3(scalar(0.0))
-        if ci <= contact_list.shape[0]:
+        if ci <= slots:
             for a in range(ci):
                 ddx, ddv = position_term(
-                    i, ldi2(contact_list, a, i), ld32(contact_normal, a, i), lds2(contact_gap, a, i), shift_i, vi, wi,
-                    wi_split, h, beta_h, cqd, w_split, cqd_new,
+                    i, ldi2(contact_list, cur * slots + a, i), ld32(contact_normal, a, i), lds2(contact_gap, a, i), shift_i, vi, wi,
+                    wi_split, h, beta_h, friction, cqd, w_split, cqd_new,
                 )
                 dx = dx + ddx
                 dv = dv + ddv
@@ -909,7 +1050,7 @@ def build(scalar):
                 touches, n, gap = pair_contact(i, j, xi, cq, contact_radius, normal)
                 if touches:
                     ddx, ddv = position_term(
-                        i, j, n, gap, shift_i, vi, wi, wi_split, h, beta_h, cqd, w_split, cqd_new
+                        i, j, n, gap, shift_i, vi, wi, wi_split, h, beta_h, friction, cqd, w_split, cqd_new
                     )
                     dx = dx + ddx
                     dv = dv + ddv

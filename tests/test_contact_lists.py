@@ -19,7 +19,7 @@ SPACING = 0.05
 SIZE = 4
 
 
-def _pile(self_contact=False, worlds=1):
+def _pile(self_contact=False, worlds=1, precision="float32", iterations=None):
     """Eight jellies of 4^3 in a 2x2x2 block, 0.85 spacings apart (every face touches), in
     ``worlds`` copies on top of each other."""
     builder = ModelBuilder((0.0, -9.81, 0.0))
@@ -33,7 +33,9 @@ def _pile(self_contact=False, worlds=1):
                 (SIZE,) * 3, edge, 0.01, springs, center=centre, world=world, self_contact=self_contact and c == 0
             )
     builder.jelly_contact = True
-    return builder.finalize("cpu", "float32")
+    if iterations is not None:
+        builder.jelly_contact_iterations = iterations
+    return builder.finalize("cpu", precision)
 
 
 def _step_hook(model, state, q):
@@ -155,32 +157,73 @@ def test_worlds_get_no_candidates_of_each_other():
     assert sum(len(lst) for lst in _lists(hook)) > 0
 
 
-@pytest.mark.parametrize("cap", ["MAX_CANDIDATES", "MAX_CONTACTS"])
-def test_full_lists_step_bitwise_the_same(monkeypatch, cap):
-    """With lists too short (a candidate list of 2: the grid walk; a contact list of 1: the
-    candidates tested again), ten steps of a squeezed pile are bitwise those with the full lists."""
+def _squeezed_pile(steps, precision="float32", iterations=None):
+    """``steps`` symplectic steps of the pile squeezed along x (particles with several contacts);
+    returns the positions, the velocities and the model."""
     from softsim_warp.core.stepper import make_integrator
 
-    def run():
-        model = _pile()
-        q = model.particle_q_host.copy()
-        q[:, 0] *= 0.97  # squeeze along x: particles with several contacts
-        state = [model.state(), model.state()]
-        state[0].particle_q.assign(q.astype(np.float32))
-        integrator = make_integrator("symplectic", model)
-        for k in range(10):
-            integrator.step(state[k % 2], state[1 - k % 2], 1e-4)
-        hook = model.particle_contact
-        return state[0].particle_q.numpy(), state[0].particle_qd.numpy(), hook
+    model = _pile(precision=precision, iterations=iterations)
+    q = model.particle_q_host.copy()
+    q[:, 0] *= 0.97
+    state = [model.state(), model.state()]
+    state[0].particle_q.assign(q.astype(model.particle_q_host.dtype))
+    integrator = make_integrator("symplectic", model)
+    for k in range(steps):
+        integrator.step(state[k % 2], state[1 - k % 2], 1e-4)
+    return state[steps % 2].particle_q.numpy(), state[steps % 2].particle_qd.numpy(), model
 
-    q_full, v_full, hook = run()
-    most = hook.candidate_count.numpy().max() if cap == "MAX_CANDIDATES" else hook.contacts.numpy().max()
-    monkeypatch.setattr(particle_contact, cap, 2 if cap == "MAX_CANDIDATES" else 1)
-    q_short, v_short, short = run()
-    assert most > getattr(particle_contact, cap)  # the short lists do overflow
-    if cap == "MAX_CANDIDATES":
-        assert (short.candidate_count.numpy() == 3).any()
+
+def test_full_candidate_lists_step_bitwise_the_same(monkeypatch):
+    """With candidate lists of 2 (the grid walk takes over), ten steps of a squeezed pile are bitwise
+    those with the full lists."""
+    q_full, v_full, model = _squeezed_pile(10)
+    most = model.particle_contact.candidate_count.numpy().max()
+    monkeypatch.setattr(particle_contact, "MAX_CANDIDATES", 2)
+    q_short, v_short, short = _squeezed_pile(10)
+    assert most > 2 and (short.particle_contact.candidate_count.numpy() == 3).any()  # they do overflow
     assert np.array_equal(q_full, q_short) and np.array_equal(v_full, v_short)
+
+
+def test_accumulated_impulses_are_equal_and_opposite():
+    """After ten steps of the squeezed pile (four passes, warm started from the step before), every
+    pair that both lists hold has stored impulses that are exact negatives of each other, and its
+    partners' normals too: each particle computes the pair's impulse from the pair's values alone."""
+    _, _, model = _squeezed_pile(10, iterations=4)
+    hook = model.particle_contact
+    half = int(hook.phase.numpy()[0])
+    slots = particle_contact.MAX_CONTACTS
+    count = hook.contacts.numpy()
+    partner = hook.contact_list.numpy()
+    impulse = hook.contact_impulse.numpy()[half * slots : (half + 1) * slots]
+    normal = hook.contact_normal.numpy()
+    pairs = 0
+    for i in np.flatnonzero((count > 0) & (count <= slots)):
+        for a in range(count[i]):
+            j = partner[a, i]
+            if count[j] > slots:
+                continue
+            b = list(partner[: count[j], j]).index(i)  # the lists are symmetric
+            assert np.array_equal(impulse[a, i], -impulse[b, j]) and np.array_equal(normal[a, i], -normal[b, j])
+            pairs += 1
+    assert pairs > 100 and np.abs(impulse).max() > 0
+
+
+def test_overflowed_contact_lists_conserve_momentum(monkeypatch):
+    """With contact lists of 1, a particle with more contacts tests its candidates again in each pass,
+    and its pairs take impulses that do not accumulate (both particles of a pair decide that alike,
+    from whether both lists hold it), beside pairs that do. Ten steps of the squeezed pile in float64
+    with three passes (in a first pass without a warm start the two kinds of impulse agree): the
+    contacts push the jellies apart, and the total momentum is the gravity's to rounding."""
+    monkeypatch.setattr(particle_contact, "MAX_CONTACTS", 1)
+    q, v, model = _squeezed_pile(10, "float64", iterations=3)
+    counts = model.particle_contact.contacts.numpy()
+    assert (counts > 1).any() and (counts == 1).any()  # overflowed lists beside full ones
+    mass = 1.0 / model.particle_inv_mass.numpy()
+    expected = mass.sum() * np.array([0.0, -9.81 * 10 * 1e-4, 0.0])
+    momentum = (mass[:, None] * v).sum(axis=0)
+    spread = np.abs(mass[:, None] * v).sum()
+    assert np.abs(v[:, 0]).max() > 1e-3  # the contacts act (gravity is along y)
+    assert np.abs(momentum - expected).max() <= 1e-12 * spread, (momentum, expected)
 
 
 def test_face_order_groups_each_face():
@@ -218,13 +261,14 @@ def test_face_order_groups_each_face():
 
 def test_capacity_is_a_user_error(monkeypatch):
     """The kernels address the contact tables with 32-bit element offsets. The largest offset they
-    compute (3 (slots n - 1) in the widest table, the contacts' normals of a built hook) fits at the
-    limit and not one contact particle beyond it, and a model beyond the limit is refused by
-    build_model with a one-line scene error."""
+    compute (3 (slots n - 1) in the widest table, the contacts' impulses of a built hook: this step's
+    and the last) fits at the limit and not one contact particle beyond it, and a model beyond the
+    limit is refused by build_model with a one-line scene error."""
     from softsim_warp.core.errors import SceneError
 
     hook = ss.build_model(ss.load_scene("collide", ["jelly.0.resolution=3", "jelly.1.resolution=3"])).particle_contact
-    slots = hook.contact_normal.shape[0]
+    slots = hook.contact_impulse.shape[0]
+    assert all(a.shape[0] <= slots for a in (hook.contact_normal, hook.contact_lists, hook.candidates))
     limit = particle_contact.MAX_CONTACT_PARTICLES
     assert 3 * (slots * limit - 1) <= 2**31 - 1 < 3 * (slots * (limit + 1) - 1)
     assert hook.candidates.shape[0] * limit - 1 <= 2**31 - 1

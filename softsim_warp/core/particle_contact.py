@@ -40,7 +40,7 @@ from ..kernels.particle_contact import CANDIDATE_REACH
 DEFAULT_FRICTION = 0.5
 DEFAULT_RESTITUTION = 0.0
 # Jacobi iterations of the velocity response per step (scene key jelly_contact_iterations).
-DEFAULT_ITERATIONS = 4
+DEFAULT_ITERATIONS = 1
 # Pair distance of two particles of jellies whose largest lattice spacings are s1 and s2, without
 # jelly_contact_thickness: (s1 + s2) / 2 * THICKNESS_PER_SPACING. One spacing keeps a particle from
 # slipping through a face of the other lattice (it meets the face's corners at s / sqrt(2)).
@@ -60,10 +60,11 @@ MAX_CANDIDATES = 32
 # its share of the SM until its slowest warp is done; smaller blocks likely waste less of it.
 PASS_BLOCK = 128
 # The kernels address their slot-major tables from the data pointer with 32-bit element offsets. For n
-# contact particles the largest are 3 (MAX_CONTACTS n - 1) (the contacts' normals), MAX_CANDIDATES n - 1
-# and 9 n - 1 (the face normals, the lattice neighbours): at most 44,739,242 contact particles, about
-# 90 million particles in jellies of 10^3. The particle state's largest offset is 3 (particles - 1).
-MAX_CONTACT_PARTICLES = min((2**31 - 1 + 3) // (3 * MAX_CONTACTS), 2**31 // MAX_CANDIDATES, 2**31 // 9)
+# contact particles the largest are 3 (2 MAX_CONTACTS n - 1) (the contacts' impulses, this step's and
+# the last), MAX_CANDIDATES n - 1 and 9 n - 1 (the face normals, the lattice neighbours): at most
+# 22,369,621 contact particles, about 45 million particles in jellies of 10^3. The particle state's
+# largest offset is 3 (particles - 1).
+MAX_CONTACT_PARTICLES = min((2**31 - 1 + 3) // (6 * MAX_CONTACTS), 2**31 // MAX_CANDIDATES, 2**31 // 9)
 MAX_PARTICLES = (2**31 - 1) // 3 + 1
 
 # The candidate lists' skin, in the smallest pair distance: a list holds the pairs within
@@ -269,9 +270,12 @@ class ParticleContact:
         self.cell_bucket = wp.zeros(n, dtype=wp.int32, device=device)
         # Contacts: per particle its count and split inverse mass; per contact (slot-major) its
         # partner, normal, gap and approach speed before the step.
-        self.contacts = wp.zeros(n, dtype=wp.int32, device=device)
+        self.contact_counts = wp.zeros(2 * n, dtype=wp.int32, device=device)
         self.w_split = wp.zeros(n, dtype=scalar, device=device)
-        self.contact_list = wp.zeros((MAX_CONTACTS, n), dtype=wp.int32, device=device)
+        self.contact_lists = wp.zeros((2 * MAX_CONTACTS, n), dtype=wp.int32, device=device)
+        self.contact_impulse = wp.zeros((2 * MAX_CONTACTS, n), dtype=vec3, device=device)
+        self.phase = wp.zeros(1, dtype=wp.int32, device=device)
+        self.cqd_warm = wp.zeros(n, dtype=vec3, device=device)
         self.contact_normal = wp.zeros((MAX_CONTACTS, n), dtype=vec3, device=device)
         self.contact_gap = wp.zeros((MAX_CONTACTS, n), dtype=scalar, device=device)
         # The approach speed only with a restitution, the one reader (store_contact writes it only then).
@@ -279,6 +283,18 @@ class ParticleContact:
         self.contact_u0 = wp.zeros(u0_shape, dtype=scalar, device=device)
         self.iterations = int(iterations)
         self.cqd_iter = [wp.zeros(n, dtype=vec3, device=device) for _ in range(min(self.iterations, 2))]
+
+    @property
+    def contacts(self):
+        """Each particle's number of contacts in the last step, shape [count], int32 (a view)."""
+        half = int(self.phase.numpy()[0])
+        return self.contact_counts[half * self.count : (half + 1) * self.count]
+
+    @property
+    def contact_list(self):
+        """The last step's contact lists, shape [MAX_CONTACTS, count] (a view)."""
+        half = int(self.phase.numpy()[0])
+        return self.contact_lists[half * MAX_CONTACTS : (half + 1) * MAX_CONTACTS]
 
     def builds_done(self) -> int:
         """How many times the candidate lists were built (a metric: reads the device)."""
@@ -303,7 +319,7 @@ class ParticleContact:
                 state_out.particle_q,
                 state_out.particle_qd,
             ],
-            outputs=[self.cq, self.cqd, self.normal, self.rebuild],
+            outputs=[self.cq, self.cqd, self.normal, self.rebuild, self.phase],
             device=device,
         )
         wp.launch(
@@ -345,14 +361,18 @@ class ParticleContact:
         wp.launch(
             k.find_particle_contacts,
             dim=n,
-            inputs=[*walk, self.restitution, self.cq, self.contact_index, state_in.particle_qd, self.cw, self.normal],
+            inputs=[
+                *walk, self.restitution, self.friction, self.phase, self.cq, self.cqd, self.contact_index,
+                state_in.particle_qd, self.cw, self.normal,
+            ],
             outputs=[
-                self.contacts, self.w_split, self.contact_list, self.contact_normal, self.contact_gap, self.contact_u0
+                self.contact_counts, self.contact_lists, self.contact_impulse, self.w_split, self.contact_normal,
+                self.contact_gap, self.contact_u0, self.cqd_warm,
             ],
             device=device,
             block_dim=PASS_BLOCK,
         )
-        v_in = self.cqd
+        v_in = self.cqd_warm
         for it in range(self.iterations):
             v_out = self.cqd_iter[it % 2]
             wp.launch(
@@ -369,12 +389,14 @@ class ParticleContact:
                     state_in.particle_qd,
                     self.cw,
                     self.normal,
-                    self.contacts,
+                    self.contact_counts,
                     self.w_split,
-                    self.contact_list,
+                    self.contact_lists,
                     self.contact_normal,
                     self.contact_u0,
+                    self.phase,
                     v_in,
+                    self.contact_impulse,
                 ],
                 outputs=[v_out],
                 device=device,
@@ -389,17 +411,19 @@ class ParticleContact:
                 self.contact_index,
                 *pairs,
                 h,
+                self.friction,
                 world_contact_beta,
                 self.cq,
                 self.cw,
                 self.normal,
-                self.contacts,
+                self.contact_counts,
                 self.w_split,
-                self.contact_list,
+                self.contact_lists,
                 self.contact_normal,
                 self.contact_gap,
                 self.cqd,
                 v_in,
+                self.phase,
                 self.rebuild,
                 self.builds,
             ],

@@ -368,7 +368,7 @@ SCHEMA = Table(
                 ),
                 "jelly_contact_friction": Float(0.5, lo=0, doc="Coulomb coefficient between jellies [1]"),
                 "jelly_contact_restitution": Float(0.0, lo=0, hi=1, doc="restitution between jellies [1]"),
-                "jelly_contact_iterations": Int(4, lo=1, doc="Jacobi iterations of the contact impulses per step"),
+                "jelly_contact_iterations": Int(1, lo=1, doc="Jacobi iterations of the contact impulses per step"),
             }
         ),
         "jelly": TableList(
