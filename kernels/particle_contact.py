@@ -11,8 +11,10 @@ The response runs after the integrator's step, on its result, like terrain conta
    jelly, with self-contact, far enough apart in the rest shape) of its world within the candidate
    reach plus a skin, in ascending index order, found through a hashed cell grid;
 3. ``find_particle_contacts`` tests each candidate and stores the touching pairs with their normal,
-   gap and, with a restitution above zero, approach speed before the step;
-4. ``resolve_contact_velocities`` (Jacobi iterations) and ``resolve_contact_positions`` apply them.
+   gap and, with a restitution above zero, approach speed before the step, each started from the
+   pair's impulse of the step before (the warm start), and the velocities after those impulses;
+4. ``resolve_contact_velocities`` (Jacobi iterations, the pairs' impulses accumulated over the step)
+   and ``resolve_contact_positions`` apply them.
 
 Why no contact is missed: a pair is left out of the lists only when its distance at the build was
 at least ``CANDIDATE_REACH d + skin``; the lists are rebuilt before any particle has moved
@@ -31,8 +33,11 @@ rigid body simulation"): a particle in k contacts would be corrected k times ove
 acted in full, so each pair's effective mass uses k_i / m_i and k_j / m_j for the inverse masses.
 The impulse is still one number applied to both particles with opposite signs, so momentum is
 exact (scaling each particle's correction by its own count, as constraint averaging does, would
-not be). Several iterations of the velocity pass converge towards the coupled solution; one
-position pass then projects out the remaining overlap.
+not be). Iterations of the velocity pass converge towards the coupled solution; one position pass
+then projects out the remaining overlap. Each pair's impulse so far is kept: an iteration can take
+back what an earlier one (or the warm start) gave too much, down to no push at all, and friction
+stays within mu times the push over the whole step. Starting each step from the last one's
+impulses (Catto's warm starting) lets one iteration hold a resting stack.
 """
 
 import functools
@@ -1028,8 +1033,8 @@ def build(scalar):
         if ci <= slots:
             for a in range(ci):
                 ddx, ddv = position_term(
-                    i, ldi2(contact_list, cur * slots + a, i), ld32(contact_normal, a, i), lds2(contact_gap, a, i), shift_i, vi, wi,
-                    wi_split, h, beta_h, friction, cqd, w_split, cqd_new,
+                    i, ldi2(contact_list, cur * slots + a, i), ld32(contact_normal, a, i), lds2(contact_gap, a, i),
+                    shift_i, vi, wi, wi_split, h, beta_h, friction, cqd, w_split, cqd_new,
                 )
                 dx = dx + ddx
                 dv = dv + ddv

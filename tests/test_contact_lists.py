@@ -289,3 +289,40 @@ def test_strided_state_is_refused():
     state_out.particle_q = wide[::2]
     with pytest.raises(ValueError, match="jelly contact kernels need contiguous"):
         model.particle_contact(model, state_in, state_out, 1.0e-3, wp.ones(1, dtype=model.scalar))
+
+
+def test_warm_up_and_restart_leave_no_contact_history():
+    """The impulses a step keeps for the next one's warm start are forgotten by a new stepper, after
+    the warm-up step and on a restart: a run after either is bitwise the run without it (the pile
+    touches from its first step, so a kept impulse would start the first step warm, and does)."""
+    from softsim_warp.core.contact import forget_contact_history
+    from softsim_warp.core.stepper import Stepper, make_integrator
+
+    def stepper(model, warm_up=False):
+        s = Stepper(model, make_integrator("symplectic", model), 1e-4, use_graph=False)
+        if warm_up:
+            s.warm_up()
+        return s
+
+    def result(s):
+        s.advance(5)
+        return s.state.particle_q.numpy(), s.state.particle_qd.numpy()
+
+    def restart(s, model, forget):
+        wp.copy(s.states[0].particle_q, model.particle_q)
+        wp.copy(s.states[0].particle_qd, model.particle_qd)
+        s.current = 0
+        if forget:
+            forget_contact_history(model)
+
+    q, v = result(stepper(_pile()))
+    model = _pile()
+    result(stepper(model))
+    for s in (stepper(model), stepper(_pile(), warm_up=True)):
+        assert np.array_equal((q, v), result(s))
+    s = stepper(model)
+    result(s)
+    restart(s, model, forget=True)
+    assert np.array_equal((q, v), result(s))
+    restart(s, model, forget=False)
+    assert not np.array_equal(q, result(s)[0])

@@ -42,6 +42,16 @@ def apply_contacts(
             hook(model, state_in, state_out, h, world_contact_beta)
 
 
+def forget_contact_history(model: Model):
+    """Make the next step start from no history of the contact hooks (the warm start of jelly
+    contact): for a step that is not part of the run (the warm-up) and for a run restarted from its
+    initial state, so that it is bitwise the run without them."""
+    for hook in getattr(model, "contact_hooks", ()):
+        forget = getattr(hook, "forget_history", None)
+        if forget is not None:
+            forget()
+
+
 def filter_stage_contacts(
     model: Model, state_in: State, q_s: wp.array, qd_s: wp.array, world_contact_beta: wp.array, planes=True
 ):

@@ -10,8 +10,10 @@ asks for contact between jellies or for a jelly's self-contact; a model without 
    their boundary-face normals, and the rebuild flag (a particle moved half the skin);
 2. ``insert_contact_grid`` and ``build_contact_candidates``: the candidate lists, rebuilt only when
    the flag is raised (otherwise both return at once);
-3. ``find_particle_contacts``: each particle's contacts among its candidates;
-4. ``resolve_contact_velocities`` (``iterations`` times) and ``resolve_contact_positions``.
+3. ``find_particle_contacts``: each particle's contacts among its candidates, each started from the
+   pair's impulse of the step before (the warm start);
+4. ``resolve_contact_velocities`` (``iterations`` times: the pairs' impulses accumulate over the
+   step) and ``resolve_contact_positions``.
 
 Every launch has a fixed size and every array is allocated here, so a step with contact is captured
 as a graph (CUDA and CPU) like any other.
@@ -158,7 +160,11 @@ class ParticleContact:
             (slot-major, ascending), and their number (MAX_CANDIDATES + 1: more than the list
             holds, the grid walk takes over), int32.
         builds: how many times the lists were built, shape [1], int32 (:meth:`builds_done`).
-        contacts: each particle's number of contacts in the last step, shape [count], int32.
+        contact_counts, contact_lists, contact_impulse: contacts per particle, shape [2 count], their
+            partners (ascending) and the pairs' impulses on the particle, shape [2 MAX_CONTACTS,
+            count], in two halves: the last step's (``phase``, flipped at the start of each step) and
+            the one before, which the warm start reads. :attr:`contacts` and :attr:`contact_list`
+            are the last step's halves.
     """
 
     # Not part of the implicit integrator's contact solve, which prescribes each touched particle's
@@ -283,6 +289,10 @@ class ParticleContact:
         self.contact_u0 = wp.zeros(u0_shape, dtype=scalar, device=device)
         self.iterations = int(iterations)
         self.cqd_iter = [wp.zeros(n, dtype=vec3, device=device) for _ in range(min(self.iterations, 2))]
+
+    def forget_history(self):
+        """No pair starts the next step warm: the contact counts of the step before are zero."""
+        self.contact_counts.zero_()
 
     @property
     def contacts(self):

@@ -19,6 +19,7 @@ import time
 
 import warp as wp
 
+from .contact import forget_contact_history
 from .implicit import ImplicitIntegrator
 from .integrators import ExplicitIntegrator, Integrator
 from .model import Model, State
@@ -69,7 +70,9 @@ class Stepper:
 
     ``state`` is the current state; ``advance(n)`` takes ``n`` steps. Between calls the state may be
     read (``state.particle_q.numpy()``) or written; a captured graph reads whichever of the two
-    state buffers is current, so writes to ``state`` take effect on the next call. Before the first
+    state buffers is current, so writes to ``state`` take effect on the next call (jelly contact keeps
+    its pairs' last impulses to start the next step from; after writing a new start into ``state``,
+    :func:`~softsim_warp.core.contact.forget_contact_history` drops them). Before the first
     capture, :meth:`warm_up` takes one step into a spare state, so every kernel is compiled and
     loaded outside the capture (the implicit integrator's conditional graph nodes need that).
     """
@@ -87,6 +90,7 @@ class Stepper:
         integrator.profile = NO_PROFILE if self.profile is None else self.profile
         self.states = [model.state(), model.state()]
         self.current = 0
+        forget_contact_history(model)  # a run from the initial state: no contact impulses of another
         self._graphs = {}
         self.warmed_up = False
 
@@ -105,6 +109,7 @@ class Stepper:
         self.integrator.step(self.state, self.model.state(), self.dt)
         if self.model.pins is not None:  # the warm-up step is not part of the run: pins restart at t = 0
             self.model.pins.reset()
+        forget_contact_history(self.model)  # nor do its contact impulses start the first step
         wp.synchronize_device(self.model.device)
         reset_stats = getattr(self.integrator, "reset_stats", None)  # the warm-up step is not part of the run
         if reset_stats is not None:
