@@ -251,49 +251,6 @@ def build(scalar):
         return touches, n, gap
 
     @wp.func
-    def pair_impulse(
-        n: vec3,
-        vi: vec3,
-        vj: vec3,
-        u0: scalar,
-        wi_split: scalar,
-        wj_split: scalar,
-        friction: scalar,
-        restitution: scalar,
-        eps_v: scalar,
-        rest_steps: scalar,
-    ):
-        """Impulse on particle i of a touching pair with normal ``n`` (from j to i); j gets its negative.
-
-        ``u0`` is the pair's approach speed along ``n`` before the step, -(vi_prev - vj_prev) . n.
-        ``wi_split``, ``wj_split`` are the split inverse masses (inverse mass times the particle's
-        number of contacts), which set the pair's effective mass. Swapping i and j negates the
-        impulse exactly (the normal and the relative velocity both change sign), which is what
-        makes the pair conserve momentum.
-        """
-        vrel = vi - vj
-        vn = wp.dot(vrel, n)
-        p = vec3(scalar(0.0))
-        if vn < scalar(0.0):
-            m_eff = scalar(1.0) / (wi_split + wj_split)
-            # Impact or contact: the same restitution threshold as terrain (kernels/contact.py,
-            # resolve_contact), on the relative normal velocity before (u0) and after the step.
-            w = -vn - u0
-            if restitution == scalar(0.0) or u0 < eps_v or u0 < rest_steps * w:
-                # Inelastic: cancel the approach, and Coulomb friction takes at most mu times that
-                # normal impulse of the tangential relative momentum, never reversing it.
-                jn = -vn * m_eff
-                vt = vrel - vn * n
-                speed = wp.length(vt)
-                p = jn * n
-                if speed > scalar(0.0):
-                    jt = wp.min(speed * m_eff, friction * jn)
-                    p = p - (jt / speed) * vt
-            else:
-                p = (-(scalar(1.0) + restitution) * vn * m_eff) * n
-        return p
-
-    @wp.func
     def accumulated_impulse(
         n: vec3,
         vi: vec3,
@@ -309,10 +266,17 @@ def build(scalar):
     ):
         """The pair's impulse on i so far this step after one more iteration (j's is its negative).
 
-        ``p_old`` is the pair's impulse on i so far (warm start included). Its normal part stays a
-        push (at least zero), its tangential part within mu times the normal part, so an iteration
-        can take back what an earlier one (or the warm start) gave too much. Swapping i and j negates
-        every input vector and so the result, exactly."""
+        ``n`` is the pair's normal (from j to i), ``vi`` and ``vj`` the two velocities of this
+        iteration, ``p_old`` the pair's impulse on i so far (warm start included; zero for a pair
+        whose impulse does not accumulate, which then gets this iteration's impulse alone). ``u0``
+        is the pair's approach speed before the step, -(vi_prev - vj_prev) . n, and ``wi_split``,
+        ``wj_split`` the split inverse masses (inverse mass times the particle's number of
+        contacts), which set the pair's effective mass. The impulse cancels the approach (an impact,
+        by the same restitution threshold as terrain, leaves at restitution times u0) and the
+        tangential slip; the sum's normal part stays a push (at least zero), its tangential part
+        within mu times the normal part, so an iteration can take back what an earlier one (or the
+        warm start) gave too much. Swapping i and j negates every input vector and so the result,
+        exactly: the pair conserves momentum."""
         vrel = vi - vj
         vn = wp.dot(vrel, n)
         m_eff = scalar(1.0) / (wi_split + wj_split)
@@ -640,7 +604,7 @@ def build(scalar):
     ):
         """Touching pair (i, j) into slot ``count`` of i's lists (while they have room), with its approach
         speed before the step from the velocities before it (``qd_prev``, particle order); returns the
-        new count. Only a restitution above zero reads the approach speed (:func:`pair_impulse`):
+        new count. Only a restitution above zero reads the approach speed (:func:`accumulated_impulse`):
         without one it is neither computed nor stored."""
         if count < contact_normal_out.shape[0]:
             sti2(contact_list_out, row + count, i, j)
@@ -817,7 +781,9 @@ def build(scalar):
             wj_split = w_split[j]
             if wi_split + wj_split > scalar(0.0):
                 u0 = -wp.dot(vi_prev - qd_prev[contact_index[j]], n)
-                p = pair_impulse(n, vi, cqd[j], u0, wi_split, wj_split, friction, restitution, eps_v, rest_steps)
+                p = accumulated_impulse(
+                    n, vi, cqd[j], vec3(scalar(0.0)), u0, wi_split, wj_split, friction, restitution, eps_v, rest_steps
+                )
         return p
 
     @wp.kernel(module="unique")
@@ -893,8 +859,9 @@ def build(scalar):
                         st32(contact_impulse, cur * slots + a, i, p_new)
                         impulse = impulse + (p_new - p_old)
                     else:
-                        impulse = impulse + pair_impulse(
-                            n, vi, ld3(cqd, j), u0, wi_split, wj_split, friction, restitution, eps_v, rest_steps
+                        impulse = impulse + accumulated_impulse(
+                            n, vi, ld3(cqd, j), vec3(scalar(0.0)), u0, wi_split, wj_split, friction, restitution,
+                            eps_v, rest_steps,
                         )
         else:
             # More contacts than the list holds: the candidates again, in the same order.
@@ -1067,7 +1034,7 @@ def build(scalar):
         "pair_contact": pair_contact,
         "facing_normal": facing_normal,
         "pair_normal": pair_normal,
-        "pair_impulse": pair_impulse,
+        "accumulated_impulse": accumulated_impulse,
         "prepare_contact_particles": prepare_contact_particles,
         "insert_contact_grid": insert_contact_grid,
         "build_contact_candidates": build_contact_candidates,
