@@ -326,3 +326,44 @@ def test_warm_up_and_restart_leave_no_contact_history():
     assert np.array_equal((q, v), result(s))
     restart(s, model, forget=False)
     assert not np.array_equal(q, result(s)[0])
+
+
+def test_a_pair_with_an_overflowed_list_does_not_accumulate(monkeypatch):
+    """Three one-particle jellies, contact lists of one. In the first step A and B touch, alone, and
+    their impulse accumulates; in the next, C touches B too (B's list overflows) while A and B move
+    apart. Both start the pair from the last step's impulse, and then neither takes it back (which
+    an accumulating A alone would do); in a third, neither starts it warm (B's list did not hold the
+    pair in the second). Momentum holds to rounding in float64 in each step."""
+    monkeypatch.setattr(particle_contact, "MAX_CONTACTS", 1)
+    builder = ModelBuilder((0.0, 0.0, 0.0))
+    springs = {t: {"ks": 1000.0, "kd": 0.0} for t in ("structural", "shear", "bending")}
+    for mass, centre in ((0.01, (-0.045, 0.0, 0.0)), (0.02, (0.0, 0.0, 0.0)), (0.01, (0.01, 1.0, 0.0))):
+        builder.add_jelly((1, 1, 1), 0.0, mass, springs, center=centre)
+    builder.jelly_contact = True
+    builder.jelly_contact_thickness = 0.05
+    builder.jelly_contact_iterations = 2
+    model = builder.finalize("cpu", "float64")
+    hook = model.particle_contact
+    mass = np.array([0.01, 0.02, 0.01])
+
+    def step(q, v):
+        state = model.state()
+        state.particle_q.assign(np.asarray(q, dtype=np.float64))
+        state.particle_qd.assign(np.asarray(v, dtype=np.float64))
+        hook(model, state, state, model.scalar(1e-4), wp.ones(1, dtype=model.scalar, device="cpu"))
+        return state.particle_qd.numpy(), hook.contacts.numpy()
+
+    q = [[-0.045, 0.0, 0.0], [0.0, 0.0, 0.0], [0.01, 1.0, 0.0]]
+    v1, count = step(q, [[0.1, 0.0, 0.0], [-0.1, 0.0, 0.0], [0.0, 0.0, 0.0]])
+    assert list(count) == [1, 1, 0] and v1[0, 0] < 0.1  # A and B pushed apart
+    q[2] = [0.01, 0.045, 0.0]
+    v = np.array([[-0.5, 0.0, 0.0], [0.5, 0.0, 0.0], [0.0, -0.1, 0.0]])
+    v2, count = step(q, v)
+    assert list(count) == [1, 2, 1]
+    assert np.abs((mass[:, None] * (v2 - v)).sum(axis=0)).max() < 1e-15
+    # A third step: A's list still holds the pair's warm start of the second, but B's overflowed then,
+    # so neither starts the pair warm.
+    v = np.array([[0.1, 0.0, 0.0], [-0.1, 0.0, 0.0], [0.0, -0.1, 0.0]])
+    v3, count = step(q, v)
+    assert list(count) == [1, 2, 1]
+    assert np.abs((mass[:, None] * (v3 - v)).sum(axis=0)).max() < 1e-15
