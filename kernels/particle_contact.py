@@ -251,6 +251,16 @@ def build(scalar):
         return touches, n, gap
 
     @wp.func
+    def within_cone(lam: scalar, pt: vec3, n: vec3, friction: scalar):
+        """The impulse of normal part ``lam`` (along ``n``, at least zero) and tangential part ``pt``,
+        the tangential part shortened to at most mu times the normal part (Coulomb's cone)."""
+        cap = friction * lam
+        length = wp.length(pt)
+        if length > cap:
+            pt = pt * (cap / length)
+        return lam * n + pt
+
+    @wp.func
     def accumulated_impulse(
         n: vec3,
         vi: vec3,
@@ -287,12 +297,7 @@ def build(scalar):
                 target = restitution * u0
         lam_old = wp.dot(p_old, n)
         lam = wp.max(lam_old + (target - vn) * m_eff, scalar(0.0))
-        pt = (p_old - lam_old * n) - (vrel - vn * n) * m_eff
-        cap = friction * lam
-        length = wp.length(pt)
-        if length > cap:
-            pt = pt * (cap / length)
-        return lam * n + pt
+        return within_cone(lam, (p_old - lam_old * n) - (vrel - vn * n) * m_eff, n, friction)
 
     @wp.func
     def warm_impulse(p_prev: vec3, n: vec3, friction: scalar):
@@ -301,12 +306,7 @@ def build(scalar):
         lam = wp.dot(p_prev, n)
         p = vec3(scalar(0.0))
         if lam > scalar(0.0):
-            pt = p_prev - lam * n
-            cap = friction * lam
-            length = wp.length(pt)
-            if length > cap:
-                pt = pt * (cap / length)
-            p = lam * n + pt
+            p = within_cone(lam, p_prev - lam * n, n, friction)
         return p
 
     @wp.func
@@ -592,22 +592,26 @@ def build(scalar):
         j: int,
         n: vec3,
         gap: scalar,
+        p0: vec3,
         count: int,
         row: int,
         contact_index: wp.array(dtype=wp.int32),
         qd_prev: wp.array(dtype=vec3),
         contact_list_out: wp.array2d(dtype=wp.int32),
+        contact_impulse_out: wp.array2d(dtype=vec3),
         contact_normal_out: wp.array2d(dtype=vec3),
         contact_gap_out: wp.array2d(dtype=scalar),
         contact_u0_out: wp.array2d(dtype=scalar),
         restitution: scalar,
     ):
-        """Touching pair (i, j) into slot ``count`` of i's lists (while they have room), with its approach
-        speed before the step from the velocities before it (``qd_prev``, particle order); returns the
-        new count. Only a restitution above zero reads the approach speed (:func:`accumulated_impulse`):
-        without one it is neither computed nor stored."""
+        """Touching pair (i, j) into slot ``count`` of i's lists (this step's rows from ``row``, while they
+        have room), with its starting impulse ``p0`` and its approach speed before the step from the
+        velocities before it (``qd_prev``, particle order); returns the new count. Only a restitution
+        above zero reads the approach speed (:func:`accumulated_impulse`): without one it is neither
+        computed nor stored."""
         if count < contact_normal_out.shape[0]:
             sti2(contact_list_out, row + count, i, j)
+            st32(contact_impulse_out, row + count, i, p0)
             st32(contact_normal_out, count, i, n)
             sts2(contact_gap_out, count, i, gap)
             if restitution != scalar(0.0):
@@ -720,11 +724,9 @@ def build(scalar):
                         i, j, n, prev_ci, b, prev_row, prev, contact_list_out, contact_impulse_out, count_out, friction
                     )
                     warm = warm + p0
-                    if count < slots:
-                        st32(contact_impulse_out, row + count, i, p0)
                     count = store_contact(
-                        i, j, n, gap, count, row, contact_index, qd_prev, contact_list_out, contact_normal_out,
-                        contact_gap_out, contact_u0_out, restitution,
+                        i, j, n, gap, p0, count, row, contact_index, qd_prev, contact_list_out, contact_impulse_out,
+                        contact_normal_out, contact_gap_out, contact_u0_out, restitution,
                     )
         else:
             # The list overflowed: the grid walk.
@@ -742,11 +744,9 @@ def build(scalar):
                         i, j, n, prev_ci, b, prev_row, prev, contact_list_out, contact_impulse_out, count_out, friction
                     )
                     warm = warm + p0
-                    if count < slots:
-                        st32(contact_impulse_out, row + count, i, p0)
                     count = store_contact(
-                        i, j, n, gap, count, row, contact_index, qd_prev, contact_list_out, contact_normal_out,
-                        contact_gap_out, contact_u0_out, restitution,
+                        i, j, n, gap, p0, count, row, contact_index, qd_prev, contact_list_out, contact_impulse_out,
+                        contact_normal_out, contact_gap_out, contact_u0_out, restitution,
                     )
         count_out[cur * n_all + i] = count
         w_split_out[i] = scalar(count) * lds(cw, i)
