@@ -37,7 +37,9 @@ def export(source: str, into: str) -> str:
         return os.path.abspath(source)
     tar = os.path.join(into, "src.tar")
     with open(tar, "wb") as f:
-        subprocess.run(["git", "-C", ROOT, "archive", source], stdout=f, check=True)
+        done = subprocess.run(["git", "-C", ROOT, "archive", source], stdout=f, stderr=subprocess.PIPE, text=True)
+    if done.returncode != 0:
+        raise SystemExit(f"--build: {source!r} is neither a directory nor a revision of {ROOT}: {done.stderr.strip()}")
     src = os.path.join(into, "src")
     with tarfile.open(tar) as t:
         t.extractall(src, filter="data")
