@@ -849,20 +849,19 @@ def build(scalar):
                     u0 = scalar(0.0)
                     if restitution != scalar(0.0):
                         u0 = contact_u0[a, i]  # stored by find only with a restitution (store_contact)
-                    n = ld32(contact_normal, a, i)
-                    if ldi(count, cur * n_all + j) <= slots:
-                        # Both keep the pair in their lists: its impulse accumulates (warm started).
+                    # Where both keep the pair in their lists its impulse accumulates (warm started);
+                    # otherwise the pair takes this iteration's impulse alone.
+                    accumulates = ldi(count, cur * n_all + j) <= slots
+                    p_old = vec3(scalar(0.0))
+                    if accumulates:
                         p_old = ld32(contact_impulse, cur * slots + a, i)
-                        p_new = accumulated_impulse(
-                            n, vi, ld3(cqd, j), p_old, u0, wi_split, wj_split, friction, restitution, eps_v, rest_steps
-                        )
+                    p_new = accumulated_impulse(
+                        ld32(contact_normal, a, i), vi, ld3(cqd, j), p_old, u0, wi_split, wj_split, friction,
+                        restitution, eps_v, rest_steps,
+                    )
+                    if accumulates:
                         st32(contact_impulse, cur * slots + a, i, p_new)
-                        impulse = impulse + (p_new - p_old)
-                    else:
-                        impulse = impulse + accumulated_impulse(
-                            n, vi, ld3(cqd, j), vec3(scalar(0.0)), u0, wi_split, wj_split, friction, restitution,
-                            eps_v, rest_steps,
-                        )
+                    impulse = impulse + (p_new - p_old)
         else:
             # More contacts than the list holds: the candidates again, in the same order.
             xi = cq[i]
@@ -924,12 +923,7 @@ def build(scalar):
                     # A normal impulse, so Coulomb friction takes up to mu times it of the tangential
                     # relative velocity, as in the velocity iterations.
                     jn = wp.min(-vn, -moved / h)
-                    dv = jn * n
-                    vt = vrel - vn * n
-                    speed = wp.length(vt)
-                    if speed > scalar(0.0):
-                        dv = dv - (wp.min(speed, friction * jn) / speed) * vt
-                    dv = dv * (wi / split)
+                    dv = within_cone(jn, -(vrel - vn * n), n, friction) * (wi / split)
         return dx, dv
 
     @wp.kernel(module="unique")
