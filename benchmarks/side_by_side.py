@@ -79,6 +79,14 @@ def row_key(r: dict) -> str:
     return f"{size} {r.get('solver', '')}" + ("" if contact is None else (" contact" if contact else " no contact"))
 
 
+def write(path: str, builds: list, bench_args: list, runs: list) -> None:
+    """Every run so far as JSON, replacing ``path`` whole (a temporary file renamed over it)."""
+    tmp = path + ".tmp"
+    with open(tmp, "w") as f:
+        json.dump({"builds": dict(builds), "bench_args": bench_args, "runs": runs}, f, indent=1)
+    os.replace(tmp, path)
+
+
 def main(argv=None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     bench_args = argv[argv.index("--") + 1 :] if "--" in argv else []
@@ -109,10 +117,13 @@ def main(argv=None) -> int:
         for k in range(args.rounds):
             for name, _ in builds:
                 out = os.path.join(work, f"{name}_{k}.json")
+                print(f"round {k}, build {name}:", flush=True)
                 cmd = [sys.executable, "-m", "softsim_warp", "bench", *bench_args, "--out", out]
                 subprocess.run(cmd, cwd=run_dir, env=dict(os.environ, PYTHONPATH=targets[name]), check=True)
                 with open(out) as f:
                     runs.append({"build": name, "round": k, "report": json.load(f)})
+                if args.out:  # after every run, so a run cut short keeps the rounds it finished
+                    write(args.out, builds, bench_args, runs)
     first = builds[0][0]
     table = {}
     for run in runs:
@@ -124,9 +135,6 @@ def main(argv=None) -> int:
         cells = " ".join(f"{ms.get(n, float('nan')):16.4f}" for n in names)
         ratios = " ".join(f"{ms[n] / ms[first]:.3f}" for n in names[1:] if n in ms and first in ms)
         print(f"{key:<40} {k:>5} {cells}  {ratios}")
-    if args.out:
-        with open(args.out, "w") as f:
-            json.dump({"builds": dict(builds), "bench_args": bench_args, "runs": runs}, f, indent=1)
     return 0
 
 
