@@ -12,10 +12,9 @@ the captured step, without the launch gaps that uncaptured steps add.
 
 With ``--passes K,K,...`` (``contact`` only), whole steps are timed as ``softsim bench --contact``
 times them (``--steps`` steps captured in a graph, the median of 7 replays, the cases in turn): the
-step without contact, and the step with contact with K velocity passes for each K (0 included: the
-candidate lists, the contacts and the position pass alone, which no scene runs). What a pass costs
-inside the step, and what the step costs without any. Each case steps its own states from the
-pile's start; the table gives each case's list builds, so that cases whose piles moved differently
+step without contact, and the step with contact with K velocity passes for each K (at least 1: the
+last pass writes the step's result back): what a pass costs inside the step. Each case steps its
+own states from the pile's start; the table gives each case's list builds, so that cases whose piles moved differently
 show it.
 
 * ``implicit``: the stiff spinning jelly of ``bench_implicit.py`` at ``--size``^3, implicit Euler
@@ -125,8 +124,8 @@ def _pass_counts(args) -> list[int]:
         counts = [int(t) for t in args.passes.split(",") if t.strip()]
     except ValueError:
         counts = []
-    if not counts or min(counts) < 0:
-        raise SystemExit(f"--passes: expected comma-separated counts >= 0, got {args.passes!r}")
+    if not counts or min(counts) < 1:
+        raise SystemExit(f"--passes: expected comma-separated counts >= 1, got {args.passes!r}")
     return counts
 
 
@@ -136,7 +135,7 @@ def _passes(args, device, model, counts, repeats=7) -> int:
     from softsim_warp.commands.bench_contact import _Ours  # noqa: PLC0415
 
     hook = model.particle_contact
-    hook.cqd_iter = [wp.zeros_like(hook.cqd) for _ in range(2)]  # the passes' buffers for any count
+    hook.rec_iter = [wp.zeros_like(hook.rec_warm) for _ in range(2)]  # the passes' buffers for any count
     dt = JellySpec().dt
 
     def case(contact, passes=0):

@@ -3,18 +3,22 @@
 The response runs after the integrator's step, on its result, like terrain contact
 (``core/particle_contact.py`` launches these kernels from ``model.contact_hooks``). Each step:
 
-1. ``prepare_contact_particles`` copies the contact particles' positions and velocities to compact
-   arrays, computes their boundary-face normals, and raises the rebuild flag when a particle has
-   moved ``rebuild_distance`` or more since the candidate lists were built;
+1. ``prepare_contact_particles`` copies the contact particles' positions to a compact array,
+   computes their boundary-face normals, and raises the rebuild flag when a particle has moved
+   ``rebuild_distance`` or more since the candidate lists were built;
 2. ``insert_contact_grid`` and ``build_contact_candidates`` (they return at once unless the flag is
    raised) rebuild each particle's candidate list: the particles of other jellies (or of its own
    jelly, with self-contact, far enough apart in the rest shape) of its world within the candidate
    reach plus a skin, in ascending index order, found through a hashed cell grid;
 3. ``find_particle_contacts`` tests each candidate and stores the touching pairs with their normal,
    gap and, with a restitution above zero, approach speed before the step, each started from the
-   pair's impulse of the step before (the warm start), and the velocities after those impulses;
-4. ``resolve_contact_velocities`` (Jacobi iterations, the pairs' impulses accumulated over the step)
-   and ``resolve_contact_positions`` apply them.
+   pair's impulse of the step before (the warm start), and each particle in contact's record for
+   the passes (its velocities after those impulses and before the response, its contacts and its
+   inverse mass);
+4. ``resolve_contact_velocities`` (Jacobi iterations, the pairs' impulses accumulated over the step;
+   one fewer than ``jelly_contact_iterations``) and ``resolve_contact_last_pass`` (the last iteration,
+   then the positions and velocities written back, each touching pair's remaining overlap projected
+   out) apply them.
 
 Why no contact is missed: a pair is left out of the lists only when its distance at the build was
 at least ``CANDIDATE_REACH d + skin``; the lists are rebuilt before any particle has moved
@@ -33,11 +37,12 @@ rigid body simulation"): a particle in k contacts would be corrected k times ove
 acted in full, so each pair's effective mass uses k_i / m_i and k_j / m_j for the inverse masses.
 The impulse is still one number applied to both particles with opposite signs, so momentum is
 exact (scaling each particle's correction by its own count, as constraint averaging does, would
-not be). Iterations of the velocity pass converge towards the coupled solution; one position pass
-then projects out the remaining overlap. Each pair's impulse so far is kept: an iteration can take
-back what an earlier one (or the warm start) gave too much, down to no push at all, and friction
-stays within mu times the push over the whole step. Starting each step from the last one's
-impulses (Catto's warm starting) lets one iteration hold a resting stack.
+not be). Iterations of the velocity pass converge towards the coupled solution; the last one also
+projects out the overlap each pair expects to keep (:func:`projection_term`). Each pair's impulse
+so far is kept: an iteration can take back what an earlier one (or the warm start) gave too much,
+down to no push at all, and friction stays within mu times the push over the whole step. Starting
+each step from the last one's impulses (Catto's warm starting) lets one iteration hold a resting
+stack.
 """
 
 import functools
@@ -67,6 +72,7 @@ FIBONACCI = wp.constant(wp.uint32(0x9E3779B9))
 @functools.cache
 def build(scalar):
     vec3 = wp.types.vector(3, scalar)
+    vec4 = wp.types.vector(4, scalar)
     ctype = "float" if scalar == wp.float32 else "double"
     integration_funcs = integration.build(scalar)
     # The hot loads and stores address the hook's arrays (and the contiguous particle state) from
@@ -78,6 +84,32 @@ def build(scalar):
     ldi = integration_funcs["int_contiguous"]
     lds = integration_funcs["scalar_contiguous"]
     lds2 = integration_funcs["entry_contiguous"]  # a[s, i] of a contiguous scalar table
+
+    @wp.func_native(
+        f"typedef {ctype} T; struct alignas(4 * sizeof(T)) Quad {{ T x, y, z, w; }};\n"
+        "const Quad q = reinterpret_cast<const Quad*>(a.data)[i];\n"
+        "return wp::vec_t<4, T>(q.x, q.y, q.z, q.w);"
+    )
+    def ld4(a: wp.array(dtype=vec4), i: int) -> vec4:
+        """``a[i]`` of a contiguous vec4 array as one aligned load (the array starts aligned to its
+        element: ParticleContact checks)."""
+
+    @wp.func_native(
+        f"typedef {ctype} T; struct alignas(4 * sizeof(T)) Quad {{ T x, y, z, w; }};\n"
+        "Quad q; q.x = value[0]; q.y = value[1]; q.z = value[2]; q.w = value[3];\n"
+        "reinterpret_cast<Quad*>(a.data)[i] = q;"
+    )
+    def st4(a: wp.array(dtype=vec4), i: int, value: vec4):
+        """``a[i] = value`` of a contiguous vec4 array as one aligned store."""
+
+    @wp.func
+    def record(v: vec3, w: scalar):
+        """(v, w) as one vec4: a particle's two entries in the passes' records."""
+        return vec4(v[0], v[1], v[2], w)
+
+    @wp.func
+    def xyz(r: vec4):
+        return vec3(r[0], r[1], r[2])
 
     @wp.func_native("return ((const int*)a.data)[s * a.shape[1] + i];")
     def ldi2(a: wp.array2d(dtype=wp.int32), s: int, i: int) -> int:
@@ -105,6 +137,14 @@ def build(scalar):
         """``a[s, i] = value`` of a contiguous vec3 table."""
 
     @wp.func
+    def radius(contact_radius: wp.array(dtype=scalar), i: int):
+        """Contact radius of particle i: ``contact_radius[i]``, or the array's only entry where every
+        particle of the model has the same radius (no read of the partner's radius per candidate)."""
+        if contact_radius.shape[0] == 1:
+            return contact_radius[0]
+        return lds(contact_radius, i)
+
+    @wp.func
     def pair_allowed(
         i: int,
         j: int,
@@ -128,14 +168,14 @@ def build(scalar):
         if ji == contact_jelly[j]:
             if jelly_self_contact[ji] == 0:
                 return False
-            d = contact_radius[i] + contact_radius[j]
+            d = radius(contact_radius, i) + radius(contact_radius, j)
             rr = contact_rest[i] - contact_rest[j]
             reach = self_exclusion * d
             return wp.dot(rr, rr) >= reach * reach
         return between_jellies != 0
 
     @wp.func
-    def facing_normal(normal: wp.array2d(dtype=vec3), i: int, direction: vec3):
+    def facing_normal(normal: wp.array2d(dtype=vec3), face_start: wp.vec3i, i: int, direction: vec3):
         """The outward face normal of contact particle i most aligned with ``direction`` (zero if none).
 
         ``normal[s, i]`` (slot-major) holds the particle's boundary-face normals in axis order, in
@@ -143,6 +183,8 @@ def build(scalar):
         best = vec3(scalar(0.0))
         best_dot = scalar(-2.0)
         for s in range(3):
+            if i < face_start[s]:
+                break  # no face s (the contact order groups the particles by their number of faces)
             n = ld32(normal, s, i)
             if wp.length_sq(n) > scalar(0.0):
                 c = wp.dot(n, direction)
@@ -160,6 +202,7 @@ def build(scalar):
         dist: scalar,
         d: scalar,
         normal: wp.array2d(dtype=vec3),
+        face_start: wp.vec3i,
     ):
         """Contact normal of a touching pair, from j to i; swapping i and j negates it exactly.
 
@@ -182,7 +225,7 @@ def build(scalar):
         jumped between the two normals every few steps.
         """
         u = (xi - xj) / dist
-        m = facing_normal(normal, j, u) - facing_normal(normal, i, -u)
+        m = facing_normal(normal, face_start, j, u) - facing_normal(normal, face_start, i, -u)
         length = wp.length(m)
         if length > scalar(0.0):
             n = m / length
@@ -209,7 +252,7 @@ def build(scalar):
         agree on it bit for bit."""
         r = xi - ld3(cq, j)
         dist2 = wp.dot(r, r)
-        reach_d = scalar(CANDIDATE_REACH) * (lds(contact_radius, i) + lds(contact_radius, j))
+        reach_d = scalar(CANDIDATE_REACH) * (radius(contact_radius, i) + radius(contact_radius, j))
         return dist2 < reach_d * reach_d and dist2 > scalar(0.0)
 
     @wp.func
@@ -220,14 +263,15 @@ def build(scalar):
         cq: wp.array(dtype=vec3),
         contact_radius: wp.array(dtype=scalar),
         normal: wp.array2d(dtype=vec3),
+        face_start: wp.vec3i,
     ):
         """Whether a near pair (i, j) (:func:`near_pair`) touches: closer than d along its contact
         normal. Returns (touches, normal from j to i, separation along it minus d: negative when
         touching)."""
-        d = lds(contact_radius, i) + lds(contact_radius, j)
+        d = radius(contact_radius, i) + radius(contact_radius, j)
         xj = ld3(cq, j)
         r = xi - xj
-        n = pair_normal(i, j, xi, xj, wp.sqrt(wp.dot(r, r)), d, normal)
+        n = pair_normal(i, j, xi, xj, wp.sqrt(wp.dot(r, r)), d, normal, face_start)
         gap = wp.dot(r, n) - d
         return gap < scalar(0.0), n, gap
 
@@ -239,6 +283,7 @@ def build(scalar):
         cq: wp.array(dtype=vec3),
         contact_radius: wp.array(dtype=scalar),
         normal: wp.array2d(dtype=vec3),
+        face_start: wp.vec3i,
     ):
         """Whether an allowed pair (i, j) touches: near (:func:`near_pair`) and closer than d along
         its contact normal. Returns (touches, normal from j to i, separation along it minus d:
@@ -247,7 +292,7 @@ def build(scalar):
         n = vec3(scalar(0.0))
         gap = scalar(0.0)
         if near_pair(i, j, xi, cq, contact_radius):
-            touches, n, gap = touching_pair(i, j, xi, cq, contact_radius, normal)
+            touches, n, gap = touching_pair(i, j, xi, cq, contact_radius, normal, face_start)
         return touches, n, gap
 
     @wp.func
@@ -348,7 +393,7 @@ def build(scalar):
         if j == i:
             return False
         r = xi - x_build[j]
-        reach = scalar(CANDIDATE_REACH) * (contact_radius[i] + contact_radius[j]) + skin
+        reach = scalar(CANDIDATE_REACH) * (radius(contact_radius, i) + radius(contact_radius, j)) + skin
         if wp.dot(r, r) >= reach * reach:
             return False
         return pair_allowed(
@@ -419,7 +464,7 @@ def build(scalar):
     ):
         """The candidate of i after candidate j, the a-th (from 0) of i's ``nc`` candidates: from its
         list, or from the grid (:func:`next_candidate`) when the list overflowed (``nc`` above what
-        it holds); -1 after the last. The velocity and position passes' paths for a particle with
+        it holds); -1 after the last. The velocity passes' paths for a particle with
         more contacts than its contact list holds visit the candidates through this, in ascending
         order (find, which tests the candidates again only for an overflowed list, walks the grid)."""
         if nc <= candidates.shape[0]:
@@ -437,15 +482,13 @@ def build(scalar):
         contact_axis_neighbors: wp.array2d(dtype=wp.int32),
         x_build: wp.array(dtype=vec3),
         rebuild_distance: scalar,
-        # State after the step (particle order):
+        # Positions after the step (particle order):
         q: wp.array(dtype=vec3),
-        qd: wp.array(dtype=vec3),
-        # Out (contact order): positions and velocities after the step; the outward normals of
+        # Out (contact order): positions after the step; the outward normals of
         # the particle's boundary faces, in axis order in the first slots (slot-major: a face
         # particle, most of them, writes one slot; the others stay zero from allocation); the
         # rebuild flag, raised when the particle moved too far
         cq_out: wp.array(dtype=vec3),
-        cqd_out: wp.array(dtype=vec3),
         normal_out: wp.array2d(dtype=vec3),
         rebuild_out: wp.array(dtype=wp.int32),
         phase: wp.array(dtype=wp.int32),
@@ -456,7 +499,6 @@ def build(scalar):
         p = ldi(contact_index, k)
         x = ld3(q, p)
         st3(cq_out, k, x)
-        st3(cqd_out, k, ld3(qd, p))
         moved = x - ld3(x_build, k)
         if wp.dot(moved, moved) >= rebuild_distance * rebuild_distance:
             rebuild_out[0] = 1  # every writer writes 1: no race in the result
@@ -557,7 +599,7 @@ def build(scalar):
                 # Positions of this build: cq, which x_build holds for i only so far.
                 if j != i and n <= cap:
                     r = xi - cq[j]
-                    reach = scalar(CANDIDATE_REACH) * (contact_radius[i] + contact_radius[j]) + skin
+                    reach = scalar(CANDIDATE_REACH) * (radius(contact_radius, i) + radius(contact_radius, j)) + skin
                     if wp.dot(r, r) < reach * reach:
                         if pair_allowed(
                             i, j, contact_jelly, contact_world, contact_radius, contact_rest,
@@ -626,23 +668,22 @@ def build(scalar):
         prev_ci: int,
         b: int,
         prev_row: int,
-        prev: int,
         contact_list: wp.array2d(dtype=wp.int32),
         contact_impulse: wp.array2d(dtype=vec3),
-        count: wp.array(dtype=wp.int32),
         friction: scalar,
     ):
         """The warm start of touching pair (i, j): its impulse of the last step (:func:`warm_impulse`)
-        where both particles kept their contacts in their lists then (so both stored it), else zero.
-        ``b`` walks i's last list (ascending, like the new one). Returns (impulse, b)."""
+        where i kept its contacts in its list then, else zero. Where j did not (more contacts than
+        its list holds), the pair did not accumulate and the velocity passes stored zero for it in
+        i's list, so both particles start it from zero without reading j's count. ``b`` walks i's
+        last list (ascending, like the new one). Returns (impulse, b)."""
         p = vec3(scalar(0.0))
         if prev_ci <= contact_impulse.shape[0] // 2:
             while b < prev_ci and ldi2(contact_list, prev_row + b, i) < j:
                 b += 1
             if b < prev_ci:
                 if ldi2(contact_list, prev_row + b, i) == j:
-                    if ldi(count, prev * (count.shape[0] // 2) + j) <= contact_impulse.shape[0] // 2:
-                        p = warm_impulse(ld32(contact_impulse, prev_row + b, i), n, friction)
+                    p = warm_impulse(ld32(contact_impulse, prev_row + b, i), n, friction)
         return p, b
 
     @wp.kernel(module="unique")
@@ -667,26 +708,28 @@ def build(scalar):
         restitution: scalar,
         friction: scalar,
         phase: wp.array(dtype=wp.int32),
-        # State (contact order), and the velocities before the step (particle order, through
-        # contact_index):
+        # Positions (contact order), and the velocities after and before the step (particle order,
+        # through contact_index; after it read only for the particles in contact):
         cq: wp.array(dtype=vec3),
-        cqd: wp.array(dtype=vec3),
         contact_index: wp.array(dtype=wp.int32),
+        qd: wp.array(dtype=vec3),
         qd_prev: wp.array(dtype=vec3),
         cw: wp.array(dtype=scalar),
         normal: wp.array2d(dtype=vec3),
+        face_start: wp.vec3i,
         # In and out: contacts per particle (this step's half, [phase n:], out; the last step's, in),
         # the contact lists and impulses (this step's rows [phase S:], out; the last step's, in)
         count_out: wp.array(dtype=wp.int32),
         contact_list_out: wp.array2d(dtype=wp.int32),
         contact_impulse_out: wp.array2d(dtype=vec3),
-        # Out: its split inverse mass (contacts times inverse mass), the first MAX_CONTACTS contacts'
-        # normal, gap, and approach speed before the step; the velocity after the warm start
-        w_split_out: wp.array(dtype=scalar),
+        # Out: the first MAX_CONTACTS contacts' normal, gap, and approach speed before the step;
+        # the particle's record for the passes (:func:`record`): [2 i] its velocity after the warm
+        # start and its number of contacts, [2 i + 1] its velocity before the response and its
+        # inverse mass (one 32-byte block, so a pass reads all it needs of a partner in one sector)
         contact_normal_out: wp.array2d(dtype=vec3),
         contact_gap_out: wp.array2d(dtype=scalar),
         contact_u0_out: wp.array2d(dtype=scalar),
-        cqd_warm_out: wp.array(dtype=vec3),
+        rec_out: wp.array(dtype=vec4),
     ):
         i = wp.tid()
         cur = phase[0]
@@ -718,10 +761,10 @@ def build(scalar):
                     a += 1
                 j = ldi2(candidates, a, i)
                 a += 1
-                touches, n, gap = touching_pair(i, j, xi, cq, contact_radius, normal)
+                touches, n, gap = touching_pair(i, j, xi, cq, contact_radius, normal, face_start)
                 if touches:
                     p0, b = warm_start(
-                        i, j, n, prev_ci, b, prev_row, prev, contact_list_out, contact_impulse_out, count_out, friction
+                        i, j, n, prev_ci, b, prev_row, contact_list_out, contact_impulse_out, friction
                     )
                     warm = warm + p0
                     count = store_contact(
@@ -738,10 +781,10 @@ def build(scalar):
                 )
                 if j < 0:
                     break
-                touches, n, gap = pair_contact(i, j, xi, cq, contact_radius, normal)
+                touches, n, gap = pair_contact(i, j, xi, cq, contact_radius, normal, face_start)
                 if touches:
                     p0, b = warm_start(
-                        i, j, n, prev_ci, b, prev_row, prev, contact_list_out, contact_impulse_out, count_out, friction
+                        i, j, n, prev_ci, b, prev_row, contact_list_out, contact_impulse_out, friction
                     )
                     warm = warm + p0
                     count = store_contact(
@@ -749,9 +792,11 @@ def build(scalar):
                         contact_normal_out, contact_gap_out, contact_u0_out, restitution,
                     )
         count_out[cur * n_all + i] = count
-        w_split_out[i] = scalar(count) * lds(cw, i)
         if count > 0:
-            st3(cqd_warm_out, i, ld3(cqd, i) + lds(cw, i) * warm)
+            wi = lds(cw, i)
+            v0 = ld3(qd, ldi(contact_index, i))
+            st4(rec_out, 2 * i, record(v0 + wi * warm, scalar(count)))
+            st4(rec_out, 2 * i + 1, record(v0, wi))
 
     @wp.func
     def velocity_term(
@@ -770,19 +815,21 @@ def build(scalar):
         qd_prev: wp.array(dtype=vec3),
         contact_radius: wp.array(dtype=scalar),
         normal: wp.array2d(dtype=vec3),
-        w_split: wp.array(dtype=scalar),
-        cqd: wp.array(dtype=vec3),
+        face_start: wp.vec3i,
+        rec: wp.array(dtype=vec4),
     ):
         """The impulse of candidate j on i in a velocity iteration, tested afresh (zero if they do
         not touch): for a particle with more contacts than its list holds."""
-        touches, n, gap = pair_contact(i, j, xi, cq, contact_radius, normal)
+        touches, n, gap = pair_contact(i, j, xi, cq, contact_radius, normal, face_start)
         p = vec3(scalar(0.0))
         if touches:
-            wj_split = w_split[j]
+            rj = ld4(rec, 2 * j)
+            wj_split = rj[3] * ld4(rec, 2 * j + 1)[3]
             if wi_split + wj_split > scalar(0.0):
                 u0 = -wp.dot(vi_prev - qd_prev[contact_index[j]], n)
                 p = accumulated_impulse(
-                    n, vi, cqd[j], vec3(scalar(0.0)), u0, wi_split, wj_split, friction, restitution, eps_v, rest_steps
+                    n, vi, xyz(rj), vec3(scalar(0.0)), u0, wi_split, wj_split, friction, restitution, eps_v,
+                    rest_steps,
                 )
         return p
 
@@ -813,20 +860,19 @@ def build(scalar):
         cq: wp.array(dtype=vec3),
         contact_index: wp.array(dtype=wp.int32),
         qd_prev: wp.array(dtype=vec3),
-        cw: wp.array(dtype=scalar),
         normal: wp.array2d(dtype=vec3),
+        face_start: wp.vec3i,
         count: wp.array(dtype=wp.int32),
-        w_split: wp.array(dtype=scalar),
         contact_list: wp.array2d(dtype=wp.int32),
         contact_normal: wp.array2d(dtype=vec3),
         contact_u0: wp.array2d(dtype=scalar),
         phase: wp.array(dtype=wp.int32),
-        # The velocities of this iteration
-        cqd: wp.array(dtype=vec3),
+        # The records of this iteration (velocities; see find_particle_contacts)
+        rec: wp.array(dtype=vec4),
         # In and out: the impulses of the contacts so far (this step's rows)
         contact_impulse: wp.array2d(dtype=vec3),
-        # Out: the velocities after this iteration's impulses (contact order)
-        cqd_out: wp.array(dtype=vec3),
+        # Out: the records after this iteration's impulses (contact order)
+        rec_out: wp.array(dtype=vec4),
     ):
         i = wp.tid()
         cur = phase[0]
@@ -835,32 +881,35 @@ def build(scalar):
         ci = ldi(count, cur * n_all + i)
         if ci == 0:
             # Nothing reads a velocity of a particle without contacts from these buffers: its
-            # partners would be in contact with it, and the position pass leaves it alone.
+            # partners would be in contact with it, and the last pass leaves it alone.
             return
-        vi = ld3(cqd, i)
-        wi = lds(cw, i)
-        wi_split = lds(w_split, i)
+        ri = ld4(rec, 2 * i)
+        ri0 = ld4(rec, 2 * i + 1)
+        vi = xyz(ri)
+        wi = ri0[3]
+        wi_split = ri[3] * wi  # contacts times inverse mass
         impulse = vec3(scalar(0.0))
         if ci <= slots:
             for a in range(ci):
                 j = ldi2(contact_list, cur * slots + a, i)
-                wj_split = lds(w_split, j)
+                rj = ld4(rec, 2 * j)
+                wj_split = rj[3] * ld4(rec, 2 * j + 1)[3]
                 if wi_split + wj_split > scalar(0.0):
                     u0 = scalar(0.0)
                     if restitution != scalar(0.0):
                         u0 = contact_u0[a, i]  # stored by find only with a restitution (store_contact)
                     # Where both keep the pair in their lists its impulse accumulates (warm started);
                     # otherwise the pair takes this iteration's impulse alone.
-                    accumulates = ldi(count, cur * n_all + j) <= slots
+                    accumulates = rj[3] <= scalar(slots)
                     p_old = vec3(scalar(0.0))
                     if accumulates:
                         p_old = ld32(contact_impulse, cur * slots + a, i)
                     p_new = accumulated_impulse(
-                        ld32(contact_normal, a, i), vi, ld3(cqd, j), p_old, u0, wi_split, wj_split, friction,
+                        ld32(contact_normal, a, i), vi, xyz(rj), p_old, u0, wi_split, wj_split, friction,
                         restitution, eps_v, rest_steps,
                     )
-                    if accumulates:
-                        st32(contact_impulse, cur * slots + a, i, p_new)
+                    # Not accumulated: the next step starts the pair from zero (warm_start).
+                    st32(contact_impulse, cur * slots + a, i, wp.where(accumulates, p_new, vec3(scalar(0.0))))
                     impulse = impulse + (p_new - p_old)
         else:
             # More contacts than the list holds: the candidates again, in the same order.
@@ -880,54 +929,56 @@ def build(scalar):
                     break
                 impulse = impulse + velocity_term(
                     i, j, xi, vi, vi_prev, wi_split, friction, restitution, eps_v, rest_steps,
-                    cq, contact_index, qd_prev, contact_radius, normal, w_split, cqd,
+                    cq, contact_index, qd_prev, contact_radius, normal, face_start, rec,
                 )
-        st3(cqd_out, i, vi + wi * impulse)
+        st4(rec_out, 2 * i, record(vi + wi * impulse, ri[3]))
+        st4(rec_out, 2 * i + 1, ri0)
 
     @wp.func
-    def position_term(
-        i: int,
-        j: int,
+    def projection_term(
         n: vec3,
         gap: scalar,
-        shift_i: vec3,
+        dp: vec3,
         vi: vec3,
+        vj: vec3,
+        vi0: vec3,
+        vj0: vec3,
         wi: scalar,
-        wi_split: scalar,
-        h: scalar,
+        wj: scalar,
+        split: scalar,
         beta_h: scalar,
+        h: scalar,
         friction: scalar,
-        cqd: wp.array(dtype=vec3),
-        w_split: wp.array(dtype=scalar),
-        cqd_new: wp.array(dtype=vec3),
     ):
-        """Position and velocity change of i from touching pair (i, j) in the position pass: (dx, dv).
-        ``shift_i`` is what the impulses move i by, beta h dv_i."""
+        """Position and velocity change of i from touching pair (i, j) after the last pass: (dx, dv).
+
+        ``dp`` is the pair's impulse on i in this pass, ``vi``, ``vj`` the velocities the pass
+        started from and ``vi0``, ``vj0`` those before the contact response (so ``v - v0`` is what
+        the impulses changed); ``wi``, ``wj`` the inverse masses, ``split`` the pair's split inverse
+        mass. The pair estimates the two velocities after the pass from its own impulse,
+        ``vi + wi dp`` and ``vj - wj dp`` (the partner's other pairs act in the same launch, unseen),
+        and so the gap after the positions move by beta h dv. The overlap left is projected out
+        along the normal, split like the impulses (positions only: no momentum). The approach
+        velocity left is taken off up to the projected distance per step, with Coulomb friction up
+        to mu times it (a normal impulse, as in the iterations): a pressed particle does not keep a
+        velocity it never moves by. Swapping i and j negates ``n``, ``dp``, the dv impulse and dx's
+        direction and keeps the gap: the pair's dv conserves momentum exactly."""
         dx = vec3(scalar(0.0))
         dv = vec3(scalar(0.0))
-        split = wi_split + lds(w_split, j)
-        if split > scalar(0.0):
-            # What overlap the moved positions keep is projected out along the pair's normal,
-            # split like the impulses (positions only: no momentum).
-            vj = ld3(cqd_new, j)
-            moved = gap + wp.dot(shift_i - beta_h * (vj - ld3(cqd, j)), n)
-            if moved < scalar(0.0):
-                dx = (-moved * wi / split) * n
-                # The projection is a motion of the step: what approach velocity the iterations
-                # left (they converge slowly where a particle presses on one with many contacts) is
-                # taken off up to the projected distance per step, so a pressed particle does not
-                # keep a velocity it never moves by. Only approach is removed, never separation added.
-                vrel = vi - vj
-                vn = wp.dot(vrel, n)
-                if vn < scalar(0.0):
-                    # A normal impulse, so Coulomb friction takes up to mu times it of the tangential
-                    # relative velocity, as in the velocity iterations.
-                    jn = wp.min(-vn, -moved / h)
-                    dv = within_cone(jn, -(vrel - vn * n), n, friction) * (wi / split)
+        vie = vi + wi * dp
+        vje = vj - wj * dp
+        moved = gap + beta_h * wp.dot((vie - vi0) - (vje - vj0), n)
+        if moved < scalar(0.0):
+            dx = (-moved * wi / split) * n
+            vrel = vie - vje
+            vn = wp.dot(vrel, n)
+            if vn < scalar(0.0):
+                jn = wp.min(-vn, -moved / h)
+                dv = within_cone(jn, -(vrel - vn * n), n, friction) * (wi / split)
         return dx, dv
 
     @wp.kernel(module="unique")
-    def resolve_contact_positions(
+    def resolve_contact_last_pass(
         # Candidates and the grid behind an overflowed list:
         candidates: wp.array2d(dtype=wp.int32),
         candidate_count: wp.array(dtype=wp.int32),
@@ -937,7 +988,6 @@ def build(scalar):
         shift: int,
         x_build: wp.array(dtype=vec3),
         # Model:
-        contact_index: wp.array(dtype=wp.int32),
         contact_jelly: wp.array(dtype=wp.int32),
         contact_world: wp.array(dtype=wp.int32),
         contact_radius: wp.array(dtype=scalar),
@@ -946,23 +996,30 @@ def build(scalar):
         between_jellies: int,
         self_exclusion: scalar,
         skin: scalar,
-        h: scalar,
         friction: scalar,
+        restitution: scalar,
+        eps_v: scalar,
+        rest_steps: scalar,
+        h: scalar,
         world_contact_beta: wp.array(dtype=scalar),
-        # The step's result, surface normals, the contacts, and the velocities before and after
-        # the impulses (contact order):
+        # State and contacts (contact order; the velocities before the step in particle order):
         cq: wp.array(dtype=vec3),
-        cw: wp.array(dtype=scalar),
+        contact_index: wp.array(dtype=wp.int32),
+        qd_prev: wp.array(dtype=vec3),
         normal: wp.array2d(dtype=vec3),
+        face_start: wp.vec3i,
         count: wp.array(dtype=wp.int32),
-        w_split: wp.array(dtype=scalar),
         contact_list: wp.array2d(dtype=wp.int32),
         contact_normal: wp.array2d(dtype=vec3),
         contact_gap: wp.array2d(dtype=scalar),
-        cqd: wp.array(dtype=vec3),
-        cqd_new: wp.array(dtype=vec3),
+        contact_u0: wp.array2d(dtype=scalar),
         phase: wp.array(dtype=wp.int32),
-        # In and out: the rebuild flag (lowered) and the count of builds (one more after a build)
+        # The records this pass starts from (the velocities before the contact response and those
+        # of this pass; see find_particle_contacts)
+        rec: wp.array(dtype=vec4),
+        # In and out: the impulses of the contacts so far (this step's rows), the rebuild flag
+        # (lowered) and the count of builds (one more after a build)
+        contact_impulse: wp.array2d(dtype=vec3),
         rebuild: wp.array(dtype=wp.int32),
         builds: wp.array(dtype=wp.int32),
         # Out: the step's result, corrected in place (each thread writes its own particle only)
@@ -976,31 +1033,60 @@ def build(scalar):
             rebuild[0] = 0
         cur = phase[0]
         slots = contact_normal.shape[0]
-        ci = ldi(count, cur * (count.shape[0] // 2) + i)
+        n_all = count.shape[0] // 2
+        ci = ldi(count, cur * n_all + i)
         if ci == 0:
+            # Nothing to correct: the step's result stays as the integrator (and terrain) left it.
             return
-        pi = ldi(contact_index, i)
-        wi = lds(cw, i)
+        ri = ld4(rec, 2 * i)
+        ri0 = ld4(rec, 2 * i + 1)
+        vi = xyz(ri)
+        vi0 = xyz(ri0)
+        wi = ri0[3]
+        wi_split = ri[3] * wi  # contacts times inverse mass
         # The impulses act over the whole step: positions move by what the integrator makes of a
         # velocity change, beta h dv (as for terrain, kernels/contact.py).
         beta_h = h * world_contact_beta[contact_world[i]]
-        xi = ld3(cq, i)
-        vi = ld3(cqd_new, i)
-        shift_i = beta_h * (vi - ld3(cqd, i))
-        yi = xi + shift_i
-        wi_split = lds(w_split, i)
+        impulse = vec3(scalar(0.0))
         dx = vec3(scalar(0.0))
         dv = vec3(scalar(0.0))
         if ci <= slots:
             for a in range(ci):
-                ddx, ddv = position_term(
-                    i, ldi2(contact_list, cur * slots + a, i), ld32(contact_normal, a, i), lds2(contact_gap, a, i),
-                    shift_i, vi, wi, wi_split, h, beta_h, friction, cqd, w_split, cqd_new,
-                )
-                dx = dx + ddx
-                dv = dv + ddv
+                j = ldi2(contact_list, cur * slots + a, i)
+                rj = ld4(rec, 2 * j)  # the partner's two entries: one 32-byte block
+                rj0 = ld4(rec, 2 * j + 1)
+                wj = rj0[3]
+                wj_split = rj[3] * wj
+                split = wi_split + wj_split
+                if split > scalar(0.0):
+                    u0 = scalar(0.0)
+                    if restitution != scalar(0.0):
+                        u0 = contact_u0[a, i]  # stored by find only with a restitution (store_contact)
+                    n = ld32(contact_normal, a, i)
+                    vj = xyz(rj)
+                    # Both keep the pair in their lists: its impulse accumulates (warm started).
+                    accumulates = rj[3] <= scalar(slots)
+                    p_old = vec3(scalar(0.0))
+                    if accumulates:
+                        p_old = ld32(contact_impulse, cur * slots + a, i)
+                    p_new = accumulated_impulse(
+                        n, vi, vj, p_old, u0, wi_split, wj_split, friction, restitution, eps_v, rest_steps
+                    )
+                    # Not accumulated: the next step starts the pair from zero (warm_start).
+                    st32(contact_impulse, cur * slots + a, i, wp.where(accumulates, p_new, vec3(scalar(0.0))))
+                    dp = p_new - p_old
+                    impulse = impulse + dp
+                    ddx, ddv = projection_term(
+                        n, lds2(contact_gap, a, i), dp, vi, vj, vi0, xyz(rj0), wi, wj, split, beta_h, h,
+                        friction,
+                    )
+                    dx = dx + ddx
+                    dv = dv + ddv
         else:
-            # More contacts than the list holds: the candidates again, in the same order.
+            # More contacts than the list holds: the candidates again, in the same order, each
+            # pair's impulse this pass's alone.
+            xi = ld3(cq, i)
+            vi_prev = qd_prev[contact_index[i]]
             nc = candidate_count[i]
             j = int(-1)
             a = int(0)
@@ -1013,15 +1099,28 @@ def build(scalar):
                 a += 1
                 if j < 0:
                     break
-                touches, n, gap = pair_contact(i, j, xi, cq, contact_radius, normal)
+                touches, n, gap = pair_contact(i, j, xi, cq, contact_radius, normal, face_start)
                 if touches:
-                    ddx, ddv = position_term(
-                        i, j, n, gap, shift_i, vi, wi, wi_split, h, beta_h, friction, cqd, w_split, cqd_new
-                    )
-                    dx = dx + ddx
-                    dv = dv + ddv
-        st3(q_out, pi, yi + dx)
-        st3(qd_out, pi, vi + dv)
+                    rj = ld4(rec, 2 * j)
+                    rj0 = ld4(rec, 2 * j + 1)
+                    wj_split = rj[3] * rj0[3]
+                    split = wi_split + wj_split
+                    if split > scalar(0.0):
+                        vj = xyz(rj)
+                        u0 = -wp.dot(vi_prev - qd_prev[contact_index[j]], n)
+                        dp = accumulated_impulse(
+                            n, vi, vj, vec3(scalar(0.0)), u0, wi_split, wj_split, friction, restitution, eps_v,
+                            rest_steps,
+                        )
+                        impulse = impulse + dp
+                        ddx, ddv = projection_term(
+                            n, gap, dp, vi, vj, vi0, xyz(rj0), wi, rj0[3], split, beta_h, h, friction
+                        )
+                        dx = dx + ddx
+                        dv = dv + ddv
+        v_new = vi + wi * impulse
+        st3(q_out, ldi(contact_index, i), ld3(cq, i) + beta_h * (v_new - vi0) + dx)
+        st3(qd_out, ldi(contact_index, i), v_new + dv)
 
     return {
         "pair_allowed": pair_allowed,
@@ -1034,5 +1133,5 @@ def build(scalar):
         "build_contact_candidates": build_contact_candidates,
         "find_particle_contacts": find_particle_contacts,
         "resolve_contact_velocities": resolve_contact_velocities,
-        "resolve_contact_positions": resolve_contact_positions,
+        "resolve_contact_last_pass": resolve_contact_last_pass,
     }

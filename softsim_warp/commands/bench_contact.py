@@ -9,7 +9,7 @@ its neighbour's from the first step. For each count in ``--jellies`` the command
 
 * ours without jelly contact (``jelly_contact = false``), the same particles and springs;
 * ours with it (surface normals, the candidate lists and their rebuilds, the contacts,
-  ``jelly_contact_iterations`` velocity passes and the position pass, every step);
+  ``jelly_contact_iterations`` velocity passes, the last with the positions' projection, every step);
 * with ``--peer newton``: Newton 1.8's ``SolverSemiImplicit`` on the same springs and ground, once
   without particle contact (``model.particle_grid = None``) and once with it (its ``HashGrid``
   rebuilt every step by the solver, penalty forces ``particle_ke/kd/kf/mu``; particle radius 0.45

@@ -5,15 +5,17 @@ asks for contact between jellies or for a jelly's self-contact; a model without 
 (no array, no launch). The hook runs after every integrator's step, after terrain contact
 (``core/contact.apply_contacts``), and launches (kernels/particle_contact.py explains each):
 
-1. ``prepare_contact_particles``: the surface particles of the jellies that take part, copied to
-   compact arrays (a lattice's interior particles cannot touch anything before its surface does),
+1. ``prepare_contact_particles``: the positions of the surface particles of the jellies that take
+   part, copied to a compact array (a lattice's interior particles cannot touch anything before its
+   surface does),
    their boundary-face normals, and the rebuild flag (a particle moved half the skin);
 2. ``insert_contact_grid`` and ``build_contact_candidates``: the candidate lists, rebuilt only when
    the flag is raised (otherwise both return at once);
 3. ``find_particle_contacts``: each particle's contacts among its candidates, each started from the
    pair's impulse of the step before (the warm start);
-4. ``resolve_contact_velocities`` (``iterations`` times: the pairs' impulses accumulate over the
-   step) and ``resolve_contact_positions``.
+4. ``resolve_contact_velocities`` (``iterations - 1`` times: the pairs' impulses accumulate over the
+   step) and ``resolve_contact_last_pass`` (the last iteration, and the positions and velocities
+   written back).
 
 Every launch has a fixed size and every array is allocated here, so a step with contact is captured
 as a graph (CUDA and CPU) like any other.
@@ -49,14 +51,14 @@ DEFAULT_ITERATIONS = 1
 THICKNESS_PER_SPACING = 1.0
 # Same-jelly pairs closer than this many pair distances in the rest shape never touch.
 SELF_EXCLUSION = 2.0
-# Contacts a particle keeps in its list for the velocity and position passes; one with more (rare:
+# Contacts a particle keeps in its list for the velocity passes; one with more (rare:
 # a pair distance of one spacing gives a particle resting on a face 1 to 4) tests its candidates again.
 MAX_CONTACTS = 16
 # Candidates a particle's list holds; one with more (a jelly crushed to well below its spacing) walks
 # the grid of the last build instead, in the same order. At most 32: find_particle_contacts marks a
 # list's near candidates in the bits of an int32.
 MAX_CANDIDATES = 32
-# Threads a block of the per-step contact passes (find, velocity, position): 128 against Warp's 256
+# Threads a block of the per-step contact passes (find and the velocity passes): 128 against Warp's 256
 # measured 2.5 % faster a step at 1,000 jellies on the H100 (0.2756, 0.2763, 0.2757 against 0.2838,
 # 0.2824, 0.2829 ms; docs/CONTACT.md). A thread's work varies with its contacts, and a block holds
 # its share of the SM until its slowest warp is done; smaller blocks likely waste less of it.
@@ -147,7 +149,10 @@ class ParticleContact:
         contact_index: particle index of each contact particle, shape [count], int32: the face
             particles of every jelly, then the edges', then the corners' (:func:`face_order`).
         contact_jelly, contact_world: its jelly and world, shape [count], int32.
-        contact_radius: its contact radius [m] (a pair touches within the sum), shape [count], scalar.
+        contact_radius: its contact radius [m] (a pair touches within the sum), shape [count], or [1]
+            where every contact particle has the same radius, scalar.
+        face_start: the first contact index of the particles on at least 1, 2 and 3 boundary faces
+            (the contact order groups them by that number), wp.vec3i.
         contact_rest: its rest position in its jelly's frame [m] (self-contact exclusion), shape
             [count] with self-contact, [1] without, vec3.
         jelly_self_contact: 1 where a jelly has self-contact, shape [jelly_count], int32.
@@ -180,7 +185,7 @@ class ParticleContact:
         self_flags = [bool(getattr(j, "self_contact", False)) for j in jellies]
         taking_part = [between_jellies or s for s in self_flags]
         device, scalar, vec3 = model.device, model.scalar, model.vec3
-        index, jelly, world, radius, rest, neighbors, sides = [], [], [], [], [], [], []
+        index, jelly, world, radius, rest, neighbors, sides, faces = [], [], [], [], [], [], [], []
         for jid, (info, part) in enumerate(zip(jellies, taking_part)):
             if not part:
                 continue
@@ -197,6 +202,7 @@ class ParticleContact:
             by_face, n_sides = face_order(surface, nb)
             surface, nb = surface[by_face], nb[by_face]
             sides.append(n_sides)
+            faces.append((nb[:, 6:9] >= 0).sum(axis=1))  # the boundary faces it lies on (its normals)
             local = to_particle[surface]
             index.append(local + info.particle_start)
             jelly.append(np.full(local.size, jid))
@@ -211,8 +217,16 @@ class ParticleContact:
         # lie on one face of one jelly, so they meet the same neighbouring surface, with about as
         # many candidates and contacts each and their partners close together in memory; a 10^3
         # jelly's 384 face particles are 12 whole warps. (Lattice order mixes four faces in a warp
-        # of its middle layers, and a warp waits for its lane with the most pairs.)
-        order = np.argsort(np.concatenate(sides), kind="stable") if sides else np.zeros(0, dtype=np.int64)
+        # of its middle layers, and a warp waits for its lane with the most pairs.) Grouped first by
+        # their number of boundary faces (the sides for a box jelly), so a particle's number of face
+        # normals follows from its index (face_start): a partner's empty normal slots are not read.
+        if sides:
+            n_faces = np.concatenate(faces)
+            order = np.lexsort((np.concatenate(sides), n_faces))
+            self.face_start = wp.vec3i(*(int(np.searchsorted(n_faces[order], f)) for f in (1, 2, 3)))
+        else:
+            order = np.zeros(0, dtype=np.int64)
+            self.face_start = wp.vec3i(0, 0, 0)
 
         def cat(parts, shape):
             return np.concatenate(parts)[order] if parts else np.zeros(shape)
@@ -244,7 +258,10 @@ class ParticleContact:
         self.contact_index = arr(np_index, wp.int32, np.int32)
         self.contact_jelly = arr(cat(jelly, (0,)), wp.int32, np.int32)
         self.contact_world = arr(cat(world, (0,)), wp.int32, np.int32)
-        self.contact_radius = arr(np_radius, scalar, np_scalar)
+        # One entry where every particle has the same radius (the kernels read it for every
+        # candidate, and one value stays in cache), else one a particle.
+        same = np_radius.size > 0 and np.all(np_radius == np_radius[0])
+        self.contact_radius = arr(np_radius[:1] if same else np_radius, scalar, np_scalar)
         rest_host = cat(rest, (0, 3)) if any(self_flags) else np.zeros((1, 3))
         self.contact_rest = arr(rest_host, vec3, np_scalar)
         # Slot-major, [9, count]: a warp reads each slot of its particles in one coalesced load.
@@ -254,11 +271,11 @@ class ParticleContact:
         # (prepare_contact_particles writes only those), the slots after them zero from here.
         self.normal = wp.zeros((3, n), dtype=vec3, device=device)
         self.jelly_self_contact = arr(np.asarray(self_flags, dtype=np.int32).reshape(-1), wp.int32, np.int32)
-        # Compact copies of the step's result (the passes read these, never what they write), and
-        # the inverse masses (fixed when the model is built). The velocities before the step are
-        # read where they are (state_in, through contact_index): only for the contacts found.
+        # A compact copy of the positions after the step (the passes read it, never what they
+        # write), and the inverse masses (fixed when the model is built). The velocities after and
+        # before the step are read where they are (state_out, state_in, through contact_index):
+        # only for the particles in contact.
         self.cq = wp.zeros(n, dtype=vec3, device=device)
-        self.cqd = wp.zeros(n, dtype=vec3, device=device)
         self.cw = arr(model.particle_inv_mass.numpy()[np_index], scalar, np_scalar)
         # Candidate lists (slot-major), their build positions, the flag that asks for a rebuild
         # (raised: the first step builds) and the count of builds.
@@ -274,21 +291,27 @@ class ParticleContact:
         self.grid_head = wp.full((2, 1 << bits), -1, dtype=wp.int32, device=device)
         self.grid_next = wp.full(n, -1, dtype=wp.int32, device=device)
         self.cell_bucket = wp.zeros(n, dtype=wp.int32, device=device)
-        # Contacts: per particle its count and split inverse mass; per contact (slot-major) its
-        # partner, normal, gap and approach speed before the step.
+        # Contacts: per particle its count; per contact (slot-major) its partner, normal, gap and
+        # approach speed before the step.
         self.contact_counts = wp.zeros(2 * n, dtype=wp.int32, device=device)
-        self.w_split = wp.zeros(n, dtype=scalar, device=device)
         self.contact_lists = wp.zeros((2 * MAX_CONTACTS, n), dtype=wp.int32, device=device)
         self.contact_impulse = wp.zeros((2 * MAX_CONTACTS, n), dtype=vec3, device=device)
         self.phase = wp.zeros(1, dtype=wp.int32, device=device)
-        self.cqd_warm = wp.zeros(n, dtype=vec3, device=device)
+        # The passes' records (find_particle_contacts): per particle two vec4, 32 bytes in float32, so
+        # a pass reads all it needs of a partner in one memory sector; the kernels load each entry
+        # in one aligned load, which needs the array aligned to an entry.
+        vec4 = wp.types.vector(4, scalar)
+        self.rec_warm = wp.zeros(2 * n, dtype=vec4, device=device)
         self.contact_normal = wp.zeros((MAX_CONTACTS, n), dtype=vec3, device=device)
         self.contact_gap = wp.zeros((MAX_CONTACTS, n), dtype=scalar, device=device)
         # The approach speed only with a restitution, the one reader (store_contact writes it only then).
         u0_shape = (MAX_CONTACTS, n) if float(self.restitution) != 0.0 else (1, 1)
         self.contact_u0 = wp.zeros(u0_shape, dtype=scalar, device=device)
         self.iterations = int(iterations)
-        self.cqd_iter = [wp.zeros(n, dtype=vec3, device=device) for _ in range(min(self.iterations, 2))]
+        self.rec_iter = [wp.zeros(2 * n, dtype=vec4, device=device) for _ in range(min(self.iterations - 1, 2))]
+        for rec in [self.rec_warm, *self.rec_iter]:
+            if rec.ptr % (4 * np.dtype(np_scalar).itemsize) != 0:
+                raise RuntimeError("jelly contact: a record array is not aligned to its vec4 entries")
 
     def forget_history(self):
         """No pair starts the next step warm: the contact counts of the step before are zero."""
@@ -327,9 +350,8 @@ class ParticleContact:
                 self.x_build,
                 self.rebuild_distance,
                 state_out.particle_q,
-                state_out.particle_qd,
             ],
-            outputs=[self.cq, self.cqd, self.normal, self.rebuild, self.phase],
+            outputs=[self.cq, self.normal, self.rebuild, self.phase],
             device=device,
         )
         wp.launch(
@@ -372,19 +394,19 @@ class ParticleContact:
             k.find_particle_contacts,
             dim=n,
             inputs=[
-                *walk, self.restitution, self.friction, self.phase, self.cq, self.cqd, self.contact_index,
-                state_in.particle_qd, self.cw, self.normal,
+                *walk, self.restitution, self.friction, self.phase, self.cq, self.contact_index,
+                state_out.particle_qd, state_in.particle_qd, self.cw, self.normal, self.face_start,
             ],
             outputs=[
-                self.contact_counts, self.contact_lists, self.contact_impulse, self.w_split, self.contact_normal,
-                self.contact_gap, self.contact_u0, self.cqd_warm,
+                self.contact_counts, self.contact_lists, self.contact_impulse, self.contact_normal,
+                self.contact_gap, self.contact_u0, self.rec_warm,
             ],
             device=device,
             block_dim=PASS_BLOCK,
         )
-        v_in = self.cqd_warm
-        for it in range(self.iterations):
-            v_out = self.cqd_iter[it % 2]
+        v_in = self.rec_warm
+        for it in range(self.iterations - 1):
+            v_out = self.rec_iter[it % 2]
             wp.launch(
                 k.resolve_contact_velocities,
                 dim=n,
@@ -397,10 +419,9 @@ class ParticleContact:
                     self.cq,
                     self.contact_index,
                     state_in.particle_qd,
-                    self.cw,
                     self.normal,
+                    self.face_start,
                     self.contact_counts,
-                    self.w_split,
                     self.contact_lists,
                     self.contact_normal,
                     self.contact_u0,
@@ -414,26 +435,29 @@ class ParticleContact:
             )
             v_in = v_out
         wp.launch(
-            k.resolve_contact_positions,
+            k.resolve_contact_last_pass,
             dim=n,
             inputs=[
-                *walk[:7],
-                self.contact_index,
-                *pairs,
-                h,
+                *walk,
                 self.friction,
+                self.restitution,
+                model.contact_velocity_epsilon,
+                model.restitution_threshold_steps,
+                h,
                 world_contact_beta,
                 self.cq,
-                self.cw,
+                self.contact_index,
+                state_in.particle_qd,
                 self.normal,
+                self.face_start,
                 self.contact_counts,
-                self.w_split,
                 self.contact_lists,
                 self.contact_normal,
                 self.contact_gap,
-                self.cqd,
-                v_in,
+                self.contact_u0,
                 self.phase,
+                v_in,
+                self.contact_impulse,
                 self.rebuild,
                 self.builds,
             ],
