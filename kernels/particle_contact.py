@@ -109,6 +109,7 @@ def build(scalar):
 
     @wp.func
     def xyz(r: vec4):
+        """The velocity of a record entry (its first three components)."""
         return vec3(r[0], r[1], r[2])
 
     @wp.func_native("return ((const int*)a.data)[s * a.shape[1] + i];")
