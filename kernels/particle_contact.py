@@ -800,7 +800,7 @@ def build(scalar):
             st4(rec_out, 2 * i + 1, record(v0, wi))
 
     @wp.func
-    def velocity_term(
+    def retested_pair(
         i: int,
         j: int,
         xi: vec3,
@@ -819,20 +819,62 @@ def build(scalar):
         face_start: wp.vec3i,
         rec: wp.array(dtype=vec4),
     ):
-        """The impulse of candidate j on i in a velocity iteration, tested afresh (zero if they do
-        not touch): for a particle with more contacts than its list holds."""
+        """Candidate j of i in a pass, tested afresh: for a particle with more contacts than its list
+        holds, whose pairs take each pass's impulse alone. Returns (acts: they touch and can move,
+        normal, gap, j's two record entries, the pair's impulse on i: zero unless it acts)."""
         touches, n, gap = pair_contact(i, j, xi, cq, contact_radius, normal, face_start)
+        acts = False
+        rj = vec4(scalar(0.0))
+        rj0 = vec4(scalar(0.0))
         p = vec3(scalar(0.0))
         if touches:
             rj = ld4(rec, 2 * j)
-            wj_split = rj[3] * ld4(rec, 2 * j + 1)[3]
+            rj0 = ld4(rec, 2 * j + 1)
+            wj_split = rj[3] * rj0[3]
             if wi_split + wj_split > scalar(0.0):
+                acts = True
                 u0 = -wp.dot(vi_prev - qd_prev[contact_index[j]], n)
                 p = accumulated_impulse(
                     n, vi, xyz(rj), vec3(scalar(0.0)), u0, wi_split, wj_split, friction, restitution, eps_v,
                     rest_steps,
                 )
-        return p
+        return acts, n, gap, rj, rj0, p
+
+    @wp.func
+    def listed_impulse(
+        i: int,
+        a: int,
+        row: int,
+        slots: int,
+        n: vec3,
+        vi: vec3,
+        rj: vec4,
+        wi_split: scalar,
+        wj_split: scalar,
+        friction: scalar,
+        restitution: scalar,
+        eps_v: scalar,
+        rest_steps: scalar,
+        contact_u0: wp.array2d(dtype=scalar),
+        contact_impulse: wp.array2d(dtype=vec3),
+    ):
+        """This pass's impulse on i of its a-th listed contact (normal ``n``, partner's record entry
+        ``rj``), with the pair's impulse so far updated in ``contact_impulse[row + a, i]``. Where both
+        keep the pair in their lists (the partner's count, ``rj[3]``, at most ``slots``) its impulse
+        accumulates (warm started); otherwise the pair takes this pass's impulse alone, and zero is
+        stored, so that the next step starts it from zero (:func:`warm_start`)."""
+        u0 = scalar(0.0)
+        if restitution != scalar(0.0):
+            u0 = contact_u0[a, i]  # stored by find only with a restitution (store_contact)
+        accumulates = rj[3] <= scalar(slots)
+        p_old = vec3(scalar(0.0))
+        if accumulates:
+            p_old = ld32(contact_impulse, row + a, i)
+        p_new = accumulated_impulse(
+            n, vi, xyz(rj), p_old, u0, wi_split, wj_split, friction, restitution, eps_v, rest_steps
+        )
+        st32(contact_impulse, row + a, i, wp.where(accumulates, p_new, vec3(scalar(0.0))))
+        return p_new - p_old
 
     @wp.kernel(module="unique")
     def resolve_contact_velocities(
@@ -896,22 +938,10 @@ def build(scalar):
                 rj = ld4(rec, 2 * j)
                 wj_split = rj[3] * ld4(rec, 2 * j + 1)[3]
                 if wi_split + wj_split > scalar(0.0):
-                    u0 = scalar(0.0)
-                    if restitution != scalar(0.0):
-                        u0 = contact_u0[a, i]  # stored by find only with a restitution (store_contact)
-                    # Where both keep the pair in their lists its impulse accumulates (warm started);
-                    # otherwise the pair takes this iteration's impulse alone.
-                    accumulates = rj[3] <= scalar(slots)
-                    p_old = vec3(scalar(0.0))
-                    if accumulates:
-                        p_old = ld32(contact_impulse, cur * slots + a, i)
-                    p_new = accumulated_impulse(
-                        ld32(contact_normal, a, i), vi, xyz(rj), p_old, u0, wi_split, wj_split, friction,
-                        restitution, eps_v, rest_steps,
+                    impulse = impulse + listed_impulse(
+                        i, a, cur * slots, slots, ld32(contact_normal, a, i), vi, rj, wi_split, wj_split, friction,
+                        restitution, eps_v, rest_steps, contact_u0, contact_impulse,
                     )
-                    # Not accumulated: the next step starts the pair from zero (warm_start).
-                    st32(contact_impulse, cur * slots + a, i, wp.where(accumulates, p_new, vec3(scalar(0.0))))
-                    impulse = impulse + (p_new - p_old)
         else:
             # More contacts than the list holds: the candidates again, in the same order.
             xi = cq[i]
@@ -928,10 +958,11 @@ def build(scalar):
                 a += 1
                 if j < 0:
                     break
-                impulse = impulse + velocity_term(
+                _acts, _n, _gap, _rj, _rj0, p = retested_pair(
                     i, j, xi, vi, vi_prev, wi_split, friction, restitution, eps_v, rest_steps,
                     cq, contact_index, qd_prev, contact_radius, normal, face_start, rec,
                 )
+                impulse = impulse + p
         st4(rec_out, 2 * i, record(vi + wi * impulse, ri[3]))
         st4(rec_out, 2 * i + 1, ri0)
 
@@ -1060,25 +1091,14 @@ def build(scalar):
                 wj_split = rj[3] * wj
                 split = wi_split + wj_split
                 if split > scalar(0.0):
-                    u0 = scalar(0.0)
-                    if restitution != scalar(0.0):
-                        u0 = contact_u0[a, i]  # stored by find only with a restitution (store_contact)
                     n = ld32(contact_normal, a, i)
-                    vj = xyz(rj)
-                    # Both keep the pair in their lists: its impulse accumulates (warm started).
-                    accumulates = rj[3] <= scalar(slots)
-                    p_old = vec3(scalar(0.0))
-                    if accumulates:
-                        p_old = ld32(contact_impulse, cur * slots + a, i)
-                    p_new = accumulated_impulse(
-                        n, vi, vj, p_old, u0, wi_split, wj_split, friction, restitution, eps_v, rest_steps
+                    dp = listed_impulse(
+                        i, a, cur * slots, slots, n, vi, rj, wi_split, wj_split, friction, restitution, eps_v,
+                        rest_steps, contact_u0, contact_impulse,
                     )
-                    # Not accumulated: the next step starts the pair from zero (warm_start).
-                    st32(contact_impulse, cur * slots + a, i, wp.where(accumulates, p_new, vec3(scalar(0.0))))
-                    dp = p_new - p_old
                     impulse = impulse + dp
                     ddx, ddv = projection_term(
-                        n, lds2(contact_gap, a, i), dp, vi, vj, vi0, xyz(rj0), wi, wj, split, beta_h, h,
+                        n, lds2(contact_gap, a, i), dp, vi, xyz(rj), vi0, xyz(rj0), wi, wj, split, beta_h, h,
                         friction,
                     )
                     dx = dx + ddx
@@ -1100,28 +1120,22 @@ def build(scalar):
                 a += 1
                 if j < 0:
                     break
-                touches, n, gap = pair_contact(i, j, xi, cq, contact_radius, normal, face_start)
-                if touches:
-                    rj = ld4(rec, 2 * j)
-                    rj0 = ld4(rec, 2 * j + 1)
-                    wj_split = rj[3] * rj0[3]
-                    split = wi_split + wj_split
-                    if split > scalar(0.0):
-                        vj = xyz(rj)
-                        u0 = -wp.dot(vi_prev - qd_prev[contact_index[j]], n)
-                        dp = accumulated_impulse(
-                            n, vi, vj, vec3(scalar(0.0)), u0, wi_split, wj_split, friction, restitution, eps_v,
-                            rest_steps,
-                        )
-                        impulse = impulse + dp
-                        ddx, ddv = projection_term(
-                            n, gap, dp, vi, vj, vi0, xyz(rj0), wi, rj0[3], split, beta_h, h, friction
-                        )
-                        dx = dx + ddx
-                        dv = dv + ddv
+                acts, n, gap, rj, rj0, dp = retested_pair(
+                    i, j, xi, vi, vi_prev, wi_split, friction, restitution, eps_v, rest_steps,
+                    cq, contact_index, qd_prev, contact_radius, normal, face_start, rec,
+                )
+                if acts:
+                    impulse = impulse + dp
+                    ddx, ddv = projection_term(
+                        n, gap, dp, vi, xyz(rj), vi0, xyz(rj0), wi, rj0[3], wi_split + rj[3] * rj0[3], beta_h, h,
+                        friction,
+                    )
+                    dx = dx + ddx
+                    dv = dv + ddv
         v_new = vi + wi * impulse
-        st3(q_out, ldi(contact_index, i), ld3(cq, i) + beta_h * (v_new - vi0) + dx)
-        st3(qd_out, ldi(contact_index, i), v_new + dv)
+        p = ldi(contact_index, i)
+        st3(q_out, p, ld3(cq, i) + beta_h * (v_new - vi0) + dx)
+        st3(qd_out, p, v_new + dv)
 
     return {
         "pair_allowed": pair_allowed,
