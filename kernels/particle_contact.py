@@ -138,14 +138,6 @@ def build(scalar):
         """``a[s, i] = value`` of a contiguous vec3 table."""
 
     @wp.func
-    def radius(contact_radius: wp.array(dtype=scalar), i: int):
-        """Contact radius of particle i: ``contact_radius[i]``, or the array's only entry where every
-        particle of the model has the same radius (no read of the partner's radius per candidate)."""
-        if contact_radius.shape[0] == 1:
-            return contact_radius[0]
-        return lds(contact_radius, i)
-
-    @wp.func
     def pair_allowed(
         i: int,
         j: int,
@@ -169,7 +161,7 @@ def build(scalar):
         if ji == contact_jelly[j]:
             if jelly_self_contact[ji] == 0:
                 return False
-            d = radius(contact_radius, i) + radius(contact_radius, j)
+            d = contact_radius[i] + contact_radius[j]
             rr = contact_rest[i] - contact_rest[j]
             reach = self_exclusion * d
             return wp.dot(rr, rr) >= reach * reach
@@ -253,7 +245,7 @@ def build(scalar):
         agree on it bit for bit."""
         r = xi - ld3(cq, j)
         dist2 = wp.dot(r, r)
-        reach_d = scalar(CANDIDATE_REACH) * (radius(contact_radius, i) + radius(contact_radius, j))
+        reach_d = scalar(CANDIDATE_REACH) * (lds(contact_radius, i) + lds(contact_radius, j))
         return dist2 < reach_d * reach_d and dist2 > scalar(0.0)
 
     @wp.func
@@ -269,7 +261,7 @@ def build(scalar):
         """Whether a near pair (i, j) (:func:`near_pair`) touches: closer than d along its contact
         normal. Returns (touches, normal from j to i, separation along it minus d: negative when
         touching)."""
-        d = radius(contact_radius, i) + radius(contact_radius, j)
+        d = lds(contact_radius, i) + lds(contact_radius, j)
         xj = ld3(cq, j)
         r = xi - xj
         n = pair_normal(i, j, xi, xj, wp.sqrt(wp.dot(r, r)), d, normal, face_start)
@@ -394,7 +386,7 @@ def build(scalar):
         if j == i:
             return False
         r = xi - x_build[j]
-        reach = scalar(CANDIDATE_REACH) * (radius(contact_radius, i) + radius(contact_radius, j)) + skin
+        reach = scalar(CANDIDATE_REACH) * (contact_radius[i] + contact_radius[j]) + skin
         if wp.dot(r, r) >= reach * reach:
             return False
         return pair_allowed(
@@ -600,7 +592,7 @@ def build(scalar):
                 # Positions of this build: cq, which x_build holds for i only so far.
                 if j != i and n <= cap:
                     r = xi - cq[j]
-                    reach = scalar(CANDIDATE_REACH) * (radius(contact_radius, i) + radius(contact_radius, j)) + skin
+                    reach = scalar(CANDIDATE_REACH) * (contact_radius[i] + contact_radius[j]) + skin
                     if wp.dot(r, r) < reach * reach:
                         if pair_allowed(
                             i, j, contact_jelly, contact_world, contact_radius, contact_rest,

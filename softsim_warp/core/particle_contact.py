@@ -149,8 +149,7 @@ class ParticleContact:
         contact_index: particle index of each contact particle, shape [count], int32: the face
             particles of every jelly, then the edges', then the corners' (:func:`face_order`).
         contact_jelly, contact_world: its jelly and world, shape [count], int32.
-        contact_radius: its contact radius [m] (a pair touches within the sum), shape [count], or [1]
-            where every contact particle has the same radius, scalar.
+        contact_radius: its contact radius [m] (a pair touches within the sum), shape [count], scalar.
         face_start: the first contact index of the particles on at least 1, 2 and 3 boundary faces
             (the contact order groups them by that number), wp.vec3i.
         contact_rest: its rest position in its jelly's frame [m] (self-contact exclusion), shape
@@ -258,10 +257,7 @@ class ParticleContact:
         self.contact_index = arr(np_index, wp.int32, np.int32)
         self.contact_jelly = arr(cat(jelly, (0,)), wp.int32, np.int32)
         self.contact_world = arr(cat(world, (0,)), wp.int32, np.int32)
-        # One entry where every particle has the same radius (the kernels read it for every
-        # candidate, and one value stays in cache), else one a particle.
-        same = np_radius.size > 0 and np.all(np_radius == np_radius[0])
-        self.contact_radius = arr(np_radius[:1] if same else np_radius, scalar, np_scalar)
+        self.contact_radius = arr(np_radius, scalar, np_scalar)
         rest_host = cat(rest, (0, 3)) if any(self_flags) else np.zeros((1, 3))
         self.contact_rest = arr(rest_host, vec3, np_scalar)
         # Slot-major, [9, count]: a warp reads each slot of its particles in one coalesced load.
