@@ -3,9 +3,9 @@
 The response runs after the integrator's step, on its result, like terrain contact
 (``core/particle_contact.py`` launches these kernels from ``model.contact_hooks``). Each step:
 
-1. ``prepare_contact_particles`` copies the contact particles' positions to a compact array,
-   computes their boundary-face normals, and raises the rebuild flag when a particle has moved
-   ``rebuild_distance`` or more since the candidate lists were built;
+1. ``prepare_contact_particles`` copies the contact particles' positions, each with its contact
+   radius, to a compact array, computes their boundary-face normals, and raises the rebuild flag
+   when a particle has moved ``rebuild_distance`` or more since the candidate lists were built;
 2. ``insert_contact_grid`` and ``build_contact_candidates`` (they return at once unless the flag is
    raised) rebuild each particle's candidate list: the particles of other jellies (or of its own
    jelly, with self-contact, far enough apart in the rest shape) of its world within the candidate
@@ -109,7 +109,7 @@ def build(scalar):
 
     @wp.func
     def xyz(r: vec4):
-        """The velocity of a record entry (its first three components)."""
+        """The vector of a record entry: its first three components (a velocity, a position)."""
         return vec3(r[0], r[1], r[2])
 
     @wp.func_native("return ((const int*)a.data)[s * a.shape[1] + i];")
@@ -239,13 +239,14 @@ def build(scalar):
         return u
 
     @wp.func
-    def near_pair(i: int, j: int, xi: vec3, cq: wp.array(dtype=vec3), contact_radius: wp.array(dtype=scalar)):
-        """Whether candidate j lies within CANDIDATE_REACH d of i (and not on it): the pairs that
-        :func:`touching_pair` tests further. Every test of a pair goes through here, so all passes
-        agree on it bit for bit."""
-        r = xi - ld3(cq, j)
+    def near_pair(j: int, xi: vec3, ri: scalar, cq: wp.array(dtype=vec4)):
+        """Whether candidate j lies within CANDIDATE_REACH d of particle i (position ``xi``, contact
+        radius ``ri``) and not on it: the pairs that :func:`touching_pair` tests further. Every test
+        of a pair goes through here, so all passes agree on it bit for bit."""
+        xrj = ld4(cq, j)
+        r = xi - xyz(xrj)
         dist2 = wp.dot(r, r)
-        reach_d = scalar(CANDIDATE_REACH) * (lds(contact_radius, i) + lds(contact_radius, j))
+        reach_d = scalar(CANDIDATE_REACH) * (ri + xrj[3])
         return dist2 < reach_d * reach_d and dist2 > scalar(0.0)
 
     @wp.func
@@ -253,16 +254,17 @@ def build(scalar):
         i: int,
         j: int,
         xi: vec3,
-        cq: wp.array(dtype=vec3),
-        contact_radius: wp.array(dtype=scalar),
+        ri: scalar,
+        cq: wp.array(dtype=vec4),
         normal: wp.array2d(dtype=vec3),
         face_start: wp.vec3i,
     ):
         """Whether a near pair (i, j) (:func:`near_pair`) touches: closer than d along its contact
         normal. Returns (touches, normal from j to i, separation along it minus d: negative when
         touching)."""
-        d = lds(contact_radius, i) + lds(contact_radius, j)
-        xj = ld3(cq, j)
+        xrj = ld4(cq, j)
+        d = ri + xrj[3]
+        xj = xyz(xrj)
         r = xi - xj
         n = pair_normal(i, j, xi, xj, wp.sqrt(wp.dot(r, r)), d, normal, face_start)
         gap = wp.dot(r, n) - d
@@ -273,8 +275,8 @@ def build(scalar):
         i: int,
         j: int,
         xi: vec3,
-        cq: wp.array(dtype=vec3),
-        contact_radius: wp.array(dtype=scalar),
+        ri: scalar,
+        cq: wp.array(dtype=vec4),
         normal: wp.array2d(dtype=vec3),
         face_start: wp.vec3i,
     ):
@@ -284,8 +286,8 @@ def build(scalar):
         touches = False
         n = vec3(scalar(0.0))
         gap = scalar(0.0)
-        if near_pair(i, j, xi, cq, contact_radius):
-            touches, n, gap = touching_pair(i, j, xi, cq, contact_radius, normal, face_start)
+        if near_pair(j, xi, ri, cq):
+            touches, n, gap = touching_pair(i, j, xi, ri, cq, normal, face_start)
         return touches, n, gap
 
     @wp.func
@@ -473,15 +475,17 @@ def build(scalar):
     def prepare_contact_particles(
         contact_index: wp.array(dtype=wp.int32),
         contact_axis_neighbors: wp.array2d(dtype=wp.int32),
+        contact_radius: wp.array(dtype=scalar),
         x_build: wp.array(dtype=vec3),
         rebuild_distance: scalar,
         # Positions after the step (particle order):
         q: wp.array(dtype=vec3),
-        # Out (contact order): positions after the step; the outward normals of
+        # Out (contact order): positions after the step with the contact radius (:func:`record`:
+        # one aligned load gives a partner's position and radius); the outward normals of
         # the particle's boundary faces, in axis order in the first slots (slot-major: a face
         # particle, most of them, writes one slot; the others stay zero from allocation); the
         # rebuild flag, raised when the particle moved too far
-        cq_out: wp.array(dtype=vec3),
+        cq_out: wp.array(dtype=vec4),
         normal_out: wp.array2d(dtype=vec3),
         rebuild_out: wp.array(dtype=wp.int32),
         phase: wp.array(dtype=wp.int32),
@@ -491,7 +495,7 @@ def build(scalar):
             phase[0] = 1 - phase[0]  # this step's half of the contact tables (nothing else here reads it)
         p = ldi(contact_index, k)
         x = ld3(q, p)
-        st3(cq_out, k, x)
+        st4(cq_out, k, record(x, lds(contact_radius, k)))
         moved = x - ld3(x_build, k)
         if wp.dot(moved, moved) >= rebuild_distance * rebuild_distance:
             rebuild_out[0] = 1  # every writer writes 1: no race in the result
@@ -529,7 +533,7 @@ def build(scalar):
         contact_world: wp.array(dtype=wp.int32),
         inv_cell: scalar,
         shift: int,
-        cq: wp.array(dtype=vec3),
+        cq: wp.array(dtype=vec4),
         # In and out: each particle's bucket (of the previous build, then of this one), the buckets'
         # first particles (two tables, this build's and the previous one's) and the links
         cell_bucket_io: wp.array(dtype=wp.int32),
@@ -544,7 +548,7 @@ def build(scalar):
         k = wp.tid()
         table = builds[0] % 2
         grid_head[1 - table, cell_bucket_io[k]] = -1
-        b = cell_bucket(cell_of(cq[k], inv_cell), contact_world[k], shift)
+        b = cell_bucket(cell_of(xyz(ld4(cq, k)), inv_cell), contact_world[k], shift)
         cell_bucket_io[k] = b
         grid_next[k] = wp.atomic_exch(grid_head, table, b, k)
 
@@ -565,7 +569,7 @@ def build(scalar):
         between_jellies: int,
         self_exclusion: scalar,
         skin: scalar,
-        cq: wp.array(dtype=vec3),
+        cq: wp.array(dtype=vec4),
         # Out: the build positions, each particle's candidates (slot-major, ascending) and their
         # number (one more than the list holds: the list overflowed, next_candidate walks the grid)
         x_build_out: wp.array(dtype=vec3),
@@ -575,7 +579,8 @@ def build(scalar):
         if rebuild[0] == 0:
             return
         i = wp.tid()
-        xi = cq[i]
+        xri = ld4(cq, i)
+        xi = xyz(xri)
         x_build_out[i] = xi
         table = builds[0] % 2
         c = cell_of(xi, inv_cell)
@@ -591,8 +596,9 @@ def build(scalar):
             while j >= 0:
                 # Positions of this build: cq, which x_build holds for i only so far.
                 if j != i and n <= cap:
-                    r = xi - cq[j]
-                    reach = scalar(CANDIDATE_REACH) * (contact_radius[i] + contact_radius[j]) + skin
+                    xrj = ld4(cq, j)
+                    r = xi - xyz(xrj)
+                    reach = scalar(CANDIDATE_REACH) * (xri[3] + xrj[3]) + skin
                     if wp.dot(r, r) < reach * reach:
                         if pair_allowed(
                             i, j, contact_jelly, contact_world, contact_radius, contact_rest,
@@ -701,9 +707,9 @@ def build(scalar):
         restitution: scalar,
         friction: scalar,
         phase: wp.array(dtype=wp.int32),
-        # Positions (contact order), and the velocities after and before the step (particle order,
-        # through contact_index; after it read only for the particles in contact):
-        cq: wp.array(dtype=vec3),
+        # Positions and radii (contact order), and the velocities after and before the step
+        # (particle order, through contact_index; after it read only for the particles in contact):
+        cq: wp.array(dtype=vec4),
         contact_index: wp.array(dtype=wp.int32),
         qd: wp.array(dtype=vec3),
         qd_prev: wp.array(dtype=vec3),
@@ -734,7 +740,9 @@ def build(scalar):
         prev_ci = ldi(count_out, prev * n_all + i)
         b = int(0)
         warm = vec3(scalar(0.0))
-        xi = ld3(cq, i)
+        xri = ld4(cq, i)
+        xi = xyz(xri)
+        ri = xri[3]
         count = int(0)
         nc = ldi(candidate_count, i)
         if nc <= candidates.shape[0]:
@@ -744,7 +752,7 @@ def build(scalar):
             near = int(0)
             near_count = int(0)
             for a in range(nc):
-                if near_pair(i, ldi2(candidates, a, i), xi, cq, contact_radius):
+                if near_pair(ldi2(candidates, a, i), xi, ri, cq):
                     near = near | (1 << a)
                     near_count += 1
             # Iteration k takes each lane's k-th near candidate (in ascending order).
@@ -754,7 +762,7 @@ def build(scalar):
                     a += 1
                 j = ldi2(candidates, a, i)
                 a += 1
-                touches, n, gap = touching_pair(i, j, xi, cq, contact_radius, normal, face_start)
+                touches, n, gap = touching_pair(i, j, xi, ri, cq, normal, face_start)
                 if touches:
                     p0, b = warm_start(
                         i, j, n, prev_ci, b, prev_row, contact_list_out, contact_impulse_out, friction
@@ -774,7 +782,7 @@ def build(scalar):
                 )
                 if j < 0:
                     break
-                touches, n, gap = pair_contact(i, j, xi, cq, contact_radius, normal, face_start)
+                touches, n, gap = pair_contact(i, j, xi, ri, cq, normal, face_start)
                 if touches:
                     p0, b = warm_start(
                         i, j, n, prev_ci, b, prev_row, contact_list_out, contact_impulse_out, friction
@@ -796,6 +804,7 @@ def build(scalar):
         i: int,
         j: int,
         xi: vec3,
+        ri: scalar,
         vi: vec3,
         vi_prev: vec3,
         wi_split: scalar,
@@ -803,10 +812,9 @@ def build(scalar):
         restitution: scalar,
         eps_v: scalar,
         rest_steps: scalar,
-        cq: wp.array(dtype=vec3),
+        cq: wp.array(dtype=vec4),
         contact_index: wp.array(dtype=wp.int32),
         qd_prev: wp.array(dtype=vec3),
-        contact_radius: wp.array(dtype=scalar),
         normal: wp.array2d(dtype=vec3),
         face_start: wp.vec3i,
         rec: wp.array(dtype=vec4),
@@ -814,7 +822,7 @@ def build(scalar):
         """Candidate j of i in a pass, tested afresh: for a particle with more contacts than its list
         holds, whose pairs take each pass's impulse alone. Returns (acts: they touch and can move,
         normal, gap, j's two record entries, the pair's impulse on i: zero unless it acts)."""
-        touches, n, gap = pair_contact(i, j, xi, cq, contact_radius, normal, face_start)
+        touches, n, gap = pair_contact(i, j, xi, ri, cq, normal, face_start)
         acts = False
         rj = vec4(scalar(0.0))
         rj0 = vec4(scalar(0.0))
@@ -892,7 +900,7 @@ def build(scalar):
         eps_v: scalar,
         rest_steps: scalar,
         # State and contacts (contact order; the velocities before the step in particle order):
-        cq: wp.array(dtype=vec3),
+        cq: wp.array(dtype=vec4),
         contact_index: wp.array(dtype=wp.int32),
         qd_prev: wp.array(dtype=vec3),
         normal: wp.array2d(dtype=vec3),
@@ -936,7 +944,7 @@ def build(scalar):
                     )
         else:
             # More contacts than the list holds: the candidates again, in the same order.
-            xi = cq[i]
+            xri = ld4(cq, i)
             vi_prev = qd_prev[contact_index[i]]
             nc = candidate_count[i]
             j = int(-1)
@@ -951,8 +959,8 @@ def build(scalar):
                 if j < 0:
                     break
                 _acts, _n, _gap, _rj, _rj0, p = retested_pair(
-                    i, j, xi, vi, vi_prev, wi_split, friction, restitution, eps_v, rest_steps,
-                    cq, contact_index, qd_prev, contact_radius, normal, face_start, rec,
+                    i, j, xyz(xri), xri[3], vi, vi_prev, wi_split, friction, restitution, eps_v, rest_steps,
+                    cq, contact_index, qd_prev, normal, face_start, rec,
                 )
                 impulse = impulse + p
         st4(rec_out, 2 * i, record(vi + wi * impulse, ri[3]))
@@ -1027,7 +1035,7 @@ def build(scalar):
         h: scalar,
         world_contact_beta: wp.array(dtype=scalar),
         # State and contacts (contact order; the velocities before the step in particle order):
-        cq: wp.array(dtype=vec3),
+        cq: wp.array(dtype=vec4),
         contact_index: wp.array(dtype=wp.int32),
         qd_prev: wp.array(dtype=vec3),
         normal: wp.array2d(dtype=vec3),
@@ -1098,7 +1106,7 @@ def build(scalar):
         else:
             # More contacts than the list holds: the candidates again, in the same order, each
             # pair's impulse this pass's alone.
-            xi = ld3(cq, i)
+            xri = ld4(cq, i)
             vi_prev = qd_prev[contact_index[i]]
             nc = candidate_count[i]
             j = int(-1)
@@ -1113,8 +1121,8 @@ def build(scalar):
                 if j < 0:
                     break
                 acts, n, gap, rj, rj0, dp = retested_pair(
-                    i, j, xi, vi, vi_prev, wi_split, friction, restitution, eps_v, rest_steps,
-                    cq, contact_index, qd_prev, contact_radius, normal, face_start, rec,
+                    i, j, xyz(xri), xri[3], vi, vi_prev, wi_split, friction, restitution, eps_v, rest_steps,
+                    cq, contact_index, qd_prev, normal, face_start, rec,
                 )
                 if acts:
                     impulse = impulse + dp
@@ -1126,7 +1134,7 @@ def build(scalar):
                     dv = dv + ddv
         v_new = vi + wi * impulse
         p = ldi(contact_index, i)
-        st3(q_out, p, ld3(cq, i) + beta_h * (v_new - vi0) + dx)
+        st3(q_out, p, xyz(ld4(cq, i)) + beta_h * (v_new - vi0) + dx)
         st3(qd_out, p, v_new + dv)
 
     return {

@@ -6,9 +6,9 @@ asks for contact between jellies or for a jelly's self-contact; a model without 
 (``core/contact.apply_contacts``), and launches (kernels/particle_contact.py explains each):
 
 1. ``prepare_contact_particles``: the positions of the surface particles of the jellies that take
-   part, copied to a compact array (a lattice's interior particles cannot touch anything before its
-   surface does),
-   their boundary-face normals, and the rebuild flag (a particle moved half the skin);
+   part, each with its contact radius, copied to a compact array (a lattice's interior particles
+   cannot touch anything before its surface does), their boundary-face normals, and the rebuild
+   flag (a particle moved half the skin);
 2. ``insert_contact_grid`` and ``build_contact_candidates``: the candidate lists, rebuilt only when
    the flag is raised (otherwise both return at once);
 3. ``find_particle_contacts``: each particle's contacts among its candidates, each started from the
@@ -267,11 +267,13 @@ class ParticleContact:
         # (prepare_contact_particles writes only those), the slots after them zero from here.
         self.normal = wp.zeros((3, n), dtype=vec3, device=device)
         self.jelly_self_contact = arr(np.asarray(self_flags, dtype=np.int32).reshape(-1), wp.int32, np.int32)
-        # A compact copy of the positions after the step (the passes read it, never what they
-        # write), and the inverse masses (fixed when the model is built). The velocities after and
-        # before the step are read where they are (state_out, state_in, through contact_index):
-        # only for the particles in contact.
-        self.cq = wp.zeros(n, dtype=vec3, device=device)
+        # A compact copy of the positions after the step, each with its particle's contact radius
+        # in a vec4 (a partner's position and radius in one aligned load; the passes read it, never
+        # what they write), and the inverse masses (fixed when the model is built). The velocities
+        # after and before the step are read where they are (state_out, state_in, through
+        # contact_index): only for the particles in contact.
+        vec4 = wp.types.vector(4, scalar)
+        self.cq = wp.zeros(n, dtype=vec4, device=device)
         self.cw = arr(model.particle_inv_mass.numpy()[np_index], scalar, np_scalar)
         # Candidate lists (slot-major), their build positions, the flag that asks for a rebuild
         # (raised: the first step builds) and the count of builds.
@@ -296,7 +298,6 @@ class ParticleContact:
         # The passes' records (find_particle_contacts): per particle two vec4, 32 bytes in float32, so
         # a pass reads all it needs of a partner in one memory sector; the kernels load each entry
         # in one aligned load, which needs the array aligned to an entry.
-        vec4 = wp.types.vector(4, scalar)
         self.rec_warm = wp.zeros(2 * n, dtype=vec4, device=device)
         self.contact_normal = wp.zeros((MAX_CONTACTS, n), dtype=vec3, device=device)
         self.contact_gap = wp.zeros((MAX_CONTACTS, n), dtype=scalar, device=device)
@@ -305,9 +306,9 @@ class ParticleContact:
         self.contact_u0 = wp.zeros(u0_shape, dtype=scalar, device=device)
         self.iterations = int(iterations)
         self.rec_iter = [wp.zeros(2 * n, dtype=vec4, device=device) for _ in range(min(self.iterations - 1, 2))]
-        for rec in [self.rec_warm, *self.rec_iter]:
+        for rec in [self.cq, self.rec_warm, *self.rec_iter]:
             if rec.ptr % (4 * np.dtype(np_scalar).itemsize) != 0:
-                raise RuntimeError("jelly contact: a record array is not aligned to its vec4 entries")
+                raise RuntimeError("jelly contact: a vec4 array is not aligned to its entries")
 
     def forget_history(self):
         """No pair starts the next step warm: the contact counts of the step before are zero."""
@@ -343,6 +344,7 @@ class ParticleContact:
             inputs=[
                 self.contact_index,
                 self.contact_axis_neighbors,
+                self.contact_radius,
                 self.x_build,
                 self.rebuild_distance,
                 state_out.particle_q,
