@@ -104,13 +104,20 @@ def build(scalar):
 
     @wp.func
     def record(v: vec3, w: scalar):
-        """(v, w) as one vec4: a particle's two entries in the passes' records."""
+        """(v, w) as one vec4: an entry of the passes' records (a velocity with a count or an inverse
+        mass), or of the compact positions (a position with its contact radius)."""
         return vec4(v[0], v[1], v[2], w)
 
     @wp.func
     def xyz(r: vec4):
         """The vector of a record entry: its first three components (a velocity, a position)."""
         return vec3(r[0], r[1], r[2])
+
+    @wp.func
+    def split_mass(r: vec4, r0: vec4):
+        """A particle's split inverse mass from its two record entries (find_particle_contacts): its
+        number of contacts (``r[3]``) times its inverse mass (``r0[3]``)."""
+        return r[3] * r0[3]
 
     @wp.func_native("return ((const int*)a.data)[s * a.shape[1] + i];")
     def ldi2(a: wp.array2d(dtype=wp.int32), s: int, i: int) -> int:
@@ -830,7 +837,7 @@ def build(scalar):
         if touches:
             rj = ld4(rec, 2 * j)
             rj0 = ld4(rec, 2 * j + 1)
-            wj_split = rj[3] * rj0[3]
+            wj_split = split_mass(rj, rj0)
             if wi_split + wj_split > scalar(0.0):
                 acts = True
                 u0 = -wp.dot(vi_prev - qd_prev[contact_index[j]], n)
@@ -930,13 +937,13 @@ def build(scalar):
         ri0 = ld4(rec, 2 * i + 1)
         vi = xyz(ri)
         wi = ri0[3]
-        wi_split = ri[3] * wi  # contacts times inverse mass
+        wi_split = split_mass(ri, ri0)
         impulse = vec3(scalar(0.0))
         if ci <= slots:
             for a in range(ci):
                 j = ldi2(contact_list, cur * slots + a, i)
                 rj = ld4(rec, 2 * j)
-                wj_split = rj[3] * ld4(rec, 2 * j + 1)[3]
+                wj_split = split_mass(rj, ld4(rec, 2 * j + 1))
                 if wi_split + wj_split > scalar(0.0):
                     impulse = impulse + listed_impulse(
                         i, a, cur * slots, slots, ld32(contact_normal, a, i), vi, rj, wi_split, wj_split, friction,
@@ -1075,7 +1082,7 @@ def build(scalar):
         vi = xyz(ri)
         vi0 = xyz(ri0)
         wi = ri0[3]
-        wi_split = ri[3] * wi  # contacts times inverse mass
+        wi_split = split_mass(ri, ri0)
         # The impulses act over the whole step: positions move by what the integrator makes of a
         # velocity change, beta h dv (as for terrain, kernels/contact.py).
         beta_h = h * world_contact_beta[contact_world[i]]
@@ -1088,7 +1095,7 @@ def build(scalar):
                 rj = ld4(rec, 2 * j)  # the partner's two entries: one 32-byte block
                 rj0 = ld4(rec, 2 * j + 1)
                 wj = rj0[3]
-                wj_split = rj[3] * wj
+                wj_split = split_mass(rj, rj0)
                 split = wi_split + wj_split
                 if split > scalar(0.0):
                     n = ld32(contact_normal, a, i)
@@ -1127,7 +1134,7 @@ def build(scalar):
                 if acts:
                     impulse = impulse + dp
                     ddx, ddv = projection_term(
-                        n, gap, dp, vi, xyz(rj), vi0, xyz(rj0), wi, rj0[3], wi_split + rj[3] * rj0[3], beta_h, h,
+                        n, gap, dp, vi, xyz(rj), vi0, xyz(rj0), wi, rj0[3], wi_split + split_mass(rj, rj0), beta_h, h,
                         friction,
                     )
                     dx = dx + ddx
