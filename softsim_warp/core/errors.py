@@ -75,3 +75,17 @@ def _format(value) -> str:
     if isinstance(value, dict):
         return "{" + ", ".join(f"{k} = {_format(v)}" for k, v in value.items()) + "}"
     return str(value)
+
+
+_WARNED: set = set()
+
+
+def warn(source: str, key: str | None, message: str, *value) -> None:
+    """Print a one-line warning about a scene value on stderr, in the error line's four parts
+    (``warning: <file>: <key>: <what> (got <value>)``), once per process for the same line."""
+    import sys  # noqa: PLC0415
+
+    line = "warning: " + UserError(source, key, message, value[0] if value else None, has_value=bool(value)).line()
+    if line not in _WARNED:
+        _WARNED.add(line)
+        print(line, file=sys.stderr, flush=True)

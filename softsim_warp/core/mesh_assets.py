@@ -1,8 +1,12 @@
 """Triangle meshes read from files: USD (usd-core) and OBJ/STL/PLY (trimesh, an optional extra).
 
-A mesh is read once per file, prim and modification time (``load_mesh`` is cached), in world space
-(every xform above the prim and the stage's authored metersPerUnit applied; unauthored is metres). Polygons are kept as they are
-for output (the asset's own topology, with its primvars) and split into fan triangles for the
+A mesh is read once per file, prim, options and modification time (``load_mesh`` is cached), in
+softsim's world: metres, y up. A USD file says its own units and axis (every xform above each Mesh,
+the stage's authored ``metersPerUnit`` and ``upAxis`` applied; an unauthored metersPerUnit is
+metres); an OBJ, STL or PLY file says neither, so the scene gives them (``up_axis``, ``units``;
+default y up, metres). A z-up asset is turned by -90 degrees about x, (x, y, z) -> (x, z, -y), so
+that its up becomes +y. Polygons are kept as they are for output (the asset's own topology, with
+the primvars that stay valid when the surface deforms) and split into fan triangles for the
 queries (``MeshAsset.triangles``). Errors are one-line :class:`~softsim_warp.core.errors.SceneError`
 lines naming the scene file, the key and the value.
 """
@@ -10,9 +14,11 @@ lines naming the scene file, the key and the value.
 from __future__ import annotations
 
 import functools
+import logging
 import math
 import os
 import re
+import warnings
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -23,6 +29,12 @@ from .terrain import fan_triangles, signed_volume
 
 USD_SUFFIXES = (".usd", ".usda", ".usdc")
 TRIMESH_SUFFIXES = (".obj", ".stl", ".ply")
+
+UNITS = {"m": 1.0, "cm": 0.01, "mm": 0.001, "km": 1000.0, "in": 0.0254, "ft": 0.3048, "yd": 0.9144}
+"""Names a scene's ``units`` key takes, in metres per unit (a number of metres per unit works too)."""
+UP_AXES = ("Y", "Z")
+Z_UP_TO_Y_UP = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]])
+"""(x, y, z) -> (x, z, -y): a rotation (no mirror), so faces keep their winding."""
 
 
 @dataclass
@@ -36,7 +48,8 @@ class MeshAsset:
     indices: np.ndarray
     """Face vertex indices, shape [sum(counts)]."""
     primvars: list = field(default_factory=list)
-    """``(name, type name, interpolation, values, indices or None)`` of each primvar to carry over (UVs)."""
+    """``(name, type name, interpolation, values (NumPy), indices or None)`` of each primvar to carry
+    over: those that stay valid when the surface deforms (``_kept_primvar``), UVs and display colours."""
     name: str = ""
 
     @functools.cached_property
@@ -80,8 +93,7 @@ class MeshAsset:
                 if idx is not None:
                     idx = np.asarray(idx)[perm]
                 else:
-                    permuted = np.ascontiguousarray(np.asarray(values)[perm])
-                    values = permuted if isinstance(values, np.ndarray) else type(values).FromNumpy(permuted)
+                    values = np.ascontiguousarray(np.asarray(values)[perm])
             primvars.append((name, type_name, interp, values, idx))
         return MeshAsset(self.points, self.counts, self.indices[perm], primvars, self.name)
 
@@ -101,15 +113,18 @@ def _face_reversal(counts) -> np.ndarray:
     return starts + ends - corner
 
 
-def load_mesh(path, prim=None, every=True, source="<scene>", key="mesh.path") -> MeshAsset:
-    """Read a mesh file.
+def load_mesh(path, prim=None, colliders=True, source="<scene>", key="mesh.path", up_axis=None, units=None) -> MeshAsset:
+    """Read a mesh file, in metres, y up.
 
     Args:
         path: a ``.usd``/``.usda``/``.usdc`` file (usd-core) or ``.obj``/``.stl``/``.ply`` (trimesh).
-        prim: the prim path of the Mesh in a USD file; default: every Mesh with UsdPhysics'
-            CollisionAPI, else every Mesh (``every=True``, merged into one), or the first Mesh
-            (``every=False``).
+        prim: in a USD file, a prim path: that Mesh, or every Mesh under that prim, merged into one
+            (each with its own transform); default: every Mesh under the stage's default prim (the
+            whole stage when it has none). With ``colliders=True`` (terrain) only those Meshes with
+            UsdPhysics' CollisionAPI, when some have it.
         source, key: the scene file and key that named it, for error messages.
+        up_axis, units: an OBJ/STL/PLY file's up axis ("Y" or "Z") and metres per unit (a number
+            or a name in ``UNITS``); None: y up, metres. A USD file says its own.
     """
     p = Path(path)
     if not p.is_file():
@@ -117,19 +132,58 @@ def load_mesh(path, prim=None, every=True, source="<scene>", key="mesh.path") ->
     suffix = p.suffix.lower()
     if suffix not in USD_SUFFIXES + TRIMESH_SUFFIXES:
         raise SceneError(source, key, f"unknown mesh format; use {', '.join(USD_SUFFIXES + TRIMESH_SUFFIXES)}", str(path))
+    base = key.rsplit(".", 1)[0]
+    if suffix in USD_SUFFIXES:
+        for name, value in (("up_axis", up_axis), ("units", units)):
+            if value is not None:
+                raise SceneError(source, f"{base}.{name}", f"a USD file gives its own upAxis and metersPerUnit ({path}); "
+                                 "the key is for OBJ, STL and PLY files (use size to rescale)", value)
+    meters = meters_per_unit(units, source, f"{base}.units")
+    axis = "Y" if up_axis is None else str(up_axis)
+    if axis not in UP_AXES:
+        raise SceneError(source, f"{base}.up_axis", f"must be one of {', '.join(UP_AXES)}", up_axis)
     st = os.stat(p)
-    return _load_cached(str(p.resolve()), st.st_mtime_ns, st.st_size, prim, bool(every), source, key)
+    return _load_cached(str(p.resolve()), st.st_mtime_ns, st.st_size, prim, bool(colliders), source, key, axis, meters)
+
+
+def meters_per_unit(units, source="<scene>", key="units") -> float:
+    """Metres per unit of a scene's ``units`` value: a name in ``UNITS`` or a finite number > 0 (None: 1)."""
+    if units is None:
+        return 1.0
+    if isinstance(units, str):
+        if units in UNITS:
+            return UNITS[units]
+    elif isinstance(units, (int, float)) and not isinstance(units, bool):
+        try:
+            if math.isfinite(units) and units > 0:
+                return float(units)
+        except OverflowError:  # an integer too large for a float
+            pass
+    raise SceneError(source, key, f"must be one of {', '.join(UNITS)} or a finite number of metres per unit > 0",
+                     units)
+
+
+def mesh_options(entry: dict) -> dict:
+    """``up_axis`` and ``units`` of a validated ``[[jelly]]`` or ``[[mesh]]`` entry, as ``load_mesh`` takes them."""
+    return {"up_axis": entry.get("up_axis"), "units": entry.get("units")}
+
+
+def _to_y_up(points, meters, axis):
+    """Positions in a file's units and up axis, in metres with y up."""
+    points = points * meters if meters != 1.0 else points
+    return points @ Z_UP_TO_Y_UP.T if axis == "Z" else points
 
 
 @functools.lru_cache(maxsize=32)
-def _load_cached(path, _mtime, _size, prim, every, source, key):
+def _load_cached(path, _mtime, _size, prim, colliders, source, key, axis, meters):
     if path.lower().endswith(USD_SUFFIXES):
-        mesh = _load_usd(path, prim, every, source, key)
+        mesh = _load_usd(path, prim, colliders, source, key)
     else:
         if prim is not None:
             raise SceneError(source, key.rsplit(".", 1)[0] + (".prim" if key.endswith(".path") else ".mesh_prim"),
                              "only a USD file has prims", prim)
         mesh = _load_trimesh(path, source, key)
+        mesh = MeshAsset(_to_y_up(mesh.points, meters, axis), mesh.counts, mesh.indices, mesh.primvars, mesh.name)
     if mesh.points.shape[0] == 0 or mesh.triangles.shape[0] == 0:
         raise SceneError(source, key, "the mesh has no faces", path)
     if not np.isfinite(mesh.points).all():
@@ -143,11 +197,24 @@ def _load_trimesh(path, source, key):
     except ImportError:
         raise SceneError(source, key, "reading OBJ/STL/PLY needs trimesh: pip install 'softsim-warp[mesh]'",
                          path) from None
+    # trimesh logs (and sometimes prints tracebacks) about what it could not read beside the
+    # geometry: a missing .mtl or texture, an unknown OBJ statement. softsim reads only positions,
+    # faces and UVs, so those lines are noise in a successful run: its logger and warnings are
+    # silenced around the load; a failure to read the mesh itself is still an error below.
+    log = logging.getLogger("trimesh")
+    level, propagate = log.level, log.propagate
+    log.setLevel(logging.CRITICAL + 1)
+    log.propagate = False
     try:
-        tm = trimesh.load(path, force="mesh", process=False)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            tm = trimesh.load(path, force="mesh", process=False)
     except Exception as e:  # noqa: BLE001 - any parse failure is the file's fault
         raise SceneError(source, key, f"cannot read the mesh: {str(e).splitlines()[0] if str(e) else type(e).__name__}",
                          path) from None
+    finally:
+        log.setLevel(level)
+        log.propagate = propagate
     faces = np.asarray(getattr(tm, "faces", np.zeros((0, 3))), dtype=np.int64)
     points = np.asarray(getattr(tm, "vertices", np.zeros((0, 3))), dtype=np.float64)
     primvars = []
@@ -176,11 +243,11 @@ def _usd_error_gist(exc) -> str:
     return type(exc).__name__
 
 
-def _load_usd(path, prim_path, every, source, key):
+def _load_usd(path, prim_path, colliders, source, key):
     from pxr import Tf  # noqa: PLC0415
 
     try:
-        return _read_usd(path, prim_path, every, source, key)
+        return _read_usd(path, prim_path, colliders, source, key)
     except Tf.ErrorException as e:
         # Not USD (text in a .usdc), a syntax error in a .usda, a damaged crate file whose values
         # fail to read: the file's fault, one line.
@@ -189,7 +256,7 @@ def _load_usd(path, prim_path, every, source, key):
         ) from None
 
 
-def _read_usd(path, prim_path, every, source, key):
+def _read_usd(path, prim_path, colliders, source, key):
     from pxr import Sdf, Usd, UsdGeom, UsdPhysics  # noqa: PLC0415
 
     stage = Usd.Stage.Open(path, Usd.Stage.LoadAll)
@@ -197,23 +264,34 @@ def _read_usd(path, prim_path, every, source, key):
         raise SceneError(source, key, f"cannot be opened as USD; give {USD_EXPECTED}", path)
     # An authored metersPerUnit converts to metres; without one the file is taken to be in metres,
     # softsim's unit (not USD's fallback of centimetres: most hand-made and script-made files mean metres).
-    meters = UsdGeom.GetStageMetersPerUnit(stage) if UsdGeom.StageHasAuthoredMetersPerUnit(stage) else 1.0
+    meters = 1.0
+    if UsdGeom.StageHasAuthoredMetersPerUnit(stage):
+        meters = stage.GetMetadata(UsdGeom.Tokens.metersPerUnit)
+        if not isinstance(meters, (int, float)) or not math.isfinite(meters) or meters <= 0:
+            raise SceneError(source, key, f"{path}: metersPerUnit must be a finite number of metres per unit > 0",
+                             meters)
+    axis = str(UsdGeom.GetStageUpAxis(stage))
     prim_key = key.rsplit(".", 1)[0] + (".prim" if key.endswith(".path") else ".mesh_prim")
     if prim_path is not None:
-        if not Sdf.Path.IsValidPathString(prim_path):
-            raise SceneError(source, prim_key, "is not a prim path", prim_path)
-        prim = stage.GetPrimAtPath(prim_path)
-        if not prim or not prim.IsA(UsdGeom.Mesh):
-            found = [str(p.GetPath()) for p in stage.Traverse() if p.IsA(UsdGeom.Mesh)][:5]
-            raise SceneError(source, prim_key, f"no Mesh prim there in {path}; Meshes: {', '.join(found) or 'none'}",
-                             prim_path)
-        prims = [prim]
-    else:
-        meshes = [p for p in stage.Traverse() if p.IsA(UsdGeom.Mesh)]
+        if not Sdf.Path.IsValidPathString(prim_path) or not Sdf.Path(prim_path).IsAbsolutePath():
+            raise SceneError(source, prim_key, "is not an absolute prim path", prim_path)
+        root = stage.GetPrimAtPath(prim_path)
+        meshes = _meshes_under(root, Usd, UsdGeom) if root else []
         if not meshes:
-            raise SceneError(source, key, "the file has no Mesh prim", path)
-        colliders = [p for p in meshes if p.HasAPI(UsdPhysics.CollisionAPI)]
-        prims = (colliders or meshes) if every else meshes[:1]
+            found = _meshes_under(stage.GetPseudoRoot(), Usd, UsdGeom)[:5]
+            raise SceneError(source, prim_key, f"no Mesh prim there or under it in {path}; Meshes: "
+                             f"{', '.join(str(p.GetPath()) for p in found) or 'none'}", prim_path)
+    else:
+        root = stage.GetDefaultPrim() or stage.GetPseudoRoot()
+        meshes = _meshes_under(root, Usd, UsdGeom)
+        if not meshes:
+            found = _meshes_under(stage.GetPseudoRoot(), Usd, UsdGeom)[:5]
+            where = "the file has no Mesh prim" if not found else (
+                f"no Mesh prim under the default prim {root.GetPath()}; name one with the prim key; Meshes: "
+                + ", ".join(str(p.GetPath()) for p in found))
+            raise SceneError(source, key, where, path)
+    colliders = [p for p in meshes if p.HasAPI(UsdPhysics.CollisionAPI)] if colliders else []
+    prims = colliders or meshes
     cache = UsdGeom.XformCache(Usd.TimeCode.Default())
     parts = []
     for prim in prims:
@@ -226,18 +304,11 @@ def _read_usd(path, prim_path, every, source, key):
         if (counts < 3).any():
             raise SceneError(source, key, f"the Mesh {prim.GetPath()} has faces of fewer than 3 vertices", path)
         m = np.array(cache.GetLocalToWorldTransform(prim), dtype=np.float64)  # row vectors: x' = x M
-        pts = (pts @ m[:3, :3] + m[3, :3]) * meters
+        pts = _to_y_up(pts @ m[:3, :3] + m[3, :3], meters, axis)
         # Faces wind right-handed in what we return: a left-handed mesh, or a mirroring xform, is reversed.
         flips = (mesh.GetOrientationAttr().Get() == UsdGeom.Tokens.leftHanded) != (np.linalg.det(m[:3, :3]) < 0)
-        primvars = []
-        if len(prims) == 1:
-            for pv in UsdGeom.PrimvarsAPI(prim).GetPrimvarsWithValues():
-                name = pv.GetPrimvarName()
-                if name == "displayColor" or name == "displayOpacity" or pv.GetAttr().Get() is None:
-                    continue
-                interp = pv.GetInterpolation()
-                idx = np.asarray(pv.GetIndices(), dtype=np.int32) if pv.IsIndexed() else None
-                primvars.append((str(name), str(pv.GetTypeName()), str(interp), pv.GetAttr().Get(), idx))
+        primvars = [pv for pv in (_kept_primvar(pv, counts, indices, len(pts), UsdGeom)
+                                  for pv in UsdGeom.PrimvarsAPI(prim).GetPrimvarsWithValues()) if pv is not None]
         part = MeshAsset(pts, counts, indices, primvars, prim.GetName())
         parts.append(part.reversed() if flips else part)
     if len(parts) == 1:
@@ -247,9 +318,95 @@ def _read_usd(path, prim_path, every, source, key):
         np.concatenate([p.points for p in parts]),
         np.concatenate([p.counts for p in parts]),
         np.concatenate([p.indices + o for p, o in zip(parts, offsets)]),
-        [],
+        _merged_primvars(parts),
         "+".join(p.name for p in parts),
     )
+
+
+def _meshes_under(root, Usd, UsdGeom) -> list:
+    """The Mesh prims at or under ``root`` that are drawn: instance proxies included, guides and
+    invisible Meshes left out."""
+    out = []
+    for p in Usd.PrimRange(root, Usd.TraverseInstanceProxies(Usd.PrimDefaultPredicate)):
+        if p.IsA(UsdGeom.Mesh):
+            img = UsdGeom.Imageable(p)
+            if img.ComputeVisibility() != UsdGeom.Tokens.invisible and img.ComputePurpose() != UsdGeom.Tokens.guide:
+                out.append(p)
+    return out
+
+
+# Primvars that describe the undeformed geometry go stale as soon as the surface moves: normals
+# and tangent frames (the Surface's normals are recomputed every frame), positions and vectors of
+# any name (rest positions, velocities), matrices, and skinning data (skel:*) whose binding the
+# output does not have. Kept: UVs, colours, opacities and other plain numbers, attached to faces,
+# corners or vertices, which a deformation carries along unchanged.
+_STALE_ROLES = {"Normal", "Point", "Vector", "Frame", "Transform"}
+_STALE_SCALARS = ("matrix", "quat", "frame", "point", "normal", "vector")
+_STALE_NAMES = re.compile(r"^(skel:|normals$|.*tangent|.*binormal)", re.IGNORECASE)
+_ORDER = {"constant": 0, "uniform": 1, "vertex": 2, "varying": 2, "faceVarying": 3}
+
+
+def _kept_primvar(pv, counts, indices, n_points, UsdGeom):
+    """``(name, type name, interpolation, values (NumPy), indices or None)`` of a primvar that stays
+    valid under deformation and fits the mesh's topology; None for any other (left out)."""
+    name = str(pv.GetPrimvarName())
+    type_name = pv.GetTypeName()
+    interp = str(pv.GetInterpolation())
+    if (_STALE_NAMES.match(name) or type_name.role in _STALE_ROLES or not type_name.isArray
+            or str(type_name.scalarType).startswith(_STALE_SCALARS) or pv.GetElementSize() != 1
+            or interp not in _ORDER):
+        return None
+    values = np.asarray(pv.GetAttr().Get())
+    if values.dtype.kind not in "fiub" or values.ndim == 0:  # strings, tokens, assets: not carried
+        return None
+    want = {"constant": 1, "uniform": len(counts), "vertex": n_points, "varying": n_points,
+            "faceVarying": len(indices)}[interp]
+    idx = np.asarray(pv.GetIndices(), dtype=np.int64) if pv.IsIndexed() else None
+    used = len(idx) if idx is not None else len(values)
+    if used != want or (idx is not None and idx.size and (idx.min() < 0 or idx.max() >= len(values))):
+        return None  # a primvar that does not fit the mesh would make the output invalid
+    if interp == "varying":  # the same count as vertex for a mesh without subdivision
+        interp = "vertex"
+    return (name, str(type_name), interp, values, None if idx is None else idx.astype(np.int32))
+
+
+def _expanded(values, idx, interp, target, part):
+    """A primvar of the Mesh ``part``, one value per element of ``target`` interpolation (no indices)."""
+    v = values if idx is None else values[idx]
+    if interp == target:
+        return v
+    if interp == "constant":
+        n = {"uniform": len(part.counts), "vertex": part.points.shape[0], "faceVarying": len(part.indices)}[target]
+        return np.repeat(v[:1], n, axis=0)
+    if interp == "uniform":  # to faceVarying: each face's value on each of its corners
+        return np.repeat(v, part.counts, axis=0)
+    return v[part.indices]  # vertex to faceVarying
+
+
+def _merged_primvars(parts) -> list:
+    """The primvars of several Meshes merged into one: those every part has, with one type; each at
+    the finest interpolation among the parts' (a constant that differs between parts becomes
+    uniform; uniform beside vertex becomes faceVarying)."""
+    out = []
+    names = [{pv[0]: pv for pv in p.primvars} for p in parts]
+    for name, type_name, *_ in parts[0].primvars:
+        got = [n.get(name) for n in names]
+        if any(g is None or g[1] != type_name for g in got):
+            continue
+        interps = {g[2] for g in got}
+        if interps == {"constant"}:
+            firsts = [(g[3] if g[4] is None else g[3][g[4]])[:1] for g in got]
+            if all(np.array_equal(f, firsts[0]) for f in firsts):
+                out.append(got[0])
+                continue
+            target = "uniform"
+        else:
+            target = max(interps, key=_ORDER.get)
+            if {"uniform", "vertex"} <= interps:
+                target = "faceVarying"
+        merged = np.concatenate([_expanded(g[3], g[4], g[2], target, p) for p, g in zip(parts, got)])
+        out.append((name, type_name, target, merged, None))
+    return out
 
 
 def transform_matrix(transform: dict | None) -> tuple[np.ndarray, np.ndarray]:

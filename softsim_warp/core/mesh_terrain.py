@@ -104,15 +104,17 @@ def mesh_touch_arrays(model) -> tuple:
 
 
 def mesh_output(meshes, roots) -> list:
-    """``(prim path, points, counts, indices, normals)`` of each terrain mesh for the USD stage: the
-    asset's own polygons, flat-shaded (each face corner carries its face's normal, faceVarying)."""
+    """``(prim path, points, counts, indices, normals, primvars)`` of each terrain mesh for the USD
+    stage: the asset's own polygons, flat-shaded (each face corner carries its face's normal,
+    faceVarying), with the primvars of each of its Meshes (``MeshAsset.primvars``)."""
     out, index = [], {}
     for it in meshes:
         i = index[it["world"]] = index.get(it["world"], -1) + 1
         a = it["asset"]
         fn = face_normals(a.points, a.counts, a.indices)
         normals = ("faceVarying", np.repeat(fn, a.counts, axis=0))
-        out.append((f"{roots.get(it['world'], '/World')}/{it.get('name') or 'Mesh'}_{i}", a.points, a.counts, a.indices, normals))
+        out.append((f"{roots.get(it['world'], '/World')}/{it.get('name') or 'Mesh'}_{i}", a.points, a.counts, a.indices, normals,
+                    a.primvars))
     return out
 
 

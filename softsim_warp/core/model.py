@@ -19,7 +19,7 @@ from .forces import attach
 from .lattice_model import LatticeData, detect_lattice
 from .pins import PinDrive, path_position
 from .masked_lattice import attach_masked
-from .mesh_assets import load_mesh, transform_matrix
+from .mesh_assets import load_mesh, mesh_options, transform_matrix
 from .mesh_terrain import attach_meshes, mesh_anchors, mesh_output
 from .terrain import bowl_mesh, sphere_mesh
 from .voxelize import add_mesh_jelly
@@ -722,7 +722,7 @@ def populate(builder: ModelBuilder, data: dict, world=0):
     for s in data.get("sphere", []):
         builder.add_sphere(s["center"], s["radius"], s["restitution"], s["friction"], world=world)
     for i, t in enumerate(data.get("mesh", [])):
-        asset = load_mesh(t["path"], t.get("prim"), every=True, key=f"mesh.{i}.path")
+        asset = load_mesh(t["path"], t.get("prim"), key=f"mesh.{i}.path", **mesh_options(t))
         asset = asset.transformed(*transform_matrix(t.get("transform")))
         # The output prim is named after the asset's Mesh (Stairs_0); several merged Meshes: Mesh_0.
         name = asset.name if asset.name.isidentifier() else "Mesh"

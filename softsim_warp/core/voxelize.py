@@ -22,7 +22,7 @@ import warp as wp
 from ..kernels import mesh as mesh_kernels
 from . import lattice
 from .errors import SceneError
-from .mesh_assets import load_mesh
+from .mesh_assets import load_mesh, mesh_options
 
 
 @dataclass
@@ -152,7 +152,7 @@ def mesh_lattice(j: dict, device=None) -> tuple:
     weights (V, 8))``. Computed once per asset and lattice (validation computes it, on the default
     device, to count the particles; the builder then reuses it); raises :class:`MeshLatticeError`.
     """
-    raw = load_mesh(j["mesh"], j.get("mesh_prim"), every=False)  # cached: one object per file version
+    raw = load_mesh(j["mesh"], j.get("mesh_prim"), colliders=False, **mesh_options(j))  # cached: one object per file version
     key = (id(raw), tuple(j["resolution"]), tuple(j["size"]), float(j["_mesh_scale"]), tuple(j["_mesh_center"]))
     hit = _LATTICES.get(key)
     if hit is None or hit[0] is not raw:

@@ -22,8 +22,13 @@ from pathlib import Path
 
 import numpy as np
 
-from ..core.mesh_assets import load_mesh, transform_matrix
+from ..core.errors import warn
+from ..core.mesh_assets import USD_SUFFIXES, load_mesh, mesh_options, transform_matrix
 from ..core.voxelize import MeshLatticeError, mesh_lattice
+
+
+SANE_SIZE = (0.01, 50.0)
+"""The longest side [m] of a jelly asset taken at its own size without a word; outside it a warning."""
 
 
 def scene_base(source: str) -> Path:
@@ -48,7 +53,7 @@ def resolve_meshes(data: dict, ctx, base=None):
     base = Path(base) if base is not None else scene_base(ctx.source)
     for i, t in enumerate(terrain):
         t["path"] = _resolve(t["path"], base)
-        load_mesh(t["path"], t.get("prim"), every=True, source=ctx.source, key=f"mesh.{i}.path")
+        load_mesh(t["path"], t.get("prim"), source=ctx.source, key=f"mesh.{i}.path", **mesh_options(t))
     for i, j in jellies:
         _mesh_jelly(i, j, ctx, base)
 
@@ -105,7 +110,7 @@ def _mesh_jelly(i, j, ctx, base):
         name = "mesh_prim" if "mesh_prim" in j else "spacing"
         ctx.fail(f"{key}.{name}", "only a mesh jelly takes it; give mesh = \"file\" too", j[name])
     j["mesh"] = _resolve(j["mesh"], base)
-    asset = load_mesh(j["mesh"], j.get("mesh_prim"), every=False, source=ctx.source, key=f"{key}.mesh")
+    asset = load_mesh(j["mesh"], j.get("mesh_prim"), colliders=False, source=ctx.source, key=f"{key}.mesh", **mesh_options(j))
     boundary, non_manifold = asset.edge_uses
     if non_manifold:
         ctx.fail(f"{key}.mesh", f"the mesh is non-manifold ({non_manifold} edges shared by more than two faces); "
@@ -120,6 +125,12 @@ def _mesh_jelly(i, j, ctx, base):
     lo, hi = asset.points.min(axis=0), asset.points.max(axis=0)
     extent0 = hi - lo
     longest0 = float(extent0.max())
+    if "size" not in j and not SANE_SIZE[0] <= longest0 <= SANE_SIZE[1]:
+        # A millimetre CAD file read as metres, or a centimetre asset without metersPerUnit: it
+        # would simulate, but not as the asset the user has in mind.
+        warn(ctx.source, f"{key}.size", f"the mesh {Path(j['mesh']).name} is {longest0:.4g} m along its longest "
+             f"side, outside {SANE_SIZE[0] * 100:g} cm to {SANE_SIZE[1]:g} m; give size (its longest side [m])"
+             + (" or units" if not j["mesh"].lower().endswith(USD_SUFFIXES) else ""))
     scale = 1.0
     if "size" in j:
         if len(set(j["size"])) != 1:
@@ -166,7 +177,7 @@ def _mesh_jelly(i, j, ctx, base):
 
 def terrain_asset(t: dict, i: int, source="<scene>"):
     """A validated ``[[mesh]]`` entry's mesh in world space (its transform applied)."""
-    return load_mesh(t["path"], t.get("prim"), every=True, source=source, key=f"mesh.{i}.path").transformed(
+    return load_mesh(t["path"], t.get("prim"), source=source, key=f"mesh.{i}.path", **mesh_options(t)).transformed(
         *transform_matrix(t.get("transform"))
     )
 

@@ -19,6 +19,7 @@ from importlib import resources
 from pathlib import Path
 
 from ..core.errors import COMMAND_LINE, SceneError
+from ..core.mesh_assets import UNITS, UP_AXES, meters_per_unit
 from ..core.model import jelly_points
 from ..core.pins import FACES, INTERPOLATIONS, select_particles
 from .checks import check_scene
@@ -210,6 +211,17 @@ class Text(Field):
         return value
 
 
+class Units(Field):
+    """A mesh file's length unit: a name in ``mesh_assets.UNITS`` or a finite number of metres per unit > 0."""
+
+    def check(self, value, key, ctx):
+        try:
+            meters_per_unit(value, ctx.source, key)
+        except SceneError as e:
+            ctx.fail(key, e.message, value)
+        return value if isinstance(value, str) else float(value)
+
+
 class Vec3(Field):
     def __init__(self, default=None, nonzero=False, lo=None, lo_open=False, scalar_ok=False, **kw):
         super().__init__(default, **kw)
@@ -340,6 +352,10 @@ MESH_TRANSFORM = Table(
     optional=True,
 )
 
+# An OBJ, STL or PLY file's axes and units (a USD file states its own upAxis and metersPerUnit).
+UP_AXIS = Choice(UP_AXES, doc="an OBJ/STL/PLY file's up axis (default Y); a Z-up asset is stood upright")
+UNITS_KEY = Units(doc=f"an OBJ/STL/PLY file's unit: {', '.join(UNITS)} or metres per unit (default m)")
+
 SCHEMA = Table(
     {
         "name": Text(doc="scene name"),
@@ -377,7 +393,9 @@ SCHEMA = Table(
                     "resolution": Int3(doc="particles per axis; a mesh jelly: cells along its longest side"),
                     "size": Vec3(lo=0, lo_open=True, scalar_ok=True, doc="edge lengths [m]; a mesh jelly: its longest side"),
                     "mesh": Text(doc="a closed mesh file (USD, OBJ, STL, PLY) voxelised into the jelly, relative to the scene file"),
-                    "mesh_prim": Text(doc="Mesh prim path in a USD file (default: the first Mesh)"),
+                    "mesh_prim": Text(doc="prim path in a USD file: a Mesh, or every Mesh under it (default: every Mesh under the default prim)"),
+                    "up_axis": UP_AXIS,
+                    "units": UNITS_KEY,
                     "spacing": Float(lo=0, lo_open=True, doc="a mesh jelly's lattice spacing [m] (instead of resolution)"),
                     "center": Vec3([0.0, 0.0, 0.0], doc="[m]"),
                     "rotation": Table(
@@ -490,7 +508,9 @@ SCHEMA = Table(
             Table(
                 {
                     "path": Text(required=True, doc="USD, OBJ, STL or PLY file, relative to the scene file"),
-                    "prim": Text(doc="Mesh prim path in a USD file; default: every Mesh with CollisionAPI, else every Mesh"),
+                    "prim": Text(doc="prim path in a USD file: a Mesh, or every Mesh under it; default: the default prim's Meshes with CollisionAPI, else all of them"),
+                    "up_axis": UP_AXIS,
+                    "units": UNITS_KEY,
                     "restitution": Float(0.5, lo=0, hi=1),
                     "friction": Float(0.3, lo=0),
                     "thickness": Float(0.1, lo=0, lo_open=True, doc="how far behind its surface a mesh pushes particles out [m]"),

@@ -110,20 +110,20 @@ class SurfaceMap:
 
 
 def _author_primvars(mesh, primvars, Sdf, UsdGeom, Vt):
-    """Carry an asset's primvars (UVs and others) over to the Surface: ``(name, type name,
-    interpolation, values, indices or None)`` each."""
+    """Carry an asset's primvars (UVs, display colours, other plain data) over to a Mesh:
+    ``(name, type name, interpolation, values (NumPy), indices or None)`` each, as
+    ``core.mesh_assets`` keeps them (those that stay valid when the surface deforms)."""
     api = UsdGeom.PrimvarsAPI(mesh.GetPrim())
     for name, type_name, interpolation, values, indices in primvars:
-        pv = api.CreatePrimvar(name, Sdf.ValueTypeNames.Find(type_name), interpolation)
+        value_type = Sdf.ValueTypeNames.Find(type_name)
+        pv = api.CreatePrimvar(name, value_type, interpolation)
+        flat = np.asarray(values)
         if indices is None and interpolation != UsdGeom.Tokens.constant:
             # Repeated values (a UV shared by the corners around a vertex) are written once, indexed.
-            flat = np.asarray(values)
             uniq, inverse = np.unique(flat.reshape(len(flat), -1), axis=0, return_inverse=True)
             if len(uniq) < len(flat):
-                values = type(values).FromNumpy(np.ascontiguousarray(uniq.reshape((-1,) + flat.shape[1:]))) \
-                    if hasattr(type(values), "FromNumpy") else uniq.reshape((-1,) + flat.shape[1:])
-                indices = inverse.ravel()
-        pv.Set(values)
+                flat, indices = uniq.reshape((-1,) + flat.shape[1:]), inverse.ravel()
+        pv.Set(value_type.type.pythonClass.FromNumpy(np.ascontiguousarray(flat)))
         if indices is not None:
             pv.SetIndices(Vt.IntArray.FromNumpy(np.asarray(indices, dtype=np.int32)))
 
@@ -218,7 +218,8 @@ class UsdWriter:
                 mesh.SetNormalsInterpolation(UsdGeom.Tokens.vertex)
                 if surface.double_sided:
                     mesh.CreateDoubleSidedAttr(True)
-                mesh.CreateDisplayColorPrimvar().Set(Vt.Vec3fArray([Gf.Vec3f(*JELLY_COLOR)]))
+                if "displayColor" not in {pv[0] for pv in surface.primvars}:  # the asset's own colours win
+                    mesh.CreateDisplayColorPrimvar().Set(Vt.Vec3fArray([Gf.Vec3f(*JELLY_COLOR)]))
                 _author_primvars(mesh, surface.primvars, Sdf, UsdGeom, Vt)
             curves = {}
             if springs:
@@ -247,14 +248,16 @@ class UsdWriter:
             points, counts, indices = plane_mesh(p["point"], p["normal"], p["size"], p["hole_center"], p["hole_radius"])
             self.add_static_mesh(f"{self.roots[p['world']]}/Plane_{i}", points, counts, indices)
         # Bowls and spheres; ``self.roots`` puts each world's terrain under its group.
-        # (a mesh terrain may add its asset's normals as a fifth item).
-        for prim_path, points, counts, indices, *normals in getattr(model, "terrain_meshes", lambda roots: [])(self.roots):
-            self.add_static_mesh(prim_path, points, counts, indices, normals=normals[0] if normals else None)
+        # (a mesh terrain adds its normals and its asset's primvars as a fifth and sixth item).
+        for prim_path, points, counts, indices, *extra in getattr(model, "terrain_meshes", lambda roots: [])(self.roots):
+            self.add_static_mesh(prim_path, points, counts, indices, normals=extra[0] if extra else None,
+                                 primvars=extra[1] if len(extra) > 1 else ())
         self.save()
 
-    def add_static_mesh(self, prim_path, points, counts, indices, color=TERRAIN_COLOR, normals=None):
+    def add_static_mesh(self, prim_path, points, counts, indices, color=TERRAIN_COLOR, normals=None, primvars=()):
         """A mesh that does not move (terrain); ``normals`` ``(interpolation, (N, 3))`` or None for
-        area-weighted vertex normals of its faces."""
+        area-weighted vertex normals of its faces; ``primvars`` as ``MeshAsset.primvars`` (a
+        displayColor among them replaces ``color``)."""
         Gf, Sdf, Usd, UsdGeom, Vt = self._pxr
         mesh = UsdGeom.Mesh.Define(self.stage, prim_path)
         pts = Vt.Vec3fArray.FromNumpy(np.ascontiguousarray(points, dtype=np.float32))
@@ -268,7 +271,9 @@ class UsdWriter:
         mesh.CreateNormalsAttr(Vt.Vec3fArray.FromNumpy(np.ascontiguousarray(normals[1], dtype=np.float32)))
         mesh.SetNormalsInterpolation(normals[0])
         mesh.CreateDoubleSidedAttr(True)
-        mesh.CreateDisplayColorPrimvar().Set(Vt.Vec3fArray([Gf.Vec3f(*color)]))
+        if "displayColor" not in {pv[0] for pv in primvars}:
+            mesh.CreateDisplayColorPrimvar().Set(Vt.Vec3fArray([Gf.Vec3f(*color)]))
+        _author_primvars(mesh, primvars, Sdf, UsdGeom, Vt)
         return mesh
 
     wants_velocities = True
