@@ -12,6 +12,18 @@
   normals and UVs, CollisionAPI.
 
 Meshes are in metres (metersPerUnit = 1, up axis y), right-handed, every face wound outward.
+
+``--real DIR`` writes assets as other tools make them, for the tests (tests/test_real_assets.py),
+not shipped:
+
+* ``zup_cm.usda``: a tall pebble (0.24 x 0.6 x 0.2 m) written as a CAD or DCC tool does: up axis
+  z, metersPerUnit 0.01 (the points in centimetres);
+* ``pawn.usda``: a chess pawn of two Meshes (a base and a head), each under its own xform;
+* ``bracket_mm.stl``: a binary STL of a 120 x 60 x 40 mm block, in millimetres, z up;
+* ``skinned.usda``: a Mesh bound to a Skeleton (SkelBindingAPI, skel:joints, jointIndices and
+  jointWeights primvars), with static normals and tangents as primvars beside its UVs;
+* ``latin1.obj``: an OBJ with a Latin-1 comment, a material library that is not there and UVs;
+* ``lost_texture.ply``: a PLY whose header names a texture image that is not there, with UVs.
 """
 
 from __future__ import annotations
@@ -229,10 +241,180 @@ def signed_volume(points, counts, indices):
     return float(np.einsum("ij,ij->i", p[t[:, 0]], np.cross(p[t[:, 1]], p[t[:, 2]])).sum() / 6.0)
 
 
+# -- assets as other tools write them (``--real``): for the tests, not shipped ------------------
+
+Z_UP_FROM_Y_UP = np.array([[1.0, 0.0, 0.0], [0.0, 0.0, -1.0], [0.0, 1.0, 0.0]])
+"""(x, y, z) -> (x, -z, y): a y-up shape written into a z-up file (its up, +y, becomes +z)."""
+
+
+def tall_pebble_radius(dirs):
+    return pebble_radius(dirs, a=(0.12, 0.3, 0.1))
+
+
+def write_zup_cm(path):
+    """A tall pebble (0.24 x 0.6 x 0.2 m, y up in softsim's frame) in a z-up centimetre stage."""
+    pts, counts, idx, uv = lat_long(tall_pebble_radius, rings=24, segments=32)
+    stage = Usd.Stage.CreateNew(str(path))
+    UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.z)
+    UsdGeom.SetStageMetersPerUnit(stage, 0.01)
+    root = UsdGeom.Xform.Define(stage, "/Pebble")
+    stage.SetDefaultPrim(root.GetPrim())
+    _define_mesh(stage, "/Pebble/Geom", 100.0 * pts @ Z_UP_FROM_Y_UP.T, counts, idx, uv=uv, color=(0.5, 0.8, 0.4))
+    stage.GetRootLayer().Save()
+
+
+PAWN_BASE = {"translate": (0.0, 0.1, 0.0), "scale": (1.0, 0.5, 1.0)}
+PAWN_HEAD = {"translate": (0.0, 0.28, 0.0), "scale": (0.45, 0.45, 0.45)}
+
+
+def write_pawn(path):
+    """Two closed Meshes under one default prim, each with its own transform: a squashed sphere
+    (the base) and a smaller sphere (the head) that sinks into it; each its own colour."""
+    stage = Usd.Stage.CreateNew(str(path))
+    UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.y)
+    UsdGeom.SetStageMetersPerUnit(stage, 1.0)
+    root = UsdGeom.Xform.Define(stage, "/Pawn")
+    stage.SetDefaultPrim(root.GetPrim())
+    sphere = lat_long(lambda d: np.full(len(d), 0.2), rings=16, segments=24)
+    for name, xf, rings, color in (("Base", PAWN_BASE, 16, (0.9, 0.9, 0.85)), ("Head", PAWN_HEAD, 12, (0.8, 0.2, 0.2))):
+        pts, counts, idx, uv = sphere if rings == 16 else lat_long(lambda d: np.full(len(d), 0.2), rings, 18)
+        x = UsdGeom.Xform.Define(stage, f"/Pawn/{name}")
+        x.AddTranslateOp().Set(xf["translate"])
+        x.AddScaleOp().Set(xf["scale"])
+        _define_mesh(stage, f"/Pawn/{name}/Geom", pts, counts, idx, uv=uv, color=color)
+    stage.GetRootLayer().Save()
+
+
+BRACKET_MM = (120.0, 60.0, 40.0)
+
+
+def write_stl_mm(path, size=BRACKET_MM):
+    """A binary STL of a block ``size`` [mm] (x, y, z), z up, resting on z = 0: a triangle soup, as
+    CAD tools write it (each triangle its own three corners)."""
+    x, y, z = size
+    c = np.array([[i * x, j * y, k * z] for i in (0, 1) for j in (0, 1) for k in (0, 1)], dtype=np.float64)
+    c[:, :2] -= 0.5 * np.array([x, y])
+    quads = [[0, 1, 3, 2], [4, 6, 7, 5], [0, 4, 5, 1], [2, 3, 7, 6], [0, 2, 6, 4], [1, 5, 7, 3]]  # outward
+    tris = np.array([[q[0], q[k], q[k + 1]] for q in quads for k in (1, 2)])
+    v = c[tris]
+    n = np.cross(v[:, 1] - v[:, 0], v[:, 2] - v[:, 0])
+    n /= np.linalg.norm(n, axis=1, keepdims=True)
+    rec = np.zeros(len(tris), dtype=[("n", "<f4", 3), ("v", "<f4", (3, 3)), ("attr", "<u2")])
+    rec["n"], rec["v"] = n, v
+    with open(path, "wb") as f:
+        f.write(b"softsim test block, millimetres, z up".ljust(80, b" "))
+        f.write(np.uint32(len(tris)).tobytes())
+        f.write(rec.tobytes())
+
+
+def write_skinned(path):
+    """A character Mesh as a rigging tool exports it: bound to a one-joint Skeleton under a
+    SkelRoot (SkelBindingAPI, skel:skeleton, jointIndices and jointWeights primvars), with static
+    normals and tangents as primvars beside its UVs."""
+    from pxr import Gf, UsdSkel  # noqa: PLC0415
+
+    pts, counts, idx, uv = lat_long(blob_radius, rings=16, segments=24)
+    stage = Usd.Stage.CreateNew(str(path))
+    UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.y)
+    UsdGeom.SetStageMetersPerUnit(stage, 1.0)
+    root = UsdSkel.Root.Define(stage, "/Character")
+    stage.SetDefaultPrim(root.GetPrim())
+    skel = UsdSkel.Skeleton.Define(stage, "/Character/Skel")
+    skel.CreateJointsAttr(["root"])
+    skel.CreateBindTransformsAttr(Vt.Matrix4dArray([Gf.Matrix4d(1.0)]))
+    skel.CreateRestTransformsAttr(Vt.Matrix4dArray([Gf.Matrix4d(1.0)]))
+    mesh = _define_mesh(stage, "/Character/Body", pts, counts, idx, uv=uv, color=(0.95, 0.55, 0.2), normals=False)
+    api = UsdGeom.PrimvarsAPI(mesh)
+    nrm = _vertex_normals(pts, counts, idx)
+    api.CreatePrimvar("normals", Sdf.ValueTypeNames.Normal3fArray, UsdGeom.Tokens.vertex).Set(
+        Vt.Vec3fArray.FromNumpy(np.ascontiguousarray(nrm, dtype=np.float32)))
+    tangent = np.cross([0.0, 1.0, 0.0], nrm)
+    tangent /= np.maximum(np.linalg.norm(tangent, axis=1, keepdims=True), 1e-12)
+    api.CreatePrimvar("tangents", Sdf.ValueTypeNames.Float3Array, UsdGeom.Tokens.vertex).Set(
+        Vt.Vec3fArray.FromNumpy(np.ascontiguousarray(tangent, dtype=np.float32)))
+    binding = UsdSkel.BindingAPI.Apply(mesh.GetPrim())
+    binding.CreateSkeletonRel().SetTargets([skel.GetPath()])
+    binding.CreateJointIndicesPrimvar(False, 1).Set(Vt.IntArray([0] * len(pts)))
+    binding.CreateJointWeightsPrimvar(False, 1).Set(Vt.FloatArray([1.0] * len(pts)))
+    binding.CreateGeomBindTransformAttr(Gf.Matrix4d(1.0))
+    stage.GetRootLayer().Save()
+
+
+def write_latin1_obj(path):
+    """An OBJ as an older tool writes it: a Latin-1 comment (not UTF-8), a material library that
+    is not there, UVs; a closed box of 0.3 x 0.2 x 0.25 m wound outward."""
+    size = np.array([0.3, 0.2, 0.25])
+    c = (np.array([[i, j, k] for i in (0, 1) for j in (0, 1) for k in (0, 1)], dtype=np.float64) - 0.5) * size
+    quads = [[0, 1, 3, 2], [4, 6, 7, 5], [0, 4, 5, 1], [2, 3, 7, 6], [0, 2, 6, 4], [1, 5, 7, 3]]
+    lines = ["# Modèle exporté par l'outil de Günther (Latin-1)", "mtllib matériaux_absents.mtl", "o Boîte"]
+    lines += [f"v {p[0]:.6f} {p[1]:.6f} {p[2]:.6f}" for p in c]
+    lines += ["vt 0 0", "vt 1 0", "vt 1 1", "vt 0 1", "usemtl Peau"]
+    lines += ["f " + " ".join(f"{v + 1}/{k + 1}" for k, v in enumerate(q)) for q in quads]
+    Path(path).write_bytes(("\n".join(lines) + "\n").encode("latin-1"))
+
+
+def write_lost_texture_ply(path):
+    """An ASCII PLY of a tetrahedron (wound outward) with per-corner UVs, its header naming a
+    texture image that is not there (trimesh logs a traceback about it)."""
+    pts = np.array([[0.0, 0.0, 0.0], [0.2, 0.0, 0.0], [0.0, 0.2, 0.0], [0.0, 0.0, 0.2]])
+    faces = [[0, 2, 1], [0, 1, 3], [0, 3, 2], [1, 2, 3]]
+    uv = [[0, 0], [0, 1], [1, 0]]
+    lines = ["ply", "format ascii 1.0", "comment TextureFile missing_texture.png", "element vertex 4",
+             "property float x", "property float y", "property float z", "element face 4",
+             "property list uchar int vertex_indices", "property list uchar float texcoord", "end_header"]
+    lines += [" ".join(f"{c:g}" for c in p) for p in pts]
+    lines += ["3 " + " ".join(map(str, f)) + " 6 " + " ".join(f"{c:g}" for u in uv for c in u) for f in faces]
+    Path(path).write_text("\n".join(lines) + "\n")
+
+
+def _define_mesh(stage, prim_path, points, counts, indices, uv=None, color=(0.8, 0.8, 0.8), normals=True):
+    """A Mesh prim with (vertex) normals, face-varying UVs and a displayColor."""
+    mesh = UsdGeom.Mesh.Define(stage, prim_path)
+    pts = Vt.Vec3fArray.FromNumpy(np.ascontiguousarray(points, dtype=np.float32))
+    mesh.CreatePointsAttr(pts)
+    mesh.CreateExtentAttr(UsdGeom.PointBased.ComputeExtent(pts))
+    mesh.CreateFaceVertexCountsAttr(Vt.IntArray.FromNumpy(np.asarray(counts, dtype=np.int32)))
+    mesh.CreateFaceVertexIndicesAttr(Vt.IntArray.FromNumpy(np.asarray(indices, dtype=np.int32)))
+    mesh.CreateSubdivisionSchemeAttr(UsdGeom.Tokens.none)
+    if normals:
+        nrm = _vertex_normals(points, counts, indices)
+        mesh.CreateNormalsAttr(Vt.Vec3fArray.FromNumpy(np.ascontiguousarray(nrm, dtype=np.float32)))
+        mesh.SetNormalsInterpolation(UsdGeom.Tokens.vertex)
+    mesh.CreateDisplayColorPrimvar().Set(Vt.Vec3fArray([tuple(color)]))
+    if uv is not None:
+        pv = UsdGeom.PrimvarsAPI(mesh).CreatePrimvar("st", Sdf.ValueTypeNames.TexCoord2fArray, UsdGeom.Tokens.faceVarying)
+        pv.Set(Vt.Vec2fArray.FromNumpy(np.ascontiguousarray(uv, dtype=np.float32)))
+    return mesh
+
+
+REAL_ASSETS = {
+    "zup_cm.usda": write_zup_cm,
+    "pawn.usda": write_pawn,
+    "bracket_mm.stl": write_stl_mm,
+    "skinned.usda": write_skinned,
+    "latin1.obj": write_latin1_obj,
+    "lost_texture.ply": write_lost_texture_ply,
+}
+
+
+def write_real_assets(out) -> list:
+    """Write every ``REAL_ASSETS`` file into ``out``; returns their paths."""
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    for name, write in REAL_ASSETS.items():
+        write(out / name)
+    return [out / name for name in REAL_ASSETS]
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--out", default=str(DEFAULT_OUT), help="output folder (default: scenes/assets)")
+    ap.add_argument("--real", metavar="DIR", help="write the test assets as other tools make them into DIR instead")
     args = ap.parse_args(argv)
+    if args.real:
+        for path in write_real_assets(args.real):
+            print(path)
+        return
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     pts, counts, idx, uv = lat_long(blob_radius)
