@@ -325,3 +325,34 @@ def test_unreadable_obj_is_still_an_error(tmp_path):
     bad.write_bytes(b"v 0 0 0\nf 1 2 3\n")  # a face on vertices that are not there
     with pytest.raises(SceneError):
         load_mesh(str(bad))
+
+
+def test_which_meshes_and_primvars_are_read(tmp_path):
+    # Under the default prim: drawn Meshes only (a guide and an invisible Mesh left out, a Mesh
+    # outside the default prim too); of the primvars, those valid under deformation that fit the mesh.
+    pts, counts, idx, uv = MA.lat_long(lambda d: np.full(len(d), 0.1), rings=6, segments=8)
+    path = tmp_path / "mixed.usda"
+    stage = Usd.Stage.CreateNew(str(path))
+    root = UsdGeom.Xform.Define(stage, "/Root")
+    stage.SetDefaultPrim(root.GetPrim())
+    for name, offset in (("Shown", 0.0), ("Guide", 1.0), ("Hidden", 2.0)):
+        MA._define_mesh(stage, f"/Root/{name}", pts + [offset, 0.0, 0.0], counts, idx, uv=uv)
+    MA._define_mesh(stage, "/Elsewhere", pts + [5.0, 0.0, 0.0], counts, idx)
+    UsdGeom.Imageable(stage.GetPrimAtPath("/Root/Guide")).CreatePurposeAttr(UsdGeom.Tokens.guide)
+    UsdGeom.Imageable(stage.GetPrimAtPath("/Root/Hidden")).MakeInvisible()
+    api = UsdGeom.PrimvarsAPI(stage.GetPrimAtPath("/Root/Shown"))
+    n = len(pts)
+    api.CreatePrimvar("rest", Sdf.ValueTypeNames.Point3fArray, UsdGeom.Tokens.vertex).Set([(0, 0, 0)] * n)
+    api.CreatePrimvar("wind", Sdf.ValueTypeNames.Vector3fArray, UsdGeom.Tokens.vertex).Set([(0, 0, 0)] * n)
+    api.CreatePrimvar("label", Sdf.ValueTypeNames.StringArray, UsdGeom.Tokens.constant).Set(["a"])
+    api.CreatePrimvar("short", Sdf.ValueTypeNames.FloatArray, UsdGeom.Tokens.vertex).Set([1.0] * (n - 1))
+    api.CreatePrimvar("heat", Sdf.ValueTypeNames.FloatArray, UsdGeom.Tokens.uniform).Set(list(range(len(counts))))
+    api.CreatePrimvar("skel:jointWeights", Sdf.ValueTypeNames.FloatArray, UsdGeom.Tokens.vertex).Set([1.0] * n)
+    stage.GetRootLayer().Save()
+    a = load_mesh(str(path), colliders=False)
+    assert np.abs(a.points - pts).max() < 1e-6  # only /Root/Shown
+    kept = {p[0]: p for p in a.primvars}
+    assert set(kept) == {"displayColor", "st", "heat"}
+    assert np.array_equal(kept["heat"][3], np.arange(len(counts)))
+    # Naming a prim outside the default prim reads it.
+    assert np.abs(load_mesh(str(path), "/Elsewhere", colliders=False).points - (pts + [5.0, 0.0, 0.0])).max() < 1e-6
