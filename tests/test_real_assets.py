@@ -356,3 +356,17 @@ def test_which_meshes_and_primvars_are_read(tmp_path):
     assert np.array_equal(kept["heat"][3], np.arange(len(counts)))
     # Naming a prim outside the default prim reads it.
     assert np.abs(load_mesh(str(path), "/Elsewhere", colliders=False).points - (pts + [5.0, 0.0, 0.0])).max() < 1e-6
+
+
+def test_animated_mesh_is_read_at_its_first_sample(tmp_path):
+    # A cache exported from an animation: points as time samples only, no default value.
+    pts, counts, idx, uv = MA.lat_long(lambda d: np.full(len(d), 0.1), rings=6, segments=8)
+    path = tmp_path / "cache.usda"
+    stage = Usd.Stage.CreateNew(str(path))
+    mesh = MA._define_mesh(stage, "/Cache", pts, counts, idx, uv=uv)
+    mesh.GetPointsAttr().Clear()
+    for t, dy in ((1.0, 0.0), (2.0, 1.0)):
+        mesh.GetPointsAttr().Set([tuple(p) for p in (pts + [0.0, dy, 0.0]).astype(float)], t)
+    stage.GetRootLayer().Save()
+    a = load_mesh(str(path), colliders=False)
+    assert np.abs(a.points - pts).max() < 1e-6

@@ -209,16 +209,16 @@ def _load_trimesh(path, source, key):
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
             tm = trimesh.load(path, force="mesh", process=False)
+            faces = np.asarray(getattr(tm, "faces", np.zeros((0, 3))), dtype=np.int64).reshape(-1, 3)
+            points = np.asarray(getattr(tm, "vertices", np.zeros((0, 3))), dtype=np.float64).reshape(-1, 3)
+            uv = getattr(getattr(tm, "visual", None), "uv", None)
     except Exception as e:  # noqa: BLE001 - any parse failure is the file's fault
         raise SceneError(source, key, f"cannot read the mesh: {str(e).splitlines()[0] if str(e) else type(e).__name__}",
                          path) from None
     finally:
         log.setLevel(level)
         log.propagate = propagate
-    faces = np.asarray(getattr(tm, "faces", np.zeros((0, 3))), dtype=np.int64)
-    points = np.asarray(getattr(tm, "vertices", np.zeros((0, 3))), dtype=np.float64)
     primvars = []
-    uv = getattr(getattr(tm, "visual", None), "uv", None)
     if uv is not None and len(uv) == len(points):
         primvars.append(("st", "texCoord2f[]", "vertex", np.asarray(uv, dtype=np.float32), None))
     return MeshAsset(points, np.full(faces.shape[0], 3), faces.ravel(), primvars, Path(path).stem)
@@ -292,13 +292,15 @@ def _read_usd(path, prim_path, colliders, source, key):
             raise SceneError(source, key, where, path)
     colliders = [p for p in meshes if p.HasAPI(UsdPhysics.CollisionAPI)] if colliders else []
     prims = colliders or meshes
-    cache = UsdGeom.XformCache(Usd.TimeCode.Default())
+    # An animated Mesh (a cache with time samples and no default) is read at its first sample.
+    time = Usd.TimeCode.EarliestTime()
+    cache = UsdGeom.XformCache(time)
     parts = []
     for prim in prims:
         mesh = UsdGeom.Mesh(prim)
-        pts = np.asarray(mesh.GetPointsAttr().Get() or [], dtype=np.float64).reshape(-1, 3)
-        counts = np.asarray(mesh.GetFaceVertexCountsAttr().Get() or [], dtype=np.int64)
-        indices = np.asarray(mesh.GetFaceVertexIndicesAttr().Get() or [], dtype=np.int64)
+        pts = np.asarray(mesh.GetPointsAttr().Get(time) or [], dtype=np.float64).reshape(-1, 3)
+        counts = np.asarray(mesh.GetFaceVertexCountsAttr().Get(time) or [], dtype=np.int64)
+        indices = np.asarray(mesh.GetFaceVertexIndicesAttr().Get(time) or [], dtype=np.int64)
         if counts.sum() != indices.size or (indices.size and (indices.min() < 0 or indices.max() >= len(pts))):
             raise SceneError(source, key, f"the Mesh {prim.GetPath()} has inconsistent face counts and indices", path)
         if (counts < 3).any():
@@ -307,7 +309,7 @@ def _read_usd(path, prim_path, colliders, source, key):
         pts = _to_y_up(pts @ m[:3, :3] + m[3, :3], meters, axis)
         # Faces wind right-handed in what we return: a left-handed mesh, or a mirroring xform, is reversed.
         flips = (mesh.GetOrientationAttr().Get() == UsdGeom.Tokens.leftHanded) != (np.linalg.det(m[:3, :3]) < 0)
-        primvars = [pv for pv in (_kept_primvar(pv, counts, indices, len(pts), UsdGeom)
+        primvars = [pv for pv in (_kept_primvar(pv, counts, indices, len(pts), time)
                                   for pv in UsdGeom.PrimvarsAPI(prim).GetPrimvarsWithValues()) if pv is not None]
         part = MeshAsset(pts, counts, indices, primvars, prim.GetName())
         parts.append(part.reversed() if flips else part)
@@ -346,7 +348,7 @@ _STALE_NAMES = re.compile(r"^(skel:|normals$|.*tangent|.*binormal)", re.IGNORECA
 _ORDER = {"constant": 0, "uniform": 1, "vertex": 2, "varying": 2, "faceVarying": 3}
 
 
-def _kept_primvar(pv, counts, indices, n_points, UsdGeom):
+def _kept_primvar(pv, counts, indices, n_points, time):
     """``(name, type name, interpolation, values (NumPy), indices or None)`` of a primvar that stays
     valid under deformation and fits the mesh's topology; None for any other (left out)."""
     name = str(pv.GetPrimvarName())
@@ -356,12 +358,12 @@ def _kept_primvar(pv, counts, indices, n_points, UsdGeom):
             or str(type_name.scalarType).startswith(_STALE_SCALARS) or pv.GetElementSize() != 1
             or interp not in _ORDER):
         return None
-    values = np.asarray(pv.GetAttr().Get())
+    values = np.asarray(pv.GetAttr().Get(time))
     if values.dtype.kind not in "fiub" or values.ndim == 0:  # strings, tokens, assets: not carried
         return None
     want = {"constant": 1, "uniform": len(counts), "vertex": n_points, "varying": n_points,
             "faceVarying": len(indices)}[interp]
-    idx = np.asarray(pv.GetIndices(), dtype=np.int64) if pv.IsIndexed() else None
+    idx = np.asarray(pv.GetIndices(time), dtype=np.int64) if pv.IsIndexed() else None
     used = len(idx) if idx is not None else len(values)
     if used != want or (idx is not None and idx.size and (idx.min() < 0 or idx.max() >= len(values))):
         return None  # a primvar that does not fit the mesh would make the output invalid
