@@ -85,7 +85,7 @@ def _usd_validation(path):
 
 def test_zup_centimetre_usd_stands_upright_at_its_size(tmp_path, assets):
     # The pebble is 0.24 x 0.6 x 0.2 m with y up; the file holds it z up, in centimetres.
-    pts, counts, idx, _ = MA.lat_long(MA.tall_pebble_radius, rings=24, segments=32)
+    pts = MA.lat_long(MA.tall_pebble_radius, rings=24, segments=32)[0]
     a = load_mesh(str(assets / "zup_cm.usda"), colliders=False)
     assert a.points.shape == pts.shape
     # The file stores float32 centimetres: equal to their rounding (6e-8 relative).
@@ -167,7 +167,7 @@ def test_bad_units_and_axes_are_one_line_errors(tmp_path, assets, capsys, extra,
 
 def test_usd_file_refuses_units_keys(tmp_path, assets, capsys):
     # A USD file states its own metersPerUnit and upAxis: a scene key beside them would be a second truth.
-    scene = _scene(tmp_path, assets, f'[[mesh]]\npath = "zup_cm.usda"\nunits = "cm"\n' + _jelly("pawn.usda"))
+    scene = _scene(tmp_path, assets, '[[mesh]]\npath = "zup_cm.usda"\nunits = "cm"\n' + _jelly("pawn.usda"))
     assert cli.main(["run", str(scene), "--quiet", "--out", str(tmp_path / "o.usdc")]) == 2
     _one_line_error(capsys, "mesh.0.units", "metersPerUnit")
 
@@ -186,7 +186,7 @@ def _pawn_parts():
 
 
 def test_usd_of_two_meshes_is_one_jelly_with_both(tmp_path, assets):
-    (base, cb, ib, uvb), (head, ch, ih, uvh) = _pawn_parts()
+    (base, cb, ib, uvb), (head, _, ih, uvh) = _pawn_parts()
     a = load_mesh(str(assets / "pawn.usda"), colliders=False)
     assert a.points.shape[0] == len(base) + len(head)
     assert np.abs(a.points - np.concatenate([base, head])).max() < 1e-6
@@ -212,7 +212,7 @@ def test_usd_of_two_meshes_is_one_jelly_with_both(tmp_path, assets):
 
 def test_prim_names_one_mesh_or_a_subtree(tmp_path, assets, capsys):
     # A jelly per Mesh when the scene asks: mesh_prim names the Mesh (or an Xform above it).
-    (base, *_), (head, *_) = _pawn_parts()
+    head = _pawn_parts()[1][0]
     for prim in ("/Pawn/Head", "/Pawn/Head/Geom"):
         a = load_mesh(str(assets / "pawn.usda"), prim, colliders=False)
         assert np.abs(a.points - head).max() < 1e-6
@@ -222,7 +222,7 @@ def test_prim_names_one_mesh_or_a_subtree(tmp_path, assets, capsys):
 
 
 def test_terrain_of_two_meshes_keeps_each_meshs_primvars(tmp_path, assets):
-    (base, cb, ib, uvb), (head, ch, ih, uvh) = _pawn_parts()
+    (base, cb, _, uvb), (head, _, _, uvh) = _pawn_parts()
     body = '[[mesh]]\npath = "pawn.usda"\ntransform = { translate = [0.0, -1.0, 0.0] }\n'
     stage = _run(_scene(tmp_path, assets, body + _jelly("zup_cm.usda", resolution=4)), tmp_path / "t.usdc")
     terrain = [p for p in stage.Traverse() if p.IsA(UsdGeom.Mesh) and p.GetName().startswith("Mesh")]
@@ -312,11 +312,12 @@ def test_run_in_a_fresh_process_prints_nothing_from_trimesh(tmp_path, assets):
     # Outside pytest (no log capture): Python prints an unhandled logger's warnings on stderr.
     scene = _scene(tmp_path, assets, _jelly("lost_texture.ply", resolution=6) + "[[plane]]\n")
     run = subprocess.run([sys.executable, "-m", "softsim_warp", "run", str(scene), "--quiet", "--out",
-                          str(tmp_path / "o.usdc")], capture_output=True, text=True, timeout=600)
+                          str(tmp_path / "o.usdc")], check=False, capture_output=True, text=True, timeout=600)
     assert run.returncode == 0, run.stderr
     assert [line for line in run.stderr.splitlines() if not line.startswith(f"{scene.stem}: ")] == []
-    control = subprocess.run([sys.executable, "-c", "import sys, trimesh; trimesh.load(sys.argv[1], force='mesh', "
-                              "process=False)", str(assets / "lost_texture.ply")], capture_output=True, text=True)
+    load = "import sys, trimesh; trimesh.load(sys.argv[1], force='mesh', process=False)"
+    control = subprocess.run([sys.executable, "-c", load, str(assets / "lost_texture.ply")], check=False,
+                             capture_output=True, text=True)
     assert "Traceback" in control.stderr and "missing_texture.png" in control.stderr
 
 

@@ -26,7 +26,6 @@ from ..core.errors import warn
 from ..core.mesh_assets import USD_SUFFIXES, load_mesh, mesh_options, transform_matrix
 from ..core.voxelize import MeshLatticeError, mesh_lattice
 
-
 SANE_SIZE = (0.01, 50.0)
 """The longest side [m] of a jelly asset taken at its own size without a word; outside it a warning."""
 
