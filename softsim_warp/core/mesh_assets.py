@@ -290,8 +290,8 @@ def _read_usd(path, prim_path, colliders, source, key):
                 f"no Mesh prim under the default prim {root.GetPath()}; name one with the prim key; Meshes: "
                 + ", ".join(str(p.GetPath()) for p in found))
             raise SceneError(source, key, where, path)
-    colliders = [p for p in meshes if p.HasAPI(UsdPhysics.CollisionAPI)] if colliders else []
-    prims = colliders or meshes
+    with_api = [p for p in meshes if p.HasAPI(UsdPhysics.CollisionAPI)] if colliders else []
+    prims = with_api or meshes
     # An animated Mesh (a cache with time samples and no default) is read at its first sample.
     time = Usd.TimeCode.EarliestTime()
     cache = UsdGeom.XformCache(time)
