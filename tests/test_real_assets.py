@@ -371,3 +371,15 @@ def test_animated_mesh_is_read_at_its_first_sample(tmp_path):
     stage.GetRootLayer().Save()
     a = load_mesh(str(path), colliders=False)
     assert np.abs(a.points - pts).max() < 1e-6
+
+
+def test_millimetre_zup_stl_as_terrain(tmp_path, assets):
+    # The keys work for [[mesh]] too: the block lies 0.04 m tall on y = 0, under a jelly dropped on it.
+    body = '[[mesh]]\npath = "bracket_mm.stl"\nunits = "mm"\nup_axis = "Z"\n'
+    out = tmp_path / "t.usdc"
+    stage = _run(_scene(tmp_path, assets, body + _jelly("pawn.usda", center=(0.0, 0.5, 0.0), resolution=6)), out)
+    terrain = [p for p in stage.Traverse() if p.IsA(UsdGeom.Mesh) and p.GetName().startswith("bracket_mm")]
+    assert len(terrain) == 1
+    x = np.array(UsdGeom.Mesh(terrain[0]).GetPointsAttr().Get(), dtype=np.float64)
+    assert x.min(0) == pytest.approx([-0.06, 0.0, -0.03], abs=1e-7)
+    assert x.max(0) == pytest.approx([0.06, 0.04, 0.03], abs=1e-7)
