@@ -383,3 +383,11 @@ def test_millimetre_zup_stl_as_terrain(tmp_path, assets):
     x = np.array(UsdGeom.Mesh(terrain[0]).GetPointsAttr().Get(), dtype=np.float64)
     assert x.min(0) == pytest.approx([-0.06, 0.0, -0.03], abs=1e-7)
     assert x.max(0) == pytest.approx([0.06, 0.04, 0.03], abs=1e-7)
+
+
+def test_units_on_a_box_jelly_is_an_error(tmp_path, capsys):
+    scene = tmp_path / "box.toml"
+    scene.write_text(SIM + '[[jelly]]\nresolution = 3\nsize = 0.2\ncenter = [0.0, 1.0, 0.0]\ntotal_mass = 0.1\n'
+                     'units = "mm"\n' + SPRINGS)
+    assert cli.main(["run", str(scene), "--quiet", "--out", str(tmp_path / "o.usdc")]) == 2
+    _one_line_error(capsys, "jelly.0.units", "only a mesh jelly takes it")

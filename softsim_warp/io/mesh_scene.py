@@ -26,6 +26,8 @@ from ..core.errors import warn
 from ..core.mesh_assets import USD_SUFFIXES, load_mesh, mesh_options, transform_matrix
 from ..core.voxelize import MeshLatticeError, mesh_lattice
 
+MESH_ONLY = ("mesh_prim", "spacing", "up_axis", "units")
+"""``[[jelly]]`` keys that only a mesh jelly takes."""
 SANE_SIZE = (0.01, 50.0)
 """The longest side [m] of a jelly asset taken at its own size without a word; outside it a warning."""
 
@@ -46,7 +48,7 @@ def _resolve(path: str, base: Path) -> str:
 def resolve_meshes(data: dict, ctx, base=None):
     """Resolve and read every mesh file the validated ``data`` names; fill in mesh jellies' boxes."""
     terrain = data.get("mesh", [])
-    jellies = [(i, j) for i, j in enumerate(data.get("jelly", [])) if "mesh" in j or "mesh_prim" in j or "spacing" in j]
+    jellies = [(i, j) for i, j in enumerate(data.get("jelly", [])) if "mesh" in j or any(k in j for k in MESH_ONLY)]
     if not terrain and not jellies:
         return
     base = Path(base) if base is not None else scene_base(ctx.source)
@@ -106,7 +108,7 @@ def _flat_axes(points, triangles, lo, hi) -> list[bool]:
 def _mesh_jelly(i, j, ctx, base):
     key = f"jelly.{i}"
     if "mesh" not in j:
-        name = "mesh_prim" if "mesh_prim" in j else "spacing"
+        name = next(k for k in MESH_ONLY if k in j)
         ctx.fail(f"{key}.{name}", "only a mesh jelly takes it; give mesh = \"file\" too", j[name])
     j["mesh"] = _resolve(j["mesh"], base)
     asset = load_mesh(j["mesh"], j.get("mesh_prim"), colliders=False, source=ctx.source, key=f"{key}.mesh", **mesh_options(j))
