@@ -2,28 +2,32 @@
 
 Run by :func:`softsim_warp.io.scene.validate` right after the schema. Paths are resolved against
 the scene file's directory (a built-in scene's: the package's scenes folder) and every file is read
-here (``core.mesh_assets.load_mesh``, cached), so a missing file, a file without a Mesh, an open or
-non-manifold mesh for a jelly and a mesh smaller than one lattice cell are one-line errors before
-anything is built.
+here (``core.mesh_assets.load_mesh``, cached), so a missing file, a file without a Mesh, a jelly mesh
+with no clear inside and a mesh smaller than one lattice cell are one-line errors before anything is
+built (an open or non-manifold jelly mesh with a clear inside is one warning line).
 
 A mesh jelly's lattice is a box lattice with points missing: validation fills in the box, the
 jelly's ``resolution`` (particles per axis) and ``size`` (edge lengths [m]), centred on the asset's
 bounding box, so every whole-scene check of a box jelly (precision, memory, terrain overlap) holds
-for it too, counting the box's points as an upper bound. The lattice is voxelised here too (once: the builder
-reuses it), so a ``total_mass`` becomes the per-particle mass of the points really inside. ``_mesh_scale`` (the asset's scale) and
+for it too, counting the box's points as an upper bound; the box's size and memory are checked before
+it is voxelised. The lattice is voxelised here too (once: the builder reuses it), so a ``total_mass``
+is spread evenly over the jelly's particles (the corners of the cells the solid touches). ``_mesh_scale`` (the asset's scale) and
 ``_mesh_center`` (its bounding-box centre in its own frame [m]) place the asset in the box.
 """
 
 from __future__ import annotations
 
 import math
+import sys
 from importlib import resources
 from pathlib import Path
 
 import numpy as np
 
 from ..core.mesh_assets import load_mesh, transform_matrix
-from ..core.voxelize import MeshLatticeError, mesh_lattice
+from ..core.errors import SceneError
+from ..core.voxelize import NoInsideError, mesh_lattice
+from .resources import MAX_LATTICE_POINTS, check_lattice_build
 
 
 def scene_base(source: str) -> Path:
@@ -106,13 +110,11 @@ def _mesh_jelly(i, j, ctx, base):
         ctx.fail(f"{key}.{name}", "only a mesh jelly takes it; give mesh = \"file\" too", j[name])
     j["mesh"] = _resolve(j["mesh"], base)
     asset = load_mesh(j["mesh"], j.get("mesh_prim"), every=False, source=ctx.source, key=f"{key}.mesh")
+    # An open or non-manifold mesh is a jelly wherever its winding number gives a clear inside
+    # (core/voxelize.mesh_lattice refuses one that gives none): one warning line says what was found.
     boundary, non_manifold = asset.edge_uses
-    if non_manifold:
-        ctx.fail(f"{key}.mesh", f"the mesh is non-manifold ({non_manifold} edges shared by more than two faces); "
-                 "a jelly needs a closed manifold mesh", j["mesh"])
-    if boundary:
-        ctx.fail(f"{key}.mesh", f"the mesh is open ({boundary} edges on one face only); a jelly needs a closed mesh "
-                 "(open meshes can be terrain: [[mesh]])", j["mesh"])
+    flaws = ([f"open ({boundary} edges on one face only)"] if boundary else []) + (
+        [f"non-manifold ({non_manifold} edges shared by more than two faces)"] if non_manifold else [])
     if "resolution" in j and "spacing" in j:
         ctx.fail(f"{key}.spacing", "give resolution or spacing for a mesh jelly, not both", j["spacing"])
     if "resolution" not in j and "spacing" not in j:
@@ -133,6 +135,9 @@ def _mesh_jelly(i, j, ctx, base):
         h = float(extent.max()) / j["resolution"][0]
     else:
         h = j["spacing"]
+    if extent.min() < h and boundary:
+        ctx.fail(f"{key}.mesh", f"the mesh is {flaws[0]} and thinner than one lattice cell ({h:.4g} m): it encloses "
+                 "no volume; close it, or use it as terrain ([[mesh]])", j["mesh"])
     if extent.min() < h:
         ctx.fail(f"{key}.{'spacing' if 'spacing' in j else 'resolution'}",
                  f"the mesh ({' x '.join(f'{e:.4g}' for e in extent)} m) is smaller than one lattice cell "
@@ -142,26 +147,45 @@ def _mesh_jelly(i, j, ctx, base):
     # exactly k + 1 points: the extent's rounding is forgiven). Along any other axis a curved
     # surface only touches its bounding planes, and a lattice plane there would hold a sliver of the
     # body while standing for a whole layer of cells (the torus at resolution 30: particle volume
-    # -3.7 %): the points sit at the centres of the cells that tile the extent instead (_flat_axes).
+    # -3.7 %): the points inside sit at the centres of the cells that tile the extent instead
+    # (_flat_axes), with one plane more on each side, so that the lattice holds every vertex.
     given = ["spacing", j["spacing"]] if "spacing" in j else ["resolution", j["resolution"][0]]
     flat = _flat_axes(asset.points, asset.triangles, lo, hi)
-    shape = [max(int(math.ceil(e / h - 1e-6)) + int(f), 2) for e, f in zip(extent, flat)]
+    shape = [max(int(math.ceil(e / h - 1e-6)) + (1 if f else 2), 2) for e, f in zip(extent, flat)]
+    # The lattice's size is checked before it is voxelised (which allocates per point).
+    points = math.prod(shape)
+    if points > MAX_LATTICE_POINTS:
+        ctx.fail(f"{key}.{given[0]}", f"the lattice would have {points:,} points, more than {MAX_LATTICE_POINTS:,} "
+                 "(a kernel launch counts them in 32 bits); use a coarser lattice", given[1])
+    check_lattice_build(shape, tuple(j.get("springs", {})), ctx.source, f"{key}.{given[0]}", given[1])
     j["resolution"] = shape
     j["size"] = [(n - 1) * h for n in shape]
     j["_mesh_scale"] = scale
     j["_mesh_center"] = (0.5 * (lo + hi)).tolist()
-    # For errors found when the lattice is voxelised (core/voxelize.py): the key the user wrote,
-    # its value and the scene file.
-    j["_mesh_given"] = given
-    j["_source"] = ctx.source
+    j["_source"] = ctx.source  # for an error found when the builder voxelises (core/voxelize.py)
     # Voxelise now (core/voxelize.mesh_lattice, kept for the builder): the particle count gives a
-    # total_mass its per-particle mass, and a lattice too coarse for the mesh is an error here.
+    # total_mass its per-particle mass, and a mesh with no clear inside is an error here.
     try:
         mask = mesh_lattice(j)[1]
-    except MeshLatticeError as e:
-        ctx.fail(f"{key}.{given[0]}", f"{e}; use a finer lattice", given[1])
+    except NoInsideError as e:
+        ctx.fail(f"{key}.mesh", str(e), j["mesh"])
+    if flaws:
+        warn_once(ctx.source, f"{key}.mesh", f"the mesh is {' and '.join(flaws)}; its inside is taken from its "
+                  "winding number", j["mesh"])
     if "total_mass" in j and "particle_mass" not in j:
         j["particle_mass"] = j.pop("total_mass") / int(mask.sum())
+
+
+_WARNED: set = set()
+
+
+def warn_once(source, key, message, value) -> None:
+    """One warning line on stderr, ``warning: <file>: <key>: <message> (got <value>)``, once per
+    process for each (file, key, message): a scene validated twice (compare) warns once."""
+    line = SceneError(source, key, message, value).line()
+    if line not in _WARNED:
+        _WARNED.add(line)
+        print(f"warning: {line}", file=sys.stderr)
 
 
 def terrain_asset(t: dict, i: int, source="<scene>"):
