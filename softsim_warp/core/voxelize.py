@@ -200,7 +200,9 @@ def mesh_lattice(j: dict, device=None) -> tuple:
     device, to count the particles; the builder then reuses it); raises :class:`NoInsideError`
     for a mesh without a clear inside.
     """
-    raw = load_mesh(j["mesh"], j.get("mesh_prim"), every=False)  # cached: one object per file version
+    # Cached: one object per file version (the same source and key as validation's read).
+    raw = load_mesh(j["mesh"], j.get("mesh_prim"), every=False, source=j.get("_source", "<scene>"),
+                    key=j.get("_mesh_key", "mesh.path"))
     key = (id(raw), tuple(j["resolution"]), tuple(j["size"]), float(j["_mesh_scale"]), tuple(j["_mesh_center"]))
     hit = _LATTICES.get(key)
     if hit is None or hit[0] is not raw:

@@ -93,13 +93,13 @@ def _flat_axes(points, triangles, lo, hi) -> list[bool]:
     """
     p = np.asarray(points, dtype=np.float64)
     tri = np.asarray(triangles, dtype=np.int64).reshape(-1, 3)
-    area2 = np.linalg.norm(np.cross(p[tri[:, 1]] - p[tri[:, 0]], p[tri[:, 2]] - p[tri[:, 0]]), axis=1)
     tol = 1e-6 * float((hi - lo).max())
     flat = []
     for a in range(3):
         c = p[tri, a]  # (T, 3) this coordinate of each face's corners
-        on = (np.abs(c - lo[a]) <= tol).all(axis=1) | (np.abs(c - hi[a]) <= tol).all(axis=1)
-        flat.append(bool(np.any(on & (area2 > 0.0))))
+        on = tri[(np.abs(c - lo[a]) <= tol).all(axis=1) | (np.abs(c - hi[a]) <= tol).all(axis=1)]
+        area2 = np.linalg.norm(np.cross(p[on[:, 1]] - p[on[:, 0]], p[on[:, 2]] - p[on[:, 0]]), axis=1)
+        flat.append(bool(np.any(area2 > 0.0)))
     return flat
 
 
@@ -162,7 +162,8 @@ def _mesh_jelly(i, j, ctx, base):
     j["size"] = [(n - 1) * h for n in shape]
     j["_mesh_scale"] = scale
     j["_mesh_center"] = (0.5 * (lo + hi)).tolist()
-    j["_source"] = ctx.source  # for an error found when the builder voxelises (core/voxelize.py)
+    # For core/voxelize.py: an error found when the builder voxelises, and the cached read of the file.
+    j["_source"], j["_mesh_key"] = ctx.source, f"{key}.mesh"
     # Voxelise now (core/voxelize.mesh_lattice, kept for the builder): the particle count gives a
     # total_mass its per-particle mass, and a mesh with no clear inside is an error here.
     try:
