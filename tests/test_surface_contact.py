@@ -208,6 +208,60 @@ def test_thin_legs_stay_above_the_plane(assets, monkeypatch):
     assert deepest_below_plane(frames_out, shapes).max() > 0.05
 
 
+@pytest.mark.parametrize("terrain", ["sphere", "bowl"])
+def test_thin_legs_stay_out_of_curved_terrain(assets, terrain):
+    # The critter dropped onto a sphere (r = 0.4 m), and into a bowl (r = 0.8 m): the depth of its
+    # deepest Surface vertex in the solid, from the analytic distance, within 1 % of its size at
+    # every frame; it touches (within a cell). A vertex is a convex combination of particles outside
+    # the sphere, which can lie inside it only by the sagitta of a cell's diagonal, (h sqrt 3)^2 / 8 r
+    # = 3 mm here; inside the bowl's sphere a convex combination of points inside stays inside.
+    h = 0.675 / 12
+    if terrain == "sphere":
+        extra = {"sphere": [{"center": [0.0, 0.0, 0.0], "radius": 0.4}],
+                 "plane": [{"point": [0.0, -1.0, 0.0], "normal": [0.0, 1.0, 0.0]}]}
+        center, depth_of = [0.05, 0.9, 0.0], lambda p: 0.4 - np.linalg.norm(p, axis=1)
+    else:
+        extra = {"bowl": [{"center": [0.0, 0.8, 0.0], "radius": 0.8, "cut_height": 0.8}]}
+        center, depth_of = [0.2, 0.5, 0.0], lambda p: np.linalg.norm(p - [0.0, 0.8, 0.0], axis=1) - 0.8
+    scene = scene_from_dict({"simulation": {"dt": DT, "frames": 30, "fps": 30},
+                             "jelly": [_jelly(assets / "critter.usda", center, 12)], **extra})
+    model = build_model(scene, "cpu")
+    emb = model.jellies[0].embedding
+    depth = []
+
+    class Writer:
+        def write_frame(self, k, t, positions, metrics):
+            depth.append(depth_of(emb.points(positions)).max() / 0.675)
+
+    assert not Simulator(model, make_integrator("symplectic", model), DT, 30, 30).run([Writer()]).exploded
+    assert max(depth) <= 0.01 and max(depth) > -h / 0.675, depth
+
+
+def test_blob_stays_out_of_the_stairs_mesh():
+    # mesh_drop for 1.5 s: the blob tumbles onto the stairs (a closed mesh). No Surface vertex of
+    # any frame inside the stairs (winding number above 1/2) deeper than 1 % of the blob's 0.4 m.
+    from softsim_warp.io.scene import load_scene
+
+    scene = load_scene("mesh_drop", ["simulation.duration=1.5"])
+    model = build_model(scene, "cpu")
+    emb = model.jellies[0].embedding
+    stairs = load_mesh(scene.data["mesh"][0]["path"]).outward()
+    depth = []
+
+    class Writer:
+        def write_frame(self, k, t, positions, metrics):
+            p = emb.points(positions)
+            inside = p[winding_numbers(stairs.points, stairs.triangles, p) > 0.5]
+            depth.append(distance_to_triangles(stairs.points, stairs.triangles, inside).max() if len(inside) else 0.0)
+            gap.append(distance_to_triangles(stairs.points, stairs.triangles, p[::5]).min())
+
+    gap = []
+    sim = Simulator(model, make_integrator("symplectic", model), scene.sim["dt"], 20, 30)
+    assert not sim.run([Writer()]).exploded
+    assert max(depth) <= 0.01 * 0.4, max(depth)
+    assert min(gap) < 2 * 0.4 / 10  # it lands on them: within two cells
+
+
 def _overlap(frames_out, shapes, a, b, stop_above=np.inf):
     """Per frame, the depth of jelly a's deepest Surface vertex inside jelly b's Surface, over the
     size of jelly b (winding number above 1/2; the distance to b's nearest face); the frames up to
