@@ -62,13 +62,13 @@ def _mesh_scene(path, **jelly):
     return scene_from_dict({"simulation": {"dt": 1e-3, "frames": 1}, "jelly": [j]})
 
 
-def _grid(points, resolution, flat=(False, False, False)):
-    """The lattice a mesh jelly of ``resolution`` cells along its longest side gets (io/mesh_scene.py),
-    centred on the mesh's bounding box: (shape, size, spacing, centre). ``flat``: per axis, whether
-    the mesh has a face in a bounding plane (points on the bounding faces; else at cell centres)."""
+def _grid(points, resolution):
+    """A lattice of ``resolution`` cells along the mesh's longest side, its points at the centres of
+    the cells that tile the bounding box (no lattice plane on a tangent plane), centred on the box:
+    (shape, size, spacing, centre)."""
     lo, hi = points.min(0), points.max(0)
     h = (hi - lo).max() / resolution
-    shape = [max(int(math.ceil(e / h - 1e-6)) + int(f), 2) for e, f in zip(hi - lo, flat)]
+    shape = [max(int(math.ceil(e / h - 1e-6)), 2) for e in hi - lo]
     return shape, [(n - 1) * h for n in shape], h, 0.5 * (lo + hi)
 
 
@@ -99,21 +99,18 @@ def test_voxelised_points_are_the_analytic_inside(device):
 
 
 def test_voxelised_sphere_and_torus_volume():
-    # Each lattice point inside stands for one cell: the particle volume N h^3, within 3 % of the
+    # Each lattice point inside stands for one cell: the voxel volume N h^3, within 3 % of the
     # analytic volume for the sphere and a ring torus (R = 1, r = 0.5, V = 2 pi^2 R r^2) at
-    # resolution 30 (cells along the longest side) and finer. Neither has a flat face, so the points
-    # sit at cell centres (io/mesh_scene._flat_axes); with points on the bounding faces the torus's
-    # top and bottom tangent planes would hold lattice planes at resolution 30 (-3.7 %).
+    # resolution 30 (cells along the longest side) and finer, with the points at cell centres
+    # (_grid; with points on the bounding faces the torus's top and bottom tangent planes would hold
+    # lattice planes at resolution 30: -3.7 %).
     from softsim_warp.core.terrain import fan_triangles
-    from softsim_warp.io.mesh_scene import _flat_axes
 
     pts, counts, idx = sphere_mesh([0, 0, 0], 1.0, rings=64, segments=128)
     tris = fan_triangles(counts, idx)
-    assert _flat_axes(pts, tris, pts.min(0), pts.max(0)) == [False] * 3
     assert _grid_volume(pts, tris, 30) == pytest.approx(4.0 / 3.0 * math.pi, rel=0.03)
     pts, counts, idx = torus_mesh(1.0, 0.5)
     tris = fan_triangles(counts, idx)
-    assert _flat_axes(pts, tris, pts.min(0), pts.max(0)) == [False] * 3
     errors = []
     for res in (30, 40, 50, 60, 80):
         volume = _grid_volume(pts, tris, res)
@@ -122,9 +119,6 @@ def test_voxelised_sphere_and_torus_volume():
     # The cells cut by the surface make the error; it falls at least as the cell size (first order)
     # from resolution 30 to 80 (measured: 1.65 % to 0.019 %).
     assert errors[-1] <= errors[0] * 30 / 80
-    # A box has flat faces on every axis (points on its faces: the box lattice, test below).
-    box = np.asarray(box_mesh([1.0, 0.5, 0.75])[0])
-    assert _flat_axes(box, fan_triangles([4] * 6, box_mesh([1.0, 0.5, 0.75])[2]), box.min(0), box.max(0)) == [True] * 3
 
 
 def test_box_mesh_gives_exactly_the_box_lattice(tmp_path, device):

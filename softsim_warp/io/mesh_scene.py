@@ -7,12 +7,13 @@ with no clear inside and a mesh smaller than one lattice cell are one-line error
 built (an open or non-manifold jelly mesh with a clear inside is one warning line).
 
 A mesh jelly's lattice is a box lattice with points missing: validation fills in the box, the
-jelly's ``resolution`` (particles per axis) and ``size`` (edge lengths [m]), centred on the asset's
-bounding box, so every whole-scene check of a box jelly (precision, memory, terrain overlap) holds
-for it too, counting the box's points as an upper bound; the box's size and memory are checked before
-it is voxelised. The lattice is voxelised here too (once: the builder reuses it), so a ``total_mass``
-is spread evenly over the jelly's particles (the corners of the cells the solid touches). ``_mesh_scale`` (the asset's scale) and
-``_mesh_center`` (its bounding-box centre in its own frame [m]) place the asset in the box.
+jelly's ``resolution`` (particles per axis) and ``size`` (edge lengths [m]): the asset's bounding
+box, so every whole-scene check of a box jelly (precision, memory, terrain overlap) holds for it
+too, counting the box's points as an upper bound; the box's size and memory are checked before it
+is voxelised. The lattice is voxelised here too (once: the builder reuses it), so a ``total_mass``
+is spread evenly over the jelly's particles (the corners of the cells the solid touches).
+``_mesh_scale`` (the asset's scale) and ``_mesh_center`` (its bounding-box centre in its own frame
+[m]) place the asset in the box.
 """
 
 from __future__ import annotations
@@ -82,27 +83,6 @@ def add_asset_inputs(outputs, *scenes) -> None:
                 outputs.add_input(key, path)
 
 
-def _flat_axes(points, triangles, lo, hi) -> list[bool]:
-    """Per axis, whether some face of the mesh (with area) lies in one of its two bounding-box planes.
-
-    Such an axis keeps lattice points on the bounding faces (a box mesh gives the box lattice); the
-    others get points at cell centres, so that no lattice plane lies on a tangent plane: for a cap
-    of cross-section c sqrt(t) at depth t (a torus's top and bottom), a layer on the tangent plane
-    counts none of its first half cell, an error of -(2/3) c (h/2)^1.5; a layer at depth h/2 errs
-    by +0.04 c h^1.5, six times less.
-    """
-    p = np.asarray(points, dtype=np.float64)
-    tri = np.asarray(triangles, dtype=np.int64).reshape(-1, 3)
-    tol = 1e-6 * float((hi - lo).max())
-    flat = []
-    for a in range(3):
-        c = p[tri, a]  # (T, 3) this coordinate of each face's corners
-        on = tri[(np.abs(c - lo[a]) <= tol).all(axis=1) | (np.abs(c - hi[a]) <= tol).all(axis=1)]
-        area2 = np.linalg.norm(np.cross(p[on[:, 1]] - p[on[:, 0]], p[on[:, 2]] - p[on[:, 0]]), axis=1)
-        flat.append(bool(np.any(area2 > 0.0)))
-    return flat
-
-
 def _mesh_jelly(i, j, ctx, base):
     key = f"jelly.{i}"
     if "mesh" not in j:
@@ -142,16 +122,13 @@ def _mesh_jelly(i, j, ctx, base):
         ctx.fail(f"{key}.{'spacing' if 'spacing' in j else 'resolution'}",
                  f"the mesh ({' x '.join(f'{e:.4g}' for e in extent)} m) is smaller than one lattice cell "
                  f"({h:.4g} m) along an axis; use a finer lattice", j.get("spacing", j.get("resolution")))
-    # Points per axis. Along an axis where the mesh has a face in a bounding-box plane (a box's
-    # sides) the box spans the bounding box, a whole number of cells (a box mesh of k cells gives
-    # exactly k + 1 points: the extent's rounding is forgiven). Along any other axis a curved
-    # surface only touches its bounding planes, and a lattice plane there would hold a sliver of the
-    # body while standing for a whole layer of cells (the torus at resolution 30: particle volume
-    # -3.7 %): the points inside sit at the centres of the cells that tile the extent instead
-    # (_flat_axes), with one plane more on each side, so that the lattice holds every vertex.
+    # Points per axis: the lattice spans the bounding box exactly, in a whole number of cells of at
+    # most h along each axis (a box mesh of k cells gives exactly k + 1 points, the extent's rounding
+    # forgiven). The asset's extreme vertices then lie on the lattice's outer planes: an asset
+    # resting upright on a floor has its lowest vertex on its lowest particles, with no gap below it.
     given = ["spacing", j["spacing"]] if "spacing" in j else ["resolution", j["resolution"][0]]
-    flat = _flat_axes(asset.points, asset.triangles, lo, hi)
-    shape = [max(int(math.ceil(e / h - 1e-6)) + (1 if f else 2), 2) for e, f in zip(extent, flat)]
+    cells = [max(int(math.ceil(e / h - 1e-6)), 1) for e in extent]
+    shape = [c + 1 for c in cells]
     # The lattice's size is checked before it is voxelised (which allocates per point).
     points = math.prod(shape)
     if points > MAX_LATTICE_POINTS:
@@ -159,7 +136,7 @@ def _mesh_jelly(i, j, ctx, base):
                  "(a kernel launch counts them in 32 bits); use a coarser lattice", given[1])
     check_lattice_build(shape, tuple(j.get("springs", {})), ctx.source, f"{key}.{given[0]}", given[1])
     j["resolution"] = shape
-    j["size"] = [(n - 1) * h for n in shape]
+    j["size"] = [c * h if abs(e - c * h) <= 1e-6 * h else float(e) for c, e in zip(cells, extent)]
     j["_mesh_scale"] = scale
     j["_mesh_center"] = (0.5 * (lo + hi)).tolist()
     # For core/voxelize.py: an error found when the builder voxelises, and the cached read of the file.
