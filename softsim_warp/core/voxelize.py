@@ -1,10 +1,10 @@
 """Mesh jellies: a mesh voxelised into the lattice cells it touches, its surface embedded in them.
 
-The jelly's lattice is the box lattice of its scene entry (``io/mesh_scene.py`` fills in the box
-around the asset, wide enough to hold every vertex). Its particles are the corners of every cell the
-solid touches (:func:`solid_mask`): a cell with a corner inside the mesh (Warp's generalized winding
-number above 1/2, ``mark_inside_mesh`` in kernels/mesh.py: an open mesh with holes still has a
-clear inside), a cell that holds a vertex, or one a face passes through.
+The jelly's lattice is the box lattice of its scene entry (``io/mesh_scene.py`` fills in the box:
+the asset's bounding box, its extreme vertices on the outer planes). Its particles are the corners
+of every cell the solid touches (:func:`solid_mask`): a cell with a corner inside the mesh (Warp's
+generalized winding number above 1/2, ``mark_inside_mesh`` in kernels/mesh.py: an open mesh with
+holes still has a clear inside), a cell that holds a vertex, or one a face passes through.
 ``ModelBuilder.add_jelly(mask=...)`` keeps those particles and the stencil springs between them. A
 mask that keeps every point (a box mesh) gives exactly the box jelly, and then the lattice force path.
 
