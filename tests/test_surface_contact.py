@@ -208,6 +208,20 @@ def test_thin_legs_stay_above_the_plane(assets, monkeypatch):
     assert deepest_below_plane(frames_out, shapes).max() > 0.05
 
 
+def test_upright_critter_stands_on_its_feet(assets):
+    # Dropped upright from 8 cm, after 1.5 s the critter stands on the plane: its lowest vertices are
+    # its four foot tips, touching (within 1 % of its size; the lattice's lowest plane runs through
+    # them, so no cell reaches below the feet) and none below.
+    jelly = _jelly(assets / "critter.usda", [0.0, 0.40, 0.0], 12)
+    frames_out, shapes = surfaces_per_frame([jelly], 45)
+    rest, last = frames_out[0][0], frames_out[-1][0]
+    assert abs(last[:, 1].min()) <= 0.01 * shapes[0][1], last[:, 1].min()
+    feet = np.argsort(rest[:, 1])[:4]
+    legs = {(np.sign(x), np.sign(z)) for x, z in rest[feet][:, [0, 2]] - rest.mean(axis=0)[[0, 2]]}
+    assert len(legs) == 4  # one tip per leg
+    assert np.all(last[feet, 1] <= 0.01 * shapes[0][1])
+
+
 @pytest.mark.parametrize("terrain", ["sphere", "bowl"])
 def test_thin_legs_stay_out_of_curved_terrain(assets, terrain):
     # The critter dropped onto a sphere (r = 0.4 m), and into a bowl (r = 0.8 m): the depth of its
