@@ -9,9 +9,15 @@
 * ``torus.usda`` and ``pebble.usda`` (a superellipsoid): more closed shapes with UVs, for piles;
 * ``stairs.usda``: a closed staircase solid (the step profile extruded), UsdPhysics CollisionAPI;
 * ``bumpy_floor.usda``: an open height-field sheet facing up (y = sum of smooth bumps), vertex
-  normals and UVs, CollisionAPI.
+  normals and UVs, CollisionAPI;
+* ``critter.usda``: a creature with thin legs and ears (about one lattice cell thick at 12 cells
+  along it), its parts closed surfaces that overlap;
+* ``blob_open.usda``: the blob with its base cut off (an open mesh, as scans often are);
+* ``bracket.stl``: an L-shaped CAD bracket in ASCII STL whose shared corners differ by 1e-16 where
+  they should be 0 (a closed solid once welded with a tolerance).
 
-Meshes are in metres (metersPerUnit = 1, up axis y), right-handed, every face wound outward.
+Meshes are in metres (metersPerUnit = 1, up axis y), right-handed, every face wound outward
+(blob_open has a hole; the rest are closed).
 
 ``--real DIR`` writes assets as other tools make them, for the tests (tests/test_real_assets.py),
 not shipped:
@@ -91,6 +97,83 @@ def blob_radius(dirs):
     r = 0.25 * (1.0 + 0.08 * dirs[:, 1])  # a little wider at the top than the bottom
     r = r + _bump(dirs, (0.0, 1.0, 0.55), 0.13, 0.22) + _bump(dirs, (0.0, 1.0, -0.55), 0.13, 0.22)
     return r + _bump(dirs, (1.0, 0.1, 0.0), 0.05, 0.3)
+
+
+def ellipsoid_radius(a):
+    """r(d) of the ellipsoid of semi-axes ``a`` (x, y, z) around its centre."""
+    a = np.asarray(a, dtype=np.float64)
+    return lambda dirs: 1.0 / np.sqrt(np.sum((dirs / a) ** 2, axis=1))
+
+
+def critter():
+    """A four-legged creature 0.6 m long with thin legs (0.04 m across, pointed feet) and thin ears
+    (0.03 m across): an ellipsoid body, a round head, legs, ears and a tail, each a closed surface,
+    overlapping where they join (as modelled parts often are: the winding number counts their
+    overlap as inside). At 12 cells along its length a leg is about one cell thick.
+
+    Returns ``(points, counts, indices)``, wound outward, feet at y = 0.
+    """
+    parts = [  # (centre, semi-axes): body, head, four legs, two ears, a tail
+        ((0.0, 0.32, 0.0), (0.22, 0.11, 0.11)),
+        ((0.25, 0.42, 0.0), (0.085, 0.08, 0.08)),
+        *[((x, 0.17, z), (0.02, 0.17, 0.02)) for x in (-0.14, 0.14) for z in (-0.065, 0.065)],
+        *[((0.26, 0.55, z), (0.015, 0.09, 0.03)) for z in (-0.045, 0.045)],
+        ((-0.26, 0.38, 0.0), (0.08, 0.015, 0.015)),
+    ]
+    points, counts, indices = [], [], []
+    for centre, semi in parts:
+        pts, c, idx, _ = lat_long(ellipsoid_radius(semi), rings=24, segments=24)
+        indices.append(np.asarray(idx) + sum(len(p) for p in points))
+        points.append(pts + np.asarray(centre))
+        counts.append(c)
+    return np.concatenate(points), np.concatenate(counts), np.concatenate(indices)
+
+
+def cut_base(points, counts, indices, height):
+    """The mesh without the faces whose every vertex lies below ``height`` (y): an open base, as a
+    scanned animal's often is (the vertices no face uses are dropped)."""
+    starts = np.concatenate([[0], np.cumsum(counts)[:-1]])
+    keep = [bool((points[indices[s : s + c], 1] >= height).any()) for s, c in zip(starts, counts)]
+    indices = np.asarray(indices)[np.repeat(keep, counts)]
+    used, indices = np.unique(indices, return_inverse=True)
+    return points[used], np.asarray(counts)[keep], indices.ravel()
+
+
+def bracket_triangles():
+    """An L-shaped CAD bracket (0.3 x 0.2 x 0.1 m, its flange 0.04 m thick) as triangles ``(T, 3, 3)``,
+    wound outward: the L profile extruded along z."""
+    prof = [(0.0, 0.0), (0.3, 0.0), (0.3, 0.04), (0.04, 0.04), (0.04, 0.2), (0.0, 0.2)]  # counter-clockwise
+    z0, z1 = 0.0, 0.1
+    tris = []
+    # Caps: the profile's fan from (0, 0) (it is star-shaped about that corner), front (z1) and back (z0).
+    for k in range(1, len(prof) - 1):
+        a, b, c = prof[0], prof[k], prof[k + 1]
+        tris.append([(*a, z1), (*b, z1), (*c, z1)])
+        tris.append([(*a, z0), (*c, z0), (*b, z0)])
+    for k in range(len(prof)):
+        a, b = prof[k], prof[(k + 1) % len(prof)]
+        tris.append([(*a, z0), (*b, z0), (*b, z1)])
+        tris.append([(*a, z0), (*b, z1), (*a, z1)])
+    return np.array(tris, dtype=np.float64)
+
+
+def write_stl(path, triangles, jitter=0.0, seed=0):
+    """An ASCII STL (each triangle its own three corners, as STL stores them). ``jitter``: every
+    corner coordinate that is 0 is written as a random multiple of it instead (a CAD exporter's
+    rounding: shared corners that differ in the last bits, 0.0 against -2.7e-16)."""
+    rng = np.random.default_rng(seed)
+    t = np.array(triangles, dtype=np.float64)
+    zero = t == 0.0
+    t[zero] = jitter * rng.uniform(-3.0, 3.0, size=int(zero.sum()))
+    lines = ["solid bracket"]
+    for tri in t:
+        n = np.cross(tri[1] - tri[0], tri[2] - tri[0])
+        n = n / np.linalg.norm(n)
+        lines += [f"  facet normal {n[0]:.9g} {n[1]:.9g} {n[2]:.9g}", "    outer loop"]
+        lines += [f"      vertex {x!r} {y!r} {z!r}" for x, y, z in tri.tolist()]
+        lines += ["    endloop", "  endfacet"]
+    lines.append("endsolid bracket")
+    Path(path).write_text("\n".join(lines) + "\n")
 
 
 def torus(R=0.2, r=0.09, nu=64, nv=24):
@@ -428,8 +511,15 @@ def main(argv=None):
     pts, counts, idx, nrm, uv = bumpy_floor()
     write_mesh(out / "bumpy_floor.usda", "Floor", pts, counts, idx, uv=uv, uv_interp="vertex", normals=nrm,
                collision=True)
-    for name in ("blob", "torus", "pebble", "stairs", "bumpy_floor"):
+    pts, counts, idx = critter()
+    write_mesh(out / "critter.usda", "Critter", pts, counts, idx, color=(0.55, 0.45, 0.9))
+    pts, counts, idx, uv = lat_long(blob_radius)
+    pts, counts, idx = cut_base(pts, counts, idx, pts[:, 1].min() + 0.03)
+    write_mesh(out / "blob_open.usda", "BlobOpen", pts, counts, idx, color=(0.9, 0.35, 0.45))
+    write_stl(out / "bracket.stl", bracket_triangles(), jitter=1e-16)
+    for name in ("blob", "torus", "pebble", "stairs", "bumpy_floor", "critter", "blob_open"):
         print(out / f"{name}.usda")
+    print(out / "bracket.stl")
 
 
 if __name__ == "__main__":

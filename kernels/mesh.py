@@ -26,8 +26,10 @@ def mark_inside_mesh(
     spacing: wp.vec3,
     shape: wp.vec3i,
     on_surface: float,
-    # out: 1 where the lattice point lies inside the closed mesh (winding number > 1/2) or
-    # within ``on_surface`` of it (a box mesh's faces hold lattice points)
+    threshold: float,
+    # out: 1 where the lattice point lies inside the mesh (generalized winding number above
+    # ``threshold``, 1/2 for the inside) or within ``on_surface`` of it (a box mesh's faces hold
+    # lattice points)
     inside_out: wp.array(dtype=wp.int32),
 ):
     k = wp.tid()
@@ -38,7 +40,7 @@ def mark_inside_mesh(
     ix = k // (nz * ny)
     p = origin + wp.cw_mul(spacing, wp.vec3(float(ix), float(iy), float(iz)))
     # The whole mesh is within reach: the winding number needs no distance bound.
-    q = wp.mesh_query_point_sign_winding_number(mesh, p, 1.0e30)
+    q = wp.mesh_query_point_sign_winding_number(mesh, p, 1.0e30, 2.0, threshold)
     inside = 0
     if q.result:
         if q.sign < 0.0:

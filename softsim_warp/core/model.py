@@ -686,7 +686,7 @@ def populate(builder: ModelBuilder, data: dict, world=0):
         builder.jelly_contact_iterations,
     ) = settings
     for i, j in enumerate(data["jelly"]):
-        if "mesh" in j:  # a closed mesh voxelised into a masked lattice
+        if "mesh" in j:  # a mesh voxelised into a masked lattice (the cells its solid touches)
             infos.append(add_mesh_jelly(builder, j, world=world, name=f"Jelly_{i}", key=f"jelly.{i}"))
             continue
         info = builder.add_jelly(

@@ -2,16 +2,18 @@
 
 Run by :func:`softsim_warp.io.scene.validate` right after the schema. Paths are resolved against
 the scene file's directory (a built-in scene's: the package's scenes folder) and every file is read
-here (``core.mesh_assets.load_mesh``, cached), so a missing file, a file without a Mesh, an open or
-non-manifold mesh for a jelly and a mesh smaller than one lattice cell are one-line errors before
-anything is built.
+here (``core.mesh_assets.load_mesh``, cached), so a missing file, a file without a Mesh, a jelly mesh
+with no clear inside and a mesh smaller than one lattice cell are one-line errors before anything is
+built (an open or non-manifold jelly mesh with a clear inside is one warning line).
 
 A mesh jelly's lattice is a box lattice with points missing: validation fills in the box, the
-jelly's ``resolution`` (particles per axis) and ``size`` (edge lengths [m]), centred on the asset's
-bounding box, so every whole-scene check of a box jelly (precision, memory, terrain overlap) holds
-for it too, counting the box's points as an upper bound. The lattice is voxelised here too (once: the builder
-reuses it), so a ``total_mass`` becomes the per-particle mass of the points really inside. ``_mesh_scale`` (the asset's scale) and
-``_mesh_center`` (its bounding-box centre in its own frame [m]) place the asset in the box.
+jelly's ``resolution`` (particles per axis) and ``size`` (edge lengths [m]): the asset's bounding
+box, so every whole-scene check of a box jelly (precision, memory, terrain overlap) holds for it
+too, counting the box's points as an upper bound; the box's size and memory are checked before it
+is voxelised. The lattice is voxelised here too (once: the builder reuses it), so a ``total_mass``
+is spread evenly over the jelly's particles (the corners of the cells the solid touches).
+``_mesh_scale`` (the asset's scale) and ``_mesh_center`` (its bounding-box centre in its own frame
+[m]) place the asset in the box.
 """
 
 from __future__ import annotations
@@ -24,7 +26,8 @@ import numpy as np
 
 from ..core.errors import warn
 from ..core.mesh_assets import USD_SUFFIXES, load_mesh, mesh_options, transform_matrix
-from ..core.voxelize import MeshLatticeError, mesh_lattice
+from ..core.voxelize import NoInsideError, mesh_lattice
+from .resources import MAX_LATTICE_POINTS, check_lattice_build
 
 MESH_ONLY = ("mesh_prim", "spacing", "up_axis", "units")
 """``[[jelly]]`` keys that only a mesh jelly takes."""
@@ -84,41 +87,19 @@ def add_asset_inputs(outputs, *scenes) -> None:
                 outputs.add_input(key, path)
 
 
-def _flat_axes(points, triangles, lo, hi) -> list[bool]:
-    """Per axis, whether some face of the mesh (with area) lies in one of its two bounding-box planes.
-
-    Such an axis keeps lattice points on the bounding faces (a box mesh gives the box lattice); the
-    others get points at cell centres, so that no lattice plane lies on a tangent plane: for a cap
-    of cross-section c sqrt(t) at depth t (a torus's top and bottom), a layer on the tangent plane
-    counts none of its first half cell, an error of -(2/3) c (h/2)^1.5; a layer at depth h/2 errs
-    by +0.04 c h^1.5, six times less.
-    """
-    p = np.asarray(points, dtype=np.float64)
-    tri = np.asarray(triangles, dtype=np.int64).reshape(-1, 3)
-    area2 = np.linalg.norm(np.cross(p[tri[:, 1]] - p[tri[:, 0]], p[tri[:, 2]] - p[tri[:, 0]]), axis=1)
-    tol = 1e-6 * float((hi - lo).max())
-    flat = []
-    for a in range(3):
-        c = p[tri, a]  # (T, 3) this coordinate of each face's corners
-        on = (np.abs(c - lo[a]) <= tol).all(axis=1) | (np.abs(c - hi[a]) <= tol).all(axis=1)
-        flat.append(bool(np.any(on & (area2 > 0.0))))
-    return flat
-
-
 def _mesh_jelly(i, j, ctx, base):
     key = f"jelly.{i}"
     if "mesh" not in j:
         name = next(k for k in MESH_ONLY if k in j)
         ctx.fail(f"{key}.{name}", "only a mesh jelly takes it; give mesh = \"file\" too", j[name])
     j["mesh"] = _resolve(j["mesh"], base)
-    asset = load_mesh(j["mesh"], j.get("mesh_prim"), colliders=False, source=ctx.source, key=f"{key}.mesh", **mesh_options(j))
+    asset = load_mesh(j["mesh"], j.get("mesh_prim"), colliders=False, source=ctx.source, key=f"{key}.mesh",
+                      **mesh_options(j))
+    # An open or non-manifold mesh is a jelly wherever its winding number gives a clear inside
+    # (core/voxelize.mesh_lattice refuses one that gives none): one warning line says what was found.
     boundary, non_manifold = asset.edge_uses
-    if non_manifold:
-        ctx.fail(f"{key}.mesh", f"the mesh is non-manifold ({non_manifold} edges shared by more than two faces); "
-                 "a jelly needs a closed manifold mesh", j["mesh"])
-    if boundary:
-        ctx.fail(f"{key}.mesh", f"the mesh is open ({boundary} edges on one face only); a jelly needs a closed mesh "
-                 "(open meshes can be terrain: [[mesh]])", j["mesh"])
+    flaws = ([f"open ({boundary} edges on one face only)"] if boundary else []) + (
+        [f"non-manifold ({non_manifold} edges shared by more than two faces)"] if non_manifold else [])
     if "resolution" in j and "spacing" in j:
         ctx.fail(f"{key}.spacing", "give resolution or spacing for a mesh jelly, not both", j["spacing"])
     if "resolution" not in j and "spacing" not in j:
@@ -145,33 +126,41 @@ def _mesh_jelly(i, j, ctx, base):
         h = float(extent.max()) / j["resolution"][0]
     else:
         h = j["spacing"]
+    if extent.min() < h and boundary:
+        ctx.fail(f"{key}.mesh", f"the mesh is {flaws[0]} and thinner than one lattice cell ({h:.4g} m): it encloses "
+                 "no volume; close it, or use it as terrain ([[mesh]])", j["mesh"])
     if extent.min() < h:
         ctx.fail(f"{key}.{'spacing' if 'spacing' in j else 'resolution'}",
                  f"the mesh ({' x '.join(f'{e:.4g}' for e in extent)} m) is smaller than one lattice cell "
                  f"({h:.4g} m) along an axis; use a finer lattice", j.get("spacing", j.get("resolution")))
-    # Points per axis. Along an axis where the mesh has a face in a bounding-box plane (a box's
-    # sides) the box spans the bounding box, a whole number of cells (a box mesh of k cells gives
-    # exactly k + 1 points: the extent's rounding is forgiven). Along any other axis a curved
-    # surface only touches its bounding planes, and a lattice plane there would hold a sliver of the
-    # body while standing for a whole layer of cells (the torus at resolution 30: particle volume
-    # -3.7 %): the points sit at the centres of the cells that tile the extent instead (_flat_axes).
+    # Points per axis: the lattice spans the bounding box exactly, in a whole number of cells of at
+    # most h along each axis (a box mesh of k cells gives exactly k + 1 points, the extent's rounding
+    # forgiven). The asset's extreme vertices then lie on the lattice's outer planes: an asset
+    # resting upright on a floor has its lowest vertex on its lowest particles, with no gap below it.
     given = ["spacing", j["spacing"]] if "spacing" in j else ["resolution", j["resolution"][0]]
-    flat = _flat_axes(asset.points, asset.triangles, lo, hi)
-    shape = [max(int(math.ceil(e / h - 1e-6)) + int(f), 2) for e, f in zip(extent, flat)]
+    cells = [max(int(math.ceil(e / h - 1e-6)), 1) for e in extent]
+    shape = [c + 1 for c in cells]
+    # The lattice's size is checked before it is voxelised (which allocates per point).
+    points = math.prod(shape)
+    if points > MAX_LATTICE_POINTS:
+        ctx.fail(f"{key}.{given[0]}", f"the lattice would have {points:,} points, more than {MAX_LATTICE_POINTS:,} "
+                 "(a kernel launch counts them in 32 bits); use a coarser lattice", given[1])
+    check_lattice_build(shape, tuple(j.get("springs", {})), ctx.source, f"{key}.{given[0]}", given[1])
     j["resolution"] = shape
-    j["size"] = [(n - 1) * h for n in shape]
+    j["size"] = [c * h if abs(e - c * h) <= 1e-6 * h else float(e) for c, e in zip(cells, extent)]
     j["_mesh_scale"] = scale
     j["_mesh_center"] = (0.5 * (lo + hi)).tolist()
-    # For errors found when the lattice is voxelised (core/voxelize.py): the key the user wrote,
-    # its value and the scene file.
-    j["_mesh_given"] = given
-    j["_source"] = ctx.source
+    # For core/voxelize.py: an error found when the builder voxelises, and the cached read of the file.
+    j["_source"], j["_mesh_key"] = ctx.source, f"{key}.mesh"
     # Voxelise now (core/voxelize.mesh_lattice, kept for the builder): the particle count gives a
-    # total_mass its per-particle mass, and a lattice too coarse for the mesh is an error here.
+    # total_mass its per-particle mass, and a mesh with no clear inside is an error here.
     try:
         mask = mesh_lattice(j)[1]
-    except MeshLatticeError as e:
-        ctx.fail(f"{key}.{given[0]}", f"{e}; use a finer lattice", given[1])
+    except NoInsideError as e:
+        ctx.fail(f"{key}.mesh", str(e), j["mesh"])
+    if flaws:
+        warn(ctx.source, f"{key}.mesh", f"the mesh is {' and '.join(flaws)}; its inside is taken from its "
+                  "winding number", j["mesh"])
     if "total_mass" in j and "particle_mass" not in j:
         j["particle_mass"] = j.pop("total_mass") / int(mask.sum())
 

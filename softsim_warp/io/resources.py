@@ -204,6 +204,29 @@ def check_host_build(data: dict, source: str, available=None):
         )
 
 
+# The most points one lattice may have: kernels index them (and Warp counts a launch) in int32.
+MAX_LATTICE_POINTS = 2**31 - 1
+
+
+def check_lattice_build(shape, types, source: str, key: str, value, available=None):
+    """Refuse a mesh jelly whose box lattice of ``shape`` (spring ``types``) could not be built in
+    host memory, before it is voxelised (the voxeliser allocates per point of the box; the box's
+    counts bound the jelly's). ``key`` and ``value``: what the user gave (resolution or spacing)."""
+    particles = math.prod(int(n) for n in shape)
+    springs = lattice_spring_count(shape, types)
+    need = HOST_BUILD_PER_SPRING * springs + HOST_BUILD_PER_PARTICLE * particles
+    available = available_host_bytes() if available is None else available
+    if available is not None and need > available:
+        raise SceneError(
+            source,
+            key,
+            f"scene too large: a lattice of {' x '.join(str(int(n)) for n in shape)} points ({_count(particles)} "
+            f"particles and {_count(springs)} springs at most) needs about {format_bytes(need)} of host memory, "
+            f"{format_bytes(available)} available; use a coarser lattice",
+            value,
+        )
+
+
 def check_counts(particles, springs, device, integrator, flag, value, host_available=None, device_free=None):
     """Refuse ``particles`` and ``springs`` (a benchmark size, say) that would not fit on ``device``:
     a one-line :class:`CommandLineError` naming ``flag`` and ``value``."""

@@ -392,11 +392,11 @@ SCHEMA = Table(
                 {
                     "resolution": Int3(doc="particles per axis; a mesh jelly: cells along its longest side"),
                     "size": Vec3(lo=0, lo_open=True, scalar_ok=True, doc="edge lengths [m]; a mesh jelly: its longest side"),
-                    "mesh": Text(doc="a closed mesh file (USD, OBJ, STL, PLY) voxelised into the jelly, relative to the scene file"),
+                    "mesh": Text(doc="a mesh file (USD, OBJ, STL, PLY) enclosing a volume, voxelised into the jelly, relative to the scene file"),
                     "mesh_prim": Text(doc="prim path in a USD file: a Mesh, or every Mesh under it (default: every Mesh under the default prim)"),
                     "up_axis": UP_AXIS,
                     "units": UNITS_KEY,
-                    "spacing": Float(lo=0, lo_open=True, doc="a mesh jelly's lattice spacing [m] (instead of resolution)"),
+                    "spacing": Float(lo=0, lo_open=True, doc="a mesh jelly's largest lattice spacing [m] (instead of resolution)"),
                     "center": Vec3([0.0, 0.0, 0.0], doc="[m]"),
                     "rotation": Table(
                         {
