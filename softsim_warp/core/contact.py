@@ -12,7 +12,7 @@ import warp as wp
 
 from ..kernels.contact import LAYER_TOUCH
 from .mesh_terrain import mesh_arrays
-from .pins import motion_transform
+from .pins import motion_transform, path_position
 
 # The kinds of terrain that move (``kernels/contact.py`` ``move_terrain``'s motion_kind).
 MOVING_KINDS = ("plane", "bowl", "sphere")
@@ -101,6 +101,30 @@ class TerrainMotion:
         """What a ``collide_moving_*`` kernel takes after its kind's arrays."""
         return (kind_motion, self.center_now, self.turn_now, self.velocity_step, self.point_prev, self.spin,
                 self.rest_point)
+
+
+def terrain_speed(model, reach: float) -> float:
+    """Largest speed [m/s] of a moving plane's, bowl's or sphere's surface within ``reach`` [m] of
+    its motion's centre, on the host: its velocity, its keyframed offset's speed (sampled, 64 points
+    a segment, which the smooth spline's overshoot between keys needs) and its spin times the reach.
+    0 without moving terrain."""
+    fastest = 0.0
+    for kind in MOVING_KINDS:
+        for it in getattr(model, kind + "s", []):
+            motion = it.get("motion")
+            if motion is None:
+                continue
+            times = np.asarray(motion["key_times"], dtype=np.float64)
+            keyed = 0.0
+            if times.size > 1:
+                t = np.concatenate([np.linspace(a, b, 65) for a, b in zip(times[:-1], times[1:])])
+                still = dict(motion, velocity=np.zeros(3), spin=np.zeros(3))
+                d = np.array([path_position(still, np.zeros(3), s) for s in t])
+                dt = np.diff(t)
+                keyed = float((np.linalg.norm(np.diff(d, axis=0), axis=1)[dt > 0] / dt[dt > 0]).max())
+            speed = np.linalg.norm(motion["velocity"]) + keyed + np.linalg.norm(motion["spin"]) * reach
+            fastest = max(fastest, float(speed))
+    return fastest
 
 
 def move_terrain(model, dt):

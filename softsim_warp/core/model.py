@@ -549,18 +549,27 @@ class Model:
             A list of ``(prim_path, points (V, 3), face counts (F,), face indices)``.
         """
 
-        roots = roots or {}
         out = []
+        for path, kind, it in self._round_terrain(roots):
+            if kind == "Bowl":
+                mesh = bowl_mesh(it["center"], it["radius"], it["cut_height"])
+            else:
+                mesh = sphere_mesh(it["center"], it["radius"])
+            out.append((path, *mesh))
+        return out + mesh_output(getattr(self, "meshes", []), roots)
+
+    def terrain_motions(self, roots=None) -> list:
+        """``(prim_path, motion)`` of each moving bowl and sphere among :meth:`terrain_meshes`
+        (their meshes are written as given; the motion's rigid map carries them)."""
+        return [(path, it["motion"]) for path, _kind, it in self._round_terrain(roots) if it.get("motion") is not None]
+
+    def _round_terrain(self, roots):
+        roots = roots or {}
         for kind, items in (("Bowl", self.bowls), ("Sphere", self.spheres)):
             index = {}  # numbered within each world: every copy of a comparison has Bowl_0
             for it in items:
                 i = index[it["world"]] = index.get(it["world"], -1) + 1
-                if kind == "Bowl":
-                    mesh = bowl_mesh(it["center"], it["radius"], it["cut_height"])
-                else:
-                    mesh = sphere_mesh(it["center"], it["radius"])
-                out.append((f"{roots.get(it['world'], '/World')}/{kind}_{i}", *mesh))
-        return out + mesh_output(getattr(self, "meshes", []), roots)
+                yield f"{roots.get(it['world'], '/World')}/{kind}_{i}", kind, it
 
     deterministic = False
 
