@@ -259,3 +259,35 @@ def test_implicit_with_moving_terrain_is_refused():
     with pytest.raises(SceneError) as e:
         ss.scene_from_dict(data)
     assert "sphere.0.motion: the implicit integrator does not take moving terrain" in str(e.value)
+
+
+def test_usd_animates_moving_terrain(tmp_path):
+    """The turntable's plane is written once, as given, with a transform sampled at every frame:
+    the rigid map of its motion at the frame's time (60 deg/s about y), which puts its mesh where
+    the contact had it; static terrain gets no transform."""
+    from pxr import Usd, UsdGeom  # noqa: PLC0415
+
+    from softsim_warp.commands import cli  # noqa: PLC0415
+
+    out = tmp_path / "turntable.usda"
+    argv = ["run", "turntable", "--frames", "3", "--fps", "10", "--quiet", "--out", str(out),
+            "--set", "jelly.0.resolution=3"]
+    assert cli.main(argv) == 0
+    stage = Usd.Stage.Open(str(out))
+    plane = UsdGeom.Mesh.Get(stage, "/World/Plane_0")
+    ops = plane.GetOrderedXformOps()
+    assert len(ops) == 1 and ops[0].GetOpType() == UsdGeom.XformOp.TypeTransform
+    assert ops[0].GetAttr().GetTimeSamples() == [0.0, 1.0, 2.0, 3.0]
+    corner = np.array(plane.GetPointsAttr().Get()[0], dtype=np.float64)
+    for frame in range(4):
+        a = math.radians(60.0) * frame / 10.0
+        m = np.array(plane.ComputeLocalToWorldTransform(frame))
+        moved = np.append(corner, 1.0) @ m
+        # About +y by a: (x, z) -> (x cos a + z sin a, -x sin a + z cos a).
+        expected = [corner[0] * math.cos(a) + corner[2] * math.sin(a), corner[1],
+                    -corner[0] * math.sin(a) + corner[2] * math.cos(a)]
+        np.testing.assert_allclose(moved[:3], expected, atol=1e-9)
+    static = tmp_path / "jelly_drop.usda"
+    assert cli.main(["run", "jelly_drop", "--frames", "1", "--quiet", "--out", str(static), "--set",
+                     "jelly.0.resolution=3"]) == 0
+    assert UsdGeom.Mesh.Get(Usd.Stage.Open(str(static)), "/World/Plane_0").GetOrderedXformOps() == []
