@@ -291,3 +291,34 @@ def test_usd_animates_moving_terrain(tmp_path):
     assert cli.main(["run", "jelly_drop", "--frames", "1", "--quiet", "--out", str(static), "--set",
                      "jelly.0.resolution=3"]) == 0
     assert UsdGeom.Mesh.Get(Usd.Stage.Open(str(static)), "/World/Plane_0").GetOrderedXformOps() == []
+
+
+def test_platform_carries_the_stack():
+    """The built-in `platform` (full size, 8000 steps): while the platform accelerates at 2 m/s^2
+    (well under mu g) the bottom jelly keeps its speed; once the platform runs at 1 m/s the stack's
+    centre moves at it give or take its sway; the jellies stay stacked and stop with the platform."""
+    from softsim_warp.core.contact import terrain_at  # noqa: PLC0415
+
+    sc = load_scene("platform")
+    model, st = stepper(sc)
+    plane = model.planes[0]
+    parts = [slice(j.particle_start, j.particle_start + j.particle_count) for j in model.jellies]
+    rows = []
+    for k in range(400):  # 10 ms samples
+        st.advance(20)
+        t = (k + 1) * 0.01
+        vp = (terrain_at(plane, t + 1e-5)["point"][0] - terrain_at(plane, t - 1e-5)["point"][0]) / 2e-5
+        q, v = st.state.particle_q.numpy(), st.state.particle_qd.numpy()
+        rows.append((t, vp, v[:, 0].mean(), *[v[s, 0].mean() for s in parts], *[q[s, 0].mean() for s in parts],
+                     *[q[s, 1].mean() for s in parts]))
+    o = np.array(rows)
+    t = o[:, 0]
+    accel, cruise, stopped = (t > 1.0) & (t < 1.5), (t >= 2.0) & (t <= 2.5), t >= 3.5
+    assert np.abs(o[accel, 3] - o[accel, 1]).max() < 0.06  # bottom jelly (measured 0.043)
+    assert np.abs(o[accel, 2] - o[accel, 1]).max() < 0.12  # the stack's centre (0.091)
+    assert 0.8 < o[cruise, 2].min() and o[cruise, 2].max() < 1.2  # sways about 1 m/s (0.87-1.14)
+    assert np.abs(o[stopped, 2]).max() < 0.2  # (0.13)
+    np.testing.assert_allclose(model.plane_point.numpy()[0], [1.5, 0.0, 0.0], atol=1e-6)
+    heights = o[:, 9:12]
+    assert np.all(heights.min(axis=0) > [0.2, 0.8, 1.4])  # stacked: none slid off (0.25, 0.84, 1.43)
+    assert np.abs(o[:, 7:9] - o[:, 6:7]).max() < 0.2  # within 0.2 m of the bottom jelly in x (0.12)
