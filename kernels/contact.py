@@ -755,7 +755,7 @@ def build(scalar):
                 if m >= 0:
                     c_prev = motion_point_prev[m]
                 phi, n = sphere_distance(x, c, radius)
-                phi_prev, n_prev = sphere_distance(q_prev[i], c_prev, radius)
+                _phi_prev, n_prev = sphere_distance(q_prev[i], c_prev, radius)
                 vs = surface_velocity(x, m, motion_center_now, motion_velocity_step, motion_spin)
                 x, v = resolve_moving(x, v, qd_prev[i], n_prev, vs, phi, n, sphere_restitution[s], sphere_friction[s],
                                       eps, eps_v, rest_steps, beta_h, stage)

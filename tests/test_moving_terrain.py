@@ -265,9 +265,9 @@ def test_usd_animates_moving_terrain(tmp_path):
     """The turntable's plane is written once, as given, with a transform sampled at every frame:
     the rigid map of its motion at the frame's time (60 deg/s about y), which puts its mesh where
     the contact had it; static terrain gets no transform."""
-    from pxr import Usd, UsdGeom  # noqa: PLC0415
+    from pxr import Usd, UsdGeom
 
-    from softsim_warp.commands import cli  # noqa: PLC0415
+    from softsim_warp.commands import cli
 
     out = tmp_path / "turntable.usda"
     argv = ["run", "turntable", "--frames", "3", "--fps", "10", "--quiet", "--out", str(out),
@@ -297,7 +297,7 @@ def test_platform_carries_the_stack():
     """The built-in `platform` (full size, 8000 steps): while the platform accelerates at 2 m/s^2
     (well under mu g) the bottom jelly keeps its speed; once the platform runs at 1 m/s the stack's
     centre moves at it give or take its sway; the jellies stay stacked and stop with the platform."""
-    from softsim_warp.core.contact import terrain_at  # noqa: PLC0415
+    from softsim_warp.core.contact import terrain_at
 
     sc = load_scene("platform")
     model, st = stepper(sc)

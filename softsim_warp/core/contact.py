@@ -7,6 +7,8 @@ is applied once per step on the result rather than inside the stages.
 
 from __future__ import annotations
 
+import itertools
+
 import numpy as np
 import warp as wp
 
@@ -117,7 +119,7 @@ def terrain_speed(model, reach: float) -> float:
             times = np.asarray(motion["key_times"], dtype=np.float64)
             keyed = 0.0
             if times.size > 1:
-                t = np.concatenate([np.linspace(a, b, 65) for a, b in zip(times[:-1], times[1:])])
+                t = np.concatenate([np.linspace(a, b, 65) for a, b in itertools.pairwise(times)])
                 still = dict(motion, velocity=np.zeros(3), spin=np.zeros(3))
                 d = np.array([path_position(still, np.zeros(3), s) for s in t])
                 dt = np.diff(t)
