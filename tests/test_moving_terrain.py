@@ -43,7 +43,7 @@ def stepper(sc):
     return model, ss.Stepper(model, ss.make_integrator(sc.sim["integrator"], model), sc.sim["dt"])
 
 
-@pytest.mark.parametrize("method", ["symplectic", "rk4"])
+@pytest.mark.parametrize("method", ["euler", "symplectic", "midpoint", "rk4"])
 def test_jelly_on_a_moving_plane_rides_it(method):
     """Coulomb's law in the plane's frame: the jelly slides while the relative speed lasts, its
     momentum growing by mu times the normal impulse (v_x = mu (g t + v_y), exactly while every
@@ -157,6 +157,30 @@ def test_smooth_keyframed_sphere_follows_the_pin_path():
         st.advance(1)
         expected = path_position(pin, np.array([0.5, 0.0, 0.0]), (k + 1) * 1e-3)
         assert np.abs(model.sphere_center.numpy()[0] - expected).max() < 1e-6
+
+
+def test_hole_moves_with_its_plane():
+    """A plane with a hole (radius 0.1 m at the origin) slides along x at 1 m/s; two jellies fall
+    from 1.225 m, landing at t = 0.5 s: the one at x = 0.5 m falls through the hole, which is there
+    by then, the one at x = 0 lands on the plane where the hole was at the start. (At 0.6 s the
+    hole has passed x = 0.5 m, and the plane, a half-space, puts what fell through back on top, as a
+    static plane does a particle that leaves its hole's circle below it.)"""
+    def column(x):
+        return {"resolution": [1, 2, 1], "size": [1.0, 0.02, 1.0], "center": [x, 1.235, 0.0], "particle_mass": 0.01,
+                "springs": {"structural": {"ks": 100.0, "kd": 0.1}}}
+
+    sc = ss.scene_from_dict({
+        "simulation": {"integrator": "symplectic", "dt": 1e-3, "duration": 1.0, "jelly_contact": False},
+        "jelly": [column(0.5), column(0.0)],
+        "plane": [{"hole": {"center": [0.0, 0.0, 0.0], "radius": 0.1}, "friction": 0.0, "restitution": 0.0,
+                   "motion": {"velocity": [1.0, 0.0, 0.0]}}],
+    })
+    model, st = stepper(sc)
+    st.advance(550)
+    y = st.state.particle_q.numpy()[:, 1]
+    np.testing.assert_allclose(model.plane_hole_center.numpy()[0], [0.55, 0.0, 0.0], atol=1e-5)
+    assert y[:2].max() < -0.1  # through the hole
+    assert y[2:].min() > -1e-6  # on the plane
 
 
 def test_moving_bowl_carries_what_it_holds():
