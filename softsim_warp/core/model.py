@@ -520,6 +520,12 @@ class Model:
         sphere_radius: radius [m], shape [sphere_count], scalar.
         sphere_restitution, sphere_friction: coefficients [1], shape [sphere_count], scalar.
         bowls, spheres: host lists of dicts with the same values (float64).
+        terrain_motion: the moving planes, bowls and spheres (:class:`~softsim_warp.core.contact.TerrainMotion`),
+            or None when no terrain moves; with it, ``plane_motion``, ``bowl_motion``, ``sphere_motion``
+            (int32 per primitive: its index among the moving ones, -1 when it stays put), and the
+            geometry arrays above hold each moving primitive's pose at the end of the last step
+            begun (at t = 0 before the first); the host lists keep the geometry as given, with its
+            ``motion`` (None when it stays put).
         contact_epsilon: the layer within which a surface is tested for a particle [m]; it touches
             once its step brings it within kernels.contact.TOUCH_FRACTION of it, or through it.
         contact_velocity_epsilon: approach speed below which a touching particle rests [m/s].
