@@ -260,15 +260,16 @@ def _launch_contacts(model: Model, state_in: State, q_out, qd_out, h, world_cont
             ),
         ),
     )
-    kinds = tuple(
-        (count, getattr(model.kernels, f"collide_moving_{kind}s"),
-         arrays + model.terrain_motion.contact_arrays(getattr(model, f"{kind}_motion")))
-        if count and moves(model, kind) else (count, kernel, arrays)
-        for count, kind, kernel, arrays in kinds
-    )
+    if getattr(model, "terrain_motion", None) is not None:
+        kinds = tuple(
+            (count, kind, getattr(model.kernels, f"collide_moving_{kind}s"),
+             arrays + model.terrain_motion.contact_arrays(getattr(model, f"{kind}_motion")))
+            if count and moves(model, kind) else (count, kind, kernel, arrays)
+            for count, kind, kernel, arrays in kinds
+        )
     if getattr(model, "mesh_count", 0):  # triangle-mesh terrain (core/mesh_terrain.py)
-        kinds += ((model.mesh_count, model.kernels.collide_meshes, mesh_arrays(model)),)
-    for count, kernel, arrays in kinds:
+        kinds += ((model.mesh_count, "mesh", model.kernels.collide_meshes, mesh_arrays(model)),)
+    for count, _kind, kernel, arrays in kinds:
         if count:
             wp.launch(
                 kernel,
