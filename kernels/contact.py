@@ -30,7 +30,7 @@ import functools
 
 import warp as wp
 
-from . import integration
+from . import integration, pins
 
 wp.set_module_options({"enable_backward": False})
 
@@ -347,6 +347,117 @@ def build(scalar):
             )
         return x, v
 
+    # -- Moving terrain ---------------------------------------------------------------------------
+    # A moving primitive follows a pin's motion (kernels/pins.py ``rigid_pose``): its geometry arrays
+    # (plane point, normal and hole; bowl and sphere centre) are overwritten at the start of every
+    # step with its pose at the step's end by ``move_terrain``, and the ``collide_moving_*``
+    # kernels below resolve contact in the primitive's frame: the surface's velocity at the
+    # particle is taken off before ``resolve_contact`` (restitution acts on the relative normal
+    # speed, friction on the relative tangential one) and added back after it. A scene whose
+    # terrain does not move never launches these: the static kernels above read no motion.
+
+    pin_funcs = pins.build(scalar)
+    rigid_pose = pin_funcs["rigid_pose"]
+    rotate = pin_funcs["rotate"]
+
+    @wp.kernel(module="unique")
+    def move_terrain(
+        clock: wp.array(dtype=wp.int32),
+        h: scalar,
+        # Per moving primitive: what it is, its geometry at rest and its motion (as a pin's).
+        motion_kind: wp.array(dtype=wp.int32),
+        motion_item: wp.array(dtype=wp.int32),
+        motion_rest_point: wp.array(dtype=vec3),
+        motion_rest_normal: wp.array(dtype=vec3),
+        motion_rest_hole: wp.array(dtype=vec3),
+        motion_velocity: wp.array(dtype=vec3),
+        motion_spin: wp.array(dtype=vec3),
+        motion_center: wp.array(dtype=vec3),
+        motion_key_first: wp.array(dtype=wp.int32),
+        motion_key_count: wp.array(dtype=wp.int32),
+        motion_smooth: wp.array(dtype=wp.int32),
+        key_time: wp.array(dtype=scalar),
+        key_value: wp.array(dtype=vec3),
+        # Out, per moving primitive: its motion's centre and turn at the step's end, the centre's
+        # velocity over the step, and its reference point at the step's start.
+        motion_center_now: wp.array(dtype=vec3),
+        motion_turn_now: wp.array(dtype=vec3),
+        motion_velocity_step: wp.array(dtype=vec3),
+        motion_point_prev: wp.array(dtype=vec3),
+        # Out: the terrain's geometry at the step's end.
+        plane_point: wp.array(dtype=vec3),
+        plane_normal: wp.array(dtype=vec3),
+        plane_hole_center: wp.array(dtype=vec3),
+        bowl_center: wp.array(dtype=vec3),
+        sphere_center: wp.array(dtype=vec3),
+    ):
+        # One thread for all moving primitives (a scene has a few) and the clock: one launch a step,
+        # and no other thread reads the clock while it advances.
+        t0 = scalar(clock[0]) * h
+        for m in range(motion_kind.shape[0]):
+            first = motion_key_first[m]
+            count = motion_key_count[m]
+            smooth = motion_smooth[m]
+            c = motion_center[m]
+            c0, a0 = rigid_pose(t0, motion_velocity[m], motion_spin[m], c, first, count, smooth, key_time, key_value)
+            c1, a1 = rigid_pose(t0 + h, motion_velocity[m], motion_spin[m], c, first, count, smooth, key_time,
+                                key_value)
+            rest = motion_rest_point[m]
+            now = c1 + rotate(a1, rest - c)
+            motion_center_now[m] = c1
+            motion_turn_now[m] = a1
+            motion_velocity_step[m] = (c1 - c0) / h
+            motion_point_prev[m] = c0 + rotate(a0, rest - c)
+            k = motion_item[m]
+            kind = motion_kind[m]
+            if kind == 0:
+                plane_point[k] = now
+                plane_normal[k] = rotate(a1, motion_rest_normal[m])
+                plane_hole_center[k] = c1 + rotate(a1, motion_rest_hole[m] - c)
+            elif kind == 1:
+                bowl_center[k] = now
+            else:
+                sphere_center[k] = now
+        clock[0] = clock[0] + 1
+
+    @wp.func
+    def surface_velocity(x: vec3, m: int, motion_center_now: wp.array(dtype=vec3),
+                         motion_velocity_step: wp.array(dtype=vec3), motion_spin: wp.array(dtype=vec3)):
+        """Velocity of moving primitive ``m``'s surface at ``x`` over the step (0 for m < 0, static):
+        its centre's velocity plus its spin about that centre."""
+        if m < 0:
+            return vec3(scalar(0.0))
+        return motion_velocity_step[m] + wp.cross(motion_spin[m], x - motion_center_now[m])
+
+    @wp.func
+    def resolve_moving(
+        x: vec3,
+        v: vec3,
+        v_prev: vec3,
+        normal_prev: vec3,
+        vs: vec3,
+        phi: scalar,
+        normal: vec3,
+        restitution: scalar,
+        friction: scalar,
+        eps: scalar,
+        eps_v: scalar,
+        rest_steps: scalar,
+        beta_h: scalar,
+        stage: int,
+    ):
+        """``resolve_contact`` in the frame of a surface moving at ``vs`` at the particle: the
+        velocities before (along ``normal_prev``) and after the step are taken relative to it.
+        A particle that does not touch is returned untouched (not v - vs + vs, which rounds)."""
+        touch = eps * scalar(TOUCH_FRACTION)
+        if stage < 0:
+            touch = eps
+        if phi >= touch:
+            return x, v
+        x, v_rel = resolve_contact(x, v - vs, wp.dot(normal_prev, v_prev - vs), phi, normal, restitution, friction,
+                                   eps, eps_v, rest_steps, beta_h, stage)
+        return x, v_rel + vs
+
     # -- Kernels: one per primitive kind, so a scene launches only the kinds it has -------------
     # integrators.apply_contacts launches them all alike: (particle_inv_mass, particle_world,
     # the kind's arrays (first per world, then its parameters)..., eps, eps_v, rest_steps, h, world_contact_beta, q_prev, qd_prev)
@@ -496,6 +607,161 @@ def build(scalar):
             q_out[i] = x
             qd_out[i] = v
 
+    # The moving variants take, after the kind's own arrays, each primitive's moving index (-1:
+    # static) and the arrays ``move_terrain`` writes, then the same arguments as the static ones.
+
+    @wp.kernel(module="unique")
+    def collide_moving_planes(
+        particle_inv_mass: wp.array(dtype=scalar),
+        particle_world: wp.array(dtype=wp.int32),
+        plane_first: wp.array(dtype=wp.int32),
+        plane_point: wp.array(dtype=vec3),
+        plane_normal: wp.array(dtype=vec3),
+        plane_hole_center: wp.array(dtype=vec3),
+        plane_hole_radius: wp.array(dtype=scalar),
+        plane_restitution: wp.array(dtype=scalar),
+        plane_friction: wp.array(dtype=scalar),
+        plane_motion: wp.array(dtype=wp.int32),
+        motion_center_now: wp.array(dtype=vec3),
+        motion_turn_now: wp.array(dtype=vec3),
+        motion_velocity_step: wp.array(dtype=vec3),
+        motion_point_prev: wp.array(dtype=vec3),
+        motion_spin: wp.array(dtype=vec3),
+        motion_rest_point: wp.array(dtype=vec3),
+        eps: scalar,
+        eps_v: scalar,
+        rest_steps: scalar,
+        h: scalar,
+        world_contact_beta: wp.array(dtype=scalar),
+        stage: int,
+        q_prev: wp.array(dtype=vec3),
+        qd_prev: wp.array(dtype=vec3),
+        q_out: wp.array(dtype=vec3),
+        qd_out: wp.array(dtype=vec3),
+    ):
+        i = wp.tid()
+        if particle_inv_mass[i] != scalar(0.0):
+            w = particle_world[i]
+            x = q_out[i]
+            v = qd_out[i]
+            beta_h = h * world_contact_beta[w]
+            for p in range(plane_first[w], plane_first[w + 1]):
+                n = plane_normal[p]
+                point = plane_point[p]
+                if wp.dot(x - point, n) < eps:
+                    phi = plane_distance(x, point, n, plane_hole_center[p], plane_hole_radius[p])
+                    vs = surface_velocity(x, plane_motion[p], motion_center_now, motion_velocity_step, motion_spin)
+                    x, v = resolve_moving(x, v, qd_prev[i], n, vs, phi, n, plane_restitution[p], plane_friction[p],
+                                          eps, eps_v, rest_steps, beta_h, stage)
+            q_out[i] = x
+            qd_out[i] = v
+
+    @wp.kernel(module="unique")
+    def collide_moving_bowls(
+        particle_inv_mass: wp.array(dtype=scalar),
+        particle_world: wp.array(dtype=wp.int32),
+        bowl_first: wp.array(dtype=wp.int32),
+        bowl_center: wp.array(dtype=vec3),
+        bowl_radius: wp.array(dtype=scalar),
+        bowl_cut_height: wp.array(dtype=scalar),
+        bowl_restitution: wp.array(dtype=scalar),
+        bowl_friction: wp.array(dtype=scalar),
+        bowl_motion: wp.array(dtype=wp.int32),
+        motion_center_now: wp.array(dtype=vec3),
+        motion_turn_now: wp.array(dtype=vec3),
+        motion_velocity_step: wp.array(dtype=vec3),
+        motion_point_prev: wp.array(dtype=vec3),
+        motion_spin: wp.array(dtype=vec3),
+        motion_rest_point: wp.array(dtype=vec3),
+        eps: scalar,
+        eps_v: scalar,
+        rest_steps: scalar,
+        h: scalar,
+        world_contact_beta: wp.array(dtype=scalar),
+        stage: int,
+        q_prev: wp.array(dtype=vec3),
+        qd_prev: wp.array(dtype=vec3),
+        q_out: wp.array(dtype=vec3),
+        qd_out: wp.array(dtype=vec3),
+    ):
+        i = wp.tid()
+        if particle_inv_mass[i] != scalar(0.0):
+            w = particle_world[i]
+            x = q_out[i]
+            v = qd_out[i]
+            beta_h = h * world_contact_beta[w]
+            for b in range(bowl_first[w], bowl_first[w + 1]):
+                c = bowl_center[b]
+                radius = bowl_radius[b]
+                m = bowl_motion[b]
+                c_prev = c
+                cut = bowl_cut_height[b]
+                above = False
+                if m >= 0:
+                    # Whether the bowl held the particle is asked of the bowl where it was then, and
+                    # the cut is a height in the bowl's own frame (it turns with the bowl).
+                    c_prev = motion_point_prev[m]
+                    above = rotate(-motion_turn_now[m], x - c)[1] + motion_rest_point[m][1] >= cut
+                    cut = scalar(1.0e30)
+                holds, n_out = bowl_holds(q_prev[i], c_prev, radius, eps)
+                if holds:
+                    phi, n = bowl_distance(x, c, radius, cut)
+                    if above:
+                        phi = scalar(1.0e30)
+                    vs = surface_velocity(x, m, motion_center_now, motion_velocity_step, motion_spin)
+                    x, v = resolve_moving(x, v, qd_prev[i], -n_out, vs, phi, n, bowl_restitution[b], bowl_friction[b],
+                                          eps, eps_v, rest_steps, beta_h, stage)
+            q_out[i] = x
+            qd_out[i] = v
+
+    @wp.kernel(module="unique")
+    def collide_moving_spheres(
+        particle_inv_mass: wp.array(dtype=scalar),
+        particle_world: wp.array(dtype=wp.int32),
+        sphere_first: wp.array(dtype=wp.int32),
+        sphere_center: wp.array(dtype=vec3),
+        sphere_radius: wp.array(dtype=scalar),
+        sphere_restitution: wp.array(dtype=scalar),
+        sphere_friction: wp.array(dtype=scalar),
+        sphere_motion: wp.array(dtype=wp.int32),
+        motion_center_now: wp.array(dtype=vec3),
+        motion_turn_now: wp.array(dtype=vec3),
+        motion_velocity_step: wp.array(dtype=vec3),
+        motion_point_prev: wp.array(dtype=vec3),
+        motion_spin: wp.array(dtype=vec3),
+        motion_rest_point: wp.array(dtype=vec3),
+        eps: scalar,
+        eps_v: scalar,
+        rest_steps: scalar,
+        h: scalar,
+        world_contact_beta: wp.array(dtype=scalar),
+        stage: int,
+        q_prev: wp.array(dtype=vec3),
+        qd_prev: wp.array(dtype=vec3),
+        q_out: wp.array(dtype=vec3),
+        qd_out: wp.array(dtype=vec3),
+    ):
+        i = wp.tid()
+        if particle_inv_mass[i] != scalar(0.0):
+            w = particle_world[i]
+            x = q_out[i]
+            v = qd_out[i]
+            beta_h = h * world_contact_beta[w]
+            for s in range(sphere_first[w], sphere_first[w + 1]):
+                c = sphere_center[s]
+                radius = sphere_radius[s]
+                m = sphere_motion[s]
+                c_prev = c
+                if m >= 0:
+                    c_prev = motion_point_prev[m]
+                phi, n = sphere_distance(x, c, radius)
+                _phi_prev, n_prev = sphere_distance(q_prev[i], c_prev, radius)
+                vs = surface_velocity(x, m, motion_center_now, motion_velocity_step, motion_spin)
+                x, v = resolve_moving(x, v, qd_prev[i], n_prev, vs, phi, n, sphere_restitution[s], sphere_friction[s],
+                                      eps, eps_v, rest_steps, beta_h, stage)
+            q_out[i] = x
+            qd_out[i] = v
+
     return {
         "resolve_contact": resolve_contact,
         "plane_distance": plane_distance,
@@ -509,4 +775,9 @@ def build(scalar):
         "contact_spheres": contact_spheres,
         "collide_bowls": collide_bowls,
         "collide_spheres": collide_spheres,
+        "move_terrain": move_terrain,
+        "surface_velocity": surface_velocity,
+        "collide_moving_planes": collide_moving_planes,
+        "collide_moving_bowls": collide_moving_bowls,
+        "collide_moving_spheres": collide_moving_spheres,
     }

@@ -74,10 +74,18 @@ def build(scalar):
         return p0 * h00 + m0 * (h10 * dt) + p1 * h01 + m1 * (h11 * dt)
 
     @wp.func
+    def rigid_pose(t: scalar, velocity: vec3, spin: vec3, center: vec3, first: int, count: int, smooth: int,
+                   key_time: wp.array(dtype=scalar), key_value: wp.array(dtype=vec3)):
+        """The pose of a motion at ``t``: where its centre has gone, ``c + v t + d(t)``, and its turn
+        (axis-angle) ``w t``; a point that starts at ``X`` is then at ``centre + rotate(turn, X - c)``.
+        Shared by the pins and the moving terrain (kernels/contact.py ``move_terrain``)."""
+        return center + velocity * t + key_offset(t, first, count, smooth, key_time, key_value), spin * t
+
+    @wp.func
     def pin_position(t: scalar, x0: vec3, velocity: vec3, spin: vec3, center: vec3, first: int, count: int,
                      smooth: int, key_time: wp.array(dtype=scalar), key_value: wp.array(dtype=vec3)):
-        return center + velocity * t + key_offset(t, first, count, smooth, key_time, key_value) + rotate(
-            spin * t, x0 - center)
+        moved, turn = rigid_pose(t, velocity, spin, center, first, count, smooth, key_time, key_value)
+        return moved + rotate(turn, x0 - center)
 
     @wp.kernel(module="unique")
     def drive_pins(
@@ -119,6 +127,8 @@ def build(scalar):
         clock[0] = clock[0] + 1
 
     return {
+        "rotate": rotate,
+        "rigid_pose": rigid_pose,
         "pin_position": pin_position,
         "drive_pins": drive_pins,
         "advance_pin_clock": advance_pin_clock,

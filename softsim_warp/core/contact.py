@@ -7,10 +7,143 @@ is applied once per step on the result rather than inside the stages.
 
 from __future__ import annotations
 
+import itertools
+
+import numpy as np
 import warp as wp
 
 from ..kernels.contact import LAYER_TOUCH
 from .mesh_terrain import mesh_arrays
+from .pins import motion_transform, path_position
+
+# The kinds of terrain that move (``kernels/contact.py`` ``move_terrain``'s motion_kind).
+MOVING_KINDS = ("plane", "bowl", "sphere")
+
+
+def terrain_at(item: dict, t: float) -> dict:
+    """A terrain primitive (a plane's, bowl's or sphere's dict of ``ModelBuilder``) where its motion
+    has carried it at ``t`` [s], float64 on the host: its points (``point``, ``hole_center``,
+    ``center``) and ``normal`` through the motion's rigid map; the item itself when it does not move."""
+    motion = item.get("motion")
+    if motion is None:
+        return item
+    rot, shift = motion_transform(motion, t)
+    out = dict(item)
+    for key in ("point", "hole_center", "center"):
+        if key in item:
+            out[key] = rot @ np.asarray(item[key], dtype=np.float64) + shift
+    if "normal" in item:
+        out["normal"] = rot @ np.asarray(item["normal"], dtype=np.float64)
+    return out
+
+
+class TerrainMotion:
+    """Device arrays of the moving planes, bowls and spheres of a model (``Model.terrain_motion``).
+
+    Per kind an index per primitive into the moving ones (``plane_motion`` ...; -1: static), and
+    per moving primitive its geometry as given, its motion (a pin's, ``kernels/pins.py``) and what
+    ``move_terrain`` writes at every step's start. The terrain clock counts the steps taken, as the
+    pin clock does; :meth:`reset` restarts it.
+    """
+
+    @classmethod
+    def of(cls, model, device, scalar, vec3):
+        """The moving terrain of a finalized ``model`` (its host lists ``planes``, ``bowls``,
+        ``spheres``), or None when nothing moves: a static scene has no motion arrays at all."""
+        items = [(k, i, it) for k, name in enumerate(MOVING_KINDS) for i, it in enumerate(getattr(model, name + "s"))
+                 if it.get("motion") is not None]
+        return cls(model, items, device, scalar, vec3) if items else None
+
+    def __init__(self, model, items, device, scalar, vec3):
+        np_scalar = np.float64 if scalar == wp.float64 else np.float32
+
+        def arr(values, dtype, np_dtype):
+            return wp.array(np.asarray(values, dtype=np_dtype), dtype=dtype, device=device)
+
+        def vecs(values):
+            return arr(np.reshape(values, (-1, 3)), vec3, np_scalar)
+
+        self.count = len(items)
+        for k, name in enumerate(MOVING_KINDS):
+            index = np.full(len(getattr(model, name + "s")), -1, dtype=np.int32)
+            for m, (kind, i, _it) in enumerate(items):
+                if kind == k:
+                    index[i] = m
+            setattr(model, f"{name}_motion", arr(index, wp.int32, np.int32))
+        motions = [it["motion"] for _k, _i, it in items]
+        key_first, key_t, key_v = [], [], []
+        for mo in motions:
+            key_first.append(len(key_t))
+            key_t.extend(mo["key_times"])
+            key_v.extend(mo["key_offsets"])
+        self.kind = arr([k for k, _i, _it in items], wp.int32, np.int32)
+        self.item = arr([i for _k, i, _it in items], wp.int32, np.int32)
+        self.rest_point = vecs([it.get("point", it.get("center")) for _k, _i, it in items])
+        self.rest_normal = vecs([it.get("normal", np.zeros(3)) for _k, _i, it in items])
+        self.rest_hole = vecs([it.get("hole_center", np.zeros(3)) for _k, _i, it in items])
+        self.velocity = vecs([mo["velocity"] for mo in motions])
+        self.spin = vecs([mo["spin"] for mo in motions])
+        self.center = vecs([mo["center"] for mo in motions])
+        self.key_first = arr(key_first, wp.int32, np.int32)
+        self.key_count = arr([len(mo["key_times"]) for mo in motions], wp.int32, np.int32)
+        self.smooth = arr([int(mo["interpolation"] == "smooth") for mo in motions], wp.int32, np.int32)
+        self.key_time = arr(key_t or [0.0], scalar, np_scalar)
+        self.key_value = vecs(key_v or [0.0, 0.0, 0.0])
+        self.center_now = wp.zeros(self.count, dtype=vec3, device=device)
+        self.turn_now = wp.zeros(self.count, dtype=vec3, device=device)
+        self.velocity_step = wp.zeros(self.count, dtype=vec3, device=device)
+        self.point_prev = wp.zeros(self.count, dtype=vec3, device=device)
+        self.clock = wp.zeros(1, dtype=wp.int32, device=device)
+
+    def reset(self):
+        """Restart the terrain clock at t = 0."""
+        self.clock.zero_()
+
+    def contact_arrays(self, kind_motion) -> tuple:
+        """What a ``collide_moving_*`` kernel takes after its kind's arrays."""
+        return (kind_motion, self.center_now, self.turn_now, self.velocity_step, self.point_prev, self.spin,
+                self.rest_point)
+
+
+def terrain_speed(model, reach: float) -> float:
+    """Largest speed [m/s] of a moving plane's, bowl's or sphere's surface within ``reach`` [m] of
+    its motion's centre, on the host: its velocity, its keyframed offset's speed (sampled, 64 points
+    a segment, which the smooth spline's overshoot between keys needs) and its spin times the reach.
+    0 without moving terrain."""
+    fastest = 0.0
+    for kind in MOVING_KINDS:
+        for it in getattr(model, kind + "s", []):
+            motion = it.get("motion")
+            if motion is None:
+                continue
+            times = np.asarray(motion["key_times"], dtype=np.float64)
+            keyed = 0.0
+            if times.size > 1:
+                t = np.concatenate([np.linspace(a, b, 65) for a, b in itertools.pairwise(times)])
+                still = dict(motion, velocity=np.zeros(3), spin=np.zeros(3))
+                d = np.array([path_position(still, np.zeros(3), s) for s in t])
+                dt = np.diff(t)
+                keyed = float((np.linalg.norm(np.diff(d, axis=0), axis=1)[dt > 0] / dt[dt > 0]).max())
+            speed = np.linalg.norm(motion["velocity"]) + keyed + np.linalg.norm(motion["spin"]) * reach
+            fastest = max(fastest, float(speed))
+    return fastest
+
+
+def move_terrain(model, dt):
+    """Put the moving terrain where it is at the end of the step about to be taken (one launch,
+    which also advances the terrain clock); nothing without moving terrain."""
+    tm = getattr(model, "terrain_motion", None)
+    if tm is None:
+        return
+    wp.launch(
+        model.kernels.move_terrain,
+        dim=1,
+        inputs=[tm.clock, model.scalar(dt), tm.kind, tm.item, tm.rest_point, tm.rest_normal, tm.rest_hole,
+                tm.velocity, tm.spin, tm.center, tm.key_first, tm.key_count, tm.smooth, tm.key_time, tm.key_value],
+        outputs=[tm.center_now, tm.turn_now, tm.velocity_step, tm.point_prev, model.plane_point, model.plane_normal,
+                 model.plane_hole_center, model.bowl_center, model.sphere_center],
+        device=model.device,
+    )
 
 
 def apply_contacts(
@@ -84,16 +217,26 @@ def plane_arrays(model) -> tuple:
     )
 
 
+def moves(model, kind: str) -> bool:
+    """Whether any terrain primitive of ``kind`` ("plane", "bowl", "sphere") of ``model`` moves."""
+    return getattr(model, "terrain_motion", None) is not None and any(
+        it.get("motion") is not None for it in getattr(model, kind + "s")
+    )
+
+
 def _launch_contacts(model: Model, state_in: State, q_out, qd_out, h, world_contact_beta, planes, stage):
     # (count, kernel, the kind's arrays): every collide_* kernel takes the same arguments around them.
+    # A kind with a moving primitive takes its moving variant, which reads the motion arrays too.
     kinds = (
         (
             model.plane_count if planes else 0,
+            "plane",
             model.kernels.collide_planes,
             plane_arrays(model),
         ),
         (
             model.bowl_count,
+            "bowl",
             model.kernels.collide_bowls,
             (
                 model.bowl_first,
@@ -106,6 +249,7 @@ def _launch_contacts(model: Model, state_in: State, q_out, qd_out, h, world_cont
         ),
         (
             model.sphere_count,
+            "sphere",
             model.kernels.collide_spheres,
             (
                 model.sphere_first,
@@ -116,9 +260,16 @@ def _launch_contacts(model: Model, state_in: State, q_out, qd_out, h, world_cont
             ),
         ),
     )
+    if getattr(model, "terrain_motion", None) is not None:
+        kinds = tuple(
+            (count, kind, getattr(model.kernels, f"collide_moving_{kind}s"),
+             arrays + model.terrain_motion.contact_arrays(getattr(model, f"{kind}_motion")))
+            if count and moves(model, kind) else (count, kind, kernel, arrays)
+            for count, kind, kernel, arrays in kinds
+        )
     if getattr(model, "mesh_count", 0):  # triangle-mesh terrain (core/mesh_terrain.py)
-        kinds += ((model.mesh_count, model.kernels.collide_meshes, mesh_arrays(model)),)
-    for count, kernel, arrays in kinds:
+        kinds += ((model.mesh_count, "mesh", model.kernels.collide_meshes, mesh_arrays(model)),)
+    for count, _kind, kernel, arrays in kinds:
         if count:
             wp.launch(
                 kernel,

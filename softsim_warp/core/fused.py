@@ -29,7 +29,7 @@ from __future__ import annotations
 
 import warp as wp
 
-from .contact import apply_contacts, filter_stage_contacts, plane_arrays
+from .contact import apply_contacts, filter_stage_contacts, moves, plane_arrays
 from .lattice_model import LatticeData
 
 # Particles from which a one-jelly model steps with the shape-compiled stage (``single_stage``).
@@ -59,7 +59,8 @@ def configure_fused(integrator, fused=None, fuse_contact=None, single=None):
     gather = fused and (lat is None or lat.per_particle)
     if fuse_contact is None:
         fuse_contact = True
-    integrator.fuse_contact = bool(gather and model.plane_count and bool(fuse_contact))
+    # Moving planes take their own kernel after the stage (core/contact.py), which reads their motion.
+    integrator.fuse_contact = bool(gather and model.plane_count and bool(fuse_contact) and not moves(model, "plane"))
     eligible = lat is not None and lat.single
     if single is None:
         single = eligible and model.particle_count >= SINGLE_FROM

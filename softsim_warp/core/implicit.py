@@ -165,6 +165,10 @@ class ImplicitIntegrator(Integrator):
         warm_start: bool = True,
     ):
         super().__init__(model)
+        if getattr(model, "terrain_motion", None) is not None:
+            # Its contact solve prescribes a touching particle's normal velocity as 0 and damps its
+            # tangential one towards 0, the terrain's own velocity being unknown to it.
+            raise ValueError("the implicit integrator does not take moving terrain; use an explicit one")
         # x_{n+1} = x_n + h v_{n+1}: a force held over the step moves x by h^2 a (contact gain 1).
         self.world_contact_beta = wp.full(model.world_count, model.scalar(1.0), dtype=model.scalar, device=model.device)
         if int(newton_iterations) != newton_iterations or newton_iterations < 1:

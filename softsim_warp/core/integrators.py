@@ -11,7 +11,7 @@ from __future__ import annotations
 import numpy as np
 import warp as wp
 
-from .contact import apply_contacts, filter_stage_contacts
+from .contact import apply_contacts, filter_stage_contacts, move_terrain
 from .forces import eval_forces
 from .fused import configure_fused, stage_buffers, step_fused
 from .model import NUMPY_SCALARS, Model, State
@@ -52,7 +52,8 @@ class Integrator:
 
     def step(self, state_in: State, state_out: State, dt: float):
         """Advance ``state_in`` by ``dt`` into ``state_out``. Implementations start with
-        ``pins.drive(model, state_in, dt)`` (driven pins) and end with ``apply_contacts``."""
+        ``pins.drive(model, state_in, dt)`` (driven pins) and ``contact.move_terrain(model, dt)``
+        (moving terrain) and end with ``apply_contacts``."""
         raise NotImplementedError
 
     def stats(self) -> dict:
@@ -146,6 +147,7 @@ class ExplicitIntegrator(Integrator):
     def step(self, state_in: State, state_out: State, dt: float):
         self.check_states(state_in, state_out)
         drive(self.model, state_in, dt)
+        move_terrain(self.model, dt)
         if self.fused:
             step_fused(self, state_in, state_out, dt)
             return

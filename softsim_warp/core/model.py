@@ -17,11 +17,12 @@ from .errors import SceneError
 from ..kernels import get_kernels
 from .forces import attach
 from .lattice_model import LatticeData, detect_lattice
-from .pins import PinDrive, path_position
+from .pins import PinDrive, make_motion, path_position
 from .masked_lattice import attach_masked
 from .mesh_assets import load_mesh, mesh_options, transform_matrix
 from .mesh_terrain import attach_meshes, mesh_anchors, mesh_output
 from .terrain import bowl_mesh, sphere_mesh
+from .contact import TerrainMotion, terrain_at
 from .voxelize import add_mesh_jelly
 
 SCALARS = {"float32": wp.float32, "float64": wp.float64}
@@ -250,34 +251,26 @@ class ModelBuilder:
             raise ValueError("a pin needs at least one particle")
         if idx.min() < 0 or idx.max() >= self._particle_count:
             raise ValueError(f"pin particle indices must be in [0, {self._particle_count}) (got {idx.min()}..{idx.max()})")
-        times = np.asarray(key_times, dtype=np.float64).ravel()
-        offsets = np.asarray(key_offsets, dtype=np.float64).reshape(-1, 3)
-        if times.size != offsets.shape[0]:
-            raise ValueError(f"key_times has {times.size} entries, key_offsets {offsets.shape[0]}")
-        if times.size > 1 and np.any(np.diff(times) <= 0):
-            raise ValueError(f"key_times must be strictly increasing (got {times.tolist()})")
-        if interpolation not in ("linear", "smooth"):
-            raise ValueError(f"interpolation must be linear or smooth (got {interpolation!r})")
-        q = np.concatenate(self._q)
-        pin = {
-            "particles": idx,
-            "velocity": np.asarray(velocity, dtype=np.float64),
-            "spin": np.asarray(spin, dtype=np.float64),
-            "center": q[idx].mean(axis=0) if center is None else np.asarray(center, dtype=np.float64),
-            "key_times": times.tolist(),
-            "key_offsets": offsets.tolist(),
-            "interpolation": interpolation,
-        }
-        pin["driven"] = bool(np.any(pin["velocity"]) or np.any(pin["spin"]) or times.size)
+        pin = make_motion(velocity, spin, center, key_times, key_offsets, interpolation)
+        pin["particles"] = idx
+        if pin["center"] is None:
+            pin["center"] = np.concatenate(self._q)[idx].mean(axis=0)
         self.pins.append(pin)
         return len(self.pins) - 1
 
     # -- terrain --------------------------------------------------------------------------------
 
     def add_plane(
-        self, point, normal, restitution=0.5, friction=0.3, hole_center=None, hole_radius=0.0, size=20.0, world=0
+        self, point, normal, restitution=0.5, friction=0.3, hole_center=None, hole_radius=0.0, size=20.0, world=0,
+        motion=None,
     ):
-        """Add a collision plane; particles within ``hole_radius`` of ``hole_center`` pass through it."""
+        """Add a collision plane; particles within ``hole_radius`` of ``hole_center`` pass through it.
+
+        ``motion`` (every terrain primitive takes it): None for terrain that stays put, or the
+        keyword arguments of :func:`~softsim_warp.core.pins.make_motion` (a pin's motion: velocity,
+        spin about a centre, keyframes); the centre defaults to ``point`` (a sphere's or bowl's
+        ``center``). The primitive, as given here, is carried by the motion's rigid map
+        (``kernels/contact.py`` ``move_terrain``)."""
         normal = np.asarray(normal, dtype=np.float64)
         normal = normal / np.linalg.norm(normal)
         self.planes.append(
@@ -290,10 +283,11 @@ class ModelBuilder:
                 "hole_radius": float(hole_radius),
                 "size": float(size),
                 "world": int(world),
+                "motion": _terrain_motion(motion, point),
             }
         )
 
-    def add_bowl(self, center, radius, cut_height=None, restitution=0.5, friction=0.3, world=0):
+    def add_bowl(self, center, radius, cut_height=None, restitution=0.5, friction=0.3, world=0, motion=None):
         """Add a bowl: the inside of a sphere below ``cut_height`` (``None``: the whole sphere).
 
         Particles inside the sphere stay inside where y < cut_height; at or above the cut, and
@@ -307,10 +301,11 @@ class ModelBuilder:
                 "restitution": float(restitution),
                 "friction": float(friction),
                 "world": int(world),
+                "motion": _terrain_motion(motion, center),
             }
         )
 
-    def add_sphere(self, center, radius, restitution=0.5, friction=0.3, world=0):
+    def add_sphere(self, center, radius, restitution=0.5, friction=0.3, world=0, motion=None):
         """Add a solid sphere: particles stay outside it."""
         self.spheres.append(
             {
@@ -319,6 +314,7 @@ class ModelBuilder:
                 "restitution": float(restitution),
                 "friction": float(friction),
                 "world": int(world),
+                "motion": _terrain_motion(motion, center),
             }
         )
 
@@ -438,8 +434,12 @@ class ModelBuilder:
         m.plane_count = len(planes)
         m.plane_first = first(planes)
 
+        # The device arrays hold the terrain where it is at t = 0 (moving terrain is moved there at
+        # every step's start, core/contact.py TerrainMotion); the host lists keep it as given.
+        planes_now = [terrain_at(p, 0.0) for p in planes]
+
         def col(name, shape):
-            return np.array([p[name] for p in planes]).reshape(shape)
+            return np.array([p[name] for p in planes_now]).reshape(shape)
 
         n = m.plane_count
         m.plane_point = arr(col("point", (n, 3)), vec3, np_scalar)
@@ -461,15 +461,16 @@ class ModelBuilder:
             return np.array([it[name] for it in items], dtype=np.float64).reshape(shape)
 
         nb, ns = m.bowl_count, m.sphere_count
-        m.bowl_center = arr(cols(bowls, "center", (nb, 3)), vec3, np_scalar)
+        m.bowl_center = arr(cols([terrain_at(b, 0.0) for b in bowls], "center", (nb, 3)), vec3, np_scalar)
         m.bowl_radius = arr(cols(bowls, "radius", (nb,)), scalar, np_scalar)
         m.bowl_cut_height = arr(np.minimum(cols(bowls, "cut_height", (nb,)), 1.0e30), scalar, np_scalar)
         m.bowl_restitution = arr(cols(bowls, "restitution", (nb,)), scalar, np_scalar)
         m.bowl_friction = arr(cols(bowls, "friction", (nb,)), scalar, np_scalar)
-        m.sphere_center = arr(cols(spheres, "center", (ns, 3)), vec3, np_scalar)
+        m.sphere_center = arr(cols([terrain_at(q, 0.0) for q in spheres], "center", (ns, 3)), vec3, np_scalar)
         m.sphere_radius = arr(cols(spheres, "radius", (ns,)), scalar, np_scalar)
         m.sphere_restitution = arr(cols(spheres, "restitution", (ns,)), scalar, np_scalar)
         m.sphere_friction = arr(cols(spheres, "friction", (ns,)), scalar, np_scalar)
+        m.terrain_motion = TerrainMotion.of(m, device, scalar, vec3)  # None when no terrain moves
         # Contact between jellies and self-contact: nothing at all unless the scene has it.
         particle_contact.attach(
             m,
@@ -519,6 +520,12 @@ class Model:
         sphere_radius: radius [m], shape [sphere_count], scalar.
         sphere_restitution, sphere_friction: coefficients [1], shape [sphere_count], scalar.
         bowls, spheres: host lists of dicts with the same values (float64).
+        terrain_motion: the moving planes, bowls and spheres (:class:`~softsim_warp.core.contact.TerrainMotion`),
+            or None when no terrain moves; with it, ``plane_motion``, ``bowl_motion``, ``sphere_motion``
+            (int32 per primitive: its index among the moving ones, -1 when it stays put), and the
+            geometry arrays above hold each moving primitive's pose at the end of the last step
+            begun (at t = 0 before the first); the host lists keep the geometry as given, with its
+            ``motion`` (None when it stays put).
         contact_epsilon: the layer within which a surface is tested for a particle [m]; it touches
             once its step brings it within kernels.contact.TOUCH_FRACTION of it, or through it.
         contact_velocity_epsilon: approach speed below which a touching particle rests [m/s].
@@ -548,18 +555,27 @@ class Model:
             A list of ``(prim_path, points (V, 3), face counts (F,), face indices)``.
         """
 
-        roots = roots or {}
         out = []
+        for path, kind, it in self._round_terrain(roots):
+            if kind == "Bowl":
+                mesh = bowl_mesh(it["center"], it["radius"], it["cut_height"])
+            else:
+                mesh = sphere_mesh(it["center"], it["radius"])
+            out.append((path, *mesh))
+        return out + mesh_output(getattr(self, "meshes", []), roots)
+
+    def terrain_motions(self, roots=None) -> list:
+        """``(prim_path, motion)`` of each moving bowl and sphere among :meth:`terrain_meshes`
+        (their meshes are written as given; the motion's rigid map carries them)."""
+        return [(path, it["motion"]) for path, _kind, it in self._round_terrain(roots) if it.get("motion") is not None]
+
+    def _round_terrain(self, roots):
+        roots = roots or {}
         for kind, items in (("Bowl", self.bowls), ("Sphere", self.spheres)):
             index = {}  # numbered within each world: every copy of a comparison has Bowl_0
             for it in items:
                 i = index[it["world"]] = index.get(it["world"], -1) + 1
-                if kind == "Bowl":
-                    mesh = bowl_mesh(it["center"], it["radius"], it["cut_height"])
-                else:
-                    mesh = sphere_mesh(it["center"], it["radius"])
-                out.append((f"{roots.get(it['world'], '/World')}/{kind}_{i}", *mesh))
-        return out + mesh_output(getattr(self, "meshes", []), roots)
+                yield f"{roots.get(it['world'], '/World')}/{kind}_{i}", kind, it
 
     deterministic = False
 
@@ -608,6 +624,18 @@ class Model:
         s.particle_q = self.particle_array(self.particle_q)
         s.particle_qd = self.particle_array(self.particle_qd)
         return s
+
+
+def _terrain_motion(motion, reference):
+    """A terrain primitive's motion (``ModelBuilder.add_plane``): None unless it moves."""
+    if motion is None:
+        return None
+    made = make_motion(**motion)
+    if not made["driven"]:
+        return None
+    if made["center"] is None:
+        made["center"] = np.asarray(reference, dtype=np.float64)
+    return made
 
 
 def terrain_anchors(bowls, spheres) -> list:
@@ -716,11 +744,14 @@ def populate(builder: ModelBuilder, data: dict, world=0):
             hole_radius=hole["radius"] if hole else 0.0,
             size=p["size"],
             world=world,
+            motion=motion_arguments(p["motion"]) if "motion" in p else None,
         )
     for b in data.get("bowl", []):
-        builder.add_bowl(b["center"], b["radius"], b.get("cut_height"), b["restitution"], b["friction"], world=world)
+        builder.add_bowl(b["center"], b["radius"], b.get("cut_height"), b["restitution"], b["friction"], world=world,
+                         motion=motion_arguments(b["motion"]) if "motion" in b else None)
     for s in data.get("sphere", []):
-        builder.add_sphere(s["center"], s["radius"], s["restitution"], s["friction"], world=world)
+        builder.add_sphere(s["center"], s["radius"], s["restitution"], s["friction"], world=world,
+                           motion=motion_arguments(s["motion"]) if "motion" in s else None)
     for i, t in enumerate(data.get("mesh", [])):
         asset = load_mesh(t["path"], t.get("prim"), key=f"mesh.{i}.path", **mesh_options(t))
         asset = asset.transformed(*transform_matrix(t.get("transform")))
@@ -728,14 +759,19 @@ def populate(builder: ModelBuilder, data: dict, world=0):
         name = asset.name if asset.name.isidentifier() else "Mesh"
         builder.add_mesh(asset, t["restitution"], t["friction"], t["thickness"], world=world, name=name)
     for p in data.get("pin", []):
-        spin = p.get("spin")
-        keys = p.get("keyframes", [])
-        builder.add_pin(
-            np.asarray(p["indices"]) + infos[p["jelly"]].particle_start,
-            velocity=p["velocity"],
-            spin=np.asarray(spin["axis"]) * math.radians(spin["degrees_per_second"]) if spin else (0.0, 0.0, 0.0),
-            center=spin.get("center") if spin else None,
-            key_times=[k["time"] for k in keys],
-            key_offsets=[k["offset"] for k in keys],
-            interpolation=p["interpolation"],
-        )
+        builder.add_pin(np.asarray(p["indices"]) + infos[p["jelly"]].particle_start, **motion_arguments(p))
+
+
+def motion_arguments(entry: dict) -> dict:
+    """The keyword arguments of ``core/pins.make_motion`` from a validated scene's motion keys (a
+    pin's, or a terrain entry's ``motion`` table)."""
+    spin = entry.get("spin")
+    keys = entry.get("keyframes", [])
+    return {
+        "velocity": entry["velocity"],
+        "spin": np.asarray(spin["axis"]) * math.radians(spin["degrees_per_second"]) if spin else (0.0, 0.0, 0.0),
+        "center": spin.get("center") if spin else None,
+        "key_times": [k["time"] for k in keys],
+        "key_offsets": [k["offset"] for k in keys],
+        "interpolation": entry["interpolation"],
+    }

@@ -99,6 +99,37 @@ def drive(model, state, dt):
     wp.launch(model.kernels.advance_pin_clock, dim=1, inputs=[pins.clock], device=model.device)
 
 
+def make_motion(velocity=(0.0, 0.0, 0.0), spin=(0.0, 0.0, 0.0), center=None, key_times=(), key_offsets=(),
+                interpolation="linear") -> dict:
+    """A motion of ``kernels/pins.py`` as a pin or a moving terrain primitive stores it, checked
+    (ValueError); ``center`` None is left for the caller to fill in. ``driven``: whether it moves."""
+    times = np.asarray(key_times, dtype=np.float64).ravel()
+    offsets = np.asarray(key_offsets, dtype=np.float64).reshape(-1, 3)
+    if times.size != offsets.shape[0]:
+        raise ValueError(f"key_times has {times.size} entries, key_offsets {offsets.shape[0]}")
+    if times.size > 1 and np.any(np.diff(times) <= 0):
+        raise ValueError(f"key_times must be strictly increasing (got {times.tolist()})")
+    if interpolation not in INTERPOLATIONS:
+        raise ValueError(f"interpolation must be linear or smooth (got {interpolation!r})")
+    motion = {
+        "velocity": np.asarray(velocity, dtype=np.float64),
+        "spin": np.asarray(spin, dtype=np.float64),
+        "center": None if center is None else np.asarray(center, dtype=np.float64),
+        "key_times": times.tolist(),
+        "key_offsets": offsets.tolist(),
+        "interpolation": interpolation,
+    }
+    motion["driven"] = bool(np.any(motion["velocity"]) or np.any(motion["spin"]) or times.size)
+    return motion
+
+
+def motion_transform(motion: dict, t: float):
+    """The rigid map of a motion at ``t`` on the host, float64: ``(R (3, 3), T (3,))`` with a point
+    that starts at ``X`` at ``R X + T`` (:func:`path_position` of the origin and the axes)."""
+    moved = path_position(motion, np.vstack([np.zeros(3), np.eye(3)]), t)
+    return (moved[1:] - moved[0]).T, moved[0]
+
+
 def path_position(pin: dict, x0: np.ndarray, t: float) -> np.ndarray:
     """The path of ``kernels/pins.py`` on the host, float64: where particles starting at ``x0``
     (``(3,)`` or ``(N, 3)``) are at ``t``; ``pin`` as :meth:`ModelBuilder.add_pin` stores it."""

@@ -109,6 +109,8 @@ class Stepper:
         self.integrator.step(self.state, self.model.state(), self.dt)
         if self.model.pins is not None:  # the warm-up step is not part of the run: pins restart at t = 0
             self.model.pins.reset()
+        if getattr(self.model, "terrain_motion", None) is not None:  # and so does moving terrain
+            self.model.terrain_motion.reset()
         forget_contact_history(self.model)  # nor do its contact impulses start the first step
         wp.synchronize_device(self.model.device)
         reset_stats = getattr(self.integrator, "reset_stats", None)  # the warm-up step is not part of the run

@@ -13,6 +13,7 @@ from dataclasses import dataclass, field
 import numpy as np
 import warp as wp
 
+from ..core.contact import terrain_speed
 from ..core.model import Model, State
 
 
@@ -140,7 +141,8 @@ def speed_bound(model: Model) -> float:
 
     Ten times the largest speed the scene can reach by falling: its initial particle speed plus
     sqrt(2 |g| D), D the diagonal of the box holding the initial particles and the terrain
-    anchors, plus 1 m/s so that a scene at rest has a sensible bound.
+    anchors, plus twice the fastest moving terrain's surface speed within D (what a full bounce
+    off it adds), plus 1 m/s so that a scene at rest has a sensible bound.
     """
     pts = [model.particle_q_host]
     pts += [np.atleast_2d(p["point"]) for p in model.planes]
@@ -149,6 +151,7 @@ def speed_bound(model: Model) -> float:
     diag = float(np.linalg.norm(allp.max(axis=0) - allp.min(axis=0)))
     v0 = float(np.linalg.norm(model.particle_qd.numpy(), axis=1).max()) if model.particle_count else 0.0
     g = float(np.linalg.norm(model.gravity_host))
+    v0 += 2.0 * terrain_speed(model, diag)
     return 10.0 * (v0 + math.sqrt(2.0 * g * diag) + 1.0)
 
 

@@ -356,6 +356,25 @@ MESH_TRANSFORM = Table(
 UP_AXIS = Choice(UP_AXES, doc="an OBJ/STL/PLY file's up axis (default Y); a Z-up asset is stood upright")
 UNITS_KEY = Units(doc=f"an OBJ/STL/PLY file's unit: {', '.join(UNITS)} or metres per unit (default m)")
 
+# A prescribed motion (core/pins.py, kernels/pins.py): a pin's keys, and a terrain entry's ``motion``.
+MOTION_FIELDS = {
+    "velocity": Vec3([0.0, 0.0, 0.0], doc="[m/s]"),
+    "spin": Table(
+        {
+            "axis": Vec3([0.0, 1.0, 0.0], nonzero=True),
+            "degrees_per_second": Float(0.0),
+            "center": Vec3(doc="[m]; default a pin's particles' mean start position, a terrain entry's point or center"),
+        },
+        optional=True,
+    ),
+    "keyframes": TableList(
+        Table({"time": Float(required=True, doc="[s]"), "offset": Vec3(required=True, doc="[m]")})
+    ),
+    "interpolation": Choice(INTERPOLATIONS, "linear", doc="between keyframes: linear or smooth"),
+}
+# Terrain that moves: the pin's motion keys in one table (core/contact.py TerrainMotion).
+MOTION = Table(MOTION_FIELDS, optional=True, doc="the entry moves as a pin does: velocity, spin, keyframes")
+
 SCHEMA = Table(
     {
         "name": Text(doc="scene name"),
@@ -451,6 +470,7 @@ SCHEMA = Table(
                         optional=True,
                     ),
                     "size": Float(20.0, lo=0, lo_open=True, doc="edge of the drawn square [m]"),
+                    "motion": MOTION,
                 }
             )
         ),
@@ -463,6 +483,7 @@ SCHEMA = Table(
                     "cut_height": Float(doc="the bowl exists where y < cut_height [m]; absent: the whole sphere"),
                     "restitution": Float(0.5, lo=0, hi=1),
                     "friction": Float(0.3, lo=0),
+                    "motion": MOTION,
                 }
             )
         ),
@@ -473,6 +494,7 @@ SCHEMA = Table(
                     "radius": Float(lo=0, lo_open=True, required=True, doc="[m]"),
                     "restitution": Float(0.5, lo=0, hi=1),
                     "friction": Float(0.3, lo=0),
+                    "motion": MOTION,
                 }
             )
         ),
@@ -487,19 +509,7 @@ SCHEMA = Table(
                         optional=True,
                     ),
                     "particles": IntList(doc="lattice indices (i ny + j) nz + k"),
-                    "velocity": Vec3([0.0, 0.0, 0.0], doc="[m/s]"),
-                    "spin": Table(
-                        {
-                            "axis": Vec3([0.0, 1.0, 0.0], nonzero=True),
-                            "degrees_per_second": Float(0.0),
-                            "center": Vec3(doc="[m]; default the pinned particles' mean start position"),
-                        },
-                        optional=True,
-                    ),
-                    "keyframes": TableList(
-                        Table({"time": Float(required=True, doc="[s]"), "offset": Vec3(required=True, doc="[m]")})
-                    ),
-                    "interpolation": Choice(INTERPOLATIONS, "linear", doc="between keyframes: linear or smooth"),
+                    **MOTION_FIELDS,
                 }
             )
         ),
@@ -890,6 +900,13 @@ def validate(data: dict, source: str, base=None) -> dict:
                      bowl["cut_height"])
     for i, pin in enumerate(out.get("pin", [])):
         _check_pin(pin, f"pin.{i}", out["jelly"], ctx)
+    for kind in ("plane", "bowl", "sphere"):
+        for i, entry in enumerate(out.get(kind, [])):
+            if "motion" in entry:
+                _check_motion(entry["motion"], f"{kind}.{i}.motion", ctx)
+                if sim["integrator"] == "implicit":
+                    ctx.fail(f"{kind}.{i}.motion", "the implicit integrator does not take moving terrain; "
+                             "use an explicit integrator", sim["integrator"])
     # Checks of the scene as a whole (sizes, precision range, a jelly starting inside terrain);
     # see checks.py.
 
@@ -919,9 +936,14 @@ def _check_pin(pin: dict, key: str, jellies: list, ctx):
     pin["indices"] = select_particles(shape, points, pin.get("face"), box, pin.get("particles")).tolist()
     if not pin["indices"]:
         ctx.fail(f"{key}.box", "selects no particle of the jelly at its start", pin["box"])
-    if "spin" in pin:
-        pin["spin"]["axis"] = _unit(pin["spin"]["axis"])
-    times = [k["time"] for k in pin.get("keyframes", [])]
+    _check_motion(pin, key, ctx)
+
+
+def _check_motion(motion: dict, key: str, ctx):
+    """A pin's or a terrain entry's motion keys: the spin axis normalised, key times increasing."""
+    if "spin" in motion:
+        motion["spin"]["axis"] = _unit(motion["spin"]["axis"])
+    times = [k["time"] for k in motion.get("keyframes", [])]
     if any(b <= a for a, b in zip(times, times[1:])):
         ctx.fail(f"{key}.keyframes", "times must be strictly increasing", times)
 

@@ -12,6 +12,7 @@ from pathlib import Path
 import numpy as np
 
 from ..core import lattice
+from ..core.pins import motion_transform
 from ..core.terrain import fan_triangles, vertex_normals
 from ..core.errors import CommandLineError
 from .outputs import commit, discard, kept_partial_path, partial_path, target_of
@@ -195,6 +196,7 @@ class UsdWriter:
             else:
                 self.roots[w] = "/World"
 
+        self.moving_terrain = []  # (transform op, motion) of each moving plane, bowl and sphere
         self.jelly_prims = []
         for info in model.jellies:
             root = f"{self.roots[info.world]}/{info.name}"
@@ -246,13 +248,25 @@ class UsdWriter:
         for p in model.planes:
             i = plane_index[p["world"]] = plane_index.get(p["world"], -1) + 1
             points, counts, indices = plane_mesh(p["point"], p["normal"], p["size"], p["hole_center"], p["hole_radius"])
-            self.add_static_mesh(f"{self.roots[p['world']]}/Plane_{i}", points, counts, indices)
+            mesh = self.add_static_mesh(f"{self.roots[p['world']]}/Plane_{i}", points, counts, indices)
+            if p.get("motion") is not None:
+                self._animate(mesh, p["motion"])
         # Bowls and spheres; ``self.roots`` puts each world's terrain under its group.
         # (a mesh terrain adds its normals and its asset's primvars as a fifth and sixth item).
         for prim_path, points, counts, indices, *extra in getattr(model, "terrain_meshes", lambda roots: [])(self.roots):
             self.add_static_mesh(prim_path, points, counts, indices, normals=extra[0] if extra else None,
                                  primvars=extra[1] if len(extra) > 1 else ())
+        for prim_path, motion in getattr(model, "terrain_motions", lambda roots: [])(self.roots):
+            self._animate(UsdGeom.Mesh.Get(stage, prim_path), motion)
         self.save()
+
+    def _animate(self, mesh, motion):
+        """Give moving terrain (its mesh as given) a transform, time-sampled at every frame by
+        :meth:`write_frame`: the rigid map of its motion (``core/pins.motion_transform``)."""
+        Gf = self._pxr[0]
+        op = mesh.AddTransformOp()
+        op.Set(Gf.Matrix4d(1.0))  # the default: the mesh as given
+        self.moving_terrain.append((op, motion))
 
     def add_static_mesh(self, prim_path, points, counts, indices, color=TERRAIN_COLOR, normals=None, primvars=()):
         """A mesh that does not move (terrain); ``normals`` ``(interpolation, (N, 3))`` or None for
@@ -290,6 +304,14 @@ class UsdWriter:
         if not np.isfinite(pos32).all():
             self.nonfinite_frames += 1
         self._write_jellies(pos32, vel32, frame)
+        Gf = self._pxr[0]
+        for op, motion in self.moving_terrain:
+            rot, shift = motion_transform(motion, t)
+            # USD transforms row vectors (p' = p M): R transposed, the translation in the last row.
+            m = np.identity(4)
+            m[:3, :3] = rot.T
+            m[3, :3] = shift
+            op.Set(Gf.Matrix4d(m.tolist()), frame)
         self.last_frame = frame
         self.stage.SetEndTimeCode(max(frame, 0))
         if frame > 0 and frame % self.save_every == 0:
