@@ -34,6 +34,7 @@ from ..core.errors import CommandLineError, SceneError, UserError
 from ..core.integrators import ExplicitIntegrator
 from ..core.stepper import make_integrator
 from ..io import scene as scene_mod
+from ..io import stable_step
 from ..io.mesh_scene import add_asset_inputs
 from ..io.outputs import JSON_SUFFIXES, USD_SUFFIXES, Outputs, kept_partial_path, save_atomic, write_json_atomic
 from ..io.resources import check_fits
@@ -80,6 +81,8 @@ def add_parser(subparsers, add_common):
     p.add_argument("--fps", type=float, help="output frames per second")
     p.add_argument("--precision", choices=["float32", "float64"], help="scalar type of every kernel")
     p.add_argument("--springs", action="store_true", help="also write springs as BasisCurves")
+    p.add_argument("--allow-unstable", action="store_true",
+                   help="run even when a copy's dt is above a jelly's predicted stable step (to watch it explode)")
     p.add_argument("--no-graph", action="store_true", help="launch kernels one by one instead of replaying a captured graph")
     add_common(p)
     return p
@@ -285,6 +288,9 @@ def _plan_variants(args) -> Plan:
             name = "v_" + name
         variants.append(Variant(name=name, data=validated, overrides=overrides))
 
+    # Every copy's dt against its stable step; an "auto" dt becomes the copies' smallest.
+    stable_step.check_variants([v.data for v in variants], source, [v.name for v in variants],
+                               blame=lambda e: common.blame_flag(e, args), refuse=not getattr(args, "allow_unstable", False))
     # One clock and one model: [simulation] must agree (the integrator aside).
     first = variants[0].data["simulation"]
     for v in variants[1:]:

@@ -13,6 +13,7 @@ import time
 
 from ..core.errors import CommandLineError
 from ..io import scene as scene_mod
+from ..io import stable_step
 from ..io import sweep as engine
 from ..io.mesh_scene import add_asset_inputs
 from ..io.outputs import Outputs, is_stream, kept_partial_path, target_of
@@ -106,6 +107,10 @@ def plan(args):
     mode = "stable_dt" if args.find_stable_dt else ("reference" if args.reference else "run")
     variants = engine.plan_sweep(base, source, axes, integrators, args.samples, args.seed, mode,
                                  blame=lambda e: common.blame_flag(e, args))
+    above = stable_step.check_sweep(variants, source, mode, explore=bool(args.dts), blame=lambda e: common.blame_flag(e, args))
+    if above:
+        print(f"warning: {source}: {above} of {len(variants)} variants have a dt above their predicted stable step "
+              "(--dts explores it); they run and their rows say how they ended", file=sys.stderr)
     if args.plot:
         keys = plotted_keys(axes, variants)
         if len(keys) > 2 and args.samples is None:
