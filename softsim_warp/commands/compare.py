@@ -77,7 +77,7 @@ def add_parser(subparsers, add_common):
     g = p.add_mutually_exclusive_group()
     g.add_argument("--duration", type=float, help="simulated seconds")
     g.add_argument("--frames", type=int, help="output frames after frame 0")
-    p.add_argument("--dt", type=float, help="step size [s]")
+    p.add_argument("--dt", help="step size [s], or auto (the largest the stability prediction allows)")
     p.add_argument("--fps", type=float, help="output frames per second")
     p.add_argument("--precision", choices=["float32", "float64"], help="scalar type of every kernel")
     p.add_argument("--springs", action="store_true", help="also write springs as BasisCurves")

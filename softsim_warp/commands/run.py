@@ -34,7 +34,7 @@ def add_parser(subparsers, add_common):
     # Scene-valued flags are taken as text and validated by the scene schema, so `--dt -1` and
     # `--set simulation.dt=-1` get the same message.
     run.add_argument("--integrator", help="euler, symplectic, midpoint, rk4 or implicit")
-    run.add_argument("--dt", help="step size [s]")
+    run.add_argument("--dt", help="step size [s], or auto (the largest the stability prediction allows)")
     g = run.add_mutually_exclusive_group()
     g.add_argument("--duration", help="simulated seconds")
     g.add_argument("--frames", help="output frames after frame 0")

@@ -280,12 +280,12 @@ def free_jelly_model(jelly_small: dict, device, precision):
     return b.finalize(device, precision)
 
 
-def jelly_operator(jelly: dict, pinned=()) -> SpringOperator:
-    """The :class:`SpringOperator` of a validated scene jelly, free and at rest (no model is built).
+def jelly_builder(jelly: dict, pinned=()) -> ModelBuilder:
+    """A builder holding a validated scene jelly alone, free (no gravity) and at rest.
 
     A box jelly is its lattice; a mesh jelly is its voxelised lattice (``core/voxelize.py``, the
-    lattice validation made), with its own particle mass. ``pinned``: particle indices held fixed
-    (a scene's pins), left out of the system.
+    lattice validation made), with its own particle mass. ``pinned``: particle indices given mass 0
+    (held fixed, as a scene's pins hold them).
     """
     b = ModelBuilder(gravity=(0.0, 0.0, 0.0))
     at_rest = {**jelly, "center": [0.0, 0.0, 0.0], "rotation": {"axis": [0.0, 1.0, 0.0], "degrees": 0.0},
@@ -297,12 +297,21 @@ def jelly_operator(jelly: dict, pinned=()) -> SpringOperator:
         add_mesh_jelly(b, at_rest)
     else:
         b.add_jelly(at_rest["resolution"], at_rest["size"], at_rest["particle_mass"], at_rest["springs"])
+    if len(pinned):
+        b._mass[0][np.asarray(pinned, dtype=np.int64)] = 0.0
+    return b
+
+
+def jelly_operator(jelly: dict, pinned=()) -> SpringOperator:
+    """The :class:`SpringOperator` of a validated scene jelly, free and at rest (no model is built;
+    see :func:`jelly_builder`)."""
+    b = jelly_builder(jelly, pinned)
     mass = np.concatenate(b._mass)
-    mass[np.asarray(pinned, dtype=np.int64)] = 0.0
     inv_mass = np.where(mass > 0.0, 1.0 / np.where(mass > 0.0, mass, 1.0), 0.0)
-    cat = np.concatenate if b._pairs else (lambda parts: np.zeros(0))
-    pairs = np.concatenate(b._pairs) if b._pairs else np.zeros((0, 2), dtype=np.int32)
-    return SpringOperator(np.concatenate(b._q), pairs, cat(b._rest), cat(b._ks), cat(b._kd), inv_mass)
+    if not b._pairs:
+        return SpringOperator(np.concatenate(b._q), np.zeros((0, 2), dtype=np.int32), 0.0, 0.0, 0.0, inv_mass)
+    return SpringOperator(np.concatenate(b._q), np.concatenate(b._pairs), np.concatenate(b._rest),
+                          np.concatenate(b._ks), np.concatenate(b._kd), inv_mass)
 
 
 def predict_jelly_dt(jelly: dict, methods=sa.METHODS, device=None, max_n=None, *, pinned=(), **lanczos) -> Prediction:
