@@ -158,8 +158,8 @@ def test_compare_shares_the_smallest_auto_dt_and_checks_each_copy():
 
 
 def test_sweep_refuses_unless_it_explores_the_step(capsys):
-    """Without --dts a variant above its limit refuses the whole sweep (naming it); with --dts the
-    variants run and a warning counts them; --find-stable-dt is not checked."""
+    """Without --dts or --allow-unstable a variant above its limit refuses the whole sweep (naming it);
+    with either the variants run and a warning counts them; --find-stable-dt is not checked."""
     parser = cli.build_parser()
     vary = ["--vary", "jelly.0.springs.*.ks=2000,2e5", "--set", "jelly.0.resolution=4"]
     with pytest.raises(UserError, match=r"variant 1 \(jelly.0.springs.\*.ks=200000.0\): jelly.0 .* unstable"):
@@ -169,6 +169,8 @@ def test_sweep_refuses_unless_it_explores_the_step(capsys):
     assert len(variants) == 4
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and err[0].startswith("warning: ") and "1 of 4 variants" in err[0]
+    sweep_cmd.plan(parser.parse_args(["sweep", "jelly_drop", *vary, "--allow-unstable"]))
+    assert "1 of 2 variants" in capsys.readouterr().err
     sweep_cmd.plan(parser.parse_args(["sweep", "jelly_drop", *vary, "--find-stable-dt"]))
     assert capsys.readouterr().err == ""
 

@@ -169,9 +169,10 @@ def check_sweep(variants: list, source: str, mode: str, explore: bool, blame=Non
     """A sweep's variants against their stable steps; returns how many are above their limit.
 
     A sweep that explores the step is never refused: ``--find-stable-dt`` (``mode`` ``"stable_dt"``)
-    finds the limit itself and is not checked, and with ``--dts`` (``explore``) the variants above
-    their limit run (and explode, which their rows record) and are counted for a warning. Otherwise
-    the first variant above its limit refuses the whole sweep, before anything runs.
+    finds the limit itself and is not checked, and with ``--dts`` or ``--allow-unstable``
+    (``explore``) the variants above their limit run (and explode, which their rows record) and are
+    counted for a warning. Otherwise the first variant above its limit refuses the whole sweep,
+    before anything runs (``dt = "auto"`` gives each variant a stable step of its own).
     """
     if mode == "stable_dt":
         return 0
