@@ -142,19 +142,19 @@ def test_auto_runs_without_exploding_within_the_factor(tmp_path, capsys):
     assert stable_step.AUTO_FRACTION**2 * measured <= dt < measured
 
 
-def test_compare_shares_the_smallest_auto_dt_and_checks_each_copy():
+def test_compare_shares_the_smallest_auto_dt_and_checks_each_copy(tmp_path, capsys):
     parser = cli.build_parser()
     args = parser.parse_args(["compare", "jelly_drop", "--integrators", "euler,rk4", "--dt", "auto"])
     plan = compare_cmd.plan_variants(args)
     euler = load_scene("jelly_drop", ["simulation.integrator=euler", "simulation.dt=auto"]).sim["dt"]
     rk4 = load_scene("jelly_drop", ["simulation.integrator=rk4", "simulation.dt=auto"]).sim["dt"]
     assert euler < rk4 and plan.dt == euler
-    args = parser.parse_args(["compare", "jelly_drop", "--integrators", "rk4,euler", "--dt", "0.0025"])
-    with pytest.raises(UserError, match=r"--dt: copy euler: jelly.0 \(box lattice 10x10x10\) is unstable with euler"):
-        compare_cmd.plan_variants(args)
-    args = parser.parse_args(["compare", "jelly_drop", "--integrators", "rk4,euler", "--dt", "0.0025",
-                              "--allow-unstable"])
-    assert compare_cmd.plan_variants(args).dt == 0.0025
+    out = tmp_path / "c.usdc"
+    code = cli.main(["compare", "jelly_drop", "--integrators", "rk4,euler", "--dt", "0.0025", "--quiet",
+                     "--out", str(out)])
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and len(err) == 1 and not out.exists()
+    assert "--dt: copy euler: jelly.0 (box lattice 10x10x10) is unstable with euler above" in err[0]
 
 
 def test_sweep_refuses_unless_it_explores_the_step(capsys):

@@ -104,6 +104,8 @@ def run(args) -> int:
     # Every copy runs at once: their memory together must fit, and the steps must be able to finish.
     copies = [scene_mod.Scene(v.data, source=plan.source) for v in plan.variants]
     check_fits(copies[0], device, frames=plan.frames, usd_springs=args.springs, copies=copies)
+    stable_step.check_variants([v.data for v in plan.variants], plan.source, [v.name for v in plan.variants],
+                               blame=lambda e: common.blame_flag(e, args), refuse=not args.allow_unstable)
 
     progress = None
     if not args.quiet:
@@ -288,9 +290,7 @@ def _plan_variants(args) -> Plan:
             name = "v_" + name
         variants.append(Variant(name=name, data=validated, overrides=overrides))
 
-    # Every copy's dt against its stable step; an "auto" dt becomes the copies' smallest.
-    stable_step.check_variants([v.data for v in variants], source, [v.name for v in variants],
-                               blame=lambda e: common.blame_flag(e, args), refuse=not getattr(args, "allow_unstable", False))
+    stable_step.share_auto_dt([v.data for v in variants])  # one clock: an "auto" dt is the copies' smallest
     # One clock and one model: [simulation] must agree (the integrator aside).
     first = variants[0].data["simulation"]
     for v in variants[1:]:

@@ -147,15 +147,19 @@ def resolve_auto(out: dict, ctx) -> None:
     sim["_dt_auto"] = True
 
 
-def check_variants(datas: list, source: str, names=None, blame=None, refuse=True) -> None:
+def share_auto_dt(datas: list) -> None:
     """The copies of a comparison share one clock: an ``"auto"`` dt becomes the smallest of their
-    auto steps (each for its own integrator), then every copy is checked as a run is (unless not
-    ``refuse``): the first copy above its limit refuses the comparison."""
+    auto steps (each for its own integrator)."""
     auto = [d for d in datas if d["simulation"].get("_dt_auto")]
     if auto:
         shared = min(d["simulation"]["dt"] for d in auto)
         for d in auto:
             d["simulation"]["dt"] = shared
+
+
+def check_variants(datas: list, source: str, names=None, blame=None, refuse=True) -> None:
+    """Every copy of a comparison checked as a run is (nothing without ``refuse``): the first copy
+    above its limit refuses the comparison."""
     for k, d in enumerate(datas if refuse else ()):
         sim = d["simulation"]
         problem = limit_problem(d, sim["dt"], sim["integrator"])
