@@ -2,13 +2,15 @@
 
 Run::
 
-    python benchmarks/bench_stable_step.py --timing 10 20 30 35 --json bench_stable_step_timing.json
+    OPENBLAS_NUM_THREADS=1 python benchmarks/bench_stable_step.py --timing 10 20 30 35 40 --json bench_stable_step_timing.json
     python benchmarks/bench_stable_step.py --accuracy --json bench_stable_step_accuracy.json
 
 ``--timing R...``: the prediction (io/stable_step.py's pre-flight settings) of ``mesh_drop``'s
 mesh jelly voxelised at R cells across, for the scene's integrator and for all of them: particles,
-springs, Lanczos iterations, passes over the spring list, and wall seconds (best of ``--repeats``).
-Nothing compiles: the prediction is NumPy.
+springs, Lanczos iterations, passes over the spring list, and wall and process CPU seconds (best
+of ``--repeats``; on a shared machine the CPU time is the cost, the wall time includes waiting for
+a core; run with ``OPENBLAS_NUM_THREADS=1`` for one core's). Nothing compiles: the prediction is
+NumPy.
 
 ``--accuracy``: the predicted limit against the limit measured by stepping, as ``softsim stability``
 measures it (bisection to ``--rtol`` on 1000 steps of the jelly, free, at rest plus a small random
@@ -52,17 +54,20 @@ def timing(resolutions, repeats):
         scene = load_scene("mesh_drop", [f"jelly.0.resolution={res}"])
         jelly = scene.jellies[0]
         for methods in ((scene.sim["integrator"],), EXPLICIT):
-            best, pred, op = math.inf, None, None
+            best, cpu, pred, op = math.inf, math.inf, None, None
             for _ in range(repeats):
-                t0 = time.perf_counter()
+                t0, c0 = time.perf_counter(), time.process_time()
                 op = sm.jelly_operator(jelly)
                 pred = sm.predict_operator_dt(op, methods, **stable_step.PREFLIGHT)
                 best = min(best, time.perf_counter() - t0)
+                cpu = min(cpu, time.process_time() - c0)
             rows.append({"resolution": res, "methods": list(methods), "particles": op.n, "springs": int(op.a.size),
                          "iterations": pred.iterations, "spring_passes": op.products, "seconds": best,
+                         "cpu_seconds": cpu,
                          "dt": {m: pred.dt[m] for m in methods}})
             print(f"R={res:>3} {op.n:>7} particles {op.a.size:>8} springs  {','.join(methods):<30} "
-                  f"{pred.iterations:>4} iterations {op.products:>4} passes {best:>7.3f} s", flush=True)
+                  f"{pred.iterations:>4} iterations {op.products:>4} passes {best:>7.3f} s wall "
+                  f"{cpu:>7.3f} s CPU", flush=True)
     return rows
 
 

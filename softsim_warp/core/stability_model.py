@@ -1,4 +1,4 @@
-"""Largest stable step of a whole model, matrix-free on its device (Lanczos).
+"""Largest stable step of a whole model, matrix-free in NumPy (Lanczos).
 
 :mod:`.stability_analysis` linearises a jelly at rest, ``M dx'' = K dx + C dv``, and finds each
 integrator's largest stable step from the dense eigenproblem. That costs ``(6N)^3`` and is limited
@@ -6,28 +6,31 @@ to a few hundred particles, yet the limit depends on the jelly's size: the stiff
 10x10x10 lattice are 18 % stiffer than those of a 4x4x4 one, because a small lattice is mostly
 boundary. This module predicts the limit of the model itself, at any size:
 
-1. The spring Jacobians at the model's start positions, ``S = -dK`` and ``D = -C`` per spring, come
-   from the implicit integrator's own kernels (``eval_spring_jacobians`` with ``h = 1`` and the
-   damping, then the stiffness, set to zero), and their products with a vector from its
-   ``spring_mv``; nothing is assembled.
+1. The spring Jacobians at the start positions, ``S = -dK`` and ``D = -C``, are those of the
+   implicit integrator's per-spring blocks (kernels/implicit.py ``spring_jacobian``), applied to a
+   vector straight from the spring list in NumPy (:class:`SpringOperator`, one pass over the
+   springs for both); nothing is assembled and no Warp kernel runs, so a scene's dt can be checked
+   before anything compiles (``io/stable_step.py``).
 2. Lanczos with full reorthogonalisation on the mass-weighted ``St = M^-1/2 S M^-1/2`` (fixed
    particles, inverse mass 0, removed) builds an orthonormal Krylov basis ``V`` (when the springs'
    ``kd / ks`` differ, every other expansion uses ``Dt`` instead, so that the basis also holds the
-   directions the dampers couple). Its extreme Ritz
-   values converge first, at both ends of the spectrum, which is where the limiting modes are: the
-   stiffest modes limit every explicit method, and for explicit Euler the softest underdamped ones
-   can too. Iteration stops when, over ``CHECK_EVERY`` iterations, the largest Ritz value moves by
-   less than ``tol`` (relative) and the smallest non-zero one by less than ``sqrt(tol)`` (it
-   converges slowest, and limits explicit Euler only, through its damping rather than its size).
+   directions the dampers couple). Its extreme Ritz values converge first, at both ends of the
+   spectrum, which is where the limiting modes are: the stiffest modes limit every explicit method,
+   and for explicit Euler the softest underdamped ones can too. Every ``check_every`` iterations
+   the projected system is analysed (:func:`_estimates`); iteration stops when the largest Ritz
+   value has moved by less than ``tol`` and each requested method's step by less than ``dt_tol``
+   (relative) since the last check.
 3. The damped system projected on ``V``, ``a'' = -V^T St V a - V^T Dt V a'``, is small (``k x k``,
    ``k`` the number of iterations) and goes through the dense analysis of
    :mod:`.stability_analysis` (deflation of free modes, per-eigenvalue limits, the symplectic step
    map). When every spring has the same ``kd / ks``, ``Dt = (kd/ks) St`` and the projection is exact
    in the Krylov space; otherwise ``V^T Dt V`` is the Rayleigh-Ritz approximation of the damping.
 
-The basis costs ``2k`` vectors of ``3N`` float64 on the host (``3k`` without proportional
-damping); :data:`MEMORY_BUDGET` caps ``k``, which limits the accuracy only for jellies of millions
-of particles (the report says how many iterations ran and whether they converged).
+The projections are filled a column per iteration (the first Gram-Schmidt pass gives it), so an
+iteration costs one pass over the springs and a few products with the basis so far. The basis costs
+``k`` vectors of ``3N`` float64 on the host; :data:`MEMORY_BUDGET` caps ``k``, which limits the
+accuracy only for jellies of millions of particles (the report says how many iterations ran and
+whether they converged).
 """
 
 from __future__ import annotations
@@ -143,8 +146,8 @@ def predict_model_dt(model: Model, methods=sa.METHODS, *, tol=DEFAULT_TOL, max_i
     Args:
         model: the model.
         methods: integrator names (:data:`.stability_analysis.METHODS`).
-        tol: relative change of the extreme Ritz values over :data:`CHECK_EVERY` iterations at which
-            the iteration stops.
+        tol: relative change of the largest Ritz value over :data:`CHECK_EVERY` iterations below
+            which (with each method's step settled to :data:`DEFAULT_DT_TOL`) the iteration stops.
         max_iterations: Lanczos iterations at most (also capped by :data:`MEMORY_BUDGET`).
         seed: seed of the random start vector.
 
@@ -157,16 +160,17 @@ def predict_model_dt(model: Model, methods=sa.METHODS, *, tol=DEFAULT_TOL, max_i
 
 
 def predict_operator_dt(op: SpringOperator, methods=sa.METHODS, *, tol=DEFAULT_TOL, dt_tol=DEFAULT_DT_TOL,
-                        min_iterations=MIN_ITERATIONS, max_iterations=MAX_ITERATIONS, seed=SEED) -> Prediction:
+                        min_iterations=MIN_ITERATIONS, max_iterations=MAX_ITERATIONS, check_every=CHECK_EVERY,
+                        seed=SEED) -> Prediction:
     """:func:`predict_model_dt` for the springs of a :class:`SpringOperator`.
 
-    The iteration stops when, over :data:`CHECK_EVERY` iterations, the largest Ritz value moves by
-    less than ``tol`` and each method's step estimate by less than ``dt_tol`` (relative), see
-    :func:`_estimates`.
+    The iteration stops when, over ``check_every`` iterations (from ``min_iterations`` on), the
+    largest Ritz value moves by less than ``tol`` and each method's step estimate by less than
+    ``dt_tol`` (relative), see :func:`_estimates`.
     """
     n = 3 * op.n
     ratio = _proportional_ratio(op.ks, op.kd)
-    per_vector = 8 * n * (2 if ratio is not None else 3)
+    per_vector = 8 * n
     k_max = int(max(min_iterations, min(max_iterations, MEMORY_BUDGET // max(per_vector, 1))))
     k_max = min(k_max, 3 * int(np.count_nonzero(op.free)))
     if k_max == 0 or op.a.size == 0:
@@ -180,34 +184,35 @@ def predict_operator_dt(op: SpringOperator, methods=sa.METHODS, *, tol=DEFAULT_T
     PS = np.zeros((k_max, k_max))
     PD = None if ratio is not None else np.zeros((k_max, k_max))
     v = rng.standard_normal(n) * mask
-    V[0] = v / np.linalg.norm(v)
+    V[0] = v / _norm(v)
     k = 0
     converged = False
     last = None
     for j in range(k_max):
         sv, dv = op.apply(V[j], damping=PD is not None)
-        PS[: j + 1, j] = V[: j + 1] @ sv
+        basis = V[: j + 1]
+        PS[: j + 1, j] = _times(basis, sv)
         if PD is not None:
-            PD[: j + 1, j] = V[: j + 1] @ dv
+            PD[: j + 1, j] = _times(basis, dv)
         # Expand by St (Lanczos); without proportional damping every other step by Dt, so the basis
         # also holds the directions the dampers couple.
         if PD is not None and j % 2:
             w, h = dv, PD[: j + 1, j].copy()
         else:
             w, h = sv, PS[: j + 1, j].copy()
-        size = np.linalg.norm(w)
-        w = w - V[: j + 1].T @ h
+        size = _norm(w)
+        w = w - _combine(basis, h)
         # Full reorthogonalisation: a second pass when the first cancelled most of w (the
         # Daniel-Gragg-Kaufman-Stewart test; "twice is enough").
-        if np.linalg.norm(w) < 0.7071 * size:
-            w -= V[: j + 1].T @ (V[: j + 1] @ w)
+        if _norm(w) < 0.7071 * size:
+            w -= _combine(basis, _times(basis, w))
         k = j + 1
-        norm = np.linalg.norm(w)
+        norm = _norm(w)
         if norm <= 1e-12 * max(size, 1e-300):  # an invariant subspace: the Ritz values are exact
             converged = True
             break
         V[j + 1] = w / norm
-        if k >= min_iterations and k % CHECK_EVERY == 0:
+        if k >= min_iterations and k % check_every == 0:
             now = _estimates(_symmetric(PS, k), ratio, PD, k, methods)
             if last is not None and all(abs(a - b) <= t * abs(a) or a == b for a, b, t in
                                         zip(now, last, (tol,) + (dt_tol,) * (len(now) - 1))):
@@ -222,6 +227,25 @@ def predict_operator_dt(op: SpringOperator, methods=sa.METHODS, *, tol=DEFAULT_T
     dt = {m: sa._max_stable_dt_reduced(m, Kr, Cr, 1e-4, 1e-9, sa._ZERO_TOL, lam=lam) for m in methods}
     top = float(np.linalg.eigvalsh(T)[-1]) if k else 0.0
     return Prediction(dt, k, converged, ratio is not None, math.sqrt(max(top, 0.0)))
+
+
+# Products with the basis are einsum loops, not BLAS: they are memory-bound matrix-vector products,
+# which one thread does at full bandwidth, and a threaded BLAS on a busy machine (its threads
+# competing for cores) made them ten times slower.
+
+
+def _times(basis, x):
+    """``basis @ x``."""
+    return np.einsum("ij,j->i", basis, x)
+
+
+def _combine(basis, h):
+    """``basis.T @ h``."""
+    return np.einsum("ij,i->j", basis, h)
+
+
+def _norm(x):
+    return math.sqrt(np.einsum("i,i->", x, x))
 
 
 def _symmetric(P, k):

@@ -30,9 +30,9 @@ from ..core.stability_model import predict_jelly_dt
 
 REFUSE_FACTOR = 1.1
 AUTO_FRACTION = 0.9
-# The pre-flight's Lanczos settings: each method's step to 1e-3 (relative) between checks, far
+# The pre-flight's Lanczos settings: each method's step to 1e-3 (relative) over 5 iterations, far
 # inside the factors above; the bound on its work is what tests/test_stable_step.py checks.
-PREFLIGHT = {"tol": 1e-3, "dt_tol": 1e-3, "min_iterations": 20}
+PREFLIGHT = {"tol": 1e-3, "dt_tol": 1e-3, "min_iterations": 20, "check_every": 5}
 UNCONDITIONAL = ("implicit",)
 
 _CACHE: dict = {}
