@@ -112,7 +112,7 @@ def summary_line(s: dict, out) -> str:
 
 def predicted_stable_dt(scene, method, jelly=0, device=None) -> float | None:
     """Largest dt predicted stable for jelly ``jelly`` of the scene: a linear analysis of the whole
-    jelly, free and at rest, matrix-free on ``device`` (:mod:`softsim_warp.core.stability_model`)."""
+    jelly, free and at rest, matrix-free in NumPy (:mod:`softsim_warp.core.stability_model`)."""
     try:
         return predict_jelly_dt(scene.jellies[jelly], (method,), device).dt[method]
     except Exception:  # noqa: BLE001 - a prediction is advice; never let it hide the explosion itself
