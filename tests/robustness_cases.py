@@ -213,6 +213,13 @@ CASES = [
         "simulation.dt: must not exceed the frame interval",
         _e("dt = 0.001", "dt = 0.1"),
     ),
+    Case(
+        "dt_above_stable_step",
+        "dt above the jelly's predicted stable step (checked before any kernel compiles)",
+        "simulation.dt: jelly.0 (box lattice 3x3x3) is unstable with euler above 0.0019 s; use dt <= 0.0019 or "
+        'dt = "auto" (got 0.004)',
+        _e('integrator = "symplectic"\ndt = 0.001', 'integrator = "euler"\ndt = 0.004'),
+    ),
     Case("fps_zero", "fps = 0", "simulation.fps: must be a finite number > 0", _e("fps = 60.0", "fps = 0")),
     Case(
         "frames_zero",
@@ -434,6 +441,12 @@ CASES = [
         args=(SCENE, "--dt", "abc"),
     ),
     Case("flag_dt_negative", "--dt -1", "command line: --dt: must be a finite number > 0 (got -1)", args=(SCENE, "--dt=-1")),
+    Case(
+        "flag_dt_above_stable_step",
+        "--dt above the jelly's predicted stable step",
+        "command line: --dt: jelly.0 (box lattice 3x3x3) is unstable with symplectic above 0.0067 s",
+        args=(SCENE, "--dt", "0.01"),
+    ),
     Case(
         "flag_frames_fraction",
         "--frames 2.5",

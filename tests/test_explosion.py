@@ -15,8 +15,10 @@ from softsim_warp.io.runinfo import predicted_stable_dt
 from softsim_warp.io.simulate import Simulator
 
 # Explicit Euler on the seed-like jelly at 4 ms: ten times the symplectic step, twice the largest
-# step the linear analysis predicts stable for Euler (about 2 ms), so it must blow up.
-EXPLODING = ["run", "jelly_drop", "--integrator", "euler", "--dt", "0.004", "--frames", "60", "--quiet"]
+# step the linear analysis predicts stable for Euler (about 2 ms), so it must blow up (--allow-unstable:
+# run past the check that refuses it before stepping, tests/test_stable_step.py).
+EXPLODING = ["run", "jelly_drop", "--integrator", "euler", "--dt", "0.004", "--frames", "60", "--quiet",
+             "--allow-unstable"]
 
 
 def _usd_frames(path):
@@ -125,7 +127,8 @@ def test_end_of_run_line_says_how_the_run_ended(tmp_path, monkeypatch, capsys):
     """The summary of an exploded run says so, with the steps really done (not 0); a damped run says
     its energy was dissipated, an undamped explicit Euler run that it gained energy."""
     monkeypatch.chdir(tmp_path)
-    assert cli.main(["run", "hard_undamped", "--integrator", "euler", "--frames", "6", "--quiet", "--out", "u.usdc"]) == 3
+    assert cli.main(["run", "hard_undamped", "--integrator", "euler", "--frames", "6", "--quiet", "--out", "u.usdc",
+                     "--allow-unstable"]) == 3
     line = capsys.readouterr().err.splitlines()[0]
     assert line.startswith("EXPLODED: hard_undamped: 6 frames, 100 steps of euler") and "energy GAINED" in line
     assert cli.main(["run", "jelly_drop", "--frames", "30", "--quiet", "--out", "d.usdc",

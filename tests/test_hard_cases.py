@@ -122,7 +122,7 @@ def test_initial_scale_keeps_rest_lengths_and_scales_positions():
 def test_stiff_euler_stops_cleanly_through_the_cli(name, tmp_path, capsys):
     usd, metrics = tmp_path / "out.usda", tmp_path / "m.json"
     rc = main(["run", name, "--set", "jelly.0.resolution=4", "--integrator", "euler", "--frames", "6",
-               "--out", str(usd), "--metrics", str(metrics), "--quiet"])
+               "--out", str(usd), "--metrics", str(metrics), "--quiet", "--allow-unstable"])
     assert rc == 3
     err = capsys.readouterr().err
     scene = load_scene(name, ["jelly.0.resolution=4"])
@@ -254,7 +254,7 @@ def test_mass_ratio_default_dt_explodes_on_the_light_jelly(tmp_path, capsys):
     # Same springs, 1000x lighter particles: sqrt(1000) ~ 32x higher frequencies. The step that suits
     # the heavy jelly is far over the light one's limit.
     assert light < dt < heavy
-    argv = ["run", "hard_mass_ratio", "--frames", "5", "--out", str(tmp_path / "o.usda"), "--quiet"]
+    argv = ["run", "hard_mass_ratio", "--frames", "5", "--out", str(tmp_path / "o.usda"), "--quiet", "--allow-unstable"]
     for s in sets:
         argv += ["--set", s]
     assert main(argv) == 3

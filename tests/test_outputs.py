@@ -216,7 +216,7 @@ def test_json_outputs_are_strict(tmp_path, monkeypatch):
     """An exploding run's metrics hold no NaN or Infinity tokens (non-finite numbers are null)."""
     monkeypatch.chdir(tmp_path)
     code = cli.main(["run", "hard_stiff_1e6", "--integrator", "euler", "--frames", "3", "--quiet",
-                     "--out", "boom.usdc", "--metrics", "boom.json"])
+                     "--out", "boom.usdc", "--metrics", "boom.json", "--allow-unstable"])
     assert code == 3
 
     def refuse(token):

@@ -34,6 +34,7 @@ from ..core.errors import CommandLineError, SceneError, UserError
 from ..core.integrators import ExplicitIntegrator
 from ..core.stepper import make_integrator
 from ..io import scene as scene_mod
+from ..io import stable_step
 from ..io.mesh_scene import add_asset_inputs
 from ..io.outputs import JSON_SUFFIXES, USD_SUFFIXES, Outputs, kept_partial_path, save_atomic, write_json_atomic
 from ..io.resources import check_fits
@@ -76,10 +77,12 @@ def add_parser(subparsers, add_common):
     g = p.add_mutually_exclusive_group()
     g.add_argument("--duration", type=float, help="simulated seconds")
     g.add_argument("--frames", type=int, help="output frames after frame 0")
-    p.add_argument("--dt", type=float, help="step size [s]")
+    p.add_argument("--dt", help="step size [s], or auto (the largest the stability prediction allows)")
     p.add_argument("--fps", type=float, help="output frames per second")
     p.add_argument("--precision", choices=["float32", "float64"], help="scalar type of every kernel")
     p.add_argument("--springs", action="store_true", help="also write springs as BasisCurves")
+    p.add_argument("--allow-unstable", action="store_true",
+                   help="run even when a copy's dt is above a jelly's predicted stable step (to watch it explode)")
     p.add_argument("--no-graph", action="store_true", help="launch kernels one by one instead of replaying a captured graph")
     add_common(p)
     return p
@@ -101,6 +104,8 @@ def run(args) -> int:
     # Every copy runs at once: their memory together must fit, and the steps must be able to finish.
     copies = [scene_mod.Scene(v.data, source=plan.source) for v in plan.variants]
     check_fits(copies[0], device, frames=plan.frames, usd_springs=args.springs, copies=copies)
+    stable_step.check_variants([v.data for v in plan.variants], plan.source, [v.name for v in plan.variants],
+                               blame=lambda e: common.blame_flag(e, args), refuse=not args.allow_unstable)
 
     progress = None
     if not args.quiet:
@@ -285,6 +290,7 @@ def _plan_variants(args) -> Plan:
             name = "v_" + name
         variants.append(Variant(name=name, data=validated, overrides=overrides))
 
+    stable_step.share_auto_dt([v.data for v in variants])  # one clock: an "auto" dt is the copies' smallest
     # One clock and one model: [simulation] must agree (the integrator aside).
     first = variants[0].data["simulation"]
     for v in variants[1:]:

@@ -18,6 +18,7 @@ from ..io.outputs import JSON_SUFFIXES, USD_SUFFIXES, Outputs, kept_partial_path
 from ..io.resources import check_fits
 from ..io.runinfo import explosion_message, profile_table, summary_dict, summary_line
 from ..io.simulate import Simulator
+from ..io.stable_step import check_stable_dt
 from ..io.usd import UsdWriter
 from . import common
 from .common import (EXIT_EXPLODED, TEST_PAUSES, Signals, check_deterministic, load_for_cli, pause_for_test,
@@ -33,7 +34,7 @@ def add_parser(subparsers, add_common):
     # Scene-valued flags are taken as text and validated by the scene schema, so `--dt -1` and
     # `--set simulation.dt=-1` get the same message.
     run.add_argument("--integrator", help="euler, symplectic, midpoint, rk4 or implicit")
-    run.add_argument("--dt", help="step size [s]")
+    run.add_argument("--dt", help="step size [s], or auto (the largest the stability prediction allows)")
     g = run.add_mutually_exclusive_group()
     g.add_argument("--duration", help="simulated seconds")
     g.add_argument("--frames", help="output frames after frame 0")
@@ -48,6 +49,8 @@ def add_parser(subparsers, add_common):
     run.add_argument("--profile", action="store_true",
                      help="time each part of the step (kernels launched one by one, a device synchronise around "
                           "each part): a table on stdout, and time_* keys in --metrics")
+    run.add_argument("--allow-unstable", action="store_true",
+                     help="run even when dt is above a jelly's predicted stable step (to watch it explode)")
     run.add_argument("--preview", metavar="GIF", help="also render the written USD to this animated GIF (softsim preview)")
     add_common(run)
 
@@ -66,6 +69,7 @@ def run(args) -> int:
 def _run(args, signals) -> int:
     pause_for_test("scene", signals)
     scene = load_for_cli(args)
+    check_stable_dt(scene.data, scene.source, blame=lambda e: common.blame_flag(e, args), refuse=not args.allow_unstable)
     outputs = Outputs()
     outputs.add_input("scene", scene.source)
     add_asset_inputs(outputs, scene)

@@ -27,7 +27,7 @@ scene's dt) and bisected in log(dt) to a relative width of ``rtol``. It is measu
   ``--lattice`` particles per axis at the same spacing, particle mass and springs, free (no
   gravity, no terrain), at rest, for ``steps`` steps. This is the system that the prediction
   (:func:`~softsim_warp.core.stability_model.predict_model_dt`: Lanczos on the jelly's own spring
-  Jacobians, matrix-free on the device) linearises, so the two columns should agree; a finite run cannot see a growth slower than about ``ln(GROWTH)/steps``
+  Jacobians, matrix-free in NumPy) linearises, so the two columns should agree; a finite run cannot see a growth slower than about ``ln(GROWTH)/steps``
   per step, so an instability that weak (euler on a nearly undamped mode) is reported as stable
   by the run.
 * the **scene**: the scene as given (gravity, terrain, contact) for ``duration`` seconds.
@@ -72,7 +72,7 @@ MIN_DT = 1.0e-7
 
 
 def predict(jelly_small: dict, methods, device=None) -> dict:
-    """Linear prediction ``{method: dt}`` for a jelly dict (see :func:`free_jelly`), matrix-free on ``device``."""
+    """Linear prediction ``{method: dt}`` for a jelly dict (see :func:`free_jelly`), matrix-free (``device`` holds the model built for it)."""
 
     return predict_model_dt(lattice_model(jelly_small, device, "float64"), tuple(methods)).dt
 

@@ -13,6 +13,7 @@ import time
 
 from ..core.errors import CommandLineError
 from ..io import scene as scene_mod
+from ..io import stable_step
 from ..io import sweep as engine
 from ..io.mesh_scene import add_asset_inputs
 from ..io.outputs import Outputs, is_stream, kept_partial_path, target_of
@@ -58,6 +59,8 @@ def add_parser(subparsers, add_common):
     p.add_argument("--find-stable-dt", action="store_true",
                    help="per variant and integrator, the largest stable dt by bisection (as softsim stability)")
     p.add_argument("--rtol", type=float, default=0.02, help="--find-stable-dt: relative width of the final bracket")
+    p.add_argument("--allow-unstable", action="store_true",
+                   help="run the variants whose dt is above a jelly's predicted stable step too (as --dts does)")
     p.add_argument("--no-graph", action="store_true", help="launch kernels one by one instead of replaying graphs")
     add_common(p)
     return p
@@ -106,6 +109,11 @@ def plan(args):
     mode = "stable_dt" if args.find_stable_dt else ("reference" if args.reference else "run")
     variants = engine.plan_sweep(base, source, axes, integrators, args.samples, args.seed, mode,
                                  blame=lambda e: common.blame_flag(e, args))
+    explore = bool(args.dts) or args.allow_unstable
+    above = stable_step.check_sweep(variants, source, mode, explore, blame=lambda e: common.blame_flag(e, args))
+    if above:
+        print(f"warning: {source}: {above} of {len(variants)} variants have a dt above their predicted stable step; "
+              "they run, and their rows say how they ended", file=sys.stderr)
     if args.plot:
         keys = plotted_keys(axes, variants)
         if len(keys) > 2 and args.samples is None:

@@ -37,6 +37,7 @@ def summary_dict(scene, model, integrator, simulator, result, device) -> dict:
         "integrator": integrator.name,
         "precision": model.precision,
         "dt": simulator.dt,
+        "dt_auto": bool(scene.sim.get("_dt_auto")),
         "fps": simulator.fps,
         "device": str(device),
         "warp_version": wp.config.version,
@@ -103,14 +104,15 @@ def summary_line(s: dict, out) -> str:
         energy = f"; energy GAINED {drift:.4g} J ({rel:+.1f}%): the integrator adds energy, try a smaller dt"
     frames = f"{s['frames']} frame" + ("" if s["frames"] == 1 else "s")
     return (
-        f"{ended}{s['scene']}: {frames}, {s['steps']} steps of {s['integrator']} at dt={s['dt']:g} s in "
+        f"{ended}{s['scene']}: {frames}, {s['steps']} steps of {s['integrator']} at dt={s['dt']:g} s"
+        f"{' (auto)' if s.get('dt_auto') else ''} in "
         f"{s['wall_seconds']:.2f} s ({s['particle_steps_per_second']:.3g} particle-steps/s){energy} -> {out}"
     )
 
 
 def predicted_stable_dt(scene, method, jelly=0, device=None) -> float | None:
     """Largest dt predicted stable for jelly ``jelly`` of the scene: a linear analysis of the whole
-    jelly, free and at rest, matrix-free on ``device`` (:mod:`softsim_warp.core.stability_model`)."""
+    jelly, free and at rest, matrix-free in NumPy (:mod:`softsim_warp.core.stability_model`)."""
     try:
         return predict_jelly_dt(scene.jellies[jelly], (method,), device).dt[method]
     except Exception:  # noqa: BLE001 - a prediction is advice; never let it hide the explosion itself

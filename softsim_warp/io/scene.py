@@ -136,9 +136,10 @@ def _finite(value) -> bool:
 
 
 class Float(Field):
-    def __init__(self, default=None, lo=None, hi=None, lo_open=False, hi_open=False, **kw):
+    def __init__(self, default=None, lo=None, hi=None, lo_open=False, hi_open=False, auto=False, **kw):
         super().__init__(default, **kw)
         self.lo, self.hi, self.lo_open, self.hi_open = lo, hi, lo_open, hi_open
+        self.auto = auto  # the string "auto" is also accepted, and kept for validate() to resolve
 
     def allowed(self):
         parts = []
@@ -149,6 +150,8 @@ class Float(Field):
         return "a finite number" + (" " + " and ".join(parts) if parts else "")
 
     def check(self, value, key, ctx):
+        if self.auto and value == "auto":
+            return value
         if not _is_number(value) or not _finite(value):
             ctx.fail(key, f"must be {self.allowed()}", value)
         v = float(value)
@@ -382,7 +385,8 @@ SCHEMA = Table(
         "simulation": Table(
             {
                 "integrator": Choice(INTEGRATORS, "symplectic"),
-                "dt": Float(1.0e-3, lo=0, lo_open=True, doc="step size [s]"),
+                "dt": Float(1.0e-3, lo=0, lo_open=True, auto=True,
+                            doc='step size [s]; "auto": the largest the stability prediction allows (io/stable_step.py)'),
                 "duration": Float(lo=0, lo_open=True, doc="simulated time [s]"),
                 "frames": Int(lo=1, doc="output frames after the first"),
                 "fps": Float(60.0, lo=0, lo_open=True, doc="output frames per second"),
@@ -911,6 +915,9 @@ def validate(data: dict, source: str, base=None) -> dict:
     # see checks.py.
 
     check_scene(out, ctx)
+    from .stable_step import resolve_auto  # noqa: PLC0415 - the stability prediction imports the model
+
+    resolve_auto(out, ctx)
     return out
 
 
