@@ -40,7 +40,7 @@ from ..core.model import build_model
 from ..core.stepper import make_integrator
 from ..io.mesh_scene import add_asset_inputs
 from ..io.outputs import JSON_SUFFIXES, Outputs, save_report
-from ..io.resources import MAX_RUN_DAYS, scene_counts, step_seconds_floor
+from ..io.resources import MAX_RUN_DAYS, check_fits, scene_counts, step_seconds_floor
 from ..io.simulate import Simulator
 from .common import (ALL_INTEGRATORS, ProgressLog, check_positive, load_for_cli, parse_methods, parse_positive_list,
                      resolve_device)
@@ -587,6 +587,7 @@ def run(args) -> int:
         if d > 1.0 / fps:
             raise CommandLineError("--dts", f"steps must not exceed the frame interval 1/fps = {1.0 / fps:g} s", d)
     device = resolve_device(args.device)
+    check_fits(scene, device, frames=0)  # one run at a time, no USD frames kept
     # The reference run takes the most steps: refuse it up front when it could not finish.
     duration = args.duration or scene.frame_count() / scene.sim["fps"]
     reference = args.reference_dt or min(dts or [scene.sim["dt"] * 0.125]) / REFERENCE_DIVISOR
