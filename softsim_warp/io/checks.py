@@ -87,7 +87,8 @@ def jelly_points(jelly: dict, chunk: int = _CHUNK):
     # Extreme but finite float64 scenes may overflow to inf here; that is no error (and NumPy's
     # warning would break the one-line answer).
     with np.errstate(all="ignore"):
-        axes = [np.linspace(-0.5 * s, 0.5 * s, n) if n > 1 else np.zeros(1) for n, s in zip(shape, size)]
+        axes = [np.linspace(-0.5 * s, 0.5 * s, n) * f if n > 1 else np.zeros(1)
+                for n, s, f in zip(shape, size, _initial_scale(jelly))]
         rot = rotation_matrix(jelly["rotation"]["axis"], jelly["rotation"]["degrees"])
         # x = center + R (a_i, b_j, c_k) = center + a_i R[:, 0] + b_j R[:, 1] + c_k R[:, 2], by
         # broadcasting (an (N, 3) @ (3, 3) product is many times slower in NumPy).
@@ -119,11 +120,22 @@ def _check_precision(value, key, ctx, lo, hi, precision):
         )
 
 
+def _initial_scale(jelly) -> list:
+    """The jelly's per-axis initial scale (1 where not given)."""
+    scale = jelly.get("initial_scale")
+    if scale is None:
+        return [1.0, 1.0, 1.0]
+    return [float(c) for c in (scale if isinstance(scale, (list, tuple)) else [scale] * 3)]
+
+
 def _check_spacing(jelly, key, ctx, precision):
-    """Neighbours must stay distinct after rounding positions to the precision."""
-    extent = max(abs(c) for c in jelly["center"]) + 0.5 * math.sqrt(sum(s * s for s in jelly["size"]))
+    """Neighbours must stay distinct after rounding positions to the precision: the rest spacing
+    (the springs' rest lengths) and the starting one, which ``initial_scale`` shrinks."""
+    scale = _initial_scale(jelly)
+    extent = max(abs(c) for c in jelly["center"]) + 0.5 * math.sqrt(
+        sum(s * s * max(1.0, abs(f)) ** 2 for s, f in zip(jelly["size"], scale)))
     resolution = PRECISION_EPS[precision] * max(extent, 1e-300)
-    for n, s in zip(jelly["resolution"], jelly["size"]):
+    for n, s, f in zip(jelly["resolution"], jelly["size"], scale):
         if n > 1 and s / (n - 1) <= 4 * resolution:
             # 4 ulps: below that, rest lengths are mostly rounding error and spring forces noise.
             ctx.fail(
@@ -131,6 +143,15 @@ def _check_spacing(jelly, key, ctx, precision):
                 f"particle spacing {s / (n - 1):.3g} m is below the {precision} resolution at this position "
                 f"(4 x eps x {extent:.3g} m = {4 * resolution:.3g} m)",
                 jelly["size"],
+            )
+        if n > 1 and abs(f) * s / (n - 1) <= 4 * resolution:
+            # Scaled below the resolution, the start positions collapse onto each other (a crushed
+            # jelly of 1e-20 would start as a flat disc, not re-expand).
+            ctx.fail(
+                f"{key}.initial_scale",
+                f"the starting particle spacing {abs(f) * s / (n - 1):.3g} m is below the {precision} resolution at "
+                f"this position (4 x eps x {extent:.3g} m = {4 * resolution:.3g} m)",
+                jelly["initial_scale"],
             )
 
 
@@ -175,8 +196,10 @@ def check_scene(data: dict, ctx):
     """All whole-scene checks; ``ctx.fail(key, message, value)`` raises the one-line error."""
     precision = data["simulation"]["precision"]
     lo, hi = PRECISION_RANGE[precision]
+    # Size first: a huge resolution makes total_mass / particles underflow, and the answer must
+    # name the resolution, not the particle_mass derived from it.
+    check_host_build(data, ctx.source)
     _check_precision(data, "", ctx, lo, hi, precision)
     for j, jelly in enumerate(data["jelly"]):
         _check_spacing(jelly, f"jelly.{j}", ctx, precision)
-    check_host_build(data, ctx.source)
     check_terrain_overlap(data, ctx)

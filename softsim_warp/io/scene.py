@@ -32,6 +32,12 @@ PRECISIONS = ("float32", "float64")
 MAX_NESTING = 100
 # Integers must fit in a signed 64-bit integer (counts and frame numbers are sized by it).
 INT_MAX = 2**63 - 1
+# Upper bounds of the iteration counts (each runs every step): far above what converges (contact:
+# 1-4 Jacobi passes; Newton: 1-3 solves; CG: 200 by default, 2000 in the hardest tests) and low
+# enough that a mistyped count is refused instead of making every step take hours.
+MAX_CONTACT_ITERATIONS = 100
+MAX_NEWTON_ITERATIONS = 100
+MAX_CG_ITERATIONS = 10_000
 # A scene file is a few kilobytes of settings; a larger one is a mistake (and would take long to parse).
 MAX_SCENE_BYTES = 16 * 2**20
 
@@ -159,16 +165,23 @@ class Float(Field):
 
 
 class Int(Field):
-    def __init__(self, default=None, lo=None, **kw):
+    """An integer, at least ``lo``; ``hi``: an upper bound (iteration counts: each has one, so a
+    typo like 1e9 is refused rather than run for ever)."""
+
+    def __init__(self, default=None, lo=None, hi=None, **kw):
         super().__init__(default, **kw)
         self.lo = lo
+        self.hi = hi
 
     def check(self, value, key, ctx):
         # 3.0 reads as 3; a float beyond 2^53 is not an exact integer and stays a float (rejected).
         if isinstance(value, float) and value.is_integer() and abs(value) <= 2.0**53:
             value = int(value)
         what = "must be an integer" + (f" >= {self.lo}" if self.lo is not None else "")
-        if not isinstance(value, int) or isinstance(value, bool) or (self.lo is not None and value < self.lo):
+        if self.hi is not None:
+            what += f" and <= {self.hi:,}"
+        if (not isinstance(value, int) or isinstance(value, bool) or (self.lo is not None and value < self.lo)
+                or (self.hi is not None and value > self.hi)):
             ctx.fail(key, what, value)
         if abs(value) > INT_MAX:
             ctx.fail(key, f"{what} and below 2^63", value)
@@ -368,7 +381,9 @@ SCHEMA = Table(
                 ),
                 "jelly_contact_friction": Float(0.5, lo=0, doc="Coulomb coefficient between jellies [1]"),
                 "jelly_contact_restitution": Float(0.0, lo=0, hi=1, doc="restitution between jellies [1]"),
-                "jelly_contact_iterations": Int(1, lo=1, doc="Jacobi iterations of the contact impulses per step"),
+                "jelly_contact_iterations": Int(
+                    1, lo=1, hi=MAX_CONTACT_ITERATIONS, doc="Jacobi iterations of the contact impulses per step"
+                ),
             }
         ),
         "jelly": TableList(
@@ -407,9 +422,9 @@ SCHEMA = Table(
         # Settings of the implicit integrator; absent keys take ImplicitIntegrator's defaults.
         "implicit": Table(
             {
-                "newton_iterations": Int(lo=1, doc="linear solves per step (default 1)"),
+                "newton_iterations": Int(lo=1, hi=MAX_NEWTON_ITERATIONS, doc="linear solves per step (default 1)"),
                 "cg_tolerance": Float(lo=0, lo_open=True, hi=1, hi_open=True, doc="CG stops at |r| <= tol |b| (1e-4)"),
-                "cg_max_iterations": Int(lo=1, doc="CG iteration cap per solve (default 200)"),
+                "cg_max_iterations": Int(lo=1, hi=MAX_CG_ITERATIONS, doc="CG iteration cap per solve (default 200)"),
                 "linearization": Choice(("predictor", "baraff_witkin"), doc="where forces are linearised (predictor)"),
                 "preconditioner": Choice(
                     ("auto", "multigrid", "jacobi"),
