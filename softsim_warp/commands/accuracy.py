@@ -306,7 +306,7 @@ def measure(scene, integrators=ALL_INTEGRATORS, dts=None, *, device=None, precis
 
     say = log or (lambda line: None)
     fps = float(fps or scene.sim["fps"])
-    duration = float(duration or scene.frame_count() / scene.sim["fps"])
+    duration = float(duration or scene.run_seconds())
     frames = max(1, round(duration * fps))
     precision = precision or scene.sim["precision"]
     if dts is None:
@@ -589,7 +589,7 @@ def run(args) -> int:
     device = resolve_device(args.device)
     check_fits(scene, device, frames=0)  # one run at a time, no USD frames kept
     # The reference run takes the most steps: refuse it up front when it could not finish.
-    duration = args.duration or scene.frame_count() / scene.sim["fps"]
+    duration = args.duration or scene.run_seconds()
     reference = args.reference_dt or min(dts or [scene.sim["dt"] * 0.125]) / REFERENCE_DIVISOR
     floor = step_seconds_floor(scene_counts(scene.data).particles, device.is_cuda)
     if duration / reference * floor > MAX_RUN_DAYS * 86400.0:

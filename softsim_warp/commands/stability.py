@@ -278,7 +278,7 @@ def analyse(scene, integrators=ALL_INTEGRATORS, *, ks_values=DEFAULT_KS, device=
     precision = precision or scene.sim["precision"]
     fps = scene.sim["fps"]
     max_dt = max_dt or 1.0 / fps
-    duration = duration or min(scene.frame_count() / fps, 1.0)
+    duration = duration or min(scene.run_seconds(), 1.0)
     jelly = scene.jellies[jelly_index]
     options = scene.data.get("implicit")
     fallback = scene.sim["dt"]
@@ -547,7 +547,7 @@ def check_scene_runs(args, scene, device):
     """Refuse a scene run that no dt up to the frame interval can finish within
     :data:`MAX_PROBE_STEPS` steps, and a scene too large for memory, before any work."""
     fps = scene.sim["fps"]
-    duration = args.duration or min(scene.frame_count() / fps, 1.0)
+    duration = args.duration or min(scene.run_seconds(), 1.0)
     if not args.no_scene and math.ceil(duration * fps) > MAX_PROBE_STEPS:
         raise CommandLineError("--duration", f"a scene run of {duration:g} s takes more than {MAX_PROBE_STEPS:,} steps "
                                f"even at the largest dt tried (1/fps = {1.0 / fps:g} s); shorten it", args.duration)

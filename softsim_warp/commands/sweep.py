@@ -150,7 +150,7 @@ def stable_dt_task(spec: dict) -> list[dict]:
             precision = scene.sim["precision"]
             options = scene.data.get("implicit")
             max_dt = 1.0 / scene.sim["fps"]
-            duration = min(scene.frame_count() / scene.sim["fps"], 1.0)
+            duration = min(scene.run_seconds(), 1.0)
             fallback = scene.sim["dt"]
             js = stability.free_jelly(scene.jellies[0])
             p = float(stability.predict(js, [method], device)[method])

@@ -366,6 +366,9 @@ def check_steps(scene, device, frames, max_days=MAX_RUN_DAYS, counts=None):
     sim = scene.data["simulation"]
     dt, fps = float(sim["dt"]), float(sim["fps"])
     steps = float(frames) / fps / dt  # not frames / (fps * dt): fps * dt may round to 0
+    end = scene.end_time() if hasattr(scene, "end_time") else None
+    if end is not None and frames >= scene.frame_count():  # the last frame ends at the duration
+        steps = min(steps, float(end) / dt)
     if not steps > 0:
         return 0.0
     counts = counts or scene_counts(scene.data)

@@ -550,11 +550,40 @@ class Scene:
         return self.data.get("plane", [])
 
     def frame_count(self) -> int:
-        """Output frames after frame 0: ``frames`` if given, else ``round(duration * fps)``."""
+        """Output frames after frame 0: ``frames`` if given, else ``duration * fps`` rounded up (the
+        last frame shorter, ending at the duration: :meth:`end_time`)."""
         sim = self.sim
         if "frames" in sim:
             return sim["frames"]
-        return max(1, round(sim["duration"] * sim["fps"]))
+        return _duration_frames(sim["duration"], sim["fps"], sim["dt"])[0]
+
+    def end_time(self):
+        """The run's last time [s] when ``duration`` is not a whole number of frames, else None
+        (every frame, the last too, ends a whole 1/fps after the one before)."""
+        sim = self.sim
+        if "frames" in sim:
+            return None
+        return _duration_frames(sim["duration"], sim["fps"], sim["dt"])[1]
+
+    def run_seconds(self) -> float:
+        """Simulated seconds of the whole run: the duration, or frames / fps."""
+        end = self.end_time()
+        return end if end is not None else self.frame_count() / self.sim["fps"]
+
+
+def _duration_frames(duration: float, fps: float, dt: float) -> tuple:
+    """(frames after frame 0, end time or None) of a run of ``duration`` seconds.
+
+    A whole number of frames (up to rounding: 0.1 * 30 is 3.0000000000000004) gives that many and
+    no end time. Otherwise the frames are rounded up and the last one ends at the duration -- unless
+    at this dt the duration's step is no later than the frame before's, which then ends the run."""
+    n = duration * fps
+    if abs(n - round(n)) <= 1e-9 * max(1.0, abs(n)):
+        return max(1, round(n)), None
+    frames = max(1, math.ceil(n))
+    if frames > 1 and round(duration / dt) <= round((frames - 1) / (fps * dt)):
+        return frames - 1, None
+    return frames, duration
 
 
 def builtin_dir():
