@@ -529,12 +529,14 @@ def run_comparison(plan: Plan, device, out, metrics_path=None, plot_path=None, c
                     jm = [m.jellies[i] for i, j in enumerate(g.model.jellies) if j.world == lw]
                     nonfinite = not (np.all(np.isfinite(q[start:end])) and np.all(np.isfinite(qd[start:end])))
                     vmax = max(x["max_speed"] for x in jm)
-                    if nonfinite or vmax > bounds[v.world]:
+                    overflow = not all(math.isfinite(x["total_energy"]) for x in jm)  # as Simulator.run
+                    if nonfinite or vmax > bounds[v.world] or overflow:
                         res.exploded = {
                             "frame": k,
                             "time": t_frame,
                             "reason": "non-finite state" if nonfinite
-                            else f"max speed {vmax:.4g} m/s exceeds the bound {bounds[v.world]:.4g} m/s",
+                            else (f"max speed {vmax:.4g} m/s exceeds the bound {bounds[v.world]:.4g} m/s"
+                                  if vmax > bounds[v.world] else "non-finite energy (overflow)"),
                         }
                     else:
                         positions[ds:de] = q[start:end]

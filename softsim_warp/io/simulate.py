@@ -12,6 +12,7 @@ second however many steps a frame has (the steps are taken in chunks, the reques
 
 from __future__ import annotations
 
+import math
 import time
 from dataclasses import dataclass, field
 
@@ -134,20 +135,25 @@ class Simulator(Stepper):
                 break
             sim_seconds += time.perf_counter() - ts
             prev_step += n
-            if metrics.nonfinite or metrics.max_speed > self.max_speed:
+            # Energies that overflow (a speed of 1e38 m/s squared in float32) are an explosion too,
+            # even while every coordinate is still finite: no result after them means anything.
+            energy_bad = not all(math.isfinite(e) for e in (metrics.kinetic_energy, metrics.spring_energy,
+                                                            metrics.gravity_energy, metrics.total_energy))
+            if metrics.nonfinite or metrics.max_speed > self.max_speed or energy_bad:
                 result.steps = prev_step  # the steps done, up to the frame that exploded
                 result.exploded = True
-                bad = [i for i, j in enumerate(metrics.jellies) if j["nonfinite"] or j["max_speed"] > self.max_speed]
-                result.explosion = {
-                    "frame": k,
-                    "time": t_frame,
-                    "jelly": bad[0] if bad else 0,
-                    "reason": (
-                        f"{metrics.nonfinite} particles with non-finite state"
-                        if metrics.nonfinite
-                        else f"max speed {metrics.max_speed:.4g} m/s exceeds the bound {self.max_speed:.4g} m/s"
-                    ),
-                }
+                bad = [i for i, j in enumerate(metrics.jellies) if j["nonfinite"] or j["max_speed"] > self.max_speed
+                       or not math.isfinite(j["total_energy"])]
+                if metrics.nonfinite:
+                    reason = f"{metrics.nonfinite} particles with non-finite state"
+                elif metrics.max_speed > self.max_speed:
+                    reason = f"max speed {metrics.max_speed:.4g} m/s exceeds the bound {self.max_speed:.4g} m/s"
+                else:
+                    reason = (f"the energy overflows the {self.model.precision} range (kinetic {metrics.kinetic_energy:.4g} J, "
+                              f"spring {metrics.spring_energy:.4g} J, gravity {metrics.gravity_energy:.4g} J)")
+                result.explosion = {"frame": k, "time": t_frame, "jelly": bad[0] if bad else 0, "reason": reason}
+                if not metrics.nonfinite and not metrics.max_speed > self.max_speed:
+                    result.explosion["overflow"] = True  # the values, not the step, are out of range
                 break
             positions = self.state.particle_q.numpy()
             # Velocities only for writers that record them (UsdWriter: motion blur).
