@@ -301,6 +301,7 @@ def _plan_variants(args) -> Plan:
     sim = first
     if sim["dt"] > 1.0 / sim["fps"]:
         raise SceneError(source, "simulation.dt", f"must not exceed the frame interval 1/fps = {1.0 / sim['fps']:g} s", sim["dt"])
+    common.warn_overlaps(variants[0].data, source)
     first_scene = scene_mod.Scene(variants[0].data)
     frames = first_scene.frame_count()
     name = variants[0].data.get("name", path.stem)

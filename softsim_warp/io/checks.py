@@ -203,3 +203,64 @@ def check_scene(data: dict, ctx):
     for j, jelly in enumerate(data["jelly"]):
         _check_spacing(jelly, f"jelly.{j}", ctx, precision)
     check_terrain_overlap(data, ctx)
+
+
+def jelly_box(jelly: dict):
+    """(centre, axes as columns, half extents) of a box jelly's lattice at the start, or None for a
+    mesh jelly (its particles are a voxelised subset of the box: left out of the overlap check)."""
+    if "mesh" in jelly:
+        return None
+    rot = rotation_matrix(jelly["rotation"]["axis"], jelly["rotation"]["degrees"])
+    half = 0.5 * np.abs(np.asarray(jelly["size"], dtype=np.float64) * np.asarray(_initial_scale(jelly)))
+    return np.asarray(jelly["center"], dtype=np.float64), rot, half
+
+
+def box_overlap(a, b) -> float:
+    """Depth [m] by which two oriented boxes ``(centre, axes, half extents)`` interpenetrate along
+    their least separating axis (the separating-axis test over the 15 axes of two boxes): > 0 when
+    they overlap, <= 0 when they are apart or only touch."""
+    (ca, ra, ha), (cb, rb, hb) = a, b
+    t = cb - ca
+    axes = [ra[:, i] for i in range(3)] + [rb[:, i] for i in range(3)]
+    for i in range(3):
+        for j in range(3):
+            c = np.cross(ra[:, i], rb[:, j])
+            n = np.linalg.norm(c)
+            if n > 1e-9:  # parallel edges give no new axis
+                axes.append(c / n)
+    depth = math.inf
+    for axis in axes:
+        reach = np.abs(ra.T @ axis) @ ha + np.abs(rb.T @ axis) @ hb
+        depth = min(depth, float(reach - abs(t @ axis)))
+    return depth
+
+
+def jelly_overlaps(data: dict) -> list:
+    """Pairs ``(i, j, depth)`` of box jellies whose lattices start interpenetrating (``i < j``).
+
+    Two jellies that start inside each other are held together by contact (or, without it, pass
+    through each other fused into one shape); touching (depth within rounding of the sizes) is fine.
+    """
+    boxes = [jelly_box(j) for j in data["jelly"]]
+    pairs = []
+    for i, a in enumerate(boxes):
+        for j in range(i + 1, len(boxes)):
+            b = boxes[j]
+            if a is None or b is None:
+                continue
+            depth = box_overlap(a, b)
+            tol = 1e-9 * max(float(a[2].max()), float(b[2].max()), 1e-300)
+            if depth > tol:
+                pairs.append((i, j, depth))
+    return pairs
+
+
+def overlap_warning(data: dict, source: str) -> str | None:
+    """The one-line warning for jellies that start overlapping (:func:`jelly_overlaps`), or None."""
+    pairs = jelly_overlaps(data)
+    if not pairs:
+        return None
+    i, j, depth = pairs[0]
+    more = f" (and {len(pairs) - 1} more overlapping pairs)" if len(pairs) > 1 else ""
+    return (f"warning: {source}: jelly.{j}.center: jelly.{j} starts overlapping jelly.{i} by {depth:.3g} m; "
+            f"they may stay fused; move one of them{more} (got {list(data['jelly'][j]['center'])})")
