@@ -32,6 +32,8 @@ HOST_MODEL_PER_SPRING = 44  # host copies kept in the Model: pairs, type, rest/k
 HOST_MODEL_PER_PARTICLE = 32  # q and mass (float64) kept in the Model
 USD_POINT_BYTES = 12  # one float32 point of one time sample
 STAGES = {"euler": 1, "symplectic": 1, "midpoint": 2, "rk4": 4}
+# Particles of one model at most: kernels index particles (and springs) with 32-bit integers.
+MAX_MODEL_PARTICLES = 2**31 - 1
 # Contact between jellies (core/particle_contact.py), per contact particle, in scalars of S bytes
 # (all its arrays are 4-byte ints or scalars): candidate lists (32), contact lists and impulses
 # (2 x 16 slots, 4 scalars each), contact normals and gaps (16 x 4), approach speeds (16), face
@@ -315,6 +317,13 @@ def check_host_build(data: dict, source: str, available=None):
             f"about {format_bytes(need)} of host memory, {_available(available)}",
             data["jelly"][k]["resolution"],
         )
+    # Memory unknown or enough: particle indices are 32-bit. (Box jellies: a mesh jelly's particles
+    # are a voxelised part of its lattice, counted when it is voxelised.)
+    box = [(k, n) for k, (j, (n, _)) in enumerate(zip(data["jelly"], est.counts.jellies)) if "mesh" not in j]
+    if box and sum(n for _, n in box) > MAX_MODEL_PARTICLES:
+        k = max(box, key=lambda kn: kn[1])[0]
+        raise SceneError(source, f"jelly.{k}.resolution", f"scene too large: {_count(sum(n for _, n in box))} particles, "
+                         f"more than a model indexes ({MAX_MODEL_PARTICLES:,})", data["jelly"][k]["resolution"])
 
 
 def check_counts(particles, springs, device, integrator, flag, value, host_available=None, device_free=None,
