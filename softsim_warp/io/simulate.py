@@ -20,6 +20,7 @@ import warp as wp
 
 from ..core.integrators import Integrator
 from ..core.model import Model, State
+from ..core import stepper as stepper_mod
 from ..core.stepper import Stepper
 from .metrics import FrameMetrics, make_probe, speed_bound  # noqa: F401 - FrameMetrics re-exported
 
@@ -124,9 +125,13 @@ class Simulator(Stepper):
             n = self.step_of_frame(k) - prev_step
             ts = time.perf_counter()
             try:
-                if self.advance(n, stop=self._stop_within_frame if self.stop_requested is not None else None) < n:
-                    result.interrupted = True  # stopped within a long frame: it is dropped
-                    break
+                if self.stop_requested is not None and n > stepper_mod.MAX_GRAPH_STEPS:
+                    # A frame of several chunks: a stop request is read between them.
+                    if self.advance(n, stop=self._stop_within_frame) < n:
+                        result.interrupted = True  # stopped within a long frame: it is dropped
+                        break
+                else:
+                    self.advance(n)
                 t_frame = self.step_of_frame(k) * self.dt
                 metrics = self.probe.measure(self.state, k, t_frame)  # synchronises: the frame is done
             except KeyboardInterrupt:
