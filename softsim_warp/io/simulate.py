@@ -5,7 +5,7 @@ are independent, and the time recorded with a frame is the exact simulated time 
 whose duration is not a whole number of frames (``end_time``) ends with a shorter frame, at the step
 ``round(end_time / dt)``, written at its own time (USD time code ``t * fps``).
 
-A stop request (a signal) is honoured after the frame in progress; a frame still running
+A stop request (a signal) is honoured after the frame in progress; a frame of more than one chunk still running
 :data:`STOP_GRACE_SECONDS` after the request is dropped instead, so a stop acts within about a
 second however many steps a frame has (the steps are taken in chunks, the request read between).
 """
@@ -18,9 +18,9 @@ from dataclasses import dataclass, field
 
 import warp as wp
 
+from ..core import stepper as stepper_mod
 from ..core.integrators import Integrator
 from ..core.model import Model, State
-from ..core import stepper as stepper_mod
 from ..core.stepper import Stepper
 from .metrics import FrameMetrics, make_probe, speed_bound  # noqa: F401 - FrameMetrics re-exported
 
