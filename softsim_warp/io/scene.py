@@ -178,11 +178,10 @@ class Int(Field):
         if isinstance(value, float) and value.is_integer() and abs(value) <= 2.0**53:
             value = int(value)
         what = "must be an integer" + (f" >= {self.lo}" if self.lo is not None else "")
-        if self.hi is not None:
-            what += f" and <= {self.hi:,}"
-        if (not isinstance(value, int) or isinstance(value, bool) or (self.lo is not None and value < self.lo)
-                or (self.hi is not None and value > self.hi)):
+        if not isinstance(value, int) or isinstance(value, bool) or (self.lo is not None and value < self.lo):
             ctx.fail(key, what, value)
+        if self.hi is not None and value > self.hi:
+            ctx.fail(key, f"{what} and <= {self.hi:,}", value)
         if abs(value) > INT_MAX:
             ctx.fail(key, f"{what} and below 2^63", value)
         return int(value)
