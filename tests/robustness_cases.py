@@ -375,6 +375,37 @@ CASES = [
         "jelly.0.size: particle spacing",
         (("center = [0.0, 1.0, 0.0]", "center = [1e3, 1e3, 0.0]"), ("size = 0.5", "size = 1e-6")),
     ),
+    # --- limits (issue 47): counts with bounds, causes named ------------------------------------
+    Case(
+        "initial_scale_below_precision",
+        "initial_scale = 1e-20 crushes the start below float32's resolution",
+        "jelly.0.initial_scale: the starting particle spacing",
+        args=(SCENE, "--set", "jelly.0.initial_scale=1e-20"),
+    ),
+    Case(
+        "contact_iterations_huge",
+        "jelly_contact_iterations = 1e9",
+        "simulation.jelly_contact_iterations: must be an integer >= 1 and <= 100",
+        args=(SCENE, "--set", "simulation.jelly_contact_iterations=1e9"),
+    ),
+    Case(
+        "newton_iterations_huge",
+        "[implicit] newton_iterations = 1e9",
+        "implicit.newton_iterations: must be an integer >= 1 and <= 100",
+        args=(SCENE, "--set", "implicit.newton_iterations=1000000000"),
+    ),
+    Case(
+        "cg_iterations_huge",
+        "[implicit] cg_max_iterations = 1e9",
+        "implicit.cg_max_iterations: must be an integer >= 1 and <= 10,000",
+        args=(SCENE, "--set", "implicit.cg_max_iterations=1000000000"),
+    ),
+    Case(
+        "resolution_2_63",
+        "resolution = 2^63 - 1 (its total mass per particle underflows too)",
+        "jelly.0.resolution: scene too large",
+        (("particle_mass = 0.01", "total_mass = 1.0"), ("resolution = [3, 3, 3]", "resolution = 9223372036854775807")),
+    ),
     # --- whole scene ------------------------------------------------------------------------------
     Case(
         "inside_plane",
@@ -712,6 +743,7 @@ def run_case(case: Case, workdir: Path) -> tuple[int, str] | None:
 def normalize(line: str) -> str:
     """Mask what differs between machines: memory sizes, the device list, the read-only directory."""
     line = re.sub(r"\d[\d.,]*(e[+-]?\d+)? ?[KMGTP]?i?B\b", "<bytes>", line)
+    line = re.sub(r" available under the (address-space|cgroup memory) limit", " available", line)
     line = re.sub(r"(available(?: here)?): [a-z0-9:]+(?:, [a-z0-9:]+)*", r"\1: <devices>", line)
     line = re.sub(r"'/sys'|'[^']*readonly'", "'<read-only dir>'", line)
     line = re.sub(r"'/sys/out.usdc'|'[^']*readonly/out.usdc'", "'<read-only dir>/out.usdc'", line)

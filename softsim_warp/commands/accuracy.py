@@ -40,7 +40,7 @@ from ..core.model import build_model
 from ..core.stepper import make_integrator
 from ..io.mesh_scene import add_asset_inputs
 from ..io.outputs import JSON_SUFFIXES, Outputs, save_report
-from ..io.resources import MAX_RUN_DAYS, scene_counts, step_seconds_floor
+from ..io.resources import MAX_RUN_DAYS, check_fits, scene_counts, step_seconds_floor
 from ..io.simulate import Simulator
 from .common import (ALL_INTEGRATORS, ProgressLog, check_positive, load_for_cli, parse_methods, parse_positive_list,
                      resolve_device)
@@ -306,7 +306,7 @@ def measure(scene, integrators=ALL_INTEGRATORS, dts=None, *, device=None, precis
 
     say = log or (lambda line: None)
     fps = float(fps or scene.sim["fps"])
-    duration = float(duration or scene.frame_count() / scene.sim["fps"])
+    duration = float(duration or scene.run_seconds())
     frames = max(1, round(duration * fps))
     precision = precision or scene.sim["precision"]
     if dts is None:
@@ -587,8 +587,9 @@ def run(args) -> int:
         if d > 1.0 / fps:
             raise CommandLineError("--dts", f"steps must not exceed the frame interval 1/fps = {1.0 / fps:g} s", d)
     device = resolve_device(args.device)
+    check_fits(scene, device, frames=0)  # one run at a time, no USD frames kept
     # The reference run takes the most steps: refuse it up front when it could not finish.
-    duration = args.duration or scene.frame_count() / scene.sim["fps"]
+    duration = args.duration or scene.run_seconds()
     reference = args.reference_dt or min(dts or [scene.sim["dt"] * 0.125]) / REFERENCE_DIVISOR
     floor = step_seconds_floor(scene_counts(scene.data).particles, device.is_cuda)
     if duration / reference * floor > MAX_RUN_DAYS * 86400.0:

@@ -36,7 +36,7 @@ from ..core.model import ModelBuilder, build_model
 from ..core.stepper import make_integrator
 from ..io.mesh_scene import add_asset_inputs
 from ..io.outputs import Outputs, save_report
-from ..io.resources import check_counts, lattice_spring_count
+from ..io.resources import check_bench_size
 from ..io.scene import load_scene
 from . import bench_contact
 from .bench_newton import NewtonJelly, implicit_peer, newton_version
@@ -524,7 +524,8 @@ def run(args) -> int:
         heaviest = "implicit" if "implicit" in methods else ("rk4" if "rk4" in methods else methods[0])
         for n in sizes:
             count = max(args.copies, 8 if args.variants else 1)
-            check_counts(count * n**3, count * lattice_spring_count((n, n, n)), device, heaviest, "--sizes", n)
+            check_bench_size(n, count, device, heaviest, *(("--copies", args.copies) if args.copies >= count
+                                                           else ("--variants", "8 copies")))
         groups = [
             (
                 f"{n}^3",

@@ -33,6 +33,7 @@ from ..core.errors import CommandLineError
 from ..core.model import ModelBuilder
 from ..core.stepper import make_integrator
 from ..io.outputs import Outputs, save_report
+from ..io.resources import check_counts, lattice_spring_count
 from .bench_newton import NewtonJelly, newton_version
 from .timing import TimedSteps
 
@@ -150,6 +151,17 @@ class _Newton(TimedSteps):
         return self.jelly.positions()
 
 
+def check_pile_sizes(counts, size, methods, device, value):
+    """Refuse a pile that would not fit, before any is built: every particle of a pile takes part
+    in contact (--jellies names it; a single jelly too large names --contact-size)."""
+    heaviest = "implicit" if "implicit" in methods else ("rk4" if "rk4" in methods else "symplectic")
+    springs = lattice_spring_count((size, size, size))
+    check_counts(size**3, springs, device, heaviest, "--contact-size", size, contact_particles=size**3)
+    for count in counts:
+        check_counts(count * size**3, count * springs, device, heaviest, "--jellies", value,
+                     contact_particles=count * size**3)
+
+
 def run_contact(args, device, spec, versions, device_name) -> int:
     """The ``--contact`` benchmark; ``bench.run`` hands over its parsed arguments and device."""
     import warp as wp  # noqa: PLC0415
@@ -175,6 +187,7 @@ def run_contact(args, device, spec, versions, device_name) -> int:
             raise CommandLineError("--peer", str(exc), args.peer) from None
     use_graph = not args.no_graph
     size = args.contact_size
+    check_pile_sizes(counts, size, methods, device, args.jellies)
     rows = []
     for count in counts:
         t0 = time.perf_counter()

@@ -16,12 +16,14 @@ still gets Python's defaults.
 from __future__ import annotations
 
 import argparse
+import contextlib
 import functools
 import re
 import signal
 import sys
 import threading
 import traceback
+import warnings
 
 from ..core import stepper
 from ..core.errors import CommandLineError, UserError
@@ -129,6 +131,21 @@ def main(argv=None) -> int:
     return code
 
 
+@contextlib.contextmanager
+def _quiet_float_warnings(debug: bool):
+    """No NumPy floating-point warning (overflow, invalid value) reaches stderr: an overflowing run
+    is reported as an explosion by the run itself, in one line. ``--debug`` shows them."""
+    if debug:
+        yield
+        return
+    import numpy as np  # noqa: PLC0415
+
+    with np.errstate(all="ignore"), warnings.catch_warnings():
+        warnings.filterwarnings("ignore", category=RuntimeWarning,
+                                message=r".*(overflow|invalid value|divide by zero|underflow) encountered")
+        yield
+
+
 def _main(argv) -> int:
     args = None
     common.ACTIVE_SIGNALS = None  # main may run more than once in a process
@@ -145,7 +162,8 @@ def _main(argv) -> int:
         notice = functools.partial(common.compile_notice, getattr(args, "quiet", False))
         stepper.WARM_UP_HOOKS.append(notice)
         try:
-            return commands[args.command](args)
+            with _quiet_float_warnings(getattr(args, "debug", False)):
+                return commands[args.command](args)
         finally:
             stepper.WARM_UP_HOOKS.remove(notice)
     except UserError as e:

@@ -80,7 +80,18 @@ def load_for_cli(args):
                              sim["dt"])
     except SceneError as e:
         raise blame_flag(e, args) from None
+    warn_overlaps(validated, source)
     return scene_mod.Scene(validated, source=source, name=validated.get("name", path.stem))
+
+
+def warn_overlaps(data, source):
+    """One line on stderr when jellies start overlapping (checks.overlap_warning): allowed, but
+    usually two jellies placed at the same spot by mistake."""
+    from ..io.checks import overlap_warning  # noqa: PLC0415
+
+    line = overlap_warning(data, source)
+    if line is not None:
+        print(line, file=sys.stderr)
 
 
 def init_warp_for_meshes(data, args):

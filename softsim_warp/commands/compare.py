@@ -169,6 +169,8 @@ class Plan:
     fps: float
     frames: int
     sim: dict
+    end_time: float | None = None
+    """The last frame's time when the duration is not a whole number of frames (Scene.end_time)."""
 
 
 def prim_token(value) -> str:
@@ -305,9 +307,12 @@ def _plan_variants(args) -> Plan:
     sim = first
     if sim["dt"] > 1.0 / sim["fps"]:
         raise SceneError(source, "simulation.dt", f"must not exceed the frame interval 1/fps = {1.0 / sim['fps']:g} s", sim["dt"])
-    frames = scene_mod.Scene(variants[0].data).frame_count()
+    common.warn_overlaps(variants[0].data, source)
+    first_scene = scene_mod.Scene(variants[0].data)
+    frames = first_scene.frame_count()
     name = variants[0].data.get("name", path.stem)
-    return Plan(source=source, name=name, variants=variants, dt=sim["dt"], fps=sim["fps"], frames=frames, sim=sim)
+    return Plan(source=source, name=name, variants=variants, dt=sim["dt"], fps=sim["fps"], frames=frames, sim=sim,
+                end_time=first_scene.end_time())
 
 
 # ---------------------------------------------------------------------------------------------
@@ -398,7 +403,7 @@ class ComparisonResult:
 class _Group:
     """Variants advanced by one model and one integrator (the explicit batch, or one implicit copy)."""
 
-    def __init__(self, variants, builder_fn, device, precision, dt, fps, frames, use_graph, max_speed):
+    def __init__(self, variants, builder_fn, device, precision, dt, fps, frames, use_graph, max_speed, end_time=None):
         self.variants = variants
         self.model = builder_fn([v.data for v in variants]).finalize(device, precision)
         if all(v.integrator != "implicit" for v in variants):
@@ -407,7 +412,8 @@ class _Group:
             assert len(variants) == 1
             integrator = make_integrator("implicit", self.model, variants[0].data.get("implicit"))
         self.integrator = integrator
-        self.sim = Simulator(self.model, integrator, dt, fps, frames, use_graph=use_graph, max_speed=max_speed)
+        self.sim = Simulator(self.model, integrator, dt, fps, frames, use_graph=use_graph, max_speed=max_speed,
+                             end_time=end_time)
         self.done_steps = 0
         # Particle range of each local world (populate adds a variant's jellies one after another).
         self.ranges = []
@@ -468,9 +474,11 @@ def run_comparison(plan: Plan, device, out, metrics_path=None, plot_path=None, c
     groups = []
     max_speed = plan.sim.get("max_speed")
     if explicit:
-        groups.append(_Group(explicit, _make_builder, device, precision, plan.dt, plan.fps, plan.frames, use_graph, max_speed))
+        groups.append(_Group(explicit, _make_builder, device, precision, plan.dt, plan.fps, plan.frames, use_graph, max_speed,
+                             plan.end_time))
     for v in implicit:
-        groups.append(_Group([v], _make_builder, device, precision, plan.dt, plan.fps, plan.frames, use_graph, max_speed))
+        groups.append(_Group([v], _make_builder, device, precision, plan.dt, plan.fps, plan.frames, use_graph, max_speed,
+                             plan.end_time))
 
     display_ranges = []
     for v in variants:
@@ -528,18 +536,21 @@ def run_comparison(plan: Plan, device, out, metrics_path=None, plot_path=None, c
                     jm = [m.jellies[i] for i, j in enumerate(g.model.jellies) if j.world == lw]
                     nonfinite = not (np.all(np.isfinite(q[start:end])) and np.all(np.isfinite(qd[start:end])))
                     vmax = max(x["max_speed"] for x in jm)
-                    if nonfinite or vmax > bounds[v.world]:
+                    overflow = not all(math.isfinite(x["total_energy"]) for x in jm)  # as Simulator.run
+                    if nonfinite or vmax > bounds[v.world] or overflow:
                         res.exploded = {
                             "frame": k,
                             "time": t_frame,
                             "reason": "non-finite state" if nonfinite
-                            else f"max speed {vmax:.4g} m/s exceeds the bound {bounds[v.world]:.4g} m/s",
+                            else (f"max speed {vmax:.4g} m/s exceeds the bound {bounds[v.world]:.4g} m/s"
+                                  if vmax > bounds[v.world] else "non-finite energy (overflow)"),
                         }
                     else:
                         positions[ds:de] = q[start:end]
                         velocities[ds:de] = qd[start:end]
                         res.frames.append(_frame_metrics(k, t_frame, jm, q[start:end], rest[v.world]))
-            writer.write_frame(k, t_frame, positions, velocities=velocities)
+            writer.write_frame(k, t_frame, positions, velocities=velocities,
+                               time_code=groups[0].sim.time_code_of_frame(k, t_frame))
             result.frames_written = k + 1
             result.steps = target
             if progress is not None:

@@ -96,7 +96,7 @@ def _run_locked(args, signals, scene, out, metrics_path, preview_path) -> int:
         integrator = make_integrator(sim["integrator"], model, scene.data.get("implicit"))
         simulator = Simulator(model, integrator, sim["dt"], sim["fps"], frames,
                               use_graph=None if not args.no_graph else False, max_speed=sim.get("max_speed"),
-                              profile=args.profile)
+                              profile=args.profile, end_time=scene.end_time())
     if signals.received is not None:
         return signals.exit_code()
     writer = UsdWriter(out, model, sim["fps"], springs=args.springs,

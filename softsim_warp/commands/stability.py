@@ -51,6 +51,7 @@ from ..core.stability_model import free_jelly, free_jelly_model as lattice_model
 from ..core.stepper import make_integrator
 from ..io.mesh_scene import add_asset_inputs
 from ..io.outputs import JSON_SUFFIXES, Outputs, save_report
+from ..io.resources import check_fits
 from ..io.simulate import Simulator
 from .common import (ALL_INTEGRATORS, ProgressLog, check_positive, load_for_cli, parse_methods, parse_positive_list,
                      resolve_device)
@@ -62,6 +63,10 @@ PERTURBATION = 1.0e-3
 SEED = 0
 SAMPLES = 40
 DEFAULT_STEPS = 1000
+# Steps of one probe run at most: a dt whose run would need more counts as unstable, so a longer
+# --steps, or a --duration longer than this many frame intervals, is refused up front (every probe
+# would be "unstable" and every limit read "< MIN_DT").
+MAX_PROBE_STEPS = 200_000
 DEFAULT_KS = (1.0e2, 1.0e3, 1.0e4, 1.0e5, 1.0e6)
 DEFAULT_RTOL = 0.02
 MIN_DT = 1.0e-7
@@ -205,7 +210,7 @@ def find_limit(is_stable, guess, min_dt=MIN_DT, max_dt=1.0, rtol=DEFAULT_RTOL) -
 
 
 def measure_limit(model, method, *, guess, steps=None, duration=None, max_dt, min_dt=MIN_DT, rtol=DEFAULT_RTOL,
-                  max_steps=200_000, options=None, use_graph=True) -> dict:
+                  max_steps=None, options=None, use_graph=True) -> dict:
     """Largest stable dt of ``method`` on ``model``, by :func:`find_limit` over :func:`probe` runs.
 
     The run is ``steps`` steps, or ``duration`` seconds (``ceil(duration / dt)`` steps, at most
@@ -215,6 +220,7 @@ def measure_limit(model, method, *, guess, steps=None, duration=None, max_dt, mi
         ImportError: when the integrator is not available.
     """
 
+    max_steps = MAX_PROBE_STEPS if max_steps is None else max_steps
     integ = make_integrator(method, model, options)
     disp = perturbation(model)
     # Compile once outside the timed probes.
@@ -272,7 +278,7 @@ def analyse(scene, integrators=ALL_INTEGRATORS, *, ks_values=DEFAULT_KS, device=
     precision = precision or scene.sim["precision"]
     fps = scene.sim["fps"]
     max_dt = max_dt or 1.0 / fps
-    duration = duration or min(scene.frame_count() / fps, 1.0)
+    duration = duration or min(scene.run_seconds(), 1.0)
     jelly = scene.jellies[jelly_index]
     options = scene.data.get("implicit")
     fallback = scene.sim["dt"]
@@ -531,6 +537,23 @@ def add_parser(subparsers, add_common):
     add_common(p)
 
 
+def check_run_lengths(args):
+    """Refuse a --steps beyond what one probe may run (:data:`MAX_PROBE_STEPS`)."""
+    if args.steps > MAX_PROBE_STEPS:
+        raise CommandLineError("--steps", f"must be at most {MAX_PROBE_STEPS:,} (the longest probe run)", args.steps)
+
+
+def check_scene_runs(args, scene, device):
+    """Refuse a scene run that no dt up to the frame interval can finish within
+    :data:`MAX_PROBE_STEPS` steps, and a scene too large for memory, before any work."""
+    fps = scene.sim["fps"]
+    duration = args.duration or min(scene.run_seconds(), 1.0)
+    if not args.no_scene and math.ceil(duration * fps) > MAX_PROBE_STEPS:
+        raise CommandLineError("--duration", f"a scene run of {duration:g} s takes more than {MAX_PROBE_STEPS:,} steps "
+                               f"even at the largest dt tried (1/fps = {1.0 / fps:g} s); shorten it", args.duration)
+    check_fits(scene, device, frames=0)
+
+
 def run(args) -> int:
     methods = parse_methods(args.integrators)
     ks = () if args.ks and args.ks.strip().lower() == "none" else (
@@ -538,6 +561,7 @@ def run(args) -> int:
     if args.steps < 10:
         raise CommandLineError("--steps", "must be an integer >= 10", args.steps)
     check_positive(args.duration, "--duration")
+    check_run_lengths(args)
     if args.lattice is not None and args.lattice < 2:
         raise CommandLineError("--lattice", "must be an integer >= 2", args.lattice)
     if not (0 < args.rtol < 1):
@@ -552,6 +576,7 @@ def run(args) -> int:
     if not 0 <= args.jelly < len(scene.jellies):
         raise CommandLineError("--jelly", f"this scene has jellies 0 to {len(scene.jellies) - 1}", args.jelly)
     device = resolve_device(args.device)
+    check_scene_runs(args, scene, device)
     shown = ProgressLog(f"{scene.name} stability", unit="limit", quiet=args.quiet)
     with outputs:
         report = analyse(scene, methods, ks_values=ks, device=device, precision=args.precision, steps=args.steps,

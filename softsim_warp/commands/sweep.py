@@ -17,7 +17,7 @@ from ..io import stable_step
 from ..io import sweep as engine
 from ..io.mesh_scene import add_asset_inputs
 from ..io.outputs import Outputs, is_stream, kept_partial_path, target_of
-from ..io.resources import check_fits
+from ..io.resources import check_fits, check_steps
 from . import common
 
 COMMAND = "sweep"
@@ -158,7 +158,7 @@ def stable_dt_task(spec: dict) -> list[dict]:
             precision = scene.sim["precision"]
             options = scene.data.get("implicit")
             max_dt = 1.0 / scene.sim["fps"]
-            duration = min(scene.frame_count() / scene.sim["fps"], 1.0)
+            duration = min(scene.run_seconds(), 1.0)
             fallback = scene.sim["dt"]
             js = stability.free_jelly(scene.jellies[0])
             p = float(stability.predict(js, [method], device)[method])
@@ -201,6 +201,27 @@ def _pid():
 # Run
 
 
+class _DeviceKind:
+    """A device named only by kind (a remote scheduler's workers): enough for the step-time floor."""
+
+    def __init__(self, name):
+        self.is_cuda = str(name).startswith("cuda")
+
+    def __str__(self):
+        return "cuda" if self.is_cuda else "cpu"
+
+
+def check_variant_steps(variants, source, mode, device):
+    """Refuse, before a cluster starts, a sweep of which any variant's steps could not finish in
+    ``resources.MAX_RUN_DAYS`` days (each variant's own dt and duration, as ``softsim run`` checks)."""
+    if mode == "stable_dt":
+        return  # probes choose their own dt, at most stability.MAX_PROBE_STEPS steps each
+    where = device if hasattr(device, "is_cuda") else _DeviceKind(device)
+    for v in variants:
+        scene = scene_mod.Scene(v.data, source=source)
+        check_steps(scene, where, scene.frame_count())
+
+
 def run(args) -> int:
     axes, variants, source, mode, path = plan(args)
     name = variants[0].data.get("name", path.stem)
@@ -233,6 +254,7 @@ def run(args) -> int:
                     check_fits(scene, local, frames=0)
                 else:
                     check_fits(scene, local, frames=scene.frame_count())
+    check_variant_steps(variants, source, mode, local if args.scheduler is None else args.device)
     meta = {"scene": name, "source": source, "mode": mode, "keys": [a.key for a in axes]}
     schema = engine.make_schema(axes, variants, mode, meta)
     if args.metric is not None:

@@ -129,22 +129,39 @@ class Stepper:
                 self.integrator.step(self.states[self.current], self.states[1 - self.current], self.dt)
             self.current = 1 - self.current
 
-    def advance(self, n: int):
+    def advance(self, n: int, stop=None) -> int:
         """Take ``n`` steps, replaying captured graphs when enabled: ``n // MAX_GRAPH_STEPS`` replays of
-        a graph of ``MAX_GRAPH_STEPS`` steps, then one graph of the remainder."""
+        a graph of ``MAX_GRAPH_STEPS`` steps, then one graph of the remainder.
+
+        ``stop``: a callable asked before each chunk of at most ``MAX_GRAPH_STEPS`` steps; when it
+        returns true the remaining steps are not taken (a stop acts within a chunk however many
+        steps ``n`` is). Returns the steps taken. The chunks are the same with and without it, so
+        the result is too."""
         if n <= 0:
-            return
+            return 0
+        n = int(n)
+        chunk = max(1, int(MAX_GRAPH_STEPS))
         if not self.use_graph:
             if self.profile is not None and not self.warmed_up:
                 self.warm_up()  # compiling is not part of any step's time
-            self._advance_plain(n)
-            return
-        chunk = max(1, int(MAX_GRAPH_STEPS))
-        full, rest = divmod(int(n), chunk)
-        for _ in range(full):
+            if stop is None:
+                self._advance_plain(n)
+                return n
+            for done in range(0, n, chunk):
+                if stop():
+                    return done
+                self._advance_plain(min(chunk, n - done))
+            return n
+        full, rest = divmod(n, chunk)
+        for i in range(full):
+            if stop is not None and stop():
+                return i * chunk
             self._replay(chunk, chunk)
         if rest:
+            if stop is not None and stop():
+                return full * chunk
             self._replay(rest, chunk)
+        return n
 
     def _replay(self, n: int, chunk: int):
         """Take ``n`` steps by replaying the graph of ``n`` steps from the current buffer, captured on

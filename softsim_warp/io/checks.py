@@ -87,7 +87,8 @@ def jelly_points(jelly: dict, chunk: int = _CHUNK):
     # Extreme but finite float64 scenes may overflow to inf here; that is no error (and NumPy's
     # warning would break the one-line answer).
     with np.errstate(all="ignore"):
-        axes = [np.linspace(-0.5 * s, 0.5 * s, n) if n > 1 else np.zeros(1) for n, s in zip(shape, size)]
+        axes = [np.linspace(-0.5 * s, 0.5 * s, n) * f if n > 1 else np.zeros(1)
+                for n, s, f in zip(shape, size, _initial_scale(jelly))]
         rot = rotation_matrix(jelly["rotation"]["axis"], jelly["rotation"]["degrees"])
         # x = center + R (a_i, b_j, c_k) = center + a_i R[:, 0] + b_j R[:, 1] + c_k R[:, 2], by
         # broadcasting (an (N, 3) @ (3, 3) product is many times slower in NumPy).
@@ -119,11 +120,22 @@ def _check_precision(value, key, ctx, lo, hi, precision):
         )
 
 
+def _initial_scale(jelly) -> list:
+    """The jelly's per-axis initial scale (1 where not given)."""
+    scale = jelly.get("initial_scale")
+    if scale is None:
+        return [1.0, 1.0, 1.0]
+    return [float(c) for c in (scale if isinstance(scale, (list, tuple)) else [scale] * 3)]
+
+
 def _check_spacing(jelly, key, ctx, precision):
-    """Neighbours must stay distinct after rounding positions to the precision."""
-    extent = max(abs(c) for c in jelly["center"]) + 0.5 * math.sqrt(sum(s * s for s in jelly["size"]))
+    """Neighbours must stay distinct after rounding positions to the precision: the rest spacing
+    (the springs' rest lengths) and the starting one, which ``initial_scale`` shrinks."""
+    scale = _initial_scale(jelly)
+    extent = max(abs(c) for c in jelly["center"]) + 0.5 * math.sqrt(
+        sum(s * s * max(1.0, abs(f)) ** 2 for s, f in zip(jelly["size"], scale)))
     resolution = PRECISION_EPS[precision] * max(extent, 1e-300)
-    for n, s in zip(jelly["resolution"], jelly["size"]):
+    for n, s, f in zip(jelly["resolution"], jelly["size"], scale):
         if n > 1 and s / (n - 1) <= 4 * resolution:
             # 4 ulps: below that, rest lengths are mostly rounding error and spring forces noise.
             ctx.fail(
@@ -131,6 +143,15 @@ def _check_spacing(jelly, key, ctx, precision):
                 f"particle spacing {s / (n - 1):.3g} m is below the {precision} resolution at this position "
                 f"(4 x eps x {extent:.3g} m = {4 * resolution:.3g} m)",
                 jelly["size"],
+            )
+        if n > 1 and abs(f) * s / (n - 1) <= 4 * resolution:
+            # Scaled below the resolution, the start positions collapse onto each other (a crushed
+            # jelly of 1e-20 would start as a flat disc, not re-expand).
+            ctx.fail(
+                f"{key}.initial_scale",
+                f"the starting particle spacing {abs(f) * s / (n - 1):.3g} m is below the {precision} resolution at "
+                f"this position (4 x eps x {extent:.3g} m = {4 * resolution:.3g} m)",
+                jelly["initial_scale"],
             )
 
 
@@ -175,8 +196,71 @@ def check_scene(data: dict, ctx):
     """All whole-scene checks; ``ctx.fail(key, message, value)`` raises the one-line error."""
     precision = data["simulation"]["precision"]
     lo, hi = PRECISION_RANGE[precision]
+    # Size first: a huge resolution makes total_mass / particles underflow, and the answer must
+    # name the resolution, not the particle_mass derived from it.
+    check_host_build(data, ctx.source)
     _check_precision(data, "", ctx, lo, hi, precision)
     for j, jelly in enumerate(data["jelly"]):
         _check_spacing(jelly, f"jelly.{j}", ctx, precision)
-    check_host_build(data, ctx.source)
     check_terrain_overlap(data, ctx)
+
+
+def jelly_box(jelly: dict):
+    """(centre, axes as columns, half extents) of a box jelly's lattice at the start, or None for a
+    mesh jelly (its particles are a voxelised subset of the box: left out of the overlap check)."""
+    if "mesh" in jelly:
+        return None
+    rot = rotation_matrix(jelly["rotation"]["axis"], jelly["rotation"]["degrees"])
+    half = 0.5 * np.abs(np.asarray(jelly["size"], dtype=np.float64) * np.asarray(_initial_scale(jelly)))
+    return np.asarray(jelly["center"], dtype=np.float64), rot, half
+
+
+def box_overlap(a, b) -> float:
+    """Depth [m] by which two oriented boxes ``(centre, axes, half extents)`` interpenetrate along
+    their least separating axis (the separating-axis test over the 15 axes of two boxes): > 0 when
+    they overlap, <= 0 when they are apart or only touch."""
+    (ca, ra, ha), (cb, rb, hb) = a, b
+    t = cb - ca
+    axes = [ra[:, i] for i in range(3)] + [rb[:, i] for i in range(3)]
+    for i in range(3):
+        for j in range(3):
+            c = np.cross(ra[:, i], rb[:, j])
+            n = np.linalg.norm(c)
+            if n > 1e-9:  # parallel edges give no new axis
+                axes.append(c / n)
+    depth = math.inf
+    for axis in axes:
+        reach = np.abs(ra.T @ axis) @ ha + np.abs(rb.T @ axis) @ hb
+        depth = min(depth, float(reach - abs(t @ axis)))
+    return depth
+
+
+def jelly_overlaps(data: dict) -> list:
+    """Pairs ``(i, j, depth)`` of box jellies whose lattices start interpenetrating (``i < j``).
+
+    Two jellies that start inside each other are held together by contact (or, without it, pass
+    through each other fused into one shape); touching (depth within rounding of the sizes) is fine.
+    """
+    boxes = [jelly_box(j) for j in data["jelly"]]
+    pairs = []
+    for i, a in enumerate(boxes):
+        for j in range(i + 1, len(boxes)):
+            b = boxes[j]
+            if a is None or b is None:
+                continue
+            depth = box_overlap(a, b)
+            tol = 1e-9 * max(float(a[2].max()), float(b[2].max()), 1e-300)
+            if depth > tol:
+                pairs.append((i, j, depth))
+    return pairs
+
+
+def overlap_warning(data: dict, source: str) -> str | None:
+    """The one-line warning for jellies that start overlapping (:func:`jelly_overlaps`), or None."""
+    pairs = jelly_overlaps(data)
+    if not pairs:
+        return None
+    i, j, depth = pairs[0]
+    more = f" (and {len(pairs) - 1} more overlapping pairs)" if len(pairs) > 1 else ""
+    return (f"warning: {source}: jelly.{j}.center: jelly.{j} starts overlapping jelly.{i} by {depth:.3g} m; "
+            f"they may stay fused; move one of them{more} (got {list(data['jelly'][j]['center'])})")

@@ -99,6 +99,12 @@ class MetricsProbe:
             )
 
     def measure(self, state: State, frame: int, t: float) -> FrameMetrics:
+        # An exploding run's sums overflow (inf + -inf is nan): the caller reads that as an explosion,
+        # NumPy need not warn about it.
+        with np.errstate(all="ignore"):
+            return self._measure(state, frame, t)
+
+    def _measure(self, state: State, frame: int, t: float) -> FrameMetrics:
         self._reduce(state)
         ke = self.kinetic.numpy().astype(np.float64)
         ge = self.gravity_energy.numpy().astype(np.float64)

@@ -32,6 +32,13 @@ HOST_MODEL_PER_SPRING = 44  # host copies kept in the Model: pairs, type, rest/k
 HOST_MODEL_PER_PARTICLE = 32  # q and mass (float64) kept in the Model
 USD_POINT_BYTES = 12  # one float32 point of one time sample
 STAGES = {"euler": 1, "symplectic": 1, "midpoint": 2, "rk4": 4}
+# Particles of one model at most: kernels index particles (and springs) with 32-bit integers.
+MAX_MODEL_PARTICLES = 2**31 - 1
+# Contact between jellies (core/particle_contact.py), per contact particle, in scalars of S bytes
+# (all its arrays are 4-byte ints or scalars): candidate lists (32), contact lists and impulses
+# (2 x 16 slots, 4 scalars each), contact normals and gaps (16 x 4), approach speeds (16), face
+# normals (9), records and compact positions (16), grid and counts (6): about 290, rounded up.
+CONTACT_PER_PARTICLE = 300
 
 # Lower bounds of the time one step takes, for refusing a run that cannot finish (check_steps).
 # They are floors, not estimates: every step launches at least two kernels (symplectic; RK4 eight,
@@ -155,7 +162,13 @@ def estimate(data: dict, integrator=None, frames=0, usd_springs=False, determini
     return Estimate(c, host_build, host_model, usd, device)
 
 
-def available_host_bytes() -> int | None:
+# Where the cgroup file system is mounted (a test points it at a folder of its own).
+CGROUP_ROOT = "/sys/fs/cgroup"
+# A cgroup v1 "no limit" is the largest page-aligned 64-bit value; anything above this is no limit.
+_CGROUP_UNLIMITED = 1 << 60
+
+
+def _free_memory_bytes() -> int | None:
     """Memory the kernel says can be allocated without swapping (MemAvailable), else free pages."""
     try:
         with open("/proc/meminfo") as f:
@@ -168,6 +181,108 @@ def available_host_bytes() -> int | None:
         return os.sysconf("SC_AVPHYS_PAGES") * os.sysconf("SC_PAGE_SIZE")
     except (ValueError, OSError, AttributeError):
         return None
+
+
+def _read_int(path: str) -> int | None:
+    """The integer in a one-value kernel file, or None (missing, unreadable, ``max``)."""
+    try:
+        with open(path) as f:
+            text = f.read().strip()
+    except OSError:
+        return None
+    try:
+        return int(text)
+    except ValueError:
+        return None
+
+
+def _own_cgroup_dirs() -> list[str]:
+    """This process's cgroup folders under :data:`CGROUP_ROOT`, innermost first, the root last:
+    each level's limit applies (the v2 path from ``/proc/self/cgroup``, else the root alone)."""
+    dirs = []
+    try:
+        with open("/proc/self/cgroup") as f:
+            for line in f:
+                hid, _, rest = line.rstrip("\n").partition(":")
+                controllers, _, rel = rest.partition(":")
+                if hid == "0" and controllers == "" and rel.startswith("/"):
+                    parts = [p for p in rel.split("/") if p]
+                    dirs = [os.path.join(CGROUP_ROOT, *parts[:i]) for i in range(len(parts), 0, -1)]
+    except OSError:
+        pass
+    return dirs + [CGROUP_ROOT]
+
+
+def _cgroup_available() -> int | None:
+    """Bytes left under the cgroup memory limits of this process (the tightest level), or None.
+
+    cgroup v2: ``memory.max`` minus ``memory.current`` at each level from this process's cgroup up
+    to the root of the mount (a container sees its own cgroup as the root); cgroup v1:
+    ``memory/memory.limit_in_bytes`` minus ``memory/memory.usage_in_bytes``."""
+    left = None
+    seen = set()
+    for d in _own_cgroup_dirs():
+        if d in seen:
+            continue
+        seen.add(d)
+        limit = _read_int(os.path.join(d, "memory.max"))
+        if limit is not None and limit < _CGROUP_UNLIMITED:
+            used = _read_int(os.path.join(d, "memory.current")) or 0
+            left = max(limit - used, 0) if left is None else min(left, max(limit - used, 0))
+    v1 = os.path.join(CGROUP_ROOT, "memory")
+    limit = _read_int(os.path.join(v1, "memory.limit_in_bytes"))
+    if limit is not None and limit < _CGROUP_UNLIMITED:
+        used = _read_int(os.path.join(v1, "memory.usage_in_bytes")) or 0
+        left = max(limit - used, 0) if left is None else min(left, max(limit - used, 0))
+    return left
+
+
+def _address_space_available() -> int | None:
+    """Bytes this process may still map under its address-space limit (``ulimit -v``,
+    ``RLIMIT_AS``): the soft limit minus the address space already mapped (VmSize), or None."""
+    try:
+        import resource  # noqa: PLC0415 - POSIX only
+
+        soft, _ = resource.getrlimit(resource.RLIMIT_AS)
+    except (ImportError, OSError, ValueError):
+        return None
+    if soft == resource.RLIM_INFINITY or soft < 0:
+        return None
+    mapped = 0
+    try:
+        with open("/proc/self/status") as f:
+            for line in f:
+                if line.startswith("VmSize:"):
+                    mapped = int(line.split()[1]) * 1024
+                    break
+    except (OSError, ValueError, IndexError):
+        pass
+    return max(soft - mapped, 0)
+
+
+def host_memory_limits() -> dict:
+    """Each bound on the host memory a run can still allocate, by name: ``free memory``
+    (MemAvailable), ``address-space limit`` (RLIMIT_AS, ``ulimit -v``) and ``cgroup memory
+    limit``; a bound that is not set or cannot be read is left out."""
+    found = {
+        "free memory": _free_memory_bytes(),
+        "address-space limit": _address_space_available(),
+        "cgroup memory limit": _cgroup_available(),
+    }
+    return {k: v for k, v in found.items() if v is not None}
+
+
+def available_host_bytes() -> int | None:
+    """Host memory that can still be allocated: the least of :func:`host_memory_limits`, or None."""
+    limits = host_memory_limits()
+    return min(limits.values()) if limits else None
+
+
+def _available(n: int) -> str:
+    """``n`` bytes available, naming the limit that gives it when it is not free memory."""
+    limits = host_memory_limits()
+    names = [k for k, v in limits.items() if v == n and k != "free memory"]
+    return f"{format_bytes(n)} available" + (f" under the {names[0]}" if names and limits.get("free memory") != n else "")
 
 
 def format_bytes(n: float) -> str:
@@ -199,9 +314,16 @@ def check_host_build(data: dict, source: str, available=None):
             source,
             key,
             f"scene too large: building {_count(est.counts.particles)} particles and {_count(est.counts.springs)} springs needs "
-            f"about {format_bytes(need)} of host memory, {format_bytes(available)} available",
+            f"about {format_bytes(need)} of host memory, {_available(available)}",
             data["jelly"][k]["resolution"],
         )
+    # Memory unknown or enough: particle indices are 32-bit. (Box jellies: a mesh jelly's particles
+    # are a voxelised part of its lattice, counted when it is voxelised.)
+    box = [(k, n) for k, (j, (n, _)) in enumerate(zip(data["jelly"], est.counts.jellies)) if "mesh" not in j]
+    if box and sum(n for _, n in box) > MAX_MODEL_PARTICLES:
+        k = max(box, key=lambda kn: kn[1])[0]
+        raise SceneError(source, f"jelly.{k}.resolution", f"scene too large: {_count(sum(n for _, n in box))} particles, "
+                         f"more than a model indexes ({MAX_MODEL_PARTICLES:,})", data["jelly"][k]["resolution"])
 
 
 # The most points one lattice may have: kernels index them (and Warp counts a launch) in int32.
@@ -222,28 +344,42 @@ def check_lattice_build(shape, types, source: str, key: str, value, available=No
             key,
             f"scene too large: a lattice of {' x '.join(str(int(n)) for n in shape)} points ({_count(particles)} "
             f"particles and {_count(springs)} springs at most) needs about {format_bytes(need)} of host memory, "
-            f"{format_bytes(available)} available; use a coarser lattice",
+            f"{_available(available)}; use a coarser lattice",
             value,
         )
 
 
-def check_counts(particles, springs, device, integrator, flag, value, host_available=None, device_free=None):
+def check_counts(particles, springs, device, integrator, flag, value, host_available=None, device_free=None,
+                 contact_particles=0):
     """Refuse ``particles`` and ``springs`` (a benchmark size, say) that would not fit on ``device``:
-    a one-line :class:`CommandLineError` naming ``flag`` and ``value``."""
+    a one-line :class:`CommandLineError` naming ``flag`` and ``value``. ``contact_particles``: particles
+    that take part in contact between jellies (:data:`CONTACT_PER_PARTICLE` bytes each on the device)."""
     s = 4
     device_bytes = _device_per_particle(s, integrator) * particles + _device_per_spring(s, integrator, False) * springs
+    device_bytes += CONTACT_PER_PARTICLE * s * contact_particles
     host_bytes = HOST_BUILD_PER_SPRING * springs + HOST_BUILD_PER_PARTICLE * particles
     if not device.is_cuda:
         host_bytes += device_bytes
     host_available = available_host_bytes() if host_available is None else host_available
     if host_available is not None and host_bytes > host_available:
         raise CommandLineError(flag, f"too large: {_count(particles)} particles and {_count(springs)} springs need about "
-                               f"{format_bytes(host_bytes)} of host memory, {format_bytes(host_available)} available", value)
+                               f"{format_bytes(host_bytes)} of host memory, {_available(host_available)}", value)
     if device.is_cuda:
         free = device.free_memory if device_free is None else device_free
         if device_bytes > free:
             raise CommandLineError(flag, f"too large: {_count(particles)} particles and {_count(springs)} springs need "
                                    f"about {format_bytes(device_bytes)} on {device}, {format_bytes(free)} free", value)
+
+
+def check_bench_size(n: int, copies: int, device, integrator, copies_flag="--copies", copies_value=None,
+                     host_available=None, device_free=None):
+    """Refuse a benchmark jelly of ``n``^3 particles times ``copies`` that would not fit: the error
+    names ``--sizes`` when one copy is already too large, else ``copies_flag`` (``--copies``)."""
+    springs = lattice_spring_count((n, n, n))
+    check_counts(n**3, springs, device, integrator, "--sizes", n, host_available, device_free)
+    if copies > 1:
+        check_counts(copies * n**3, copies * springs, device, integrator, copies_flag,
+                     copies if copies_value is None else copies_value, host_available, device_free)
 
 
 def step_seconds_floor(particles: int, is_cuda: bool) -> float:
@@ -262,6 +398,9 @@ def check_steps(scene, device, frames, max_days=MAX_RUN_DAYS, counts=None):
     sim = scene.data["simulation"]
     dt, fps = float(sim["dt"]), float(sim["fps"])
     steps = float(frames) / fps / dt  # not frames / (fps * dt): fps * dt may round to 0
+    end = scene.end_time() if hasattr(scene, "end_time") else None
+    if end is not None and frames >= scene.frame_count():  # the last frame ends at the duration
+        steps = min(steps, float(end) / dt)
     if not steps > 0:
         return 0.0
     counts = counts or scene_counts(scene.data)
@@ -333,7 +472,7 @@ def check_fits(
             scene.source,
             key,
             f"scene too large: {what} need about {format_bytes(host_need)} of {where}, "
-            f"{format_bytes(host_available)} available",
+            f"{_available(host_available)}",
             value,
         )
     if device.is_cuda:

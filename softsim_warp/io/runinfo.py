@@ -10,26 +10,60 @@ import warp as wp
 from ..core.stability_model import predict_jelly_dt
 
 
-def energy_drift(metrics) -> tuple[float, float]:
+def energy_floor(model, metrics) -> float:
+    """The energy change [J] that rounding alone can make in a run: a change this small is not a gain.
+
+    The energies are sums over every particle and spring in the model's precision (epsilon ``eps``):
+    their sum rounds by about ``eps`` times the energy held (kinetic + spring + |gravity|, the most
+    seen in any frame), and a jelly at rest vibrates by the rounding of its coordinates (``eps R``,
+    R the largest coordinate reached), which springs of total stiffness ``sum ks`` turn into up to
+    ``eps^2 R^2 sum ks / 2`` of energy -- the 3e-11 J "gain" of a float32 jelly at rest in zero gravity.
+    """
+    if not metrics:
+        return 0.0
+    eps = float(np.finfo(np.float64 if model.precision == "float64" else np.float32).eps)
+    held = max(abs(m.kinetic_energy) + abs(m.spring_energy) + abs(m.gravity_energy) for m in metrics)
+    q0 = np.asarray(model.particle_q_host, dtype=np.float64)
+    c0 = np.asarray(metrics[0].com, dtype=np.float64)
+    moved = max(float(np.linalg.norm(np.asarray(m.com, dtype=np.float64) - c0)) for m in metrics)
+    reach = (float(np.abs(q0).max()) if q0.size else 0.0) + moved
+    ks = float(np.sum(np.abs(getattr(model, "spring_stiffness_host", np.zeros(0)))))
+    floor = eps * held + 0.5 * (eps * reach) ** 2 * ks
+    return floor if math.isfinite(floor) else math.inf
+
+
+def pins_drive(scene) -> bool:
+    """The scene has pins that move (a velocity, a spin or keyframes): they do work on the jelly, so
+    its energy may rise without any fault of the integrator."""
+    for pin in scene.data.get("pin", []):
+        spin = pin.get("spin") or {}
+        if (any(float(c) != 0.0 for c in pin.get("velocity", (0.0, 0.0, 0.0)))
+                or float(spin.get("degrees_per_second", 0.0)) != 0.0 or pin.get("keyframes")):
+            return True
+    return False
+
+
+def energy_drift(metrics, floor: float = 0.0) -> tuple[float, float]:
     """(E_end - E_0 [J], that change relative to the energy available above the lowest state reached).
 
     The gravity energy's zero is arbitrary, so the relative drift divides by E_0 minus the lowest
     gravity energy seen: the energy the jelly could give up by falling plus what it started with.
     The relative change is NaN where that energy is nothing but rounding (a jelly at rest that has not
-    moved yet), since any change divided by it is meaningless.
+    moved yet; ``floor``: :func:`energy_floor`), since any change divided by it is meaningless.
     """
     if len(metrics) < 2:
         return 0.0, 0.0
     e0, e1 = metrics[0].total_energy, metrics[-1].total_energy
     lowest = min(m.gravity_energy for m in metrics)
     scale = e0 - lowest
-    if not scale > 1e-9 * max(abs(e0), abs(e1), abs(lowest), 1e-300):
+    if not scale > max(1e-9 * max(abs(e0), abs(e1), abs(lowest), 1e-300), floor):
         return e1 - e0, math.nan
     return e1 - e0, (e1 - e0) / scale
 
 
 def summary_dict(scene, model, integrator, simulator, result, device) -> dict:
-    drift, rel = energy_drift(result.metrics)
+    floor = energy_floor(model, result.metrics)
+    drift, rel = energy_drift(result.metrics, floor)
     step_seconds = getattr(result, "step_seconds", result.wall_seconds)
     return {
         "scene": scene.name,
@@ -52,6 +86,8 @@ def summary_dict(scene, model, integrator, simulator, result, device) -> dict:
         "particle_steps_per_second": model.particle_count * result.steps / step_seconds if step_seconds > 0 else 0.0,
         "energy_drift": drift,
         "energy_drift_relative": rel,
+        "energy_rounding": floor,
+        "pins_drive": pins_drive(scene),
         "max_speed_bound": simulator.max_speed,
         "exploded": result.exploded,
         "explosion": result.explosion,
@@ -96,8 +132,12 @@ def summary_line(s: dict, out) -> str:
     rel = None if rel is None else 100 * rel
     if s["frames"] < 2:
         energy = ""  # one frame: no change to report
+    elif drift is not None and abs(drift) <= s.get("energy_rounding", 0.0):
+        energy = f"; energy change {drift:.3g} J, within the rounding of the energy sums ({s['energy_rounding']:.2g} J)"
     elif rel is None or not math.isfinite(rel):  # no energy to compare with (JSON writes NaN as null)
         energy = f"; energy change {drift:.4g} J"
+    elif s.get("pins_drive"):  # the pins' work is in the change: neither a loss nor a gain of the method
+        energy = f"; energy change {drift:+.4g} J ({rel:+.1f}%), including the work of the driven pins"
     elif drift <= 0:
         energy = f"; {abs(drift):.4g} J ({abs(rel):.1f}% of the energy available) dissipated by damping, friction and contact"
     else:
@@ -130,6 +170,12 @@ def explosion_message(scene, model, result) -> str:
         f"{scene.source}: simulation exploded at frame {e['frame']} (t = {e['time']:.4g} s) with integrator "
         f"{sim['integrator']} at dt = {sim['dt']:g} s: {e['reason']}{which}"
     )
+    if e.get("overflow"):
+        # A smaller dt would not help: the speeds, masses, gravity or heights are beyond the precision.
+        e["predicted_stable_dt"] = None
+        kept = f"frames 0-{result.frames_written - 1} were kept" if result.frames_written else "no frame was kept"
+        return (f"{text}; the scene's velocities, masses, gravity or positions are too large for "
+                f"{model.precision} arithmetic; {kept}")
     pred = predicted_stable_dt(scene, sim["integrator"], k, model.device)
     e["predicted_stable_dt"] = pred if pred is not None and np.isfinite(pred) else None
     if pred is None:

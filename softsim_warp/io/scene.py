@@ -33,6 +33,12 @@ PRECISIONS = ("float32", "float64")
 MAX_NESTING = 100
 # Integers must fit in a signed 64-bit integer (counts and frame numbers are sized by it).
 INT_MAX = 2**63 - 1
+# Upper bounds of the iteration counts (each runs every step): far above what converges (contact:
+# 1-4 Jacobi passes; Newton: 1-3 solves; CG: 200 by default, 2000 in the hardest tests) and low
+# enough that a mistyped count is refused instead of making every step take hours.
+MAX_CONTACT_ITERATIONS = 100
+MAX_NEWTON_ITERATIONS = 100
+MAX_CG_ITERATIONS = 10_000
 # A scene file is a few kilobytes of settings; a larger one is a mistake (and would take long to parse).
 MAX_SCENE_BYTES = 16 * 2**20
 
@@ -163,9 +169,13 @@ class Float(Field):
 
 
 class Int(Field):
-    def __init__(self, default=None, lo=None, **kw):
+    """An integer, at least ``lo``; ``hi``: an upper bound (iteration counts: each has one, so a
+    typo like 1e9 is refused rather than run for ever)."""
+
+    def __init__(self, default=None, lo=None, hi=None, **kw):
         super().__init__(default, **kw)
         self.lo = lo
+        self.hi = hi
 
     def check(self, value, key, ctx):
         # 3.0 reads as 3; a float beyond 2^53 is not an exact integer and stays a float (rejected).
@@ -174,6 +184,8 @@ class Int(Field):
         what = "must be an integer" + (f" >= {self.lo}" if self.lo is not None else "")
         if not isinstance(value, int) or isinstance(value, bool) or (self.lo is not None and value < self.lo):
             ctx.fail(key, what, value)
+        if self.hi is not None and value > self.hi:
+            ctx.fail(key, f"{what} and <= {self.hi:,}", value)
         if abs(value) > INT_MAX:
             ctx.fail(key, f"{what} and below 2^63", value)
         return int(value)
@@ -407,7 +419,9 @@ SCHEMA = Table(
                 ),
                 "jelly_contact_friction": Float(0.5, lo=0, doc="Coulomb coefficient between jellies [1]"),
                 "jelly_contact_restitution": Float(0.0, lo=0, hi=1, doc="restitution between jellies [1]"),
-                "jelly_contact_iterations": Int(1, lo=1, doc="Jacobi iterations of the contact impulses per step"),
+                "jelly_contact_iterations": Int(
+                    1, lo=1, hi=MAX_CONTACT_ITERATIONS, doc="Jacobi iterations of the contact impulses per step"
+                ),
             }
         ),
         "jelly": TableList(
@@ -448,9 +462,9 @@ SCHEMA = Table(
         # Settings of the implicit integrator; absent keys take ImplicitIntegrator's defaults.
         "implicit": Table(
             {
-                "newton_iterations": Int(lo=1, doc="linear solves per step (default 1)"),
+                "newton_iterations": Int(lo=1, hi=MAX_NEWTON_ITERATIONS, doc="linear solves per step (default 1)"),
                 "cg_tolerance": Float(lo=0, lo_open=True, hi=1, hi_open=True, doc="CG stops at |r| <= tol |b| (1e-4)"),
-                "cg_max_iterations": Int(lo=1, doc="CG iteration cap per solve (default 200)"),
+                "cg_max_iterations": Int(lo=1, hi=MAX_CG_ITERATIONS, doc="CG iteration cap per solve (default 200)"),
                 "linearization": Choice(("predictor", "baraff_witkin"), doc="where forces are linearised (predictor)"),
                 "preconditioner": Choice(
                     ("auto", "multigrid", "jacobi"),
@@ -569,11 +583,40 @@ class Scene:
         return self.data.get("plane", [])
 
     def frame_count(self) -> int:
-        """Output frames after frame 0: ``frames`` if given, else ``round(duration * fps)``."""
+        """Output frames after frame 0: ``frames`` if given, else ``duration * fps`` rounded up (the
+        last frame shorter, ending at the duration: :meth:`end_time`)."""
         sim = self.sim
         if "frames" in sim:
             return sim["frames"]
-        return max(1, round(sim["duration"] * sim["fps"]))
+        return _duration_frames(sim["duration"], sim["fps"], sim["dt"])[0]
+
+    def end_time(self):
+        """The run's last time [s] when ``duration`` is not a whole number of frames, else None
+        (every frame, the last too, ends a whole 1/fps after the one before)."""
+        sim = self.sim
+        if "frames" in sim:
+            return None
+        return _duration_frames(sim["duration"], sim["fps"], sim["dt"])[1]
+
+    def run_seconds(self) -> float:
+        """Simulated seconds of the whole run: the duration, or frames / fps."""
+        end = self.end_time()
+        return end if end is not None else self.frame_count() / self.sim["fps"]
+
+
+def _duration_frames(duration: float, fps: float, dt: float) -> tuple:
+    """(frames after frame 0, end time or None) of a run of ``duration`` seconds.
+
+    A whole number of frames (up to rounding: 0.1 * 30 is 3.0000000000000004) gives that many and
+    no end time. Otherwise the frames are rounded up and the last one ends at the duration -- unless
+    at this dt the duration's step is no later than the frame before's, which then ends the run."""
+    n = duration * fps
+    if abs(n - round(n)) <= 1e-9 * max(1.0, abs(n)):
+        return max(1, round(n)), None
+    frames = max(1, math.ceil(n))
+    if frames > 1 and round(duration / dt) <= round((frames - 1) / (fps * dt)):
+        return frames - 1, None
+    return frames, duration
 
 
 def builtin_dir():

@@ -1,20 +1,31 @@
 """The simulation loop: steps between output frames, per-frame metrics, explosion checks, writers.
 
 Frame k is the state after step ``round(k / (fps * dt))``: the output frame rate and the step size
-are independent, and the time recorded with a frame is the exact simulated time of its step.
+are independent, and the time recorded with a frame is the exact simulated time of its step. A run
+whose duration is not a whole number of frames (``end_time``) ends with a shorter frame, at the step
+``round(end_time / dt)``, written at its own time (USD time code ``t * fps``).
+
+A stop request (a signal) is honoured after the frame in progress; a frame of more than one chunk still running
+:data:`STOP_GRACE_SECONDS` after the request is dropped instead, so a stop acts within about a
+second however many steps a frame has (the steps are taken in chunks, the request read between).
 """
 
 from __future__ import annotations
 
+import math
 import time
 from dataclasses import dataclass, field
 
 import warp as wp
 
+from ..core import stepper as stepper_mod
 from ..core.integrators import Integrator
 from ..core.model import Model, State
 from ..core.stepper import Stepper
 from .metrics import FrameMetrics, make_probe, speed_bound  # noqa: F401 - FrameMetrics re-exported
+
+# Seconds a frame may go on after a stop request before it is dropped (see the module docstring).
+STOP_GRACE_SECONDS = 0.5
 
 
 @dataclass
@@ -49,17 +60,38 @@ class Simulator(Stepper):
     """
 
     def __init__(self, model: Model, integrator: Integrator, dt: float, fps: float, frames: int, use_graph=None,
-                 max_speed=None, profile=False):
+                 max_speed=None, profile=False, end_time=None):
         super().__init__(model, integrator, dt, use_graph, profile)
         self.fps = float(fps)
         self.frames = int(frames)
+        # The last frame's time when the duration is not a whole number of frames (Scene.end_time).
+        self.end_time = None if end_time is None else float(end_time)
+        self._stop_seen = None
         self.max_speed = speed_bound(model) if max_speed is None else float(max_speed)
         self.probe = make_probe(model)
         self.stop_requested = None  # a callable returning a reason (e.g. a signal) to stop after this frame
         self.writing = False  # True while writers take a frame
 
     def step_of_frame(self, k: int) -> int:
-        return round(k / (self.fps * self.dt))
+        step = round(k / (self.fps * self.dt))
+        if self.end_time is not None:
+            step = min(step, round(self.end_time / self.dt))
+        return step
+
+    def time_code_of_frame(self, k: int, t: float):
+        """USD time code of frame ``k`` at time ``t``: ``k``, or ``t * fps`` for a shorter last frame."""
+        if self.end_time is not None and k == self.frames and self.step_of_frame(k) != round(k / (self.fps * self.dt)):
+            return t * self.fps
+        return k
+
+    def _stop_within_frame(self) -> bool:
+        """True when a stop was requested more than STOP_GRACE_SECONDS ago (read between chunks of steps)."""
+        if self.stop_requested is None or not self.stop_requested():
+            return False
+        now = time.perf_counter()
+        if self._stop_seen is None:
+            self._stop_seen = now
+        return now - self._stop_seen > STOP_GRACE_SECONDS
 
     def warm_up(self) -> float:
         """Compile and load every kernel a run needs, the metrics' too; returns the seconds it took
@@ -93,7 +125,13 @@ class Simulator(Stepper):
             n = self.step_of_frame(k) - prev_step
             ts = time.perf_counter()
             try:
-                self.advance(n)
+                if self.stop_requested is not None and n > stepper_mod.MAX_GRAPH_STEPS:
+                    # A frame of several chunks: a stop request is read between them.
+                    if self.advance(n, stop=self._stop_within_frame) < n:
+                        result.interrupted = True  # stopped within a long frame: it is dropped
+                        break
+                else:
+                    self.advance(n)
                 t_frame = self.step_of_frame(k) * self.dt
                 metrics = self.probe.measure(self.state, k, t_frame)  # synchronises: the frame is done
             except KeyboardInterrupt:
@@ -102,32 +140,39 @@ class Simulator(Stepper):
                 break
             sim_seconds += time.perf_counter() - ts
             prev_step += n
-            if metrics.nonfinite or metrics.max_speed > self.max_speed:
+            # Energies that overflow (a speed of 1e38 m/s squared in float32) are an explosion too,
+            # even while every coordinate is still finite: no result after them means anything.
+            energy_bad = not all(math.isfinite(e) for e in (metrics.kinetic_energy, metrics.spring_energy,
+                                                            metrics.gravity_energy, metrics.total_energy))
+            if metrics.nonfinite or metrics.max_speed > self.max_speed or energy_bad:
                 result.steps = prev_step  # the steps done, up to the frame that exploded
                 result.exploded = True
-                bad = [i for i, j in enumerate(metrics.jellies) if j["nonfinite"] or j["max_speed"] > self.max_speed]
-                result.explosion = {
-                    "frame": k,
-                    "time": t_frame,
-                    "jelly": bad[0] if bad else 0,
-                    "reason": (
-                        f"{metrics.nonfinite} particles with non-finite state"
-                        if metrics.nonfinite
-                        else f"max speed {metrics.max_speed:.4g} m/s exceeds the bound {self.max_speed:.4g} m/s"
-                    ),
-                }
+                bad = [i for i, j in enumerate(metrics.jellies) if j["nonfinite"] or j["max_speed"] > self.max_speed
+                       or not math.isfinite(j["total_energy"])]
+                if metrics.nonfinite:
+                    reason = f"{metrics.nonfinite} particles with non-finite state"
+                elif metrics.max_speed > self.max_speed:
+                    reason = f"max speed {metrics.max_speed:.4g} m/s exceeds the bound {self.max_speed:.4g} m/s"
+                else:
+                    reason = (f"the energy overflows the {self.model.precision} range (kinetic {metrics.kinetic_energy:.4g} J, "
+                              f"spring {metrics.spring_energy:.4g} J, gravity {metrics.gravity_energy:.4g} J)")
+                result.explosion = {"frame": k, "time": t_frame, "jelly": bad[0] if bad else 0, "reason": reason}
+                if not metrics.nonfinite and not metrics.max_speed > self.max_speed:
+                    result.explosion["overflow"] = True  # the values, not the step, are out of range
                 break
             positions = self.state.particle_q.numpy()
             # Velocities only for writers that record them (UsdWriter: motion blur).
             velocities = self.state.particle_qd.numpy() if any(getattr(w, "wants_velocities", False) for w in writers) else None
             # A frame is written whole: a stop-now request waits until it is (see commands/common.Signals).
             self.writing = True
+            code = self.time_code_of_frame(k, t_frame)
             try:
                 for w in writers:
+                    extra = {"time_code": code} if code != k and getattr(w, "takes_time_code", False) else {}
                     if getattr(w, "wants_velocities", False):
-                        w.write_frame(k, t_frame, positions, metrics, velocities=velocities)
+                        w.write_frame(k, t_frame, positions, metrics, velocities=velocities, **extra)
                     else:
-                        w.write_frame(k, t_frame, positions, metrics)
+                        w.write_frame(k, t_frame, positions, metrics, **extra)
             finally:
                 self.writing = False
             result.metrics.append(metrics)

@@ -578,9 +578,10 @@ class _Batch:
             self.integrator = make_integrator("implicit", self.model, datas[0].get("implicit"))
         else:
             self.integrator = ExplicitIntegrator(self.model, [method] * len(datas))
-        frames = scene_mod.Scene(datas[0]).frame_count()
+        first = scene_mod.Scene(datas[0])
+        frames = first.frame_count()
         self.sim = Simulator(self.model, self.integrator, sim["dt"], sim["fps"], frames, use_graph=use_graph,
-                             max_speed=math.inf)
+                             max_speed=math.inf, end_time=first.end_time())
         self.frames = frames
         self.ranges = world_ranges(self.model)
         self.jellies = world_jellies(self.model)

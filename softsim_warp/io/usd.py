@@ -293,8 +293,12 @@ class UsdWriter:
     wants_velocities = True
     """The Simulator passes ``velocities=`` to :meth:`write_frame` (motion blur)."""
 
-    def write_frame(self, frame, t, positions, metrics=None, velocities=None):
-        """Write all jellies' positions (float32, as simulated in float32) at time code ``frame``.
+    takes_time_code = True
+    """The Simulator passes ``time_code=`` for a shorter last frame (a duration not a whole number of frames)."""
+
+    def write_frame(self, frame, t, positions, metrics=None, velocities=None, time_code=None):
+        """Write all jellies' positions (float32, as simulated in float32) at time code ``frame``
+        (or ``time_code``, the last frame's ``t * fps`` when it is shorter than the others).
 
         Extents include the points' widths; the Surface gets its normals; ``velocities`` (the
         particles' [m/s], same shape as ``positions``), when given, go to Particles and Surface.
@@ -303,7 +307,8 @@ class UsdWriter:
         vel32 = None if velocities is None else np.ascontiguousarray(velocities, dtype=np.float32)
         if not np.isfinite(pos32).all():
             self.nonfinite_frames += 1
-        self._write_jellies(pos32, vel32, frame)
+        code = frame if time_code is None else time_code
+        self._write_jellies(pos32, vel32, code)
         Gf = self._pxr[0]
         for op, motion in self.moving_terrain:
             rot, shift = motion_transform(motion, t)
@@ -311,9 +316,9 @@ class UsdWriter:
             m = np.identity(4)
             m[:3, :3] = rot.T
             m[3, :3] = shift
-            op.Set(Gf.Matrix4d(m.tolist()), frame)
+            op.Set(Gf.Matrix4d(m.tolist()), code)
         self.last_frame = frame
-        self.stage.SetEndTimeCode(max(frame, 0))
+        self.stage.SetEndTimeCode(max(code, 0))
         if frame > 0 and frame % self.save_every == 0:
             self.save()
 
