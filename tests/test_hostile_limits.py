@@ -547,7 +547,8 @@ def test_energy_floor_bounds_rounding_at_rest(tmp_path, monkeypatch, capsys):
 def test_real_gain_still_reported(tmp_path, monkeypatch, capsys):
     """Explicit Euler without damping gains energy every step (|1 + i w dt| > 1): still called a gain."""
     monkeypatch.chdir(tmp_path)
-    code, err = _main(["run", "hard_undamped", "--integrator", "euler", "--frames", "3", "--out", "u.usdc", "--quiet"],
+    code, err = _main(["run", "hard_undamped", "--integrator", "euler", "--frames", "3", "--out", "u.usdc", "--quiet",
+                           "--allow-unstable"],
                       capsys)
     assert code == 0, err
     assert "energy GAINED" in err and "try a smaller dt" in err

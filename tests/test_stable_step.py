@@ -179,7 +179,7 @@ def test_15k_particle_mesh_jelly_prediction_work(monkeypatch):
     """The pre-flight prediction of a ~15k-particle mesh jelly: no Warp kernel launches, at most 60
     passes over the spring list, and the result within 0.5 % of a tightly converged prediction's
     top frequency."""
-    jelly = load_scene("mesh_drop", ["jelly.0.resolution=35"]).jellies[0]
+    jelly = load_scene("mesh_drop", ["jelly.0.resolution=31"]).jellies[0]
 
     def no_launch(*a, **k):
         raise AssertionError("the prediction launched a Warp kernel")
