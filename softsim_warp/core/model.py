@@ -118,14 +118,9 @@ class ModelBuilder:
         """Add loose particles (no jelly springs); returns the index of the first one."""
         q = np.atleast_2d(np.asarray(q, dtype=np.float64))
         n = q.shape[0]
-        return self._append_particles(q, np.broadcast_to(np.asarray(qd, dtype=np.float64), (n, 3)).copy(), mass, world)
-
-    def _append_particles(self, q, qd, mass, world) -> int:
-        """add_particles of ``q`` and ``qd`` ([n, 3] float64) kept as they are (add_jelly's read-only placed lattices)."""
-        n = q.shape[0]
         start = self._particle_count
         self._q.append(q)
-        self._qd.append(qd)
+        self._qd.append(np.broadcast_to(np.asarray(qd, dtype=np.float64), (n, 3)).copy())
         self._mass.append(np.broadcast_to(np.asarray(mass, dtype=np.float64), (n,)).copy())
         self._jelly_of.append(np.full(n, max(len(self.jellies) - 1, 0), dtype=np.int32))
         self._world_of.append(np.full(n, world, dtype=np.int32))
@@ -292,7 +287,8 @@ class ModelBuilder:
             kept = mask[pairs[:, 0]] & mask[pairs[:, 1]]
             pairs, types, rest = (np.cumsum(mask) - 1)[pairs[kept]].astype(np.int32), types[kept], rest[kept]
             q, qd = q[mask], qd[mask]
-        self._append_particles(q, qd, particle_mass, world)
+        # The builder's own copy of the shared placement (its lists are open to edits).
+        self.add_particles(q.copy() if mask is None else q, qd, particle_mass, world=world)
         self._jelly_of[-1][:] = len(self.jellies)
         if mask is not None:
             for t, type_name in enumerate(lattice.SPRING_TYPE_NAMES):
@@ -613,6 +609,9 @@ class Model:
         spring_stiffness: ks [N/m], shape [spring_count], scalar.
         spring_damping: kd [N s/m], shape [spring_count], scalar.
             On the lattice path the four spring arrays are made on first access only.
+        spring_indices_host, spring_type_host, spring_rest_host, spring_stiffness_host,
+            spring_damping_host: the same list on the host (float64), and each spring's type; for a
+            model of jellies recorded whole (``ModelBuilder.add_jelly``) made on first access only.
         lattice: :class:`~softsim_warp.core.lattice_model.LatticeData` (per-jelly tables of the
             lattice force path) or None when the general spring list is used.
         lattice_reason: host string, why the lattice path does or does not apply.

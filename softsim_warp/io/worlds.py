@@ -51,17 +51,23 @@ def world_jellies(model) -> list[tuple[int, int]]:
 def world_speed_bound(model, start, end, world):
     """The explosion speed bound a single run of this world's variant would use (see ``metrics.speed_bound``)."""
 
-    # The model's initial velocities as the device holds them, copied to the host once for all worlds.
-    velocities = model.__dict__.get("_initial_velocities")
-    if velocities is None:
-        velocities = model.__dict__["_initial_velocities"] = model.particle_qd.numpy()
+    # The model's initial velocities as the device holds them and its terrain by world, made once
+    # for all worlds of a batch.
+    shared = model.__dict__.get("_world_bound_inputs")
+    if shared is None:
+        by_world = {}
+        for kind in ("planes", "bowls", "spheres"):
+            for item in getattr(model, kind):
+                by_world.setdefault(item["world"], {"planes": [], "bowls": [], "spheres": []})[kind].append(item)
+        shared = model.__dict__["_world_bound_inputs"] = (model.particle_qd.numpy(), by_world)
+    velocities, by_world = shared
+    terrain = by_world.get(world, {"planes": [], "bowls": [], "spheres": []})
     qd = velocities[start:end]
     # speed_bound reads only these host-side fields; this view holds one world's share of them.
     view = types.SimpleNamespace(
         particle_q_host=model.particle_q_host[start:end],
-        planes=[p for p in model.planes if p["world"] == world],
-        terrain_anchor_points=terrain_anchors([b for b in model.bowls if b["world"] == world],
-                                              [s for s in model.spheres if s["world"] == world]),
+        planes=terrain["planes"],
+        terrain_anchor_points=terrain_anchors(terrain["bowls"], terrain["spheres"]),
         particle_qd=types.SimpleNamespace(numpy=lambda: qd),
         particle_count=end - start,
         gravity_host=model.gravity_host,
