@@ -133,9 +133,11 @@ def main(argv=None):
         print(f"{r['case']:<6} {r['worlds']:>6} {r['jellies']:>7} {r['particles']:>9} {r['springs']:>9} "
               f"{r['builder_seconds']:>9.3f} {r['finalize_seconds']:>10.3f} {r['total_seconds']:>8.3f} {r['cpu_seconds']:>6.3f}  {r['path']}")
     if args.out:
-        try:
+        import softsim_warp
+
+        try:  # the commit of the package measured (which need not be this file's)
             commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], capture_output=True, text=True,
-                                    check=False, cwd=Path(__file__).parent).stdout.strip()
+                                    check=False, cwd=Path(softsim_warp.__file__).parent).stdout.strip()
         except OSError:
             commit = ""
         info = {"device": args.device, "load_average": os.getloadavg()[0], "cpus": os.cpu_count(), "machine": platform.processor() or platform.machine(),
