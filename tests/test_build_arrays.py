@@ -264,3 +264,21 @@ def test_extra_springs_or_edited_lists_fall_back_to_the_search():
     b.add_jelly((3, 3, 3), 1.0, 0.1, SPRINGS)
     b._rest[0] = b._rest[0] * np.linspace(0.9, 1.1, len(b._rest[0]))
     assert b.finalize("cpu").lattice is None
+
+
+def test_varying_rest_lengths_refused_as_the_search_refuses():
+    """A lattice placed so far out that its springs' lengths differ beyond REST_TOLERANCE (the
+    rounding of its positions): the records refuse it with the search's reason, and the model keeps
+    the spring list."""
+    def build():
+        b = ModelBuilder()
+        b.add_jelly((3, 3, 3), 1.0, 0.1, SPRINGS)
+        b.add_jelly((4, 3, 3), 1e-3, 0.1, SPRINGS, center=(1e9, 0.0, 0.0), degrees=10.0)
+        return b
+
+    recorded = recorded_lattice(build())
+    searched = detect_lattice(list_built(build()))
+    assert recorded[0] is None and searched[0] is None
+    assert recorded[1] == searched[1] and "Jelly_1: rest lengths of offset" in recorded[1]
+    m = build().finalize("cpu")
+    assert m.lattice is None and m.lattice_reason == searched[1] and m.spring_count == len(m.spring_indices_host)
