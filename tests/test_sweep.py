@@ -424,3 +424,34 @@ def test_batches_group_what_can_share_a_launch():
     per = engine.variant_bytes(variants[0], True)
     small = engine.make_batches(variants, workers=1, is_cuda=True, budget=int(4 * per / engine.MEMORY_SHARE) + 1)
     assert max(len(b) for b in small) <= 4 and sum(map(len, small)) == 12
+
+
+def test_no_terrain_no_reference_reads_no_positions(monkeypatch):
+    """A sweep with nothing to measure penetration into, and no reference, never copies positions to
+    the host (issue 46, point 6); its rows are those of the sweep that does, penetration 0 in both."""
+    from softsim_warp.io import scene as scene_mod
+
+    _, source, base = scene_mod.read_scene_data("free_flight")
+    base["simulation"]["duration"] = 0.1
+    specs = [{"id": v.id, "data": v.data, "reference": v.reference}
+             for v in engine.plan_sweep(base, source, [parse_axis(f"{KS}=500,900")])]
+    asked = []
+    read_frame = engine._Batch.read_frame
+
+    def spy(self, k, positions=True):
+        asked.append(positions)
+        return read_frame(self, k, positions)
+
+    monkeypatch.setattr(engine._Batch, "read_frame", spy)
+    lean = engine._simulate(specs, "cpu")
+    assert asked and not any(asked)
+    # The same worlds with a plane far below: positions read, penetration measured (0 too).
+    for s in specs:
+        s["data"]["plane"] = [{"point": [0.0, -1e3, 0.0], "normal": [0.0, 1.0, 0.0], "restitution": 0.5,
+                               "friction": 0.3, "size": 1.0}]
+    asked.clear()
+    full = engine._simulate(specs, "cpu")
+    assert asked and all(asked)
+    for a, b in zip(lean, full):
+        assert a["max_penetration"] == b["max_penetration"] == 0.0
+        assert {k: v for k, v in a.items() if "second" not in k} == {k: v for k, v in b.items() if "second" not in k}

@@ -7,6 +7,11 @@ Rest lengths are read from the springs themselves, so a jelly started rotated (r
 distance, equal for every spring of an offset) or with rest lengths scaled per offset still
 qualifies; springs with individual rest lengths, extra springs or loose particles do not, and
 the model keeps the general spring list.
+
+``ModelBuilder.add_jelly`` records a whole lattice jelly as one :class:`LatticeSprings` instead of
+a spring list; :func:`recorded_lattice` makes the tables from those records (the same tables
+:func:`detect_lattice` finds in the list), and :func:`spring_arrays` makes the list itself only
+for a consumer that reads it (the spring-list force path, the implicit integrator, ``--springs``).
 """
 
 from __future__ import annotations
@@ -17,11 +22,16 @@ import numpy as np
 import warp as wp
 
 from . import lattice
-from ..kernels.lattice import COEF_LENGTH, REST_SLOTS, common_coefficients, rest_slot
+from ..kernels.lattice import COEF_LENGTH, HALF_OFFSETS, REST_SLOTS, common_coefficients, rest_slot
 
 # Rest lengths of one stencil offset count as one value when they agree to this relative
 # tolerance: float64 rounding of initial distances in a rotated lattice is ~1e-16.
 REST_TOLERANCE = 1e-9
+
+# The spring type whose offsets use each rest slot (0 for a slot no offset uses: it stays 0).
+_SLOT_TYPE = np.zeros(REST_SLOTS, dtype=np.int64)
+for _off, _t in HALF_OFFSETS:
+    _SLOT_TYPE[[rest_slot(*_off), rest_slot(*(-o for o in _off))]] = _t
 
 
 @dataclass
@@ -42,6 +52,153 @@ class LatticeLayout:
     """Damping per spring type [N s/m], shape [J, 3], float64."""
     world: np.ndarray
     """World of each jelly, shape [J], int32."""
+
+
+@dataclass(eq=False)
+class LatticeSprings:
+    """One whole lattice jelly's springs as ``ModelBuilder.add_jelly`` records them: for each
+    present spring type, every standard stencil spring of ``shape`` (``lattice.lattice_springs``)
+    with the type's ks and kd and the rest length of its ends in ``rest_pose``."""
+
+    shape: tuple
+    """Particles per axis (nx, ny, nz)."""
+    start: int
+    """Index of the jelly's first particle."""
+    types: int
+    """Bit t set when spring type t has springs."""
+    ks: np.ndarray
+    """Stiffness per spring type [N/m], shape [3], float64 (0 for an absent type)."""
+    kd: np.ndarray
+    """Damping per spring type [N s/m], shape [3], float64."""
+    rest_pose: np.ndarray
+    """The unscaled placed lattice the rest lengths are measured in [m], shape [N, 3], float64;
+    shared, read-only, by jellies placed alike."""
+    world: int
+    count: int
+    """Springs in all."""
+
+    def arrays(self, springs_of=None, rest_of=None) -> list[tuple]:
+        """The spring list ``add_spring`` makes for this jelly: one ``(pairs, rest, ks, kd, type)``
+        block per present type, in type order.
+
+        ``springs_of`` and ``rest_of``: optional dicts that keep ``lattice_springs`` per shape and the
+        rest lengths per pose between calls (jellies of one shape or one pose share them).
+        """
+        springs_of = {} if springs_of is None else springs_of
+        rest_of = {} if rest_of is None else rest_of
+        if self.shape not in springs_of:
+            pairs, types = lattice.lattice_springs(self.shape)
+            springs_of[self.shape] = pairs, types, [types == t for t in range(3)]
+        pairs, types, selected = springs_of[self.shape]
+        key = id(self.rest_pose)
+        if key not in rest_of:
+            q = self.rest_pose
+            rest_of[key] = (q, np.linalg.norm(q[pairs[:, 0]] - q[pairs[:, 1]], axis=1))
+        rest = rest_of[key][1]
+        out = []
+        for t in range(3):
+            if not (self.types >> t) & 1:
+                continue
+            sel = selected[t]
+            n = int(np.count_nonzero(sel))
+            out.append((pairs[sel] + np.int32(self.start), rest[sel], np.full(n, self.ks[t]), np.full(n, self.kd[t]),
+                        np.full(n, t, dtype=np.int32)))
+        return out
+
+
+def spring_arrays(blocks) -> tuple:
+    """The spring list of a builder's blocks (each a ``LatticeSprings`` or a ``(pairs, rest, ks, kd,
+    type)`` tuple), concatenated: ``(pairs [S, 2] int32, rest, ks, kd [S] float64, type [S] int32)``."""
+    springs_of, rest_of = {}, {}
+    parts = []
+    for block in blocks:
+        parts += block.arrays(springs_of, rest_of) if isinstance(block, LatticeSprings) else [block]
+    if not parts:
+        return (np.zeros((0, 2), dtype=np.int32), np.zeros(0), np.zeros(0), np.zeros(0), np.zeros(0, dtype=np.int32))
+    return tuple(np.concatenate([p[i] for p in parts]) for i in range(5))
+
+
+def rest_tables(poses, shape) -> tuple[np.ndarray, np.ndarray]:
+    """Rest length per stencil offset of lattices of one ``shape`` placed at ``poses`` ([G, N, 3]).
+
+    Returns ``(rest [G, REST_SLOTS], varies [G, len(HALF_OFFSETS)] bool)``: the median of the
+    offset's spring lengths (detect_lattice's value, from the same lengths) in both slots of the
+    offset, and whether they vary beyond ``REST_TOLERANCE``. The springs are not listed: an
+    offset's springs join the lattice sliced at both ends.
+    """
+    g = poses.shape[0]
+    # One contiguous grid per axis: the length is summed as np.linalg.norm sums (x^2 + y^2) + z^2,
+    # so every length is the spring list's to the bit (tests/test_build_arrays.py holds them equal).
+    axes = [np.ascontiguousarray(poses[:, :, c]).reshape(g, *shape) for c in range(3)]
+    rest = np.zeros((g, REST_SLOTS))
+    varies = np.zeros((g, len(HALF_OFFSETS)), dtype=bool)
+    for n, (off, _) in enumerate(HALF_OFFSETS):
+        a = (slice(None), *(slice(max(0, -o), s - max(0, o)) for o, s in zip(off, shape)))
+        b = (slice(None), *(slice(max(0, o), s - max(0, -o)) for o, s in zip(off, shape)))
+        if any(x.stop <= x.start for x in a[1:]):
+            continue  # the lattice is too thin along this offset
+        square = [np.square(x[a] - x[b]) for x in axes]
+        r = np.sqrt((square[0] + square[1]) + square[2]).reshape(g, -1)
+        m = r.shape[1]
+        # Smallest, middle one(s) and largest in one pass; the median as np.median takes it.
+        part = np.partition(r, sorted({0, (m - 1) // 2, m // 2, m - 1}), axis=1)
+        lo, hi = part[:, 0], part[:, m - 1]
+        varies[:, n] = hi - lo > REST_TOLERANCE * np.maximum(np.abs(hi), 1e-30)
+        value = part[:, m // 2] if m % 2 else (part[:, m // 2 - 1] + part[:, m // 2]) / 2.0
+        rest[:, rest_slot(*off)] = value
+        rest[:, rest_slot(*(-o for o in off))] = value
+    return rest, varies
+
+
+def recorded_lattice(builder) -> tuple[LatticeLayout | None, str]:
+    """:func:`detect_lattice`'s answer for a builder whose jellies are all recorded whole
+    (``builder.lattice_records()``), from the records, without a spring list.
+
+    Jellies placed alike share one pose, measured once; poses of one shape are measured together.
+    """
+    records = builder.lattice_records()
+    jellies = builder.jellies
+    if not jellies:
+        return None, "no jellies"
+    if sum(j.particle_count for j in jellies) != builder._particle_count:
+        return None, "some particles belong to no jelly"
+    count = len(jellies)
+    layout = LatticeLayout(
+        start=np.array([r.start for r in records], dtype=np.int32).reshape(count),
+        shape=np.array([r.shape for r in records], dtype=np.int32).reshape(count, 3),
+        types=np.array([r.types for r in records], dtype=np.int32).reshape(count),
+        rest=np.zeros((count, REST_SLOTS)),
+        ks=np.array([r.ks for r in records], dtype=np.float64).reshape(count, 3),
+        kd=np.array([r.kd for r in records], dtype=np.float64).reshape(count, 3),
+        world=np.array([info.world for info in jellies], dtype=np.int32).reshape(count),
+    )
+    # A type's ks and kd are kept only where it has springs (detect_lattice reads them off springs).
+    present = ((layout.types[:, None] >> np.arange(3)) & 1).astype(bool)
+    layout.ks[~present] = 0.0
+    layout.kd[~present] = 0.0
+    # One measurement per distinct pose, poses grouped by shape.
+    pose_of, poses = [], {}
+    for r in records:
+        pose_of.append(poses.setdefault(id(r.rest_pose), (len(poses), r)))
+    by_shape = {}
+    for k, r in poses.values():
+        by_shape.setdefault(r.shape, []).append((k, r))
+    rest = np.zeros((len(poses), REST_SLOTS))
+    varies = np.zeros((len(poses), len(HALF_OFFSETS)), dtype=bool)
+    for shape, group in by_shape.items():
+        index = [k for k, _ in group]
+        rest[index], varies[index] = rest_tables(np.stack([r.rest_pose for _, r in group]), shape)
+    which = np.array([k for k, _ in pose_of], dtype=np.int64)
+    layout.rest = rest[which]
+    # Only a present type's offsets count (detect_lattice measures only those).
+    offset_type = np.array([t for _, t in HALF_OFFSETS])
+    bad = varies[which] & present[:, offset_type]
+    layout.rest[~present[:, _SLOT_TYPE]] = 0.0
+    if bad.any():
+        j, n = np.argwhere(bad)[0]
+        name = jellies[j].name or f"jelly {j}"
+        return None, f"{name}: rest lengths of offset {HALF_OFFSETS[n][0]} vary per spring"
+    return layout, "lattice"
 
 
 def detect_lattice(builder) -> tuple[LatticeLayout | None, str]:
@@ -189,9 +346,12 @@ class LatticeData:
             raise ValueError(f"lattice kernel must be 'rows' or 'gather' (got {kernel!r})")
         if kernel == "rows" and self.particle_coord_k is None:
             coord_k = np.zeros(self._particle_count, dtype=np.int32)
-            for start, shape in zip(self.layout.start, self.layout.shape):
-                n = int(np.prod(shape))
-                coord_k[start : start + n] = np.arange(n) % shape[2]
+            counts = np.prod(self.layout.shape, axis=1, dtype=np.int64)
+            first = np.repeat(np.cumsum(counts) - counts, counts)  # each point's jelly's first point
+            local = np.arange(int(counts.sum()), dtype=np.int64) - first
+            coord_k[np.repeat(self.layout.start.astype(np.int64), counts) + local] = local % np.repeat(
+                self.layout.shape[:, 2], counts
+            )
             self.particle_coord_k = wp.array(coord_k, dtype=wp.int32, device=self.device)
             self.scratch = wp.empty(self._particle_count, dtype=self.layout_vec3, device=self.device)
         self.kernel = kernel

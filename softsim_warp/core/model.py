@@ -16,7 +16,7 @@ from . import lattice, particle_contact
 from .errors import SceneError
 from ..kernels import get_kernels
 from .forces import attach
-from .lattice_model import LatticeData, detect_lattice
+from .lattice_model import LatticeData, LatticeSprings, detect_lattice, recorded_lattice, spring_arrays
 from .pins import PinDrive, make_motion, path_position
 from .masked_lattice import attach_masked
 from .mesh_assets import load_mesh, mesh_options, transform_matrix
@@ -38,12 +38,14 @@ def rotation_matrix(axis, degrees) -> np.ndarray:
     return np.eye(3) + math.sin(t) * k + (1 - math.cos(t)) * (k @ k)
 
 
-def jelly_points(shape, size, center, axis, degrees, initial_scale=None) -> np.ndarray:
+def jelly_points(shape, size, center, axis, degrees, initial_scale=None, local=None) -> np.ndarray:
     """Start positions ``(N, 3)`` [m] of a jelly lattice (``ModelBuilder.add_jelly``'s placement):
     the lattice of ``size`` scaled by ``initial_scale`` in its own frame, rotated by ``degrees``
-    about ``axis`` and centred on ``center``."""
+    about ``axis`` and centred on ``center``. ``local``: that lattice unplaced
+    (``lattice.lattice_points``), when the caller has it already."""
     shape = tuple(int(n) for n in shape)
-    local = lattice.lattice_points(shape, np.broadcast_to(np.asarray(size, dtype=np.float64), (3,)))
+    if local is None:
+        local = lattice.lattice_points(shape, np.broadcast_to(np.asarray(size, dtype=np.float64), (3,)))
     scale = np.ones(3) if initial_scale is None else np.broadcast_to(np.asarray(initial_scale, dtype=np.float64), (3,))
     if np.any(scale == 0.0):
         raise ValueError(f"initial_scale components must be nonzero (got {scale.tolist()})")
@@ -92,7 +94,14 @@ class ModelBuilder:
         self.jelly_contact_restitution = particle_contact.DEFAULT_RESTITUTION
         self.jelly_contact_iterations = particle_contact.DEFAULT_ITERATIONS
         self._q, self._qd, self._mass, self._jelly_of, self._world_of = [], [], [], [], []
-        self._pairs, self._rest, self._ks, self._kd, self._type = [], [], [], [], []
+        # The springs: blocks in the order added, each a whole lattice jelly (LatticeSprings) or
+        # add_spring's (pairs, rest, ks, kd, type). Reading the lists (_pairs, ...) turns the
+        # blocks into them for good (_lists); the builder then no longer vouches for the lattices.
+        self._spring_blocks = []
+        self._lists = None
+        # Placed lattices by placement (add_jelly), shared read-only by jellies placed alike.
+        self._placements = {}
+        self._lattice_tables = {}
         self.jellies: list[JellyInfo] = []
         self.planes: list[dict] = []
         self.bowls: list[dict] = []
@@ -128,12 +137,94 @@ class ModelBuilder:
         if rest is None:
             rest = np.linalg.norm(q[a] - q[b], axis=1)
         n = a.shape[0]
-        self._pairs.append(np.stack([a, b], axis=1))
-        self._rest.append(np.broadcast_to(np.asarray(rest, dtype=np.float64), (n,)).copy())
-        self._ks.append(np.full(n, ks, dtype=np.float64))
-        self._kd.append(np.full(n, kd, dtype=np.float64))
-        self._type.append(np.full(n, spring_type, dtype=np.int32))
+        self._add_spring_block(
+            (
+                np.stack([a, b], axis=1),
+                np.broadcast_to(np.asarray(rest, dtype=np.float64), (n,)).copy(),
+                np.full(n, ks, dtype=np.float64),
+                np.full(n, kd, dtype=np.float64),
+                np.full(n, spring_type, dtype=np.int32),
+            )
+        )
         self._spring_count += n
+
+    def _add_spring_block(self, block):
+        if self._lists is None:
+            self._spring_blocks.append(block)
+            return
+        for part in block.arrays() if isinstance(block, LatticeSprings) else [block]:
+            for values, array in zip(self._lists, part):
+                values.append(array)
+
+    def _spring_lists(self) -> tuple:
+        """The five spring lists (pairs, rest, ks, kd, type), one array per block of springs added."""
+        if self._lists is None:
+            lists = ([], [], [], [], [])
+            springs_of, rest_of = {}, {}
+            for block in self._spring_blocks:
+                parts = block.arrays(springs_of, rest_of) if isinstance(block, LatticeSprings) else [block]
+                for part in parts:
+                    for values, array in zip(lists, part):
+                        values.append(array)
+            self._lists, self._spring_blocks = lists, None
+        return self._lists
+
+    # The spring lists as add_spring made them, for code that reads or edits them (tests,
+    # detect_lattice, the masked path); reading them gives up the recorded lattices.
+    _pairs = property(lambda self: self._spring_lists()[0])
+    _rest = property(lambda self: self._spring_lists()[1])
+    _ks = property(lambda self: self._spring_lists()[2])
+    _kd = property(lambda self: self._spring_lists()[3])
+    _type = property(lambda self: self._spring_lists()[4])
+
+    def lattice_records(self) -> list | None:
+        """The :class:`~softsim_warp.core.lattice_model.LatticeSprings` of every jelly, in order, when
+        each jelly's springs are one such record and there are no other springs; else None."""
+        blocks = self._spring_blocks
+        if blocks is None or len(blocks) != len(self.jellies):
+            return None
+        if not all(isinstance(b, LatticeSprings) and b.start == j.particle_start for b, j in zip(blocks, self.jellies)):
+            return None
+        return blocks
+
+    def _placed(self, shape, size, center, axis, degrees, initial_scale, velocity, angular_velocity):
+        """``(rest_pose, q, qd)`` of a lattice jelly, the arrays shared (read-only) by jellies placed
+        alike (the worlds of a batch); keyed by the exact bytes of the placement."""
+        key = (shape, *(np.asarray(v, dtype=np.float64).tobytes() for v in (size, center, axis, degrees)),
+               None if initial_scale is None else np.asarray(initial_scale, dtype=np.float64).tobytes(),
+               *(np.asarray(v, dtype=np.float64).tobytes() for v in (velocity, angular_velocity)))
+        placed = self._placements.get(key)
+        if placed is None:
+            rest_key = key[:5]
+            rest_pose = self._placements.get(rest_key)
+            local_key = key[:2]
+            local = self._placements.get(local_key)
+            if local is None:
+                local = self._placements[local_key] = lattice.lattice_points(shape, size)
+            if rest_pose is None:
+                rest_pose = jelly_points(shape, size, center, axis, degrees, local=local)
+                rest_pose.setflags(write=False)
+                self._placements[rest_key] = rest_pose
+            q = rest_pose
+            if initial_scale is not None:
+                q = jelly_points(shape, size, center, axis, degrees, initial_scale, local=local)
+            qd = np.asarray(velocity, dtype=np.float64) + np.cross(
+                np.asarray(angular_velocity, dtype=np.float64), q - center
+            )
+            for a in (q, qd):
+                a.setflags(write=False)
+            placed = self._placements[key] = (rest_pose, q, qd)
+        return placed
+
+    def _shape_tables(self, shape):
+        """Per lattice shape: spring count per type, the surface quads (read-only, shared)."""
+        tables = self._lattice_tables.get(shape)
+        if tables is None:
+            counts = lattice.spring_counts(shape)
+            quads = lattice.surface_quads(shape)
+            quads.setflags(write=False)
+            tables = self._lattice_tables[shape] = ([counts[n] for n in lattice.SPRING_TYPE_NAMES], quads)
+        return tables
 
     def add_jelly(
         self,
@@ -185,32 +276,48 @@ class ModelBuilder:
         shape = tuple(int(n) for n in resolution)
         size = np.broadcast_to(np.asarray(size, dtype=np.float64), (3,))
         center = np.asarray(center, dtype=np.float64)
-        rest_pose = jelly_points(shape, size, center, axis, degrees)
-        q = jelly_points(shape, size, center, axis, degrees, initial_scale)
-        qd = np.asarray(velocity, dtype=np.float64) + np.cross(
-            np.asarray(angular_velocity, dtype=np.float64), q - center
-        )
+        # Rest lengths come from the unscaled lattice, so an initial_scale starts the springs out of rest.
+        rest_pose, q, qd = self._placed(shape, size, center, axis, degrees, initial_scale, velocity, angular_velocity)
         start = self._particle_count
         spring_start = self._spring_count
-        pairs, types = lattice.lattice_springs(shape)
-        # Rest lengths come from the unscaled lattice, so an initial_scale starts the springs out of rest.
-        rest = np.linalg.norm(rest_pose[pairs[:, 0]] - rest_pose[pairs[:, 1]], axis=1)
         if mask is not None:
+            pairs, types = lattice.lattice_springs(shape)
+            rest = np.linalg.norm(rest_pose[pairs[:, 0]] - rest_pose[pairs[:, 1]], axis=1)
             # Keep the masked points and the springs whose both ends are kept, renumbered.
             mask = np.asarray(mask, dtype=bool)
             kept = mask[pairs[:, 0]] & mask[pairs[:, 1]]
             pairs, types, rest = (np.cumsum(mask) - 1)[pairs[kept]].astype(np.int32), types[kept], rest[kept]
             q, qd = q[mask], qd[mask]
-        self.add_particles(q, qd, particle_mass, world=world)
+        # The builder's own copy of the shared placement (its lists are open to edits).
+        self.add_particles(q.copy() if mask is None else q, qd, particle_mass, world=world)
         self._jelly_of[-1][:] = len(self.jellies)
-        for t, type_name in enumerate(lattice.SPRING_TYPE_NAMES):
-            params = springs.get(type_name)
-            sel = types == t
-            if params is None or not sel.any():
-                continue
-            self.add_spring(
-                pairs[sel, 0] + start, pairs[sel, 1] + start, params["ks"], params.get("kd", 0.0), t, rest=rest[sel]
+        if mask is not None:
+            for t, type_name in enumerate(lattice.SPRING_TYPE_NAMES):
+                params = springs.get(type_name)
+                sel = types == t
+                if params is None or not sel.any():
+                    continue
+                self.add_spring(
+                    pairs[sel, 0] + start, pairs[sel, 1] + start, params["ks"], params.get("kd", 0.0), t, rest=rest[sel]
+                )
+            quads = np.zeros((0, 4), dtype=np.int32)
+        else:
+            # A whole lattice: the record of its stencil springs, no list (LatticeSprings.arrays).
+            counts, quads = self._shape_tables(shape)
+            present = [springs.get(n) is not None and c > 0 for n, c in zip(lattice.SPRING_TYPE_NAMES, counts)]
+            params = [springs.get(n) or {} for n in lattice.SPRING_TYPE_NAMES]
+            record = LatticeSprings(
+                shape=shape,
+                start=start,
+                types=sum(1 << t for t in range(3) if present[t]),
+                ks=np.array([float(p["ks"]) if on else 0.0 for p, on in zip(params, present)]),
+                kd=np.array([float(p.get("kd", 0.0)) if on else 0.0 for p, on in zip(params, present)]),
+                rest_pose=rest_pose,
+                world=world,
+                count=sum(c for c, on in zip(counts, present) if on),
             )
+            self._add_spring_block(record)
+            self._spring_count += record.count
         spacing = tuple(float(s / (n - 1)) if n > 1 else 0.0 for s, n in zip(size, shape))
         info = JellyInfo(
             shape=shape,
@@ -219,7 +326,7 @@ class ModelBuilder:
             spring_start=spring_start,
             spring_count=self._spring_count - spring_start,
             spacing=spacing,
-            surface_quads=lattice.surface_quads(shape) if mask is None else np.zeros((0, 4), dtype=np.int32),
+            surface_quads=quads,
             world=world,
             name=name or f"Jelly_{len(self.jellies)}",
             lattice_index=None if mask is None else np.flatnonzero(mask),
@@ -391,23 +498,24 @@ class ModelBuilder:
         m.particle_world = arr(np.concatenate(self._world_of) if self._world_of else np.zeros(0), wp.int32, np.int32)
 
         m.spring_count = self._spring_count
-        pairs = np.concatenate(self._pairs) if self._pairs else np.zeros((0, 2), dtype=np.int32)
-        m.spring_indices_host = pairs
-        m.spring_type_host = np.concatenate(self._type) if self._type else np.zeros(0, dtype=np.int32)
-        m.spring_rest_host = np.concatenate(self._rest) if self._rest else np.zeros(0)
-        m.spring_stiffness_host = np.concatenate(self._ks) if self._ks else np.zeros(0)
-        m.spring_damping_host = np.concatenate(self._kd) if self._kd else np.zeros(0)
         # --- lattice fast path (perf): without it the spring arrays go to the device now; with it
-        # they are made on first use only (Model.__getattr__), e.g. by an implicit integrator.
+        # they are made on first use only (Model.__getattr__), e.g. by an implicit integrator. A
+        # builder whose jellies are all recorded whole (add_jelly) gives the lattice tables and,
+        # on first use only, the spring list from its records; any other is searched
+        # (detect_lattice) and keeps its list as given.
         m.lattice = None
         m.lattice_reason = "force_path=springs"
         if force_path != "springs":
-
-            layout, m.lattice_reason = detect_lattice(self)
+            recorded = self.lattice_records() is not None
+            layout, m.lattice_reason = recorded_lattice(self) if recorded else detect_lattice(self)
             if layout is None and force_path == "lattice":
                 raise ValueError(f"the lattice path does not apply: {m.lattice_reason}")
             if layout is not None:
                 m.lattice = LatticeData(layout, device, scalar, np_scalar, m.particle_count, particle_mass=mass)
+        if self._lists is None:
+            m._spring_blocks = list(self._spring_blocks)
+        else:
+            m._set_spring_host(*(np.concatenate(values) if values else None for values in self._lists))
         if m.lattice is None:
             m._make_spring_arrays()
         attach_masked(self, m, force_path)  # mesh jellies: the lattice stencil over present points
@@ -502,6 +610,9 @@ class Model:
         spring_stiffness: ks [N/m], shape [spring_count], scalar.
         spring_damping: kd [N s/m], shape [spring_count], scalar.
             On the lattice path the four spring arrays are made on first access only.
+        spring_indices_host, spring_type_host, spring_rest_host, spring_stiffness_host,
+            spring_damping_host: the same list on the host (float64), and each spring's type; for a
+            model of jellies recorded whole (``ModelBuilder.add_jelly``) made on first access only.
         lattice: :class:`~softsim_warp.core.lattice_model.LatticeData` (per-jelly tables of the
             lattice force path) or None when the general spring list is used.
         lattice_reason: host string, why the lattice path does or does not apply.
@@ -580,6 +691,21 @@ class Model:
     deterministic = False
 
     _SPRING_ARRAYS = ("spring_indices", "spring_rest_length", "spring_stiffness", "spring_damping")
+    _SPRING_HOST = (
+        "spring_indices_host",
+        "spring_rest_host",
+        "spring_stiffness_host",
+        "spring_damping_host",
+        "spring_type_host",
+    )
+
+    def _set_spring_host(self, pairs, rest, ks, kd, types):
+        """The host spring list (None: empty)."""
+        self.spring_indices_host = pairs if pairs is not None else np.zeros((0, 2), dtype=np.int32)
+        self.spring_rest_host = rest if rest is not None else np.zeros(0)
+        self.spring_stiffness_host = ks if ks is not None else np.zeros(0)
+        self.spring_damping_host = kd if kd is not None else np.zeros(0)
+        self.spring_type_host = types if types is not None else np.zeros(0, dtype=np.int32)
 
     def _make_spring_arrays(self):
         """Copy the spring list to the device (at finalize, or lazily on the lattice path)."""
@@ -595,8 +721,12 @@ class Model:
             setattr(self, name, wp.array(np.asarray(host, np_scalar), dtype=self.scalar, device=self.device))
 
     def __getattr__(self, name):
-        # Only called for missing attributes: the spring arrays a lattice model has not made yet.
-        if name in Model._SPRING_ARRAYS and "spring_indices_host" in self.__dict__:
+        # Only called for missing attributes: the spring arrays a lattice model has not made yet,
+        # and the host spring list of a model built from recorded lattices (spring_arrays).
+        if name in Model._SPRING_HOST and "_spring_blocks" in self.__dict__:
+            self._set_spring_host(*spring_arrays(self.__dict__.pop("_spring_blocks")))
+            return self.__dict__[name]
+        if name in Model._SPRING_ARRAYS and ("spring_indices_host" in self.__dict__ or "_spring_blocks" in self.__dict__):
             self._make_spring_arrays()
             return self.__dict__[name]
         raise AttributeError(name)

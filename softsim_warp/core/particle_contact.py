@@ -134,6 +134,28 @@ def face_order(surface, neighbors):
     return order, sides[order]
 
 
+def _surface_tables(info):
+    """A jelly's contact particles in contact order (:func:`face_order`), jelly-local: ``(particles,
+    their axis neighbours as particles (-1: none), missing sides, boundary faces, rest points in the
+    jelly's frame)``."""
+    points = int(np.prod(info.shape))
+    present, to_particle = np.ones(points, dtype=bool), np.arange(points)
+    if getattr(info, "lattice_index", None) is not None:
+        present = np.zeros(points, dtype=bool)
+        present[info.lattice_index] = True
+        to_particle = np.full(points, -1)
+        to_particle[info.lattice_index] = np.arange(info.lattice_index.size)
+    surface = np.flatnonzero(surface_mask(info.shape, present))
+    nb = axis_neighbors(info.shape, surface, present)
+    by_face, n_sides = face_order(surface, nb)
+    surface, nb = surface[by_face], nb[by_face]
+    n_faces = (nb[:, 6:9] >= 0).sum(axis=1)  # the boundary faces it lies on (its normals)
+    size = [s * (n - 1) for s, n in zip(info.spacing, info.shape)]
+    rest = lattice.lattice_points(info.shape, size)[surface]
+    nb = np.where(nb >= 0, to_particle[np.maximum(nb, 0)], -1)
+    return to_particle[surface], nb, n_sides, n_faces, rest
+
+
 def jelly_radius(info, thickness=None) -> float:
     """Contact radius of a jelly's particles [m]: half the pair distance between two of its particles."""
     if thickness is not None:
@@ -185,31 +207,27 @@ class ParticleContact:
         taking_part = [between_jellies or s for s in self_flags]
         device, scalar, vec3 = model.device, model.scalar, model.vec3
         index, jelly, world, radius, rest, neighbors, sides, faces = [], [], [], [], [], [], [], []
+        whole = {}  # a whole lattice's surface tables by shape and spacing: jellies alike share them
         for jid, (info, part) in enumerate(zip(jellies, taking_part)):
             if not part:
                 continue
             # A mesh jelly is a lattice with points missing (info.lattice_index: its particles' points).
-            points = int(np.prod(info.shape))
-            present, to_particle = np.ones(points, dtype=bool), np.arange(points)
-            if getattr(info, "lattice_index", None) is not None:
-                present = np.zeros(points, dtype=bool)
-                present[info.lattice_index] = True
-                to_particle = np.full(points, -1)
-                to_particle[info.lattice_index] = np.arange(info.lattice_index.size)
-            surface = np.flatnonzero(surface_mask(info.shape, present))
-            nb = axis_neighbors(info.shape, surface, present)
-            by_face, n_sides = face_order(surface, nb)
-            surface, nb = surface[by_face], nb[by_face]
+            masked = getattr(info, "lattice_index", None) is not None
+            key = (tuple(int(n) for n in info.shape), tuple(info.spacing))
+            if masked or key not in whole:
+                tables = _surface_tables(info)
+                if not masked:
+                    whole[key] = tables
+            else:
+                tables = whole[key]
+            local, nb, n_sides, n_faces, rest_points = tables
             sides.append(n_sides)
-            faces.append((nb[:, 6:9] >= 0).sum(axis=1))  # the boundary faces it lies on (its normals)
-            local = to_particle[surface]
+            faces.append(n_faces)
             index.append(local + info.particle_start)
             jelly.append(np.full(local.size, jid))
             world.append(np.full(local.size, info.world))
             radius.append(np.full(local.size, jelly_radius(info, thickness)))
-            size = [s * (n - 1) for s, n in zip(info.spacing, info.shape)]
-            rest.append(lattice.lattice_points(info.shape, size)[surface])
-            nb = np.where(nb >= 0, to_particle[np.maximum(nb, 0)], -1)
+            rest.append(rest_points)
             neighbors.append(np.where(nb >= 0, nb + info.particle_start, -1))
         # The contact order: every jelly's face particles first (jelly by jelly, face by face),
         # then the edges' and then the corners' (:func:`face_order`). The 32 threads of a warp then

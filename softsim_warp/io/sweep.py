@@ -597,6 +597,8 @@ class _Batch:
             a, b = self.ranges[w]
             self.worlds.append(_World(float(bound) if bound is not None else world_speed_bound(self.model, a, b, w)))
         self.shared = shared_surfaces(datas)
+        # Penetration is measured into terrain only: without any, the positions are never read.
+        self.has_terrain = any(d.get(kind) for d in datas for kind in TERRAIN_SDF)
         self.done_steps = 0
         self.step_seconds = 0.0
 
@@ -606,14 +608,15 @@ class _Batch:
         self.sim.advance(target - self.done_steps)
         self.done_steps = target
 
-    def read_frame(self, k: int):
+    def read_frame(self, k: int, positions=True):
         """Measure the frame the launched steps reach (synchronises) and copy it to the host:
-        ``(step, time, positions, probe arrays)``."""
+        ``(step, time, positions, probe arrays)``; the positions are None unless ``positions``."""
         from .worlds import probe_arrays  # noqa: PLC0415
 
         t = self.done_steps * self.sim.dt
         self.sim.probe.measure(self.sim.state, k, t)
-        return self.done_steps, t, self.sim.state.particle_q.numpy(), probe_arrays(self.sim.probe)
+        q = self.sim.state.particle_q.numpy() if positions else None
+        return self.done_steps, t, q, probe_arrays(self.sim.probe)
 
 
 def _record_frame(world: _World, frame: dict, k: int, step: int, t: float) -> bool:
@@ -658,7 +661,8 @@ def _simulate(variants: list[dict], device, use_graph=True) -> list[dict]:
         if b is not None:
             b.launch_frame(0)
     for k in range(batch.frames + 1):
-        step, t, q, arrays = batch.read_frame(k)
+        # The positions come to the host only for what reads them: penetration, the reference error.
+        step, t, q, arrays = batch.read_frame(k, positions=batch.has_terrain or ref is not None)
         if ref is not None:
             _, _, q_ref, ref_arrays = ref.read_frame(k)
         if k < batch.frames:
@@ -666,7 +670,9 @@ def _simulate(variants: list[dict], device, use_graph=True) -> list[dict]:
                 if b is not None:
                     b.launch_frame(k + 1)
         frames = world_frames(arrays, batch.jellies)
-        depth = batch_penetration(batch.datas, q, batch.ranges, batch.world_jelly_ranges, batch.shared)
+        depth = None
+        if batch.has_terrain:
+            depth = batch_penetration(batch.datas, q, batch.ranges, batch.world_jelly_ranges, batch.shared)
         for w, world in enumerate(batch.worlds):
             if not alive[w]:
                 continue
@@ -674,7 +680,8 @@ def _simulate(variants: list[dict], device, use_graph=True) -> list[dict]:
             alive[w] = _record_frame(world, frame, k, step, t)
             if not alive[w]:
                 continue
-            world.penetration = max(world.penetration, float(depth[w]))
+            if depth is not None:
+                world.penetration = max(world.penetration, float(depth[w]))
             if ref is not None and ref_alive[w]:
                 a, b = batch.ranges[w]
                 qw = q[a:b].astype(np.float64)

@@ -25,34 +25,49 @@ def make_builder(datas):
     return builder
 
 
+def _world_bounds(model) -> list[tuple[int, int]]:
+    """Index of the first and of the last jelly of each world in ``model.jellies``."""
+    first, last = {}, {}
+    for k, j in enumerate(model.jellies):
+        first.setdefault(j.world, k)
+        last[j.world] = k
+    return [(first[w], last[w]) for w in range(model.world_count)]
+
+
 def world_ranges(model) -> list[tuple[int, int]]:
     """``(first particle, end)`` of each world of ``model`` (populate adds a world's jellies one after another)."""
     out = []
-    for w in range(model.world_count):
-        infos = [j for j in model.jellies if j.world == w]
-        out.append((infos[0].particle_start, infos[-1].particle_start + infos[-1].particle_count))
+    for a, b in _world_bounds(model):
+        first, last = model.jellies[a], model.jellies[b]
+        out.append((first.particle_start, last.particle_start + last.particle_count))
     return out
 
 
 def world_jellies(model) -> list[tuple[int, int]]:
     """``(first jelly, end)`` of each world in ``model.jellies`` (a world's jellies are consecutive)."""
-    out = []
-    for w in range(model.world_count):
-        idx = [k for k, j in enumerate(model.jellies) if j.world == w]
-        out.append((idx[0], idx[-1] + 1))
-    return out
+    return [(a, b + 1) for a, b in _world_bounds(model)]
 
 
 def world_speed_bound(model, start, end, world):
     """The explosion speed bound a single run of this world's variant would use (see ``metrics.speed_bound``)."""
 
-    qd = model.particle_qd.numpy()[start:end]
+    # The model's initial velocities as the device holds them and its terrain by world, made once
+    # for all worlds of a batch.
+    shared = model.__dict__.get("_world_bound_inputs")
+    if shared is None:
+        by_world = {}
+        for kind in ("planes", "bowls", "spheres"):
+            for item in getattr(model, kind):
+                by_world.setdefault(item["world"], {"planes": [], "bowls": [], "spheres": []})[kind].append(item)
+        shared = model.__dict__["_world_bound_inputs"] = (model.particle_qd.numpy(), by_world)
+    velocities, by_world = shared
+    terrain = by_world.get(world, {"planes": [], "bowls": [], "spheres": []})
+    qd = velocities[start:end]
     # speed_bound reads only these host-side fields; this view holds one world's share of them.
     view = types.SimpleNamespace(
         particle_q_host=model.particle_q_host[start:end],
-        planes=[p for p in model.planes if p["world"] == world],
-        terrain_anchor_points=terrain_anchors([b for b in model.bowls if b["world"] == world],
-                                              [s for s in model.spheres if s["world"] == world]),
+        planes=terrain["planes"],
+        terrain_anchor_points=terrain_anchors(terrain["bowls"], terrain["spheres"]),
         particle_qd=types.SimpleNamespace(numpy=lambda: qd),
         particle_count=end - start,
         gravity_host=model.gravity_host,
