@@ -1150,12 +1150,14 @@ def _start_worker():
 
 
 def dask_setup(worker):
-    """Preloaded into each local worker process: a Ctrl-C in the terminal reaches every process of
-    the group, and the client alone handles it (it stops, keeps the rows and closes the cluster)."""
+    """Preloaded into each local worker process: a Ctrl-C in the terminal (or the terminal closed:
+    SIGHUP) reaches every process of the group, and the client alone handles it (it stops, keeps
+    the rows and closes the cluster)."""
     import signal  # noqa: PLC0415
 
     try:
         signal.signal(signal.SIGINT, signal.SIG_IGN)
+        signal.signal(signal.SIGHUP, signal.SIG_IGN)
     except ValueError:  # not the main thread: leave it
         pass
 
