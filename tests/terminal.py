@@ -13,6 +13,7 @@ from __future__ import annotations
 import fcntl
 import os
 import pty
+import select
 import struct
 import subprocess
 import termios
@@ -35,14 +36,19 @@ class TerminalRun:
         os.close(slave)
         self.master = master
         self.out = b""
+        self._stop = False
         self._reader = threading.Thread(target=self._read, daemon=True)
         self._reader.start()
 
     def _read(self):
-        while True:
+        # select with a timeout rather than a blocking read: a read in progress would keep the
+        # master open through hang_up's close (the kernel releases a file when no call uses it).
+        while not self._stop:
+            if not select.select([self.master], [], [], 0.05)[0]:
+                continue
             try:
                 chunk = os.read(self.master, 4096)
-            except OSError:  # EIO: every slave descriptor is closed; EBADF: hung up by the test
+            except OSError:  # EIO: every slave descriptor is closed
                 return
             if not chunk:
                 return
@@ -54,6 +60,8 @@ class TerminalRun:
 
     def hang_up(self):
         """Close the terminal (its master side), as closing a terminal window does."""
+        self._stop = True
+        self._reader.join()
         master, self.master = self.master, -1
         os.close(master)
 

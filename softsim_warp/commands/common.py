@@ -130,7 +130,8 @@ def _kernel_cache_error(wp, error: OSError) -> UserError:
     ``kernel_cache_dir`` before it creates the directory)."""
     cache = wp.config.kernel_cache_dir
     given = os.environ.get("WARP_CACHE_PATH")
-    where = f" ('{error.filename}')" if error.filename and os.fspath(error.filename) != cache else ""
+    name = os.fspath(error.filename) if error.filename else cache
+    where = "" if name == cache or name.startswith(cache + os.sep) else f" ('{name}')"
     return UserError(
         "environment", "WARP_CACHE_PATH",
         f"cannot use '{cache}' as Warp's kernel cache: {error.strerror or error}{where}; "
