@@ -1,9 +1,10 @@
 """Interrupted and concurrent runs, with real ``softsim run`` processes and real signals.
 
 A run is started on a long scene (100 000 frames) with its stderr on a terminal (a pty: the
-progress bar is drawn only there), the test reads the bar until some frames are done, then signals it. SIGINT and SIGTERM must leave a valid USD at the final path
-holding at least the frames reported done, and exit with 128 + signum; SIGKILL must leave an
-existing file at the final path untouched, the unfinished output only as a ``.partial`` file.
+progress bar is drawn only there), the test reads the bar until some frames are done, then signals
+it. SIGINT and SIGTERM must leave a valid USD at the final path holding at least the frames
+reported done, and exit with 128 + signum; SIGKILL must leave an existing file at the final path
+untouched, the unfinished output only as a ``.partial`` file.
 """
 
 import os

@@ -194,7 +194,8 @@ def _usd_error_gist(exc) -> str:
 _SUBLAYER_MISSING = re.compile(r"Could not load sublayer @([^@]*)@ of layer @([^@]*)@")
 _SUBLAYER_CYCLE = re.compile(r"Sublayer hierarchy with root layer @([^@]*)@ has cycles\. "
                              r"Detected when layer @([^@]*)@ was seen")
-_USD_DIAGNOSTIC = re.compile(r"^(?:Warning|Error|Coding Error|Fatal Error|Status): (?:in \S+ at line \d+ of \S+ -- )?(.*)$")
+_USD_DIAGNOSTIC = re.compile(
+    r"^(?:Warning|Error|Coding Error|Fatal Error|Status): (?:in \S+ at line \d+ of \S+ -- )?(.*)$")
 
 
 def _load_usd(path, prim_path, every, source, key):

@@ -323,8 +323,8 @@ class Outputs:
             if not streams and suffixes and p.suffix not in suffixes:
                 # The format follows from the extension, which a device or a pipe does not have.
                 allowed = "/".join(suffixes)
-                raise CommandLineError(flag, f"is {_stream_kind(p)}, not a regular file path; give a {allowed} file path",
-                                       str(p))
+                what = f"is {_stream_kind(p)}, not a regular file path (unsupported file extension)"
+                raise CommandLineError(flag, f"{what}; give a {allowed} file path", str(p))
             return p
         ident = _identity(p)
         for other_flag, other, other_ident in self._inputs:
