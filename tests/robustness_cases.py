@@ -621,7 +621,7 @@ CASES = [
     Case(
         "out_name_too_long",
         "--out name of 300 bytes",
-        "command line: --out: name too long: file name is 305 bytes; at most 235",
+        "command line: --out: name too long: file name is 305 bytes; at most 227",
         args=(SCENE, "--out", "n" * 300 + ".usdc"),
     ),
     Case(

@@ -218,8 +218,8 @@ def test_lock_write_error_in_process(tmp_path, monkeypatch):
 
 
 @pytest.mark.parametrize("argv,needle", [
-    (["--out", "a" * 300 + ".usdc"], "--out: name too long: file name is 305 bytes; at most 235"),
-    # 240 bytes fit the file system, but not the hidden temporary beside the file
+    (["--out", "a" * 300 + ".usdc"], "--out: name too long: file name is 305 bytes; at most 227"),
+    # 240 bytes fit the file system, but not the temporaries beside the file
     (["--out", "b" * 235 + ".usdc"], "--out: name too long: file name is 240 bytes"),
     (["--metrics", "c" * 300 + "/m.json"], "--metrics: name too long: a directory name"),
     (["--preview", "d" * 256 + ".gif"], "--preview: name too long"),
@@ -232,8 +232,13 @@ def test_name_too_long(argv, needle, tmp_path):
 
 
 def test_longest_name_that_fits_is_written(tmp_path):
-    """The bound is exact: a 235-byte name is written (its temporary, 255 bytes with a 10-digit pid, fits)."""
-    name = "e" * 230 + ".usda"
+    """The bound is exact: a 227-byte name is written, and the longest name derived from it (the
+    temporary of its kept <stem>.partial<ext>, with a 10-digit pid) is 255 bytes, which the file system takes."""
+    name = "e" * 222 + ".usda"
+    longest = tmp_path / f".{name[:-5]}.partial.partial-{'9' * 10}.usda"
+    assert len(longest.name) == 255
+    longest.write_bytes(b"")
+    longest.unlink()
     code, err = in_process(["run", "jelly_drop", *TINY, "--out", name, "--quiet"], tmp_path)
     assert code == 0, err
     assert (tmp_path / name).is_file()

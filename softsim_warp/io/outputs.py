@@ -173,7 +173,10 @@ def save_report(data, out=None, plot_path=None, plot=None):
 
 
 NAME_MAX = 255  # bytes in one file name on Linux file systems (ext4, xfs, btrfs, tmpfs)
-_TEMPORARY_EXTRA = len(".") + len(".partial-") + 10  # what a hidden temporary adds to a name (pid up to 10 digits)
+# What the longest name derived from an output's adds to it: the hidden temporary of the
+# <stem>.partial<ext> that a run keeps beside an existing output, .<stem>.partial.partial-<pid><ext>
+# (a pid has at most 10 digits).
+_TEMPORARY_EXTRA = len(".") + len(".partial") + len(".partial-") + 10
 
 
 def _stream_kind(path) -> str:
@@ -187,7 +190,8 @@ def _stream_kind(path) -> str:
 
 def _check_name_lengths(path, flag: str):
     """Refuse a path with a name longer than the file system allows, the output's own name counting
-    its hidden temporary (``.<stem>.partial-<pid><ext>``) and lock (``.<name>.lock``), which live beside it."""
+    the names derived from it beside it (its temporary ``.<stem>.partial-<pid><ext>``, its lock, the
+    ``<stem>.partial<ext>`` of a run that did not complete and that file's temporary)."""
     parts = Path(path).parts
     for i, part in enumerate(parts):
         size = len(os.fsencode(part))
@@ -196,7 +200,7 @@ def _check_name_lengths(path, flag: str):
         if size > limit:
             shown = part if len(part) <= 40 else part[:20] + "..." + part[-12:]
             what = (f"file name is {size} bytes; at most {limit} (the file system allows {NAME_MAX} per name, "
-                    "and the hidden temporary beside it adds to the name)" if last else
+                    "and the temporaries beside it add up to 28 bytes to the name)" if last else
                     f"a directory name ('{shown}') is {size} bytes; the file system allows at most {NAME_MAX}")
             raise CommandLineError(flag, f"name too long: {what}", os.fspath(path))
 
