@@ -6,8 +6,8 @@ Each subcommand module has ``COMMAND`` (its name), ``add_parser(subparsers, add_
 traceback instead.
 
 SIGINT, SIGTERM and SIGHUP end any command with 128 + signum (130, 143, 129) and no traceback
-(``process.STOP_SIGNALS``): a command may catch them itself while it works (``softsim run`` stops after the frame in progress, see
-``common.Signals``); everywhere else in ``main`` the first one stops at once, as a
+(``process.STOP_SIGNALS``): a command may catch them itself while it works (``softsim run`` stops
+after the frame in progress, see ``common.Signals``); everywhere else in ``main`` the first one stops at once, as a
 ``KeyboardInterrupt`` whose cleanup (temporaries removed, locks released) later signals do not
 interrupt. A signal before ``main`` runs, while Python imports the package (and Warp with it),
 still gets Python's defaults.

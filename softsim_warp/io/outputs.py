@@ -19,7 +19,6 @@ is a symlink is written through to its target; one that is not a regular file (a
 
 from __future__ import annotations
 
-import errno
 import fcntl
 import glob
 import json
@@ -173,7 +172,7 @@ def save_report(data, out=None, plot_path=None, plot=None):
 
 
 NAME_MAX = 255  # bytes in one file name on Linux file systems (ext4, xfs, btrfs, tmpfs)
-# What the longest name derived from an output's adds to it: the hidden temporary of the
+# What the longest name derived from an output adds to its name: the hidden temporary of the
 # <stem>.partial<ext> that a run keeps beside an existing output, .<stem>.partial.partial-<pid><ext>
 # (a pid has at most 10 digits).
 _TEMPORARY_EXTRA = len(".") + len(".partial") + len(".partial-") + 10
@@ -185,7 +184,7 @@ def _stream_kind(path) -> str:
                        (stat.S_ISSOCK, "a socket"), (stat.S_ISBLK, "a block device")):
         if test(mode):
             return kind
-    return "not a regular file"
+    return "a special file"
 
 
 def _check_name_lengths(path, flag: str):

@@ -744,20 +744,12 @@ def _init_warp():
     if not _WARP_READY:
         # As commands.common.init_warp: Warp's banner and missing-driver notice (written by native
         # code to descriptor 2) would repeat once per worker; they are held back.
-        import sys  # noqa: PLC0415
-        import tempfile  # noqa: PLC0415
+        from ..core.native_output import held_stderr  # noqa: PLC0415
 
         wp.config.quiet = True
         wp.config.log_level = wp.LOG_WARNING
-        sys.stderr.flush()
-        saved = os.dup(2)
-        with tempfile.TemporaryFile() as held:
-            os.dup2(held.fileno(), 2)
-            try:
-                wp.init()
-            finally:
-                os.dup2(saved, 2)
-                os.close(saved)
+        with held_stderr():
+            wp.init()
         _WARP_READY = True
     return wp
 
