@@ -308,3 +308,24 @@ def test_sighup_in_every_command(args, tmp_path):
     run.send(signal.SIGHUP)
     _check_clean(tmp_path, run, run.finish(), signal.SIGHUP)
     assert list(tmp_path.iterdir()) == []
+
+
+def test_nohup_keeps_ignoring_sighup(tmp_path):
+    """Started with SIGHUP ignored (``nohup``), a run outlives its terminal: SIGHUP changes nothing,
+    and the SIGTERM sent after it is the signal that stops the run (143, frames 0..2 kept)."""
+    env = dict(os.environ, SOFTSIM_TEST_PAUSE="run")
+    proc = subprocess.Popen([sys.executable, "-m", "softsim_warp", *ARGS], cwd=tmp_path, env=env,
+                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
+                            preexec_fn=lambda: signal.signal(signal.SIGHUP, signal.SIG_IGN))
+    err = b""
+    while b"softsim-test: paused at run" not in err:
+        chunk = proc.stderr.read1(4096)
+        assert chunk, err.decode(errors="replace")
+        err += chunk
+    proc.send_signal(signal.SIGHUP)
+    time.sleep(0.5)
+    assert proc.poll() is None
+    proc.send_signal(signal.SIGTERM)
+    err += proc.stderr.read()
+    assert proc.wait(timeout=60) == 128 + signal.SIGTERM, err.decode(errors="replace")
+    assert _usd(tmp_path / "out.usdc") == ("interrupted", 3)

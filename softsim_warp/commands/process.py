@@ -4,7 +4,8 @@ and its standard output.
 Imported by ``__main__`` before the command line (and Warp) load, so it imports nothing heavy.
 
 * ``STOP_SIGNALS``: SIGINT (Ctrl-C), SIGTERM (``kill``) and SIGHUP (the terminal was closed) all ask
-  a command to stop the same way (exit 128 + signum: 130, 143, 129). After SIGHUP the terminal is
+  a command to stop the same way (exit 128 + signum: 130, 143, 129); SIGHUP not when the process
+  started with it ignored (``nohup``). After SIGHUP the terminal is
   gone and writing to it fails (``EIO``), so :func:`on_stop_signal` points standard output and
   error at ``/dev/null`` when they are that terminal: the run still closes and keeps its files.
 * :func:`guard_stdout`: standard output is written through a wrapper whose failures are
@@ -23,7 +24,10 @@ import os
 import signal
 import sys
 
-STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)
+# A process started with SIGHUP ignored (``nohup softsim run ...``) was asked to outlive its
+# terminal: it keeps ignoring it. This module is imported before any handler is installed.
+_HUP_IGNORED = signal.getsignal(signal.SIGHUP) == signal.SIG_IGN
+STOP_SIGNALS = (signal.SIGINT, signal.SIGTERM) + (() if _HUP_IGNORED else (signal.SIGHUP,))
 EXIT_BROKEN_PIPE = 128 + signal.SIGPIPE
 EXIT_STDOUT_FAILED = 2
 
