@@ -329,3 +329,14 @@ def test_nohup_keeps_ignoring_sighup(tmp_path):
     err += proc.stderr.read()
     assert proc.wait(timeout=60) == 128 + signal.SIGTERM, err.decode(errors="replace")
     assert _usd(tmp_path / "out.usdc") == ("interrupted", 3)
+
+
+def test_sighup_with_the_terminal_still_there(tmp_path):
+    """``kill -HUP`` while the terminal lives: the run stops as for SIGTERM and its closing lines
+    still reach the terminal (only a hung-up terminal is swapped for /dev/null)."""
+    run = _terminal_run(ARGS, tmp_path, "run")
+    _wait(run, lambda: b"softsim-test: paused at run" in run.out, "pause at run")
+    run.proc.send_signal(signal.SIGHUP)
+    assert run.finish() == 128 + signal.SIGHUP, run.text
+    assert "3 frames" in run.text and "-> " in run.text, run.text
+    assert _usd(tmp_path / "out.usdc") == ("interrupted", 3)

@@ -5,9 +5,10 @@ Imported by ``__main__`` before the command line (and Warp) load, so it imports 
 
 * ``STOP_SIGNALS``: SIGINT (Ctrl-C), SIGTERM (``kill``) and SIGHUP (the terminal was closed) all ask
   a command to stop the same way (exit 128 + signum: 130, 143, 129); SIGHUP not when the process
-  started with it ignored (``nohup``). After SIGHUP the terminal is
-  gone and writing to it fails (``EIO``), so :func:`on_stop_signal` points standard output and
-  error at ``/dev/null`` when they are that terminal: the run still closes and keeps its files.
+  started with it ignored (``nohup``). After SIGHUP the terminal may be gone, and writing to it
+  fails (``EIO``), so :func:`on_stop_signal` points standard output and error at ``/dev/null``
+  when they are that hung-up terminal: the run still closes and keeps its files (a ``kill -HUP``
+  with the terminal still there leaves them as they are).
 * :func:`guard_stdout`: standard output is written through a wrapper whose failures are
   :class:`StdoutError`, so ``cli.main`` can tell them from any other ``OSError``: a closed pipe
   (``softsim bench | head``) ends the command quietly with 141 (128 + SIGPIPE, what a Unix tool
@@ -32,8 +33,9 @@ EXIT_BROKEN_PIPE = 128 + signal.SIGPIPE
 EXIT_STDOUT_FAILED = 2
 
 
-def _is_terminal(fd: int) -> bool:
-    """Whether ``fd`` is a terminal, hung up or not (``isatty`` says no for a hung-up one: ``EIO``)."""
+def _is_hung_up(fd: int) -> bool:
+    """Whether ``fd`` is a terminal that was hung up: the kernel answers its ioctls with ``EIO``
+    (before it signals SIGHUP). A live terminal (``kill -HUP`` sent by hand) is not."""
     import termios  # noqa: PLC0415
 
     try:
@@ -42,13 +44,13 @@ def _is_terminal(fd: int) -> bool:
         return e.args[0] == errno.EIO
     except (OSError, ValueError):
         return False
-    return True
+    return False
 
 
 def detach_terminal():
-    """Point descriptors 1 and 2 at ``/dev/null`` where they are a terminal (called on SIGHUP)."""
+    """Point descriptors 1 and 2 at ``/dev/null`` where they are a hung-up terminal (on SIGHUP)."""
     for fd in (1, 2):
-        if _is_terminal(fd):
+        if _is_hung_up(fd):
             null = os.open(os.devnull, os.O_WRONLY)
             os.dup2(null, fd)
             os.close(null)
