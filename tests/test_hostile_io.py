@@ -571,6 +571,20 @@ def test_sublayers_that_resolve_load(tmp_path):
         load_mesh(tmp_path / "broken.usda")
 
 
+def test_other_usd_diagnostic_is_one_warning_line(tmp_path):
+    """A diagnostic that leaves the mesh whole (a reference elsewhere in the file that is missing)
+    is one ``warning:`` line of the project's form; the run goes on."""
+    _layer(tmp_path / "asset.usda", (), 'def Xform "Extra" (\n    references = @gone.usda@\n)\n{\n}\n' + TETRA)
+    scene = _jelly_scene(tmp_path, "asset.usda")
+    proc = softsim(["run", str(scene), "--out", "o.usda", "--quiet"], tmp_path)
+    assert proc.returncode == 0, proc.stderr
+    warnings = [line for line in proc.stderr.splitlines() if line.startswith("warning: ")]
+    assert len(warnings) == 1, proc.stderr
+    assert "mj.toml: jelly.0.mesh: USD: In </Extra>: Could not open asset @gone.usda@" in warnings[0]
+    assert "0x" not in warnings[0] and "stage.cpp" not in proc.stderr
+    assert (tmp_path / "o.usda").is_file()
+
+
 # --- symlinked mesh assets: the name given picks the format -------------------------------------------
 
 

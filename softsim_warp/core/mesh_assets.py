@@ -194,6 +194,7 @@ def _usd_error_gist(exc) -> str:
 _SUBLAYER_MISSING = re.compile(r"Could not load sublayer @([^@]*)@ of layer @([^@]*)@")
 _SUBLAYER_CYCLE = re.compile(r"Sublayer hierarchy with root layer @([^@]*)@ has cycles\. "
                              r"Detected when layer @([^@]*)@ was seen")
+_WARNED = set()  # (file, modification time, message) of the warnings printed
 _USD_DIAGNOSTIC = re.compile(
     r"^(?:Warning|Error|Coding Error|Fatal Error|Status): (?:in \S+ at line \d+ of \S+ -- )?(.*)$")
 
@@ -226,8 +227,13 @@ def _load_usd(path, prim_path, every, source, key):
     for line in text.splitlines():
         found = _USD_DIAGNOSTIC.match(line.strip())
         if found:
-            note = _PXR_NAMESPACE.sub("", found.group(1))
-            print(f"warning: {SceneError(source, key, f'USD: {note}', path).line()}", file=sys.stderr)
+            note = re.sub(r" \(instantiating stage on stage @[^@]*@ <0x[0-9a-f]+>\)$", "",
+                          _PXR_NAMESPACE.sub("", found.group(1)))
+            # Once per file version: the scene's checks and the model's build each read the asset.
+            seen = (os.path.realpath(path), os.stat(path).st_mtime_ns, note)
+            if seen not in _WARNED:
+                _WARNED.add(seen)
+                print(f"warning: {SceneError(source, key, f'USD: {note}', path).line()}", file=sys.stderr)
             break
     return mesh
 
