@@ -69,7 +69,8 @@ def _run(args, signals) -> int:
     outputs = Outputs()
     outputs.add_input("scene", scene.source)
     add_asset_inputs(outputs, scene)
-    out = outputs.add("--out", args.out if args.out is not None else f"{Path(scene.source).stem}.usdc", USD_SUFFIXES)
+    default_out = f"{Path(scene.source).stem}.usdc"
+    out = outputs.add("--out", args.out if args.out is not None else default_out, USD_SUFFIXES)
     metrics_path = outputs.add("--metrics", args.metrics, JSON_SUFFIXES, streams=True)
     preview_path = outputs.add("--preview", args.preview, (".gif",))
     if signals.received is not None:

@@ -132,11 +132,9 @@ def load_mesh(path, prim=None, every=True, source="<scene>", key="mesh.path") ->
 
 
 @functools.lru_cache(maxsize=32)
-def _load_cached(path, _mtime, _size, prim, every, source, key, given=None, suffix=None):
+def _load_cached(path, _mtime, _size, prim, every, source, key, given, suffix):
     """``path``: the file (symlinks resolved, the cache's key); ``given``: the name to open it by
     (its extension picks the format, for usd-core and trimesh alike); ``suffix``: that extension."""
-    given = given or path
-    suffix = suffix or Path(path).suffix.lower()
     if suffix in USD_SUFFIXES:
         mesh = _load_usd(given, prim, every, source, key)
     else:
@@ -151,7 +149,7 @@ def _load_cached(path, _mtime, _size, prim, every, source, key, given=None, suff
     return mesh
 
 
-def _load_trimesh(path, source, key, file_type=None):
+def _load_trimesh(path, source, key, file_type):
     try:
         import trimesh  # noqa: PLC0415 - optional extra
     except ImportError:
