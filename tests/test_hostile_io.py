@@ -346,9 +346,10 @@ def _read_only(directory, command):
     """``command`` run with ``directory`` read-only: a read-only bind mount in a user and mount
     namespace of its own (root ignores permission bits), else mode 0555 for a user who is not root."""
     unshare = shutil.which("unshare")
-    if unshare and subprocess.run([unshare, "-rm", "true"], capture_output=True).returncode == 0:
-        script = 'mount --bind "$1" "$1" && mount -o remount,bind,ro "$1" && shift && exec "$@"'
-        return [unshare, "-rm", "sh", "-c", script, "sh", str(directory), *command], None
+    script = 'mount --bind "$1" "$1" && mount -o remount,bind,ro "$1" && shift && exec "$@"'
+    wrap = [unshare, "-rm", "sh", "-c", script, "sh", str(directory)]
+    if unshare and subprocess.run([*wrap, "true"], capture_output=True).returncode == 0:
+        return [*wrap, *command], None
     if os.geteuid() != 0:
         directory.chmod(0o555)
         return command, "Permission denied"
