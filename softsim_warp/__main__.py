@@ -5,23 +5,28 @@ import signal
 import sys
 import time
 
+from .commands import process
+
 
 def _stop(signum, frame):
-    """SIGINT or SIGTERM while the command line's modules load: end with 128 + signum, no traceback
-    (nothing is written yet). ``cli.main`` installs its own handlers when it starts."""
-    for sig in (signal.SIGINT, signal.SIGTERM):
+    """SIGINT, SIGTERM or SIGHUP while the command line's modules load: end with 128 + signum, no
+    traceback (nothing is written yet). ``cli.main`` installs its own handlers when it starts."""
+    for sig in process.STOP_SIGNALS:
         signal.signal(sig, signal.SIG_IGN)
+    process.on_stop_signal(signum)
     sys.exit(128 + signum)
 
 
 def entry() -> int:
-    """Catch SIGINT and SIGTERM first, then import the command line (Warp with it) and run it.
+    """Catch SIGINT, SIGTERM and SIGHUP first, guard standard output (``commands/process.py``), then
+    import the command line (Warp with it) and run it.
 
     The package's own ``__init__`` runs before this (it imports Warp too): a signal during that
     import still gets Python's defaults.
     """
-    for sig in (signal.SIGINT, signal.SIGTERM):
+    for sig in process.STOP_SIGNALS:
         signal.signal(sig, _stop)
+    process.guard_stdout()
     if "import" in os.environ.get("SOFTSIM_TEST_PAUSE", "").split(","):  # test seam, see commands/common.py
         print("softsim-test: paused at import", file=sys.stderr, flush=True)
         time.sleep(60)

@@ -649,6 +649,31 @@ CASES = [
         "command line: --metrics: is a directory",
         args=(SCENE, "--metrics", "adir.usdc"),
     ),
+    # --- the process's surroundings (issue 47) ---------------------------------------------------------
+    Case(
+        "out_empty",
+        "--out '' (an unset shell variable): not the default name",
+        "command line: --out: is empty; give a file path",
+        args=(SCENE, "--out", ""),
+    ),
+    Case(
+        "metrics_empty",
+        "--metrics ''",
+        "command line: --metrics: is empty; give a file path",
+        args=(SCENE, "--metrics", ""),
+    ),
+    Case(
+        "out_name_too_long",
+        "--out name of 300 bytes",
+        "command line: --out: name too long: file name is 305 bytes; at most 227",
+        args=(SCENE, "--out", "n" * 300 + ".usdc"),
+    ),
+    Case(
+        "out_dir_name_too_long",
+        "--out in a directory whose name is 256 bytes",
+        "command line: --out: name too long: a directory name",
+        args=(SCENE, "--out", "d" * 256 + "/out.usdc"),
+    ),
 ]
 
 # One line, four parts: error: <file>: <key>: <what is wrong> (got <value>)
@@ -761,7 +786,7 @@ def markdown_table(results) -> str:
         "| --- | --- | --- | --- | --- |",
     ]
     for case, (code, line) in results:
-        cmd = "softsim run " + " ".join(case.args)
+        cmd = "softsim run " + " ".join(a or "''" for a in case.args)  # an empty argument as the shell spells it
         rows.append(f"| `{case.id}` | {_cell(case.what)} | `{_cell(cmd)}` | {code} | `{_cell(normalize(line))}` |")
     return "\n".join(rows) + "\n"
 

@@ -1,9 +1,10 @@
 """Interrupted and concurrent runs, with real ``softsim run`` processes and real signals.
 
-A run is started on a long scene (100 000 frames), the test reads its progress bar until some
-frames are done, then signals it. SIGINT and SIGTERM must leave a valid USD at the final path
-holding at least the frames reported done, and exit with 128 + signum; SIGKILL must leave an
-existing file at the final path untouched, the unfinished output only as a ``.partial`` file.
+A run is started on a long scene (100 000 frames) with its stderr on a terminal (a pty: the
+progress bar is drawn only there), the test reads the bar until some frames are done, then signals
+it. SIGINT and SIGTERM must leave a valid USD at the final path holding at least the frames
+reported done, and exit with 128 + signum; SIGKILL must leave an existing file at the final path
+untouched, the unfinished output only as a ``.partial`` file.
 """
 
 import os
@@ -11,11 +12,13 @@ import re
 import signal
 import subprocess
 import sys
-import threading
 import time
 
 import numpy as np
 import pytest
+
+sys.path.insert(0, os.path.dirname(__file__))
+from terminal import TerminalRun  # noqa: E402
 
 pytestmark = pytest.mark.skipif(sys.platform == "win32", reason="POSIX signals")
 
@@ -23,23 +26,15 @@ LONG = ["run", "jelly_drop", "--frames", "100000", "--no-graph"]
 STARTUP_TIMEOUT = 180  # seconds until the first frames; generous for a cold kernel cache on a busy machine
 
 
-class Run:
-    """A ``softsim run`` subprocess whose stderr is read continuously (tqdm writes ``k/total``)."""
+class Run(TerminalRun):
+    """A ``softsim run`` subprocess whose stderr, a terminal, is read continuously (tqdm writes ``k/total``)."""
 
     def __init__(self, args, cwd):
-        self.proc = subprocess.Popen(
-            [sys.executable, "-m", "softsim_warp", *args],
-            cwd=cwd,
-            stdout=subprocess.DEVNULL,
-            stderr=subprocess.PIPE,
-        )
-        self.err = b""
-        self._reader = threading.Thread(target=self._read, daemon=True)
-        self._reader.start()
+        super().__init__([sys.executable, "-m", "softsim_warp", *args], cwd)
 
-    def _read(self):
-        for chunk in iter(lambda: self.proc.stderr.read1(4096), b""):
-            self.err += chunk
+    @property
+    def err(self) -> bytes:
+        return self.out
 
     def frames_done(self) -> int:
         counts = re.findall(rb"(\d+)/100001", self.err)
@@ -55,11 +50,6 @@ class Run:
                 pytest.fail("no progress within the start-up timeout")
             time.sleep(0.05)
         return self.frames_done()
-
-    def finish(self, timeout=60):
-        code = self.proc.wait(timeout=timeout)
-        self._reader.join(timeout=5)
-        return code
 
 
 def _open_usd(path):

@@ -11,6 +11,7 @@ import signal
 import subprocess
 import sys
 import threading
+import time
 
 import numpy as np
 import pytest
@@ -121,22 +122,17 @@ def test_failed_run_keeps_the_good_output(tmp_path, monkeypatch, capsys):
 
 def _interrupted(tmp_path, command, *argv) -> bytes:
     """stderr of ``softsim <command> jelly_drop`` (3^3, 100,000 frames, no graphs) sent SIGINT after its
-    third frame; asserts the exit code 130."""
-    proc = subprocess.Popen(
-        [sys.executable, "-m", "softsim_warp", command, "jelly_drop", "--frames", "100000", "--no-graph",
-         "--set", "jelly.0.resolution=[3,3,3]", *argv],
-        cwd=tmp_path, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
-    )
-    err = b""
-    while err.count(b"/100001") < 3:
-        chunk = proc.stderr.read1(4096)
-        if not chunk:
-            break
-        err += chunk
-    proc.send_signal(signal.SIGINT)
-    err += proc.stderr.read()
-    assert proc.wait(timeout=120) == 130, err.decode(errors="replace")
-    return err
+    third frame; asserts the exit code 130. stderr is a terminal (a pty), where the progress bar is drawn."""
+    from tests.terminal import TerminalRun  # noqa: PLC0415
+
+    run = TerminalRun([sys.executable, "-m", "softsim_warp", command, "jelly_drop", "--frames", "100000", "--no-graph",
+                       "--set", "jelly.0.resolution=[3,3,3]", *argv], tmp_path)
+    deadline = time.monotonic() + 180
+    while run.out.count(b"/100001") < 3 and run.proc.poll() is None and time.monotonic() < deadline:
+        time.sleep(0.01)
+    run.proc.send_signal(signal.SIGINT)
+    assert run.finish(timeout=120) == 130, run.text
+    return run.out.replace(b"\r\n", b"\n")
 
 
 def test_interrupted_run_does_not_replace_an_existing_output(tmp_path):

@@ -222,3 +222,121 @@ def test_signal_while_the_gif_is_saved(sig, tmp_path, good):
     # Unchanged, unless the save won the race with the signal (then the new GIF is whole and in place).
     assert (tmp_path / "p.gif").read_bytes() == good["p.gif"] or "frames -> " in run.stderr
     assert _usd(tmp_path / "out.usdc") == ("complete", 121)
+
+
+# SIGHUP (the terminal was closed) is a stop signal like SIGTERM: exit 129, the frames kept and marked.
+HUP_PHASES = [("import", False), ("start", True), ("scene", False), ("compile", True), ("run", True), ("run", False),
+              ("save", True)]
+
+
+@pytest.mark.parametrize("phase,existed", HUP_PHASES, ids=[f"{p}-{'existing' if e else 'new'}" for p, e in HUP_PHASES])
+def test_sighup_at_phase(phase, existed, tmp_path, good):
+    test_signal_at_phase(phase, existed, signal.SIGHUP, tmp_path, good)
+
+
+def _terminal_run(args, cwd, pauses="", controlling=False):
+    sys.path.insert(0, os.path.dirname(__file__))
+    from terminal import TerminalRun  # noqa: PLC0415
+
+    env = dict(os.environ)
+    env.pop("SOFTSIM_TEST_PAUSE", None)
+    if pauses:
+        env["SOFTSIM_TEST_PAUSE"] = pauses
+    return TerminalRun([sys.executable, "-m", "softsim_warp", *args], cwd, env=env, controlling=controlling)
+
+
+def _wait(run, ready, what):
+    deadline = time.monotonic() + TIMEOUT
+    while not ready():
+        if run.proc.poll() is not None or time.monotonic() > deadline:
+            run.proc.kill()
+            pytest.fail(f"no {what}:\n{run.text}")
+        time.sleep(0.01)
+
+
+def test_terminal_closed_keeps_frames(tmp_path, good):
+    """The run's controlling terminal is closed (a real hang-up, not a signal sent by the test): the
+    kernel sends SIGHUP and every later write to the terminal fails with EIO. The run still stops
+    after the frame in progress, keeps frames 0..2 marked interrupted beside the existing outputs,
+    leaves no temporary or lock, and exits with 129."""
+    _place(tmp_path, good)
+    run = _terminal_run(ARGS, tmp_path, "run", controlling=True)
+    _wait(run, lambda: b"softsim-test: paused at run" in run.out, "pause at run")
+    run.hang_up()
+    code = run.finish()
+    assert code == 128 + signal.SIGHUP
+    assert hidden_files(tmp_path) == []
+    _check_unchanged(tmp_path, True, good)
+    _check_frames(tmp_path, True, good, 3)
+
+
+def hidden_files(directory):
+    return sorted(p.name for p in directory.iterdir() if p.name.startswith("."))
+
+
+def test_sighup_stops_compare(tmp_path):
+    """compare (its own handler, common.Signals): SIGHUP stops after the frame in progress, 129, the
+    frames kept and marked interrupted."""
+    import re  # noqa: PLC0415
+
+    run = _terminal_run(["compare", "jelly_drop", "--integrators", "euler,symplectic", "--frames", "100000",
+                         "--no-graph", "--out", "c.usdc"], tmp_path)
+
+    def frames_done():
+        counts = re.findall(rb"(\d+)/100001", run.out)
+        return int(counts[-1]) if counts else 0
+
+    _wait(run, lambda: frames_done() >= 3, "3 frames")
+    run.proc.send_signal(signal.SIGHUP)
+    assert run.finish() == 128 + signal.SIGHUP, run.text
+    assert "Traceback" not in run.text
+    from pxr import Usd  # noqa: PLC0415
+
+    stage = Usd.Stage.Open(str(tmp_path / "c.usdc"))
+    assert stage.GetRootLayer().customLayerData["softsim:status"] == "interrupted"
+    assert hidden_files(tmp_path) == []
+
+
+@pytest.mark.parametrize("args", [["scenes"], ["preview", "x.usdc", "--png", "x.png"],
+                                  ["bench", "--sizes", "2"], ["accuracy", "jelly_drop"], ["stability", "jelly_drop"],
+                                  ["sweep", "jelly_drop", "--vary", "jelly.0.particle_mass=0.01,0.02"]],
+                         ids=lambda a: a[0])
+def test_sighup_in_every_command(args, tmp_path):
+    """Every command ends with 129 on SIGHUP (cli.main's handler), quietly and leaving nothing."""
+    run = Run(tmp_path, "start", args=args)
+    run.wait_for("start")
+    run.send(signal.SIGHUP)
+    _check_clean(tmp_path, run, run.finish(), signal.SIGHUP)
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_nohup_keeps_ignoring_sighup(tmp_path):
+    """Started with SIGHUP ignored (``nohup``), a run outlives its terminal: SIGHUP changes nothing,
+    and the SIGTERM sent after it is the signal that stops the run (143, frames 0..2 kept)."""
+    env = dict(os.environ, SOFTSIM_TEST_PAUSE="run")
+    proc = subprocess.Popen([sys.executable, "-m", "softsim_warp", *ARGS], cwd=tmp_path, env=env,
+                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
+                            preexec_fn=lambda: signal.signal(signal.SIGHUP, signal.SIG_IGN))
+    err = b""
+    while b"softsim-test: paused at run" not in err:
+        chunk = proc.stderr.read1(4096)
+        assert chunk, err.decode(errors="replace")
+        err += chunk
+    proc.send_signal(signal.SIGHUP)
+    time.sleep(0.5)
+    assert proc.poll() is None
+    proc.send_signal(signal.SIGTERM)
+    err += proc.stderr.read()
+    assert proc.wait(timeout=60) == 128 + signal.SIGTERM, err.decode(errors="replace")
+    assert _usd(tmp_path / "out.usdc") == ("interrupted", 3)
+
+
+def test_sighup_with_the_terminal_still_there(tmp_path):
+    """``kill -HUP`` while the terminal lives: the run stops as for SIGTERM and its closing lines
+    still reach the terminal (only a hung-up terminal is swapped for /dev/null)."""
+    run = _terminal_run(ARGS, tmp_path, "run")
+    _wait(run, lambda: b"softsim-test: paused at run" in run.out, "pause at run")
+    run.proc.send_signal(signal.SIGHUP)
+    assert run.finish() == 128 + signal.SIGHUP, run.text
+    assert "3 frames" in run.text and "-> " in run.text, run.text
+    assert _usd(tmp_path / "out.usdc") == ("interrupted", 3)

@@ -484,10 +484,7 @@ def run(args) -> int:
     if args.peer and args.scene:
         raise CommandLineError("--peer", "compares the size sweep only; leave out --scene", args.peer)
     _check_flags(args)
-    import warp as wp  # noqa: PLC0415
-
-    wp.config.quiet = True
-    wp.init()
+    # Warp is initialised (quietly) by cli.main before any command that uses it.
     # The scene and its --set values are validated before any output is checked or anything measured.
     scene = load_scene(args.scene, args.overrides) if args.scene else None
     outputs = Outputs()

@@ -5,12 +5,18 @@ Each subcommand module has ``COMMAND`` (its name), ``add_parser(subparsers, add_
 ``error: <file>: <key>: <what is wrong> (got <value>)`` and exits with 2; ``--debug`` shows the
 traceback instead.
 
-SIGINT and SIGTERM end any command with 128 + signum (130, 143) and no traceback: a command may
-catch them itself while it works (``softsim run`` stops after the frame in progress, see
-``common.Signals``); everywhere else in ``main`` the first one stops at once, as a
+SIGINT, SIGTERM and SIGHUP end any command with 128 + signum (130, 143, 129) and no traceback
+(``process.STOP_SIGNALS``): a command may catch them itself while it works (``softsim run`` stops
+after the frame in progress, see ``common.Signals``); everywhere else in ``main`` the first one stops at once, as a
 ``KeyboardInterrupt`` whose cleanup (temporaries removed, locks released) later signals do not
 interrupt. A signal before ``main`` runs, while Python imports the package (and Warp with it),
 still gets Python's defaults.
+
+Before the command runs, every path flag is checked not to be empty (``--out ''``, an unset shell
+variable, is an error, not the default name) and Warp is initialised quietly with its kernel cache
+checked (``common.init_warp``), for every command that uses Warp. Standard output failing
+(``process.StdoutError``) ends any command the same way: quietly with 141 for a closed pipe, else
+one line and exit 2.
 """
 
 from __future__ import annotations
@@ -27,9 +33,12 @@ import warnings
 
 from ..core import stepper
 from ..core.errors import CommandLineError, UserError
-from . import accuracy, bench, common, compare, preview, run, scenes, stability, sweep
+from . import accuracy, bench, common, compare, preview, process, run, scenes, stability, sweep
 
 SUBCOMMANDS = (run, scenes, compare, preview, bench, accuracy, stability, sweep)
+NO_WARP = ("scenes", "preview")  # commands that never start Warp
+# Arguments that name a file (input or output), in any command: none may be the empty string.
+PATH_ARGUMENTS = ("scene", "usd", "out", "metrics", "plot", "png", "gif", "preview")
 
 
 class _Parser(argparse.ArgumentParser):
@@ -77,7 +86,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 
 class _Stop:
-    """main's own SIGINT/SIGTERM handler: the first signal raises ``KeyboardInterrupt`` (while
+    """main's own SIGINT/SIGTERM/SIGHUP handler: the first signal raises ``KeyboardInterrupt`` (while
     ``armed``), later ones are only recorded, so the cleanup the first one starts runs to the end."""
 
     def __init__(self):
@@ -87,16 +96,17 @@ class _Stop:
     def __call__(self, signum, frame):
         if self.received is None:
             self.received = signum
+        process.on_stop_signal(signum)
         if self.armed:
             self.armed = False
             raise KeyboardInterrupt
 
 
 def _install(handler) -> dict:
-    """Point SIGINT and SIGTERM at ``handler``; returns the previous handlers ({} off the main thread)."""
+    """Point SIGINT, SIGTERM and SIGHUP at ``handler``; returns the previous handlers ({} off the main thread)."""
     if threading.current_thread() is not threading.main_thread():
         return {}
-    return {sig: signal.signal(sig, handler) for sig in (signal.SIGINT, signal.SIGTERM)}
+    return {sig: signal.signal(sig, handler) for sig in process.STOP_SIGNALS}
 
 
 def _received_signal(stop: _Stop) -> int:
@@ -107,9 +117,10 @@ def _received_signal(stop: _Stop) -> int:
 def main(argv=None) -> int:
     """Run the command in ``argv`` (default ``sys.argv[1:]``); returns the exit code.
 
-    Called without ``argv`` (the process's entry point), SIGINT and SIGTERM are ignored after it
-    returns, while the process exits; called with ``argv`` (in-process, tests), the previous
-    handlers are restored.
+    Called without ``argv`` (the process's entry point), the stop signals are ignored after it
+    returns, while the process exits, and standard output is flushed here (a failure to write it
+    is reported like any other); called with ``argv`` (in-process, tests), the previous handlers
+    are restored.
     """
     entry = argv is None
     argv = sys.argv[1:] if argv is None else list(argv)
@@ -118,10 +129,14 @@ def main(argv=None) -> int:
     try:
         try:
             code = _main(argv)
+            if entry:
+                sys.stdout.flush()
         finally:
             stop.armed = False  # from here on a signal is only recorded
     except KeyboardInterrupt:
         code = 128 + _received_signal(stop)
+    except process.StdoutError as e:
+        code = process.stdout_failed(e)
     finally:
         for sig, old in previous.items():
             # In-process, the caller's handlers come back. At the process's end signals are ignored:
@@ -159,6 +174,9 @@ def _main(argv) -> int:
         commands = {m.COMMAND: m.run for m in SUBCOMMANDS}
         parser.command = next((a for a in argv if a in commands), None)
         args = parser.parse_args(argv)
+        _check_paths(parser, args)
+        if args.command not in NO_WARP:
+            common.init_warp(getattr(args, "debug", False))
         notice = functools.partial(common.compile_notice, getattr(args, "quiet", False))
         stepper.WARM_UP_HOOKS.append(notice)
         try:
@@ -171,3 +189,14 @@ def _main(argv) -> int:
             traceback.print_exc()
         print(f"error: {e.line()}", file=sys.stderr)
         return e.exit_code
+
+
+def _check_paths(parser, args):
+    """Refuse an empty file name in any path argument (an unset shell variable: ``--out "$OUT"``)
+    before anything else: taken as "not given", it would select the default name and replace that file."""
+    sub = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction)).choices[args.command]
+    for action in sub._actions:
+        if action.dest in PATH_ARGUMENTS and getattr(args, action.dest, None) == "":
+            flag = action.option_strings[-1] if action.option_strings else action.dest
+            what = "a scene file or built-in scene name" if action.dest == "scene" else "a file path"
+            raise CommandLineError(flag, f"is empty; give {what}", "")

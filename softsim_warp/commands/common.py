@@ -15,7 +15,9 @@ import threading
 import time
 
 from ..core.errors import CommandLineError, SceneError, UserError
+from ..core.native_output import held_stderr
 from ..io import scene as scene_mod
+from . import process
 
 EXIT_EXPLODED = 3
 ALL_INTEGRATORS = ("euler", "symplectic", "midpoint", "rk4", "implicit")
@@ -103,28 +105,50 @@ def init_warp_for_meshes(data, args):
 
 
 def init_warp(debug=False):
-    """Import and initialise Warp without its banner, module-load lines or missing-driver notice.
+    """Import and initialise Warp without its banner, module-load lines or missing-driver notice,
+    and check that its kernel cache can be written.
 
-    A user error must read as one line; Warp prints a start-up banner and, on a machine without a
-    CUDA driver, a notice from native code straight to file descriptor 2. Both are held back
-    unless ``debug``.
+    A user error must read as one line; Warp prints a start-up banner (on stdout) and, on a machine
+    without a CUDA driver, a notice from native code straight to file descriptor 2. Both are held
+    back unless ``debug``. ``cli.main`` calls this before every command that uses Warp.
+
+    A kernel cache that cannot be created or written (``HOME=/proc``, ``WARP_CACHE_PATH`` read-only
+    or naming a file) is a one-line error naming the directory, raised before any work.
     """
     import warp as wp  # noqa: PLC0415
 
-    if debug:
-        wp.init()
-        return wp
-    wp.config.log_level = wp.LOG_WARNING
-    sys.stderr.flush()
-    saved = os.dup(2)
-    with tempfile.TemporaryFile() as held:
-        os.dup2(held.fileno(), 2)
-        try:
+    try:
+        if debug:
             wp.init()
-        finally:
-            os.dup2(saved, 2)
-            os.close(saved)
+        else:
+            wp.config.quiet = True
+            wp.config.log_level = wp.LOG_WARNING
+            with held_stderr():
+                wp.init()
+    except OSError as e:
+        raise _kernel_cache_error(wp, e) from None
+    try:
+        fd, probe = tempfile.mkstemp(prefix=".softsim-probe-", dir=wp.config.kernel_cache_dir)
+    except OSError as e:
+        raise _kernel_cache_error(wp, e) from None
+    os.close(fd)
+    os.unlink(probe)
     return wp
+
+
+def _kernel_cache_error(wp, error: OSError) -> UserError:
+    """The one line for a Warp kernel cache that cannot be made or written (``wp.init`` sets
+    ``kernel_cache_dir`` before it creates the directory)."""
+    cache = wp.config.kernel_cache_dir
+    given = os.environ.get("WARP_CACHE_PATH")
+    name = os.fspath(error.filename) if error.filename else cache
+    where = "" if name == cache or name.startswith(cache + os.sep) else f" ('{name}')"
+    return UserError(
+        "environment", "WARP_CACHE_PATH",
+        f"cannot use '{cache}' as Warp's kernel cache: {error.strerror or error}{where}; "
+        "set WARP_CACHE_PATH to a writable directory",
+        given, has_value=given is not None,
+    )
 
 
 COMPILE_NOTICE_AFTER = 1.0  # seconds; loading cached kernels takes milliseconds
@@ -218,7 +242,7 @@ def check_deterministic(integrator: str, device):
 
 
 class Signals:
-    """Turns SIGINT/SIGTERM into a request to stop after the current frame.
+    """Turns SIGINT/SIGTERM/SIGHUP (``process.STOP_SIGNALS``) into a request to stop after the current frame.
 
     The first signal is recorded (``received``) and the command stops at its next check; a second
     one stops at once (``KeyboardInterrupt``). At most one ``KeyboardInterrupt`` is ever raised:
@@ -245,7 +269,7 @@ class Signals:
 
     def __enter__(self):
         self._old = {}
-        for sig in (signal.SIGINT, signal.SIGTERM):
+        for sig in process.STOP_SIGNALS:
             self._old[sig] = signal.signal(sig, self._handle)
         return self
 
@@ -265,6 +289,7 @@ class Signals:
         first = self.received is None
         if first:
             self.received = signum
+        process.on_stop_signal(signum)
         if self.stopped or self.closing or self.busy():
             return
         if self._regions and not self._stoppable:
@@ -275,7 +300,7 @@ class Signals:
         raise KeyboardInterrupt
 
     def exit_code(self) -> int:
-        """128 + the first signal (130 for SIGINT, 143 for SIGTERM)."""
+        """128 + the first signal (130 for SIGINT, 143 for SIGTERM, 129 for SIGHUP)."""
         return 128 + int(self.received or signal.SIGINT)
 
     def __exit__(self, *exc):

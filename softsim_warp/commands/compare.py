@@ -93,7 +93,8 @@ def run(args) -> int:
     outputs = Outputs()
     outputs.add_input("scene", plan.source)
     add_asset_inputs(outputs, *(v.data for v in plan.variants))
-    out = outputs.add("--out", args.out or f"{Path(plan.source).stem}_compare.usdc", USD_SUFFIXES)
+    out = outputs.add("--out", args.out if args.out is not None else f"{Path(plan.source).stem}_compare.usdc",
+                      USD_SUFFIXES)
     outputs.add("--metrics", args.metrics, JSON_SUFFIXES, streams=True)
     outputs.add("--plot", args.plot, (".png",))
     if args.columns is not None and args.columns < 1:
@@ -107,12 +108,7 @@ def run(args) -> int:
     stable_step.check_variants([v.data for v in plan.variants], plan.source, [v.name for v in plan.variants],
                                blame=lambda e: common.blame_flag(e, args), refuse=not args.allow_unstable)
 
-    progress = None
-    if not args.quiet:
-        from tqdm import tqdm  # noqa: PLC0415
-
-        progress = tqdm(total=plan.frames + 1, unit="frame", desc=f"{plan.name} x{len(plan.variants)}",
-                        file=sys.stderr, leave=False)
+    progress = common.progress_bar(plan.frames + 1, f"{plan.name} x{len(plan.variants)}", "frame", args.quiet)
     try:
         with common.Signals(regions=True) as signals, outputs:
             common.ACTIVE_SIGNALS = signals

@@ -73,7 +73,8 @@ def _run(args, signals) -> int:
     outputs = Outputs()
     outputs.add_input("scene", scene.source)
     add_asset_inputs(outputs, scene)
-    out = outputs.add("--out", args.out or f"{Path(scene.source).stem}.usdc", USD_SUFFIXES)
+    default_out = f"{Path(scene.source).stem}.usdc"
+    out = outputs.add("--out", args.out if args.out is not None else default_out, USD_SUFFIXES)
     metrics_path = outputs.add("--metrics", args.metrics, JSON_SUFFIXES, streams=True)
     preview_path = outputs.add("--preview", args.preview, (".gif",))
     if signals.received is not None:
@@ -108,11 +109,7 @@ def _run_locked(args, signals, scene, out, metrics_path, preview_path) -> int:
         if signals.received is not None:  # nothing simulated: no output
             writer.discard()
             return signals.exit_code()
-        if not args.quiet:
-            from tqdm import tqdm  # noqa: PLC0415
-
-            progress = tqdm(total=frames + 1, unit="frame", desc=f"{scene.name} {sim['integrator']}", file=sys.stderr,
-                            leave=False)
+        progress = common.progress_bar(frames + 1, f"{scene.name} {sim['integrator']}", "frame", args.quiet)
         simulator.stop_requested = lambda: signals.received
         if "run" in TEST_PAUSES:
             def stop_requested():

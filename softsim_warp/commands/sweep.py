@@ -230,7 +230,8 @@ def run(args) -> int:
     outputs = Outputs()
     outputs.add_input("scene", source)
     add_asset_inputs(outputs, *(v.data for v in variants))
-    out = outputs.add("--out", args.out or f"{path.stem}_sweep.parquet", engine.RESULT_SUFFIXES)
+    default_out = f"{path.stem}_sweep.parquet"
+    out = outputs.add("--out", args.out if args.out is not None else default_out, engine.RESULT_SUFFIXES)
     plot_path = outputs.add("--plot", args.plot, (".png", ".pdf", ".svg"))
     device = args.device
     gpus = 0
@@ -320,11 +321,7 @@ def run(args) -> int:
                     finally:
                         writing[0] = False
 
-                progress = None
-                if not args.quiet:
-                    from tqdm import tqdm  # noqa: PLC0415
-
-                    progress = tqdm(total=len(todo), unit="variant", desc=name, file=sys.stderr, leave=False)
+                progress = common.progress_bar(len(todo), name, "variant", args.quiet)
                 try:
                     outcome = engine.run_tasks(cluster, fn, specs, on_rows, stop_requested=lambda: signals.received,
                                                progress=progress)

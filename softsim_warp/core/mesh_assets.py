@@ -24,7 +24,8 @@ from pathlib import Path
 
 import numpy as np
 
-from .errors import SceneError
+from .errors import SceneError, warn
+from .native_output import held_stderr
 from .terrain import fan_triangles, signed_volume
 
 USD_SUFFIXES = (".usd", ".usda", ".usdc")
@@ -163,10 +164,19 @@ def load_mesh(path, prim=None, colliders=True, source="<scene>", key="mesh.path"
         source, key: the scene file and key that named it, for error messages.
         up_axis, units: an OBJ/STL/PLY file's up axis ("Y" or "Z") and metres per unit (a number
             or a name in ``UNITS``); None: y up, metres. A USD file says its own.
+
+    The format follows from the name given, not from the name a symlink points to (a content store
+    names its files by hash: ``c.usda -> store/3f9a1c`` is USD, ``f.usda -> floor.obj`` is USD too).
     """
     p = Path(path)
-    if not p.is_file():
-        raise SceneError(source, key, "no such mesh file" if not p.exists() else "is not a regular file", str(path))
+    try:
+        if not p.is_file():
+            raise SceneError(source, key, "no such mesh file" if not p.exists() else "is not a regular file", str(path))
+        st = os.stat(p)
+        given = os.path.abspath(p)
+        resolved = str(p.resolve())
+    except OSError as e:  # a name too long, a loop of links, a directory without search permission
+        raise SceneError(source, key, f"cannot read the file: {e.strerror or e}", str(path)) from None
     suffix = p.suffix.lower()
     if suffix not in USD_SUFFIXES + TRIMESH_SUFFIXES:
         raise SceneError(source, key, f"unknown mesh format; use {', '.join(USD_SUFFIXES + TRIMESH_SUFFIXES)}", str(path))
@@ -180,8 +190,8 @@ def load_mesh(path, prim=None, colliders=True, source="<scene>", key="mesh.path"
     axis = "Y" if up_axis is None else str(up_axis)
     if axis not in UP_AXES:
         raise SceneError(source, f"{base}.up_axis", f"must be one of {', '.join(UP_AXES)}", up_axis)
-    st = os.stat(p)
-    return _load_cached(str(p.resolve()), st.st_mtime_ns, st.st_size, prim, bool(colliders), source, key, axis, meters)
+    return _load_cached(resolved, st.st_mtime_ns, st.st_size, prim, bool(colliders), source, key, axis, meters, given,
+                        suffix)
 
 
 def meters_per_unit(units, source="<scene>", key="units") -> float:
@@ -213,14 +223,16 @@ def _to_y_up(points, meters, axis):
 
 
 @functools.lru_cache(maxsize=32)
-def _load_cached(path, _mtime, _size, prim, colliders, source, key, axis, meters):
-    if path.lower().endswith(USD_SUFFIXES):
-        mesh = _load_usd(path, prim, colliders, source, key)
+def _load_cached(path, _mtime, _size, prim, colliders, source, key, axis, meters, given, suffix):
+    """``path``: the file (symlinks resolved, the cache's key); ``given``: the name to open it by
+    (its extension picks the format, for usd-core and trimesh alike); ``suffix``: that extension."""
+    if suffix in USD_SUFFIXES:
+        mesh = _load_usd(given, prim, colliders, source, key)
     else:
         if prim is not None:
             raise SceneError(source, key.rsplit(".", 1)[0] + (".prim" if key.endswith(".path") else ".mesh_prim"),
                              "only a USD file has prims", prim)
-        mesh = _load_trimesh(path, source, key)
+        mesh = _load_trimesh(given, source, key, suffix.lstrip("."))
         mesh = MeshAsset(_to_y_up(mesh.points, meters, axis), mesh.counts, mesh.indices, mesh.primvars, mesh.name)
     if mesh.points.shape[0] == 0 or mesh.triangles.shape[0] == 0:
         raise SceneError(source, key, "the mesh has no faces", path)
@@ -229,7 +241,7 @@ def _load_cached(path, _mtime, _size, prim, colliders, source, key, axis, meters
     return mesh
 
 
-def _load_trimesh(path, source, key):
+def _load_trimesh(path, source, key, file_type):
     try:
         import trimesh  # noqa: PLC0415 - optional extra
     except ImportError:
@@ -246,7 +258,7 @@ def _load_trimesh(path, source, key):
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
-            tm = trimesh.load(path, force="mesh", process=False)
+            tm = trimesh.load(path, file_type=file_type, force="mesh", process=False)
             faces = np.asarray(getattr(tm, "faces", np.zeros((0, 3))), dtype=np.int64).reshape(-1, 3)
             points = np.asarray(getattr(tm, "vertices", np.zeros((0, 3))), dtype=np.float64).reshape(-1, 3)
             uv = getattr(getattr(tm, "visual", None), "uv", None)
@@ -281,17 +293,48 @@ def _usd_error_gist(exc) -> str:
     return type(exc).__name__
 
 
+# USD's warnings about the layer stack: the asset is not what its author composed.
+_SUBLAYER_MISSING = re.compile(r"Could not load sublayer @([^@]*)@ of layer @([^@]*)@")
+_SUBLAYER_CYCLE = re.compile(r"Sublayer hierarchy with root layer @([^@]*)@ has cycles\. "
+                             r"Detected when layer @([^@]*)@ was seen")
+_USD_DIAGNOSTIC = re.compile(
+    r"^(?:Warning|Error|Coding Error|Fatal Error|Status): (?:in \S+ at line \d+ of \S+ -- )?(.*)$")
+
+
 def _load_usd(path, prim_path, colliders, source, key):
+    """Read a USD asset; USD's own diagnostics (written by C++ straight to descriptor 2) become the
+    project's lines: a sublayer that is missing or part of a cycle is an error (the asset is not
+    what its author composed, and USD skips that sublayer silently but for its warning), any
+    other diagnostic one ``warning:`` line on stderr."""
     from pxr import Tf  # noqa: PLC0415
 
     try:
-        return _read_usd(path, prim_path, colliders, source, key)
+        with held_stderr() as held:
+            mesh = _read_usd(path, prim_path, colliders, source, key)
     except Tf.ErrorException as e:
         # Not USD (text in a .usdc), a syntax error in a .usda, a damaged crate file whose values
         # fail to read: the file's fault, one line.
         raise SceneError(
             source, key, f"cannot be read as USD ({_usd_error_gist(e)}); give {USD_EXPECTED}", path
         ) from None
+    text = held[0] if held else ""
+    missing = _SUBLAYER_MISSING.search(text)
+    if missing:
+        raise SceneError(source, key, f"its sublayer @{missing.group(1)}@ (in @{missing.group(2)}@) cannot be opened; "
+                         "give the missing file or remove it from subLayers", path)
+    cycle = _SUBLAYER_CYCLE.search(text)
+    if cycle:
+        raise SceneError(source, key, f"its subLayers form a cycle (@{cycle.group(2)}@ is reached twice, from "
+                         f"@{cycle.group(1)}@); remove one of the subLayers entries", path)
+    for line in text.splitlines():
+        found = _USD_DIAGNOSTIC.match(line.strip())
+        if found:
+            note = re.sub(r" \(instantiating stage on stage @[^@]*@ <0x[0-9a-f]+>\)$", "",
+                          _PXR_NAMESPACE.sub("", found.group(1)))
+            # Once per process: the scene's checks and the model's build each read the asset.
+            warn(source, key, f"USD: {note}", path)
+            break
+    return mesh
 
 
 def _read_usd(path, prim_path, colliders, source, key):

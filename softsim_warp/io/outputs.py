@@ -35,8 +35,15 @@ JSON_SUFFIXES = (".json",)
 
 
 def target_of(path) -> Path:
-    """The file ``path`` names, symlinks followed (absolute): what a write must change."""
-    return Path(os.path.realpath(os.fspath(path)))
+    """The file ``path`` names, symlinks followed (absolute): what a write must change.
+
+    A link that resolves to no path although it opens (``/dev/stdout`` on a pipe: ``/proc/self/fd/1``
+    reads ``pipe:[N]``) is its own target: opening the name reaches the stream.
+    """
+    real = os.path.realpath(os.fspath(path))
+    if not os.path.lexists(real) and os.path.exists(path):
+        return Path(os.path.abspath(path))
+    return Path(real)
 
 
 def is_stream(path) -> bool:
@@ -164,13 +171,70 @@ def save_report(data, out=None, plot_path=None, plot=None):
         save_atomic(plot_path, lambda tmp: plot(data, tmp), "--plot")
 
 
+NAME_MAX = 255  # bytes in one file name on Linux file systems (ext4, xfs, btrfs, tmpfs)
+# What the longest name derived from an output adds to its name: the hidden temporary of the
+# <stem>.partial<ext> that a run keeps beside an existing output, .<stem>.partial.partial-<pid><ext>
+# (a pid has at most 10 digits).
+_TEMPORARY_EXTRA = len(".") + len(".partial") + len(".partial-") + 10
+
+
+def _stream_kind(path) -> str:
+    mode = os.stat(path).st_mode
+    for test, kind in ((stat.S_ISFIFO, "a pipe or FIFO"), (stat.S_ISCHR, "a character device"),
+                       (stat.S_ISSOCK, "a socket"), (stat.S_ISBLK, "a block device")):
+        if test(mode):
+            return kind
+    return "a special file"
+
+
+def _check_name_lengths(path, flag: str):
+    """Refuse a path with a name longer than the file system allows, the output's own name counting
+    the names derived from it beside it (its temporary ``.<stem>.partial-<pid><ext>``, its lock, the
+    ``<stem>.partial<ext>`` of a run that did not complete and that file's temporary)."""
+    parts = Path(path).parts
+    for i, part in enumerate(parts):
+        size = len(os.fsencode(part))
+        last = i == len(parts) - 1
+        limit = NAME_MAX - _TEMPORARY_EXTRA if last else NAME_MAX
+        if size > limit:
+            shown = part if len(part) <= 40 else part[:20] + "..." + part[-12:]
+            what = (f"file name is {size} bytes; at most {limit} (the file system allows {NAME_MAX} per name, "
+                    "and the temporaries beside it add up to 28 bytes to the name)" if last else
+                    f"a directory name ('{shown}') is {size} bytes; the file system allows at most {NAME_MAX}")
+            raise CommandLineError(flag, f"name too long: {what}", os.fspath(path))
+
+
+def _absolute_or_error(path, flag: str):
+    """``path`` made absolute; a one-line error when it is relative and the current directory is gone."""
+    try:
+        return os.path.abspath(path)
+    except FileNotFoundError:
+        raise CommandLineError(
+            flag, "is a relative path and the current directory no longer exists (it was deleted); "
+            "cd to an existing directory or give an absolute path", os.fspath(path)
+        ) from None
+
+
 def check_writable(path, flag: str) -> Path:
     """Refuse an output path that cannot be written, before any simulation work is done.
 
     The target's directory is probed by creating (and removing) the temporary file the command
     will use, so permissions, read-only file systems and full inode tables are all found now; this
-    holds for root too, for whom ``os.access`` says yes to everything.
+    holds for root too, for whom ``os.access`` says yes to everything. An empty path (an unset
+    shell variable), a name too long for the file system and a relative path in a deleted current
+    directory are refused here too.
     """
+    if os.fspath(path) == "":
+        raise CommandLineError(flag, "is empty; give a file path", "")
+    _check_name_lengths(path, flag)
+    _absolute_or_error(path, flag)
+    try:
+        return _check_writable(path, flag)
+    except OSError as e:  # a path the system refuses to look at (ELOOP, EACCES on a parent, ENAMETOOLONG)
+        raise CommandLineError(flag, f"cannot use this path: {e.strerror or e}", os.fspath(path)) from None
+
+
+def _check_writable(path, flag: str) -> Path:
     p = Path(path)
     if p.is_dir():
         raise CommandLineError(flag, "is a directory; give a file name", str(p))
@@ -259,8 +323,11 @@ class Outputs:
             return None
         p = check_writable(path, flag)
         if is_stream(p):  # /dev/null twice, or --metrics /dev/stdout with a plot to /dev/stdout: no file to lose
-            if not streams:
-                check_suffix(p, flag, suffixes)
+            if not streams and suffixes and p.suffix not in suffixes:
+                # The format follows from the extension, which a device or a pipe does not have.
+                allowed = "/".join(suffixes)
+                what = f"is {_stream_kind(p)}, not a regular file path (unsupported file extension)"
+                raise CommandLineError(flag, f"{what}; give a {allowed} file path", str(p))
             return p
         ident = _identity(p)
         for other_flag, other, other_ident in self._inputs:
@@ -311,8 +378,14 @@ class Outputs:
             if same:
                 break
             os.close(fd)
-        os.ftruncate(fd, 0)
-        os.write(fd, str(os.getpid()).encode())
+        try:
+            os.ftruncate(fd, 0)
+            os.write(fd, str(os.getpid()).encode())
+        except OSError as e:  # a full disk or quota: the lock file is ours (locked), so remove it
+            discard(lock_path)
+            os.close(fd)
+            raise CommandLineError(flag, f"cannot write the lock file '{lock_path}': {e.strerror or e}",
+                                   str(path)) from None
         self._locks.append((fd, lock_path))
         # We hold the lock: temporaries of this output, and of the <stem>.partial<ext> that a run of it
         # keeps when it may not replace it, from processes that are gone are leftovers.

@@ -7,10 +7,12 @@ names the file, the dotted key, what is allowed and the value given.
 
 from __future__ import annotations
 
+import codecs
 import copy
 import difflib
 import json
 import math
+import os
 import re
 import sys
 import tomllib
@@ -664,6 +666,13 @@ def resolve_scene_path(name_or_path: str):
     p = Path(name_or_path)
     try:
         if p.suffix == ".toml" or p.exists() or "/" in name_or_path:
+            if not p.is_absolute():
+                try:
+                    os.getcwd()
+                except FileNotFoundError:
+                    raise SceneError(name_or_path, "scene", "is a relative path and the current directory no longer "
+                                     "exists (it was deleted); cd to an existing directory or give an absolute path",
+                                     name_or_path) from None
             return _scene_file(p, name_or_path)
         entry = builtin_dir() / f"{name_or_path}.toml"
         found = entry.is_file()
@@ -687,6 +696,8 @@ def read_scene_data(name_or_path: str) -> tuple[Path, str, dict]:
         raw = read()
     except OSError as e:
         raise SceneError(source, "scene", f"cannot read the file: {e.strerror}", str(path)) from None
+    # A UTF-8 byte-order mark (Windows editors write one) is not part of the TOML text.
+    raw = raw.removeprefix(codecs.BOM_UTF8)
     try:
         text = raw.decode("utf-8")
     except UnicodeDecodeError as e:

@@ -752,20 +752,12 @@ def _init_warp():
     if not _WARP_READY:
         # As commands.common.init_warp: Warp's banner and missing-driver notice (written by native
         # code to descriptor 2) would repeat once per worker; they are held back.
-        import sys  # noqa: PLC0415
-        import tempfile  # noqa: PLC0415
+        from ..core.native_output import held_stderr  # noqa: PLC0415
 
         wp.config.quiet = True
         wp.config.log_level = wp.LOG_WARNING
-        sys.stderr.flush()
-        saved = os.dup(2)
-        with tempfile.TemporaryFile() as held:
-            os.dup2(held.fileno(), 2)
-            try:
-                wp.init()
-            finally:
-                os.dup2(saved, 2)
-                os.close(saved)
+        with held_stderr():
+            wp.init()
         _WARP_READY = True
     return wp
 
@@ -1158,12 +1150,14 @@ def _start_worker():
 
 
 def dask_setup(worker):
-    """Preloaded into each local worker process: a Ctrl-C in the terminal reaches every process of
-    the group, and the client alone handles it (it stops, keeps the rows and closes the cluster)."""
+    """Preloaded into each local worker process: a Ctrl-C in the terminal (or the terminal closed:
+    SIGHUP) reaches every process of the group, and the client alone handles it (it stops, keeps
+    the rows and closes the cluster)."""
     import signal  # noqa: PLC0415
 
     try:
         signal.signal(signal.SIGINT, signal.SIG_IGN)
+        signal.signal(signal.SIGHUP, signal.SIG_IGN)
     except ValueError:  # not the main thread: leave it
         pass
 
