@@ -121,7 +121,7 @@ def test_available_host_memory_is_plausible():
 
 def test_validation_refuses_before_building(monkeypatch):
     """The scene loader itself refuses a scene whose builder would not fit (the Python API too)."""
-    monkeypatch.setattr(resources, "available_host_bytes", lambda: 1 << 20)
+    monkeypatch.setattr(resources, "available_host_bytes", lambda: 1 << 18)
     with pytest.raises(SceneError, match="scene too large: building 1,000 particles"):
         load_scene("jelly_drop")
     monkeypatch.setattr(resources, "available_host_bytes", lambda: None)  # unknown: no refusal

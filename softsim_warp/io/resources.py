@@ -28,6 +28,9 @@ from ..core.errors import CommandLineError, SceneError
 # Bytes per item. S: scalar size (4 for float32, 8 for float64).
 HOST_BUILD_PER_SPRING = 192  # the above plus the lattice-path detection in finalize (per-spring offsets and checks; measured ~179)
 HOST_BUILD_PER_PARTICLE = 96  # float64 q, qd, mass, int32 jelly/world, lattice meshgrids
+# A box jelly is recorded as a whole lattice (no spring list at build time): its placed rest pose,
+# surface quads and the lattice tables finalize makes from it (measured ~355 B a particle at 16^3 to 32^3).
+HOST_BUILD_PER_LATTICE_PARTICLE = 320
 HOST_MODEL_PER_SPRING = 44  # host copies kept in the Model: pairs, type, rest/ks/kd (float64)
 HOST_MODEL_PER_PARTICLE = 32  # q and mass (float64) kept in the Model
 USD_POINT_BYTES = 12  # one float32 point of one time sample
@@ -152,7 +155,11 @@ def estimate(data: dict, integrator=None, frames=0, usd_springs=False, determini
     integrator = integrator or sim["integrator"]
     s = 8 if (precision or sim["precision"]) == "float64" else 4
     c = scene_counts(data)
-    host_build = HOST_BUILD_PER_SPRING * c.springs + HOST_BUILD_PER_PARTICLE * c.particles
+    # Springs are listed at build time only for mesh jellies; a box jelly is a recorded lattice.
+    listed = sum(ns for j, (_, ns) in zip(data["jelly"], c.jellies) if "mesh" in j)
+    recorded = sum(n for j, (n, _) in zip(data["jelly"], c.jellies) if "mesh" not in j)
+    host_build = (HOST_BUILD_PER_SPRING * listed + HOST_BUILD_PER_PARTICLE * c.particles
+                  + HOST_BUILD_PER_LATTICE_PARTICLE * recorded)
     host_model = HOST_MODEL_PER_SPRING * c.springs + HOST_MODEL_PER_PARTICLE * c.particles
     per_frame = c.particles + c.surface + (2 * c.springs if usd_springs else 0)
     usd = (frames + 1) * per_frame * USD_POINT_BYTES if frames else 0
