@@ -328,3 +328,49 @@ def test_usd_output_animates_moving_meshes(tmp_path, plate):
     assert [f"{i.severity.name}: {i.message}" for i in results.issues] == []
     validators = UsdValidation.ValidationRegistry().GetOrLoadAllValidators()
     assert [e.GetMessage() for e in UsdValidation.ValidationContext(validators).Validate(stage)] == []
+
+
+def test_preview_draws_moving_terrain_where_it_stands(tmp_path, plate):
+    """``softsim preview`` reads moving terrain at every frame drawn: the triangles it draws at a
+    frame are the moving quad's (1 m/s along x) and the animated plate's (its samples interpolated)
+    at that frame's time, the static floor's stay put, and two frames' pictures differ."""
+    from softsim_warp.commands import cli
+    from softsim_warp.io import preview
+
+    quad = write_quad(tmp_path / "quad.usda", size=1.0)
+    scene = tmp_path / "moving.toml"
+    scene.write_text(
+        '[simulation]\ndt = 1e-3\nduration = 0.3\nfps = 10\n'
+        '[[jelly]]\nresolution = 3\nsize = 0.1\ncenter = [0.0, 0.3, 0.0]\nparticle_mass = 0.01\n'
+        '[[plane]]\npoint = [0.0, -0.5, 0.0]\n'
+        f'[[mesh]]\npath = "{quad}"\nmotion = {{ velocity = [1.0, 0.0, 0.0] }}\n'
+        f'[[mesh]]\npath = "{plate}"\nanimated = true\n')
+    out = tmp_path / "moving.usdc"
+    assert cli.main(["run", str(scene), "--quiet", "--out", str(out)]) == 0
+    sc = preview._Scene(str(out))
+    assert len(sc.moving_terrain) == 2
+    floor = sc._terrain_parts[0]
+    quad0 = np.asarray(load_quad_points(quad))
+    for frame in (0, 2, 3):
+        t = frame / 10.0
+        parts = np.split(sc.terrain_at(frame), np.cumsum([len(p) for p in sc._terrain_parts])[:-1])
+        np.testing.assert_array_equal(parts[0], floor)
+        corners = np.unique(parts[1].reshape(-1, 3).round(9), axis=0)
+        np.testing.assert_allclose(corners, np.unique((quad0 + [t, 0.0, 0.0]).round(9), axis=0), atol=1e-6)
+        plate_pts = parts[2].reshape(-1, 3)
+        expected = MA.animated_plate_world(t)
+        # Every drawn vertex is one of the plate's vertices at t.
+        gap = np.linalg.norm(plate_pts[:, None] - expected[None], axis=2).min(axis=1)
+        assert gap.max() < 1e-6, gap.max()
+    a = tmp_path / "a.png"
+    b = tmp_path / "b.png"
+    preview.render_png(str(out), str(a), frame=0, size=(160, 120))
+    preview.render_png(str(out), str(b), frame=3, size=(160, 120))
+    import matplotlib.image as mpimg
+
+    assert np.abs(mpimg.imread(a) - mpimg.imread(b)).max() > 0.1
+
+
+def load_quad_points(path):
+    stage = Usd.Stage.Open(path)  # held while its prim is read
+    return np.array(UsdGeom.Mesh.Get(stage, "/Quad").GetPointsAttr().Get(), dtype=np.float64)
