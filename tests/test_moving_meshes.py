@@ -151,7 +151,7 @@ def test_animated_mesh_carries_what_rests_on_it(plate):
     m/s (the plate's vertices' velocity interpolated there); it sits on the plate, not in it."""
     sc = jelly_scene({"mesh": [{"path": plate, "animated": True, "friction": MU, "restitution": 0.0}]},
                      center=(0.0, 0.0501, 0.0))
-    model, st = stepper(sc)
+    _model, st = stepper(sc)
     t = 0.9
     st.advance(round(t / sc.sim["dt"]))
     v = st.state.particle_qd.numpy().astype(np.float64)
@@ -175,8 +175,8 @@ def test_jelly_on_a_moving_mesh_rides_it(tmp_path):
     moves alike (same trajectory to 1e-9 m in float64)."""
     quad = write_quad(tmp_path / "quad.usda")
     sc = _platform(quad, "symplectic")
-    model, st = stepper(sc)
-    plane_model, plane_st = stepper(jelly_scene({"plane": [{"friction": MU, "restitution": 0.0, "motion": {
+    _model, st = stepper(sc)
+    _plane_model, plane_st = stepper(jelly_scene({"plane": [{"friction": MU, "restitution": 0.0, "motion": {
         "velocity": [1.0, 0.0, 0.0]}}]}, "symplectic", "float64"))
     dt = sc.sim["dt"]
     t_catch = 1.0 / (MU * G)
@@ -206,7 +206,7 @@ def test_jelly_on_a_turning_mesh_turns_with_it(tmp_path):
     sc = jelly_scene({"mesh": [{"path": quad, "friction": MU, "restitution": 0.0, "motion": {
         "spin": {"axis": [0.0, 1.0, 0.0], "degrees_per_second": 90.0, "center": [0.0, 0.0, 0.0]}}}]},
         center=(0.3, 0.05, 0.0))
-    model, st = stepper(sc)
+    _model, st = stepper(sc)
     st.advance(round(1.0 / sc.sim["dt"]))
     x = st.state.particle_q.numpy().astype(np.float64)
     v = st.state.particle_qd.numpy().astype(np.float64)

@@ -112,10 +112,10 @@ class TerrainMotion:
 
 
 def terrain_speed(model, reach: float) -> float:
-    """Largest speed [m/s] of a moving plane's, bowl's or sphere's surface within ``reach`` [m] of
-    its motion's centre, on the host: its velocity, its keyframed offset's speed (sampled, 64 points
-    a segment, which the smooth spline's overshoot between keys needs) and its spin times the reach.
-    0 without moving terrain."""
+    """Largest speed [m/s] of a moving plane's, bowl's, sphere's or mesh's surface within ``reach``
+    [m] of its motion's centre, on the host: its velocity, its keyframed offset's speed (sampled, 64
+    points a segment, which the smooth spline's overshoot between keys needs) and its spin times
+    the reach, plus an animated mesh's fastest vertex between its samples. 0 without moving terrain."""
     fastest = 0.0
     for kind in MOVING_KINDS:
         for it in terrain_items(model, kind):
@@ -132,6 +132,12 @@ def terrain_speed(model, reach: float) -> float:
                 keyed = float((np.linalg.norm(np.diff(d, axis=0), axis=1)[dt > 0] / dt[dt > 0]).max())
             speed = np.linalg.norm(motion["velocity"]) + keyed + np.linalg.norm(motion["spin"]) * reach
             fastest = max(fastest, float(speed))
+    for it in terrain_items(model, "mesh"):  # an animated mesh: its fastest vertex between samples
+        if it.get("samples") is not None:
+            times, points = it["samples"]
+            step = np.linalg.norm(np.diff(points, axis=0), axis=2).max(axis=1) / np.diff(times)
+            # (A rigid motion of the same mesh adds its speed; the loop above counted it.)
+            fastest = max(fastest, float(step.max()))
     return fastest
 
 

@@ -1,7 +1,16 @@
-"""Static triangle-mesh terrain: the model's arrays and BVHs (``wp.Mesh``), and its output mesh.
+"""Triangle-mesh terrain: the model's arrays and BVHs (``wp.Mesh``), its motion, and its output mesh.
 
 Collision is ``collide_meshes`` in kernels/mesh.py, launched by ``contact._launch_contacts`` like
 every other terrain kind. A model without meshes allocates nothing here (``mesh_count`` = 0).
+
+A mesh moves in two ways. A rigid ``motion`` (a pin's, as every terrain entry takes) leaves its
+vertices and BVH where they were built: ``collide_moving_meshes`` queries it in its own frame
+(the particle carried there by the inverse of the pose ``move_terrain`` wrote), so the step is the
+same list of launches at every step and a graph captures it on the CPU and on CUDA. An animated USD
+asset (``animated = true``) has its time samples on the device (:class:`MeshAnimation`);
+``deform_mesh`` interpolates them at every step and the BVH is refit, a host call that no graph
+records (checked: a CPU graph replays without it, benchmarks/check_moving_mesh_cuda.py), so a scene
+with an animated mesh steps without graphs. Static meshes launch what they did (``collide_meshes``).
 """
 
 from __future__ import annotations
