@@ -30,6 +30,10 @@ not shipped:
   jointWeights primvars), with static normals and tangents as primvars beside its UVs;
 * ``latin1.obj``: an OBJ with a Latin-1 comment, a material library that is not there and UVs;
 * ``lost_texture.ply``: a PLY whose header names a texture image that is not there, with UVs.
+
+``write_animated_plate(path)`` writes ``animated_plate.usda``, terrain for the tests of animated
+meshes (tests/test_moving_meshes.py): a sheet whose points tilt (time-sampled) under a translating
+Xform (time-sampled), in centimetres at 24 time codes a second.
 """
 
 from __future__ import annotations
@@ -468,6 +472,65 @@ def _define_mesh(stage, prim_path, points, counts, indices, uv=None, color=(0.8,
         pv = UsdGeom.PrimvarsAPI(mesh).CreatePrimvar("st", Sdf.ValueTypeNames.TexCoord2fArray, UsdGeom.Tokens.faceVarying)
         pv.Set(Vt.Vec2fArray.FromNumpy(np.ascontiguousarray(uv, dtype=np.float32)))
     return mesh
+
+
+# The animated plate: a 2 m square sheet (4 x 4 vertices, facing up) in centimetres, its points
+# tilting about z (time-sampled every half second) under an Xform translated along x at 0.2 m/s
+# (sampled every second), 24 time codes a second.
+PLATE_CODES_PER_SECOND = 24.0
+PLATE_POINT_CODES = (0.0, 12.0, 24.0, 36.0, 48.0)
+PLATE_XFORM_CODES = (0.0, 24.0, 48.0)
+PLATE_TILT = (0.0, 0.1, -0.05, 0.15, 0.0)  # slope dy/dx of the sheet at each point sample [1]
+PLATE_SPEED = 0.2  # [m/s] along x
+
+
+def animated_plate_points(code_index):
+    """The plate's vertices [cm] in its Mesh's frame at ``PLATE_POINT_CODES[code_index]``."""
+    g = np.linspace(-100.0, 100.0, 4)
+    x, z = np.meshgrid(g, g, indexing="ij")
+    x, z = x.ravel(), z.ravel()
+    return np.stack([x, PLATE_TILT[code_index] * x, z], axis=1)
+
+
+def animated_plate_world(t):
+    """The plate's vertices [m] in the world at ``t`` [s], as an animated USD asset is followed:
+    linear between its samples (points and translation alike), held outside them."""
+    times = np.array(PLATE_POINT_CODES) / PLATE_CODES_PER_SECOND
+    samples = np.stack([animated_plate_points(k) for k in range(len(PLATE_POINT_CODES))]) * 0.01
+    flat = samples.reshape(len(times), -1)
+    pts = np.array([np.interp(t, times, flat[:, c]) for c in range(flat.shape[1])]).reshape(-1, 3)
+    end = PLATE_XFORM_CODES[-1] / PLATE_CODES_PER_SECOND
+    pts[:, 0] += PLATE_SPEED * min(max(t, 0.0), end)
+    return pts
+
+
+def write_animated_plate(path):
+    """``animated_plate.usda`` (see ``animated_plate_points``): time-sampled points under a
+    time-sampled translation, metersPerUnit 0.01."""
+    stage = Usd.Stage.CreateNew(str(path))
+    UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.y)
+    UsdGeom.SetStageMetersPerUnit(stage, 0.01)
+    stage.SetTimeCodesPerSecond(PLATE_CODES_PER_SECOND)
+    stage.SetStartTimeCode(PLATE_POINT_CODES[0])
+    stage.SetEndTimeCode(PLATE_POINT_CODES[-1])
+    root = UsdGeom.Xform.Define(stage, "/Plate")
+    stage.SetDefaultPrim(root.GetPrim())
+    op = root.AddTranslateOp()
+    for code in PLATE_XFORM_CODES:
+        op.Set((PLATE_SPEED * 100.0 * code / PLATE_CODES_PER_SECOND, 0.0, 0.0), code)
+    n = 4
+    quads = [(i * n + j, i * n + j + 1, (i + 1) * n + j + 1, (i + 1) * n + j) for i in range(n - 1) for j in range(n - 1)]
+    mesh = UsdGeom.Mesh.Define(stage, "/Plate/Sheet")
+    mesh.CreateFaceVertexCountsAttr(Vt.IntArray([4] * len(quads)))
+    mesh.CreateFaceVertexIndicesAttr(Vt.IntArray([int(i) for q in quads for i in q]))
+    mesh.CreateSubdivisionSchemeAttr(UsdGeom.Tokens.none)
+    points, extent = mesh.CreatePointsAttr(), mesh.CreateExtentAttr()
+    for k, code in enumerate(PLATE_POINT_CODES):
+        pts = Vt.Vec3fArray.FromNumpy(np.ascontiguousarray(animated_plate_points(k), dtype=np.float32))
+        points.Set(pts, code)
+        extent.Set(UsdGeom.PointBased.ComputeExtent(pts), code)
+    UsdPhysics.CollisionAPI.Apply(mesh.GetPrim())
+    stage.GetRootLayer().Save()
 
 
 REAL_ASSETS = {

@@ -416,8 +416,9 @@ def build(scalar):
                 plane_hole_center[k] = c1 + rotate(a1, motion_rest_hole[m] - c)
             elif kind == 1:
                 bowl_center[k] = now
-            else:
+            elif kind == 2:
                 sphere_center[k] = now
+            # A mesh (kind 3) stays where it was built: its contact reads the pose (kernels/mesh.py).
         clock[0] = clock[0] + 1
 
     @wp.func
@@ -777,6 +778,7 @@ def build(scalar):
         "collide_spheres": collide_spheres,
         "move_terrain": move_terrain,
         "surface_velocity": surface_velocity,
+        "resolve_moving": resolve_moving,
         "collide_moving_planes": collide_moving_planes,
         "collide_moving_bowls": collide_moving_bowls,
         "collide_moving_spheres": collide_moving_spheres,

@@ -13,7 +13,7 @@ import functools
 
 import warp as wp
 
-from . import contact, springs
+from . import contact, pins, springs
 
 wp.set_module_options({"enable_backward": False})
 
@@ -53,7 +53,11 @@ def mark_inside_mesh(
 @functools.cache
 def build(scalar):
     vec3 = wp.types.vector(3, scalar)
-    resolve_contact = contact.build(scalar)["resolve_contact"]
+    contact_funcs = contact.build(scalar)
+    resolve_contact = contact_funcs["resolve_contact"]
+    resolve_moving = contact_funcs["resolve_moving"]
+    surface_velocity = contact_funcs["surface_velocity"]
+    rotate = pins.build(scalar)["rotate"]
     spring_force = springs.build(scalar)["spring_force"]
 
     @wp.func
@@ -89,7 +93,7 @@ def build(scalar):
         return a + ab * (vb * denom) + ac * (vc * denom)
 
     @wp.func
-    def mesh_distance(
+    def mesh_face_distance(
         x: vec3,
         mesh: wp.uint64,
         closed: int,
@@ -98,15 +102,16 @@ def build(scalar):
         mesh_tris: wp.array(dtype=wp.vec3i),
         mesh_points: wp.array(dtype=vec3),
     ):
-        """Signed distance (positive outside / in front) and outward normal of a mesh at x:
-        (phi, normal). phi is a huge value farther than ``reach`` from every face."""
+        """Signed distance (positive outside / in front) and outward normal of a mesh at x, and the
+        closest face (-1 when none): (phi, normal, face). phi is a huge value farther than ``reach``
+        from every face."""
         xf = wp.vec3(wp.float32(x[0]), wp.float32(x[1]), wp.float32(x[2]))
         q = wp.mesh_query_point_no_sign(mesh, xf, wp.float32(reach))
         if closed != 0:
             q = wp.mesh_query_point_sign_winding_number(mesh, xf, wp.float32(reach))
         up = vec3(scalar(0.0), scalar(1.0), scalar(0.0))
         if not q.result:
-            return scalar(1.0e30), up
+            return scalar(1.0e30), up, -1
         t = mesh_tris[tri_start + q.face]
         a = mesh_points[t[0]]
         b = mesh_points[t[1]]
@@ -126,11 +131,11 @@ def build(scalar):
             and wp.dot(wp.cross(c - b, pp - b), nf) >= tol
             and wp.dot(wp.cross(a - c, pp - c), nf) >= tol
         ):
-            return phi, nf
+            return phi, nf, q.face
         d = x - closest_on_triangle(x, a, b, c)
         dist = wp.length(d)
         if dist == scalar(0.0):
-            return scalar(0.0), nf
+            return scalar(0.0), nf, q.face
         # Beside an edge or a vertex: the distance to the closest point, signed.
         side = scalar(1.0)
         if closed != 0:
@@ -138,7 +143,22 @@ def build(scalar):
                 side = scalar(-1.0)
         elif wp.dot(d, nf) < scalar(0.0):
             side = scalar(-1.0)
-        return side * dist, d * (side / dist)
+        return side * dist, d * (side / dist), q.face
+
+    @wp.func
+    def mesh_distance(
+        x: vec3,
+        mesh: wp.uint64,
+        closed: int,
+        reach: scalar,
+        tri_start: int,
+        mesh_tris: wp.array(dtype=wp.vec3i),
+        mesh_points: wp.array(dtype=vec3),
+    ):
+        """Signed distance (positive outside / in front) and outward normal of a mesh at x:
+        (phi, normal). phi is a huge value farther than ``reach`` from every face."""
+        phi, n, _face = mesh_face_distance(x, mesh, closed, reach, tri_start, mesh_tris, mesh_points)
+        return phi, n
 
     @wp.kernel(module="unique")
     def collide_meshes(
@@ -190,6 +210,138 @@ def build(scalar):
                         h * world_contact_beta[w],
                         stage,
                     )
+            q_out[i] = x
+            qd_out[i] = v
+
+    # -- Moving and animated meshes -----------------------------------------------------------------
+    # A mesh with a rigid motion (a pin's, as moving planes take: ``move_terrain`` puts its pose at
+    # the step's end in the motion arrays) keeps its BVH where it was built and is queried in its
+    # own frame: the particle is carried there by the inverse of the pose, and the normal back. So
+    # a rigid motion needs no refit, and the step stays a fixed list of launches that a graph
+    # captures. An animated asset (time-sampled points) moves its vertices instead
+    # (``deform_mesh``, then ``wp.Mesh.refit`` on the host: core/mesh_terrain.py). Contact is
+    # resolved in the surface's frame at the contact point as on the analytic terrain
+    # (``resolve_moving``): the rigid motion's velocity there plus, for an animated mesh, its
+    # vertices' velocities over the step interpolated at the closest point.
+
+    @wp.func
+    def sample_points(t: scalar, first: int, count: int, times: wp.array(dtype=scalar),
+                      samples: wp.array2d(dtype=vec3), k: int):
+        """Vertex ``k`` of an animated mesh at ``t``: linear between its samples, held outside them."""
+        last = first + count - 1
+        if t <= times[first]:
+            return samples[0, k]
+        if t >= times[last]:
+            return samples[count - 1, k]
+        s = first
+        while times[s + 1] < t:
+            s += 1
+        u = (t - times[s]) / (times[s + 1] - times[s])
+        p0 = samples[s - first, k]
+        return p0 + (samples[s + 1 - first, k] - p0) * u
+
+    @wp.kernel(module="unique")
+    def deform_mesh(
+        clock: wp.array(dtype=wp.int32),
+        h: scalar,
+        first: int,
+        count: int,
+        times: wp.array(dtype=scalar),
+        samples: wp.array2d(dtype=vec3),
+        point_start: int,
+        # Out: the vertices at the step's end (the model's and the BVH's) and their velocity over it.
+        mesh_points: wp.array(dtype=vec3),
+        bvh_points: wp.array(dtype=wp.vec3),
+        point_velocity: wp.array(dtype=vec3),
+    ):
+        k = wp.tid()
+        t0 = scalar(clock[0]) * h
+        p0 = sample_points(t0, first, count, times, samples, k)
+        p1 = sample_points(t0 + h, first, count, times, samples, k)
+        mesh_points[point_start + k] = p1
+        bvh_points[k] = wp.vec3(wp.float32(p1[0]), wp.float32(p1[1]), wp.float32(p1[2]))
+        point_velocity[point_start + k] = (p1 - p0) / h
+
+    @wp.func
+    def face_velocity(x: vec3, a: vec3, b: vec3, c: vec3, va: vec3, vb: vec3, vc: vec3):
+        """The vertices' velocities interpolated at ``x`` (a point of triangle (a, b, c)) by its
+        barycentric coordinates."""
+        v0 = b - a
+        v1 = c - a
+        v2 = x - a
+        d00 = wp.dot(v0, v0)
+        d01 = wp.dot(v0, v1)
+        d11 = wp.dot(v1, v1)
+        d20 = wp.dot(v2, v0)
+        d21 = wp.dot(v2, v1)
+        den = d00 * d11 - d01 * d01
+        if den == scalar(0.0):
+            return (va + vb + vc) / scalar(3.0)
+        wb = (d11 * d20 - d01 * d21) / den
+        wc = (d00 * d21 - d01 * d20) / den
+        return va * (scalar(1.0) - wb - wc) + vb * wb + vc * wc
+
+    @wp.kernel(module="unique")
+    def collide_moving_meshes(
+        particle_inv_mass: wp.array(dtype=scalar),
+        particle_world: wp.array(dtype=wp.int32),
+        mesh_first: wp.array(dtype=wp.int32),
+        mesh_id: wp.array(dtype=wp.uint64),
+        mesh_closed: wp.array(dtype=wp.int32),
+        mesh_reach: wp.array(dtype=scalar),
+        mesh_tri_start: wp.array(dtype=wp.int32),
+        mesh_tris: wp.array(dtype=wp.vec3i),
+        mesh_points: wp.array(dtype=vec3),
+        mesh_restitution: wp.array(dtype=scalar),
+        mesh_friction: wp.array(dtype=scalar),
+        # Per mesh its moving index (-1: no rigid motion) and whether it is animated; per vertex
+        # its velocity over the step (animated meshes); the rigid motions' arrays (move_terrain's).
+        mesh_motion: wp.array(dtype=wp.int32),
+        mesh_animated: wp.array(dtype=wp.int32),
+        mesh_point_velocity: wp.array(dtype=vec3),
+        motion_center: wp.array(dtype=vec3),
+        motion_center_now: wp.array(dtype=vec3),
+        motion_turn_now: wp.array(dtype=vec3),
+        motion_velocity_step: wp.array(dtype=vec3),
+        motion_spin: wp.array(dtype=vec3),
+        eps: scalar,
+        eps_v: scalar,
+        rest_steps: scalar,
+        h: scalar,
+        world_contact_beta: wp.array(dtype=scalar),
+        stage: int,
+        q_prev: wp.array(dtype=vec3),
+        qd_prev: wp.array(dtype=vec3),
+        q_out: wp.array(dtype=vec3),
+        qd_out: wp.array(dtype=vec3),
+    ):
+        i = wp.tid()
+        if particle_inv_mass[i] != scalar(0.0):
+            w = particle_world[i]
+            x = q_out[i]
+            v = qd_out[i]
+            beta_h = h * world_contact_beta[w]
+            for m in range(mesh_first[w], mesh_first[w + 1]):
+                mm = mesh_motion[m]
+                # The particle in the mesh's own frame (where its BVH was built).
+                xl = x
+                turn = vec3(scalar(0.0))
+                if mm >= 0:
+                    turn = motion_turn_now[mm]
+                    xl = motion_center[mm] + rotate(-turn, x - motion_center_now[mm])
+                phi, nl, face = mesh_face_distance(xl, mesh_id[m], mesh_closed[m], mesh_reach[m], mesh_tri_start[m],
+                                                   mesh_tris, mesh_points)
+                if phi < eps:
+                    n = rotate(turn, nl)
+                    vs = surface_velocity(x, mm, motion_center_now, motion_velocity_step, motion_spin)
+                    if mesh_animated[m] != 0 and face >= 0:
+                        t = mesh_tris[mesh_tri_start[m] + face]
+                        vl = face_velocity(xl - phi * nl, mesh_points[t[0]], mesh_points[t[1]], mesh_points[t[2]],
+                                           mesh_point_velocity[t[0]], mesh_point_velocity[t[1]],
+                                           mesh_point_velocity[t[2]])
+                        vs = vs + rotate(turn, vl)
+                    x, v = resolve_moving(x, v, qd_prev[i], n, vs, phi, n, mesh_restitution[m], mesh_friction[m],
+                                          eps, eps_v, rest_steps, beta_h, stage)
             q_out[i] = x
             qd_out[i] = v
 
@@ -262,4 +414,6 @@ def build(scalar):
         f_out[i] = f
 
     return {"masked_neighbour": masked_neighbour, "eval_masked_springs": eval_masked_springs,
-            "closest_on_triangle": closest_on_triangle, "mesh_distance": mesh_distance, "collide_meshes": collide_meshes, "mark_inside_mesh": mark_inside_mesh}
+            "closest_on_triangle": closest_on_triangle, "mesh_distance": mesh_distance, "collide_meshes": collide_meshes,
+            "mesh_face_distance": mesh_face_distance, "deform_mesh": deform_mesh,
+            "collide_moving_meshes": collide_moving_meshes, "mark_inside_mesh": mark_inside_mesh}

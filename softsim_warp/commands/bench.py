@@ -32,6 +32,7 @@ import numpy as np
 
 from ..core.errors import CommandLineError
 from ..core.integrators import ExplicitIntegrator
+from ..core.mesh_terrain import steps_on_host
 from ..core.model import ModelBuilder, build_model
 from ..core.stepper import make_integrator
 from ..io.mesh_scene import add_asset_inputs
@@ -294,7 +295,8 @@ class _OurCase(TimedSteps):
             for k in range(count):
                 self.integrator.step(self.states[k % 2], self.states[1 - k % 2], dt)
 
-        super().__init__(model.device, step, steps, use_graph)
+        # An animated mesh's refit is host work that no graph records: such a model is timed unreplayed.
+        super().__init__(model.device, step, steps, use_graph and not steps_on_host(model))
 
     def finite(self) -> bool:
         return bool(np.all(np.isfinite(self.states[0].particle_q.numpy())))

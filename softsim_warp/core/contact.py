@@ -13,11 +13,16 @@ import numpy as np
 import warp as wp
 
 from ..kernels.contact import LAYER_TOUCH
-from .mesh_terrain import mesh_arrays
+from .mesh_terrain import animate_meshes, mesh_arrays, mesh_moves, moving_mesh_arrays
 from .pins import motion_transform, path_position
 
 # The kinds of terrain that move (``kernels/contact.py`` ``move_terrain``'s motion_kind).
-MOVING_KINDS = ("plane", "bowl", "sphere")
+MOVING_KINDS = ("plane", "bowl", "sphere", "mesh")
+
+
+def terrain_items(model, kind: str) -> list:
+    """The host list of a model's terrain of ``kind`` (one of :data:`MOVING_KINDS`)."""
+    return getattr(model, "meshes" if kind == "mesh" else kind + "s", [])
 
 
 def terrain_at(item: dict, t: float) -> dict:
@@ -38,7 +43,7 @@ def terrain_at(item: dict, t: float) -> dict:
 
 
 class TerrainMotion:
-    """Device arrays of the moving planes, bowls and spheres of a model (``Model.terrain_motion``).
+    """Device arrays of the moving planes, bowls, spheres and meshes of a model (``Model.terrain_motion``).
 
     Per kind an index per primitive into the moving ones (``plane_motion`` ...; -1: static), and
     per moving primitive its geometry as given, its motion (a pin's, ``kernels/pins.py``) and what
@@ -50,7 +55,7 @@ class TerrainMotion:
     def of(cls, model, device, scalar, vec3):
         """The moving terrain of a finalized ``model`` (its host lists ``planes``, ``bowls``,
         ``spheres``), or None when nothing moves: a static scene has no motion arrays at all."""
-        items = [(k, i, it) for k, name in enumerate(MOVING_KINDS) for i, it in enumerate(getattr(model, name + "s"))
+        items = [(k, i, it) for k, name in enumerate(MOVING_KINDS) for i, it in enumerate(terrain_items(model, name))
                  if it.get("motion") is not None]
         return cls(model, items, device, scalar, vec3) if items else None
 
@@ -65,7 +70,7 @@ class TerrainMotion:
 
         self.count = len(items)
         for k, name in enumerate(MOVING_KINDS):
-            index = np.full(len(getattr(model, name + "s")), -1, dtype=np.int32)
+            index = np.full(len(terrain_items(model, name)), -1, dtype=np.int32)
             for m, (kind, i, _it) in enumerate(items):
                 if kind == k:
                     index[i] = m
@@ -78,7 +83,8 @@ class TerrainMotion:
             key_v.extend(mo["key_offsets"])
         self.kind = arr([k for k, _i, _it in items], wp.int32, np.int32)
         self.item = arr([i for _k, i, _it in items], wp.int32, np.int32)
-        self.rest_point = vecs([it.get("point", it.get("center")) for _k, _i, it in items])
+        # A mesh's reference point is its motion's centre (move_terrain moves no mesh geometry).
+        self.rest_point = vecs([it.get("point", it.get("center", it["motion"]["center"])) for _k, _i, it in items])
         self.rest_normal = vecs([it.get("normal", np.zeros(3)) for _k, _i, it in items])
         self.rest_hole = vecs([it.get("hole_center", np.zeros(3)) for _k, _i, it in items])
         self.velocity = vecs([mo["velocity"] for mo in motions])
@@ -106,13 +112,13 @@ class TerrainMotion:
 
 
 def terrain_speed(model, reach: float) -> float:
-    """Largest speed [m/s] of a moving plane's, bowl's or sphere's surface within ``reach`` [m] of
-    its motion's centre, on the host: its velocity, its keyframed offset's speed (sampled, 64 points
-    a segment, which the smooth spline's overshoot between keys needs) and its spin times the reach.
-    0 without moving terrain."""
+    """Largest speed [m/s] of a moving plane's, bowl's, sphere's or mesh's surface within ``reach``
+    [m] of its motion's centre, on the host: its velocity, its keyframed offset's speed (sampled, 64
+    points a segment, which the smooth spline's overshoot between keys needs) and its spin times
+    the reach, plus an animated mesh's fastest vertex between its samples. 0 without moving terrain."""
     fastest = 0.0
     for kind in MOVING_KINDS:
-        for it in getattr(model, kind + "s", []):
+        for it in terrain_items(model, kind):
             motion = it.get("motion")
             if motion is None:
                 continue
@@ -126,12 +132,20 @@ def terrain_speed(model, reach: float) -> float:
                 keyed = float((np.linalg.norm(np.diff(d, axis=0), axis=1)[dt > 0] / dt[dt > 0]).max())
             speed = np.linalg.norm(motion["velocity"]) + keyed + np.linalg.norm(motion["spin"]) * reach
             fastest = max(fastest, float(speed))
+    for it in terrain_items(model, "mesh"):  # an animated mesh: its fastest vertex between samples
+        if it.get("samples") is not None:
+            times, points = it["samples"]
+            step = np.linalg.norm(np.diff(points, axis=0), axis=2).max(axis=1) / np.diff(times)
+            # (A rigid motion of the same mesh adds its speed; the loop above counted it.)
+            fastest = max(fastest, float(step.max()))
     return fastest
 
 
 def move_terrain(model, dt):
     """Put the moving terrain where it is at the end of the step about to be taken (one launch,
-    which also advances the terrain clock); nothing without moving terrain."""
+    which also advances the terrain clock, and for animated meshes what ``animate_meshes`` does);
+    nothing without moving terrain."""
+    animate_meshes(model, dt)
     tm = getattr(model, "terrain_motion", None)
     if tm is None:
         return
@@ -220,7 +234,7 @@ def plane_arrays(model) -> tuple:
 def moves(model, kind: str) -> bool:
     """Whether any terrain primitive of ``kind`` ("plane", "bowl", "sphere") of ``model`` moves."""
     return getattr(model, "terrain_motion", None) is not None and any(
-        it.get("motion") is not None for it in getattr(model, kind + "s")
+        it.get("motion") is not None for it in terrain_items(model, kind)
     )
 
 
@@ -268,7 +282,11 @@ def _launch_contacts(model: Model, state_in: State, q_out, qd_out, h, world_cont
             for count, kind, kernel, arrays in kinds
         )
     if getattr(model, "mesh_count", 0):  # triangle-mesh terrain (core/mesh_terrain.py)
-        kinds += ((model.mesh_count, "mesh", model.kernels.collide_meshes, mesh_arrays(model)),)
+        if mesh_moves(model):
+            kinds += ((model.mesh_count, "mesh", model.kernels.collide_moving_meshes,
+                       mesh_arrays(model) + moving_mesh_arrays(model)),)
+        else:
+            kinds += ((model.mesh_count, "mesh", model.kernels.collide_meshes, mesh_arrays(model)),)
     for count, _kind, kernel, arrays in kinds:
         if count:
             wp.launch(

@@ -165,7 +165,7 @@ class ImplicitIntegrator(Integrator):
         warm_start: bool = True,
     ):
         super().__init__(model)
-        if getattr(model, "terrain_motion", None) is not None:
+        if getattr(model, "terrain_motion", None) is not None or getattr(model, "mesh_animation", None) is not None:
             # Its contact solve prescribes a touching particle's normal velocity as 0 and damps its
             # tangential one towards 0, the terrain's own velocity being unknown to it.
             raise ValueError("the implicit integrator does not take moving terrain; use an explicit one")

@@ -337,10 +337,60 @@ def _load_usd(path, prim_path, colliders, source, key):
     return mesh
 
 
-def _read_usd(path, prim_path, colliders, source, key):
-    from pxr import Sdf, Usd, UsdGeom, UsdPhysics  # noqa: PLC0415
+def load_mesh_samples(path, prim=None, colliders=True, source="<scene>", key="mesh.path", up_axis=None, units=None):
+    """The time samples of an animated USD asset as :func:`load_mesh` reads it (the same Meshes, in
+    metres, y up, in world space): ``(times [S] in s, points [S, V, 3])`` at every time code at which
+    the Meshes' points or a transform above them has a sample, a time code being
+    1 / timeCodesPerSecond seconds (time code 0 at t = 0). A :class:`SceneError` for a file that
+    is not USD, has fewer than two samples, or whose point count changes between samples."""
+    if not str(path).lower().endswith(USD_SUFFIXES):
+        raise SceneError(source, key.rsplit(".", 1)[0] + ".animated",
+                         "only a USD asset has time samples to follow; give a USD file or leave animated out", path)
+    load_mesh(path, prim, colliders, source, key, up_axis, units)  # the asset's own errors first
+    st = os.stat(path)
+    return _samples_cached(str(path), st.st_mtime_ns, prim, bool(colliders), source, key)
+
+
+@functools.lru_cache(maxsize=8)
+def _samples_cached(path, _mtime, prim_path, colliders, source, key):
+    from pxr import Usd, UsdGeom  # noqa: PLC0415
 
     stage = Usd.Stage.Open(path, Usd.Stage.LoadAll)
+    meters, axis, prims = _usd_meshes(stage, path, prim_path, colliders, source, key)
+    codes = set()
+    for prim in prims:
+        codes.update(UsdGeom.Mesh(prim).GetPointsAttr().GetTimeSamples())
+        p = prim
+        while p and not p.IsPseudoRoot():
+            if p.IsA(UsdGeom.Xformable):
+                codes.update(UsdGeom.Xformable(p).GetTimeSamples())
+            p = p.GetParent()
+    codes = sorted(codes)
+    if len(codes) < 2:
+        raise SceneError(source, key.rsplit(".", 1)[0] + ".animated", "the asset's Meshes have fewer than two time "
+                         "samples of their points or transforms: nothing to follow", len(codes))
+    frames = []
+    for code in codes:
+        cache = UsdGeom.XformCache(Usd.TimeCode(code))
+        pts = []
+        for prim in prims:
+            x = np.asarray(UsdGeom.Mesh(prim).GetPointsAttr().Get(Usd.TimeCode(code)) or [], dtype=np.float64)
+            m = np.array(cache.GetLocalToWorldTransform(prim), dtype=np.float64)
+            pts.append(_to_y_up(x.reshape(-1, 3) @ m[:3, :3] + m[3, :3], meters, axis))
+        frame = np.concatenate(pts)
+        if frames and frame.shape != frames[0].shape:
+            raise SceneError(source, key, f"the animated Meshes' point count changes at time code {code:g} "
+                             f"({frames[0].shape[0]} then {frame.shape[0]}); only the positions may change", path)
+        if not np.isfinite(frame).all():
+            raise SceneError(source, key, f"the mesh has non-finite vertex positions at time code {code:g}", path)
+        frames.append(frame)
+    return np.asarray(codes, dtype=np.float64) / float(stage.GetTimeCodesPerSecond()), np.stack(frames)
+
+
+def _usd_meshes(stage, path, prim_path, colliders, source, key):
+    """``(metres per unit, up axis, the Mesh prims to read)`` of an open USD stage (see :func:`load_mesh`)."""
+    from pxr import Sdf, Usd, UsdGeom, UsdPhysics  # noqa: PLC0415
+
     if stage is None:
         raise SceneError(source, key, f"cannot be opened as USD; give {USD_EXPECTED}", path)
     # An authored metersPerUnit converts to metres; without one the file is taken to be in metres,
@@ -372,7 +422,14 @@ def _read_usd(path, prim_path, colliders, source, key):
                 + ", ".join(str(p.GetPath()) for p in found))
             raise SceneError(source, key, where, path)
     with_api = [p for p in meshes if p.HasAPI(UsdPhysics.CollisionAPI)] if colliders else []
-    prims = with_api or meshes
+    return meters, axis, with_api or meshes
+
+
+def _read_usd(path, prim_path, colliders, source, key):
+    from pxr import Usd, UsdGeom  # noqa: PLC0415
+
+    stage = Usd.Stage.Open(path, Usd.Stage.LoadAll)
+    meters, axis, prims = _usd_meshes(stage, path, prim_path, colliders, source, key)
     # An animated Mesh (a cache with time samples and no default) is read at its first sample.
     time = Usd.TimeCode.EarliestTime()
     cache = UsdGeom.XformCache(time)

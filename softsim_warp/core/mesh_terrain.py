@@ -1,7 +1,16 @@
-"""Static triangle-mesh terrain: the model's arrays and BVHs (``wp.Mesh``), and its output mesh.
+"""Triangle-mesh terrain: the model's arrays and BVHs (``wp.Mesh``), its motion, and its output mesh.
 
 Collision is ``collide_meshes`` in kernels/mesh.py, launched by ``contact._launch_contacts`` like
 every other terrain kind. A model without meshes allocates nothing here (``mesh_count`` = 0).
+
+A mesh moves in two ways. A rigid ``motion`` (a pin's, as every terrain entry takes) leaves its
+vertices and BVH where they were built: ``collide_moving_meshes`` queries it in its own frame
+(the particle carried there by the inverse of the pose ``move_terrain`` wrote), so the step is the
+same list of launches at every step and a graph captures it on the CPU and on CUDA. An animated USD
+asset (``animated = true``) has its time samples on the device (:class:`MeshAnimation`);
+``deform_mesh`` interpolates them at every step and the BVH is refit, a host call that no graph
+records (checked: a CPU graph replays without it, benchmarks/check_moving_mesh_cuda.py), so a scene
+with an animated mesh steps without graphs. Static meshes launch what they did (``collide_meshes``).
 """
 
 from __future__ import annotations
@@ -27,6 +36,12 @@ def attach_meshes(m, meshes: list, arr, first):
         mesh_tris: vertex indices into ``mesh_points`` of every triangle, shape [sum of triangles], vec3i.
         mesh_points: every mesh's vertices in the model's precision [m], shape [sum of vertices], vec3.
         mesh_restitution, mesh_friction: coefficients [1], shape [mesh_count], scalar.
+        mesh_motion: each mesh's index among the moving terrain (its rigid ``motion``; -1: none),
+            shape [mesh_count], int32 (``contact.TerrainMotion`` fills it in).
+        mesh_animated: 1 for a mesh that follows its asset's time samples, shape [mesh_count], int32.
+        mesh_point_velocity: each vertex's velocity over the last step [m/s] (animated meshes; one
+            zero entry without them), vec3.
+        mesh_animation: the animated meshes' samples on the device (:class:`MeshAnimation`), or None.
     """
     meshes = sorted(meshes, key=lambda it: it["world"])
     m.meshes = meshes
@@ -43,6 +58,7 @@ def attach_meshes(m, meshes: list, arr, first):
         m.mesh_points = wp.zeros(0, dtype=m.vec3, device=m.device)
         m.mesh_restitution = wp.zeros(0, dtype=m.scalar, device=m.device)
         m.mesh_friction = wp.zeros(0, dtype=m.scalar, device=m.device)
+        m.mesh_animation = None
         return
     m.mesh_bvh = []
     tri_start, tris, points, offset = [], [], [], 0
@@ -69,10 +85,97 @@ def attach_meshes(m, meshes: list, arr, first):
     m.mesh_points = arr(np.concatenate(points), m.vec3, _np(m))
     m.mesh_restitution = arr(np.array([it["restitution"] for it in meshes]), m.scalar, _np(m))
     m.mesh_friction = arr(np.array([it["friction"] for it in meshes]), m.scalar, _np(m))
+    m.mesh_motion = arr(np.full(len(meshes), -1), wp.int32, np.int32)
+    m.mesh_animated = arr(np.array([int(it.get("samples") is not None) for it in meshes]), wp.int32, np.int32)
+    animated = [k for k, it in enumerate(meshes) if it.get("samples") is not None]
+    m.mesh_point_velocity = wp.zeros(sum(p.shape[0] for p in points) if animated else 1, dtype=m.vec3,
+                                     device=m.device)
+    starts = np.cumsum([0] + [p.shape[0] for p in points[:-1]])
+    m.mesh_animation = MeshAnimation(m, animated, starts) if animated else None
+
+
+class MeshAnimation:
+    """The time-sampled vertices of a model's animated meshes on the device.
+
+    Per animated mesh its sample times [s] and its samples, an array [samples, vertices]; at every
+    step's start ``deform_mesh`` puts its vertices where they are at the step's end (linear between
+    samples) and its BVH is refit. ``wp.Mesh.refit`` is a host call (on the CPU Warp's graph does
+    not record it; on CUDA it is not part of a capture either), so a model with an animated mesh
+    steps without a captured graph (``Stepper``). The clock counts the steps taken, as the pin
+    clock does; :meth:`reset` restarts it.
+    """
+
+    def __init__(self, m, animated, starts):
+        scalar, np_scalar = m.scalar, _np(m)
+        times, self.meshes = [], []
+        for k in animated:
+            t, samples = m.meshes[k]["samples"]
+            self.meshes.append((k, len(times), len(t), int(starts[k]),
+                                wp.array(np.asarray(samples, dtype=np_scalar), dtype=m.vec3, device=m.device)))
+            times.extend(t)
+        self.time = wp.array(np.asarray(times, dtype=np_scalar), dtype=scalar, device=m.device)
+        self.clock = wp.zeros(1, dtype=wp.int32, device=m.device)
+
+    def reset(self):
+        """Restart the animation clock at t = 0."""
+        self.clock.zero_()
+
+
+def animate_meshes(model, dt):
+    """Put the animated meshes where their samples have them at the end of the step about to be
+    taken, refit their BVHs and advance their clock; nothing without animated meshes."""
+    an = getattr(model, "mesh_animation", None)
+    if an is None:
+        return
+    h = model.scalar(dt)
+    for k, first, count, start, samples in an.meshes:
+        bvh = model.mesh_bvh[k]
+        wp.launch(model.kernels.deform_mesh, dim=samples.shape[1],
+                  inputs=[an.clock, h, first, count, an.time, samples, start],
+                  outputs=[model.mesh_points, bvh.points, model.mesh_point_velocity], device=model.device)
+        bvh.refit()
+    wp.launch(model.kernels.advance_pin_clock, dim=1, inputs=[an.clock], device=model.device)
+
+
+def steps_on_host(model) -> bool:
+    """Whether a step of ``model`` has host work (an animated mesh's refit), so no graph may
+    capture it."""
+    return getattr(model, "mesh_animation", None) is not None
+
+
+def sample_points(times, samples, t: float) -> np.ndarray:
+    """An animated mesh's vertices at ``t`` [s] on the host: linear between its samples (``times``
+    [S], ``samples`` [S, V, 3]), held outside them, as ``deform_mesh`` interpolates."""
+    times = np.asarray(times, dtype=np.float64)
+    if t <= times[0]:
+        return np.asarray(samples[0], dtype=np.float64)
+    if t >= times[-1]:
+        return np.asarray(samples[-1], dtype=np.float64)
+    s = int(np.searchsorted(times, t, side="left")) - 1
+    u = (t - times[s]) / (times[s + 1] - times[s])
+    return samples[s] + (samples[s + 1] - samples[s]) * u
 
 
 def _np(m):
     return np.float32 if m.precision == "float32" else np.float64
+
+
+def moving_mesh_arrays(model) -> tuple:
+    """What ``collide_moving_meshes`` takes after :func:`mesh_arrays`: each mesh's motion index and
+    animation flag, the vertices' velocities, and the rigid motions' arrays (``contact.TerrainMotion``;
+    a zero entry each when no terrain moves rigidly)."""
+    tm = getattr(model, "terrain_motion", None)
+    if tm is None:
+        z = wp.zeros(1, dtype=model.vec3, device=model.device)
+        rigid = (z, z, z, z, z)
+    else:
+        rigid = (tm.center, tm.center_now, tm.turn_now, tm.velocity_step, tm.spin)
+    return (model.mesh_motion, model.mesh_animated, model.mesh_point_velocity, *rigid)
+
+
+def mesh_moves(model) -> bool:
+    """Whether a terrain mesh of ``model`` moves (a rigid motion or its asset's animation)."""
+    return any(it.get("motion") is not None or it.get("samples") is not None for it in getattr(model, "meshes", ()))
 
 
 def mesh_arrays(model) -> tuple:
@@ -107,14 +210,25 @@ def mesh_output(meshes, roots) -> list:
     """``(prim path, points, counts, indices, normals, primvars)`` of each terrain mesh for the USD
     stage: the asset's own polygons, flat-shaded (each face corner carries its face's normal,
     faceVarying), with the primvars of each of its Meshes (``MeshAsset.primvars``)."""
+    out = []
+    for path, it in zip(mesh_paths(meshes, roots), meshes):
+        a = it["asset"]
+        out.append((path, a.points, a.counts, a.indices, face_varying_normals(a.points, a.counts, a.indices),
+                    a.primvars))
+    return out
+
+
+def face_varying_normals(points, counts, indices) -> tuple:
+    """A flat-shaded mesh's normals for USD: each face corner carries its face's normal."""
+    return ("faceVarying", np.repeat(face_normals(points, counts, indices), counts, axis=0))
+
+
+def mesh_paths(meshes, roots) -> list:
+    """The USD prim path of each terrain mesh: its name, numbered within its world."""
     out, index = [], {}
     for it in meshes:
         i = index[it["world"]] = index.get(it["world"], -1) + 1
-        a = it["asset"]
-        fn = face_normals(a.points, a.counts, a.indices)
-        normals = ("faceVarying", np.repeat(fn, a.counts, axis=0))
-        out.append((f"{roots.get(it['world'], '/World')}/{it.get('name') or 'Mesh'}_{i}", a.points, a.counts, a.indices, normals,
-                    a.primvars))
+        out.append(f"{roots.get(it['world'], '/World')}/{it.get('name') or 'Mesh'}_{i}")
     return out
 
 

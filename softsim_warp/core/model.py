@@ -19,8 +19,8 @@ from .forces import attach
 from .lattice_model import LatticeData, LatticeSprings, detect_lattice, recorded_lattice, spring_arrays
 from .pins import PinDrive, make_motion, path_position
 from .masked_lattice import attach_masked
-from .mesh_assets import load_mesh, mesh_options, transform_matrix
-from .mesh_terrain import attach_meshes, mesh_anchors, mesh_output
+from .mesh_assets import load_mesh, load_mesh_samples, mesh_options, transform_matrix
+from .mesh_terrain import attach_meshes, mesh_anchors, mesh_output, mesh_paths, sample_points
 from .terrain import bowl_mesh, sphere_mesh
 from .contact import TerrainMotion, terrain_at
 from .voxelize import add_mesh_jelly
@@ -425,13 +425,33 @@ class ModelBuilder:
             }
         )
 
-    def add_mesh(self, asset, restitution=0.5, friction=0.3, thickness=0.1, world=0, name="Mesh"):
-        """Add static triangle-mesh terrain (a :class:`~softsim_warp.core.mesh_assets.MeshAsset` in
+    def add_mesh(self, asset, restitution=0.5, friction=0.3, thickness=0.1, world=0, name="Mesh", motion=None,
+                 samples=None):
+        """Add triangle-mesh terrain (a :class:`~softsim_warp.core.mesh_assets.MeshAsset` in
         world space). A closed mesh keeps particles outside it (its faces are turned outward if
         they wind inward); an open sheet collides from the side its faces' normals point to and
-        pushes out particles up to ``thickness`` [m] behind it."""
+        pushes out particles up to ``thickness`` [m] behind it.
+
+        ``motion``: as :meth:`add_plane`'s (a rigid motion; the spin's centre defaults to the
+        mesh's bounding-box centre). ``samples``: ``(times [S] in s, points [S, V, 3] in m)``, the
+        asset's vertices at increasing times (an animated asset, ``mesh_assets.load_mesh_samples``):
+        the mesh follows them, linear between samples, held outside them."""
+        if samples is not None:
+            times = np.asarray(samples[0], dtype=np.float64)
+            points = np.asarray(samples[1], dtype=np.float64)
+            if points.ndim != 3 or points.shape[1:] != asset.points.shape or points.shape[0] != times.size:
+                raise ValueError(f"samples must be times [S] and points [S, {asset.points.shape[0]}, 3] "
+                                 f"(got {times.shape} and {points.shape})")
+            if np.any(np.diff(times) <= 0):
+                raise ValueError("sample times must increase")
+            samples = (times, points)
+            asset = type(asset)(sample_points(times, points, 0.0), asset.counts, asset.indices, asset.primvars,
+                                asset.name)
+        center = 0.5 * (asset.points.min(axis=0) + asset.points.max(axis=0))
         self.meshes.append(
             {
+                "motion": _terrain_motion(motion, center),
+                "samples": samples,
                 "asset": asset.outward(),
                 "restitution": float(restitution),
                 "friction": float(friction),
@@ -578,7 +598,6 @@ class ModelBuilder:
         m.sphere_radius = arr(cols(spheres, "radius", (ns,)), scalar, np_scalar)
         m.sphere_restitution = arr(cols(spheres, "restitution", (ns,)), scalar, np_scalar)
         m.sphere_friction = arr(cols(spheres, "friction", (ns,)), scalar, np_scalar)
-        m.terrain_motion = TerrainMotion.of(m, device, scalar, vec3)  # None when no terrain moves
         # Contact between jellies and self-contact: nothing at all unless the scene has it.
         particle_contact.attach(
             m,
@@ -589,6 +608,7 @@ class ModelBuilder:
             self.jelly_contact_iterations,
         )
         attach_meshes(m, self.meshes, arr, first)
+        m.terrain_motion = TerrainMotion.of(m, device, scalar, vec3)  # None when no terrain moves
         return m
 
 
@@ -631,8 +651,8 @@ class Model:
         sphere_radius: radius [m], shape [sphere_count], scalar.
         sphere_restitution, sphere_friction: coefficients [1], shape [sphere_count], scalar.
         bowls, spheres: host lists of dicts with the same values (float64).
-        terrain_motion: the moving planes, bowls and spheres (:class:`~softsim_warp.core.contact.TerrainMotion`),
-            or None when no terrain moves; with it, ``plane_motion``, ``bowl_motion``, ``sphere_motion``
+        terrain_motion: the moving planes, bowls, spheres and meshes (:class:`~softsim_warp.core.contact.TerrainMotion`),
+            or None when no terrain moves; with it, ``plane_motion``, ``bowl_motion``, ``sphere_motion``, ``mesh_motion``
             (int32 per primitive: its index among the moving ones, -1 when it stays put), and the
             geometry arrays above hold each moving primitive's pose at the end of the last step
             begun (at t = 0 before the first); the host lists keep the geometry as given, with its
@@ -676,9 +696,19 @@ class Model:
         return out + mesh_output(getattr(self, "meshes", []), roots)
 
     def terrain_motions(self, roots=None) -> list:
-        """``(prim_path, motion)`` of each moving bowl and sphere among :meth:`terrain_meshes`
+        """``(prim_path, motion)`` of each moving bowl, sphere and mesh among :meth:`terrain_meshes`
         (their meshes are written as given; the motion's rigid map carries them)."""
-        return [(path, it["motion"]) for path, _kind, it in self._round_terrain(roots) if it.get("motion") is not None]
+        meshes = getattr(self, "meshes", [])
+        return [(path, it["motion"]) for path, _kind, it in self._round_terrain(roots) if it.get("motion") is not None] + [
+            (path, it["motion"]) for path, it in zip(mesh_paths(meshes, roots or {}), meshes)
+            if it.get("motion") is not None]
+
+    def terrain_animations(self, roots=None) -> list:
+        """``(prim_path, times [S] s, points [S, V, 3] m)`` of each animated mesh among
+        :meth:`terrain_meshes` (its points in its own frame; a rigid motion carries them too)."""
+        meshes = getattr(self, "meshes", [])
+        return [(path, *it["samples"]) for path, it in zip(mesh_paths(meshes, roots or {}), meshes)
+                if it.get("samples") is not None]
 
     def _round_terrain(self, roots):
         roots = roots or {}
@@ -887,7 +917,13 @@ def populate(builder: ModelBuilder, data: dict, world=0):
         asset = asset.transformed(*transform_matrix(t.get("transform")))
         # The output prim is named after the asset's Mesh (Stairs_0); several merged Meshes: Mesh_0.
         name = asset.name if asset.name.isidentifier() else "Mesh"
-        builder.add_mesh(asset, t["restitution"], t["friction"], t["thickness"], world=world, name=name)
+        samples = None
+        if t.get("animated"):
+            times, points = load_mesh_samples(t["path"], t.get("prim"), key=f"mesh.{i}.path", **mesh_options(t))
+            matrix, shift = transform_matrix(t.get("transform"))
+            samples = (times, points @ np.asarray(matrix, dtype=np.float64).T + np.asarray(shift, dtype=np.float64))
+        builder.add_mesh(asset, t["restitution"], t["friction"], t["thickness"], world=world, name=name,
+                         motion=motion_arguments(t["motion"]) if "motion" in t else None, samples=samples)
     for p in data.get("pin", []):
         builder.add_pin(np.asarray(p["indices"]) + infos[p["jelly"]].particle_start, **motion_arguments(p))
 

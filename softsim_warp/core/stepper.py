@@ -22,6 +22,7 @@ import warp as wp
 from .contact import forget_contact_history
 from .implicit import ImplicitIntegrator
 from .integrators import ExplicitIntegrator, Integrator
+from .mesh_terrain import steps_on_host
 from .model import Model, State
 from .profile import NO_PROFILE, StepProfile
 
@@ -84,6 +85,8 @@ class Stepper:
         self.integrator = integrator
         self.dt = float(dt)
         self.use_graph = (not profile) if use_graph is None else bool(use_graph)
+        # An animated mesh's BVH is refit by a host call every step, which no graph records.
+        self.use_graph = self.use_graph and not steps_on_host(model)
         # The integrator times its parts into the profile; without one (NO_PROFILE, also replacing
         # an earlier stepper's) it may be captured.
         self.profile = StepProfile(model.device) if profile else None
@@ -111,6 +114,8 @@ class Stepper:
             self.model.pins.reset()
         if getattr(self.model, "terrain_motion", None) is not None:  # and so does moving terrain
             self.model.terrain_motion.reset()
+        if getattr(self.model, "mesh_animation", None) is not None:  # and animated meshes
+            self.model.mesh_animation.reset()
         forget_contact_history(self.model)  # nor do its contact impulses start the first step
         wp.synchronize_device(self.model.device)
         reset_stats = getattr(self.integrator, "reset_stats", None)  # the warm-up step is not part of the run

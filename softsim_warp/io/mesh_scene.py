@@ -25,7 +25,7 @@ from pathlib import Path
 import numpy as np
 
 from ..core.errors import warn
-from ..core.mesh_assets import USD_SUFFIXES, load_mesh, mesh_options, transform_matrix
+from ..core.mesh_assets import USD_SUFFIXES, load_mesh, load_mesh_samples, mesh_options, transform_matrix
 from ..core.voxelize import NoInsideError, mesh_lattice
 from .resources import MAX_LATTICE_POINTS, check_lattice_build
 
@@ -58,6 +58,8 @@ def resolve_meshes(data: dict, ctx, base=None):
     for i, t in enumerate(terrain):
         t["path"] = _resolve(t["path"], base)
         load_mesh(t["path"], t.get("prim"), source=ctx.source, key=f"mesh.{i}.path", **mesh_options(t))
+        if t.get("animated"):  # its samples read (and cached) now: an asset without them is an error here
+            load_mesh_samples(t["path"], t.get("prim"), source=ctx.source, key=f"mesh.{i}.path", **mesh_options(t))
     for i, j in jellies:
         _mesh_jelly(i, j, ctx, base)
 

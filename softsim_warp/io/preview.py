@@ -4,7 +4,10 @@ The renderer is a small software pipeline on top of matplotlib's Agg backend (no
 
 * every ``UsdGeom.Mesh`` is put in world space with ``UsdGeom.XformCache``; a mesh whose ``points``
   have more than one time sample is *jelly* (deforming; so is a mesh under a ``Jelly_*`` prim with
-  one sample or none, a run that has written only frame 0), every other mesh is static *terrain*.
+  one sample or none, a run that has written only frame 0), every other mesh is *terrain*. In a
+  softsim output (a stage with ``Jelly_*`` prims) a mesh outside them is terrain even when its
+  points are time-sampled (an animated mesh collider); terrain whose points or transforms are
+  time-sampled (moving terrain) is read again at every frame drawn, where it stands then.
   ``UsdGeom.Points`` are drawn (as small squares) only when there is no deforming mesh at all (the
   deforming ones, or all of them when none deforms); ``BasisCurves`` and other prims are ignored;
   invisible, guide and proxy prims are skipped, and so are prims with malformed points or faces;
@@ -409,6 +412,18 @@ def _bbox_times(attr, start, end):
     return list(times) or [start]  # no sample in range: the value held at the start
 
 
+def _moves(prim, attr, UsdGeom):
+    """Whether a mesh's points or the transform of it or of a prim above it are time-sampled."""
+    if attr.GetNumTimeSamples() > 1:
+        return True
+    p = prim
+    while p and not p.IsPseudoRoot():
+        if p.IsA(UsdGeom.Xformable) and UsdGeom.Xformable(p).TransformMightBeTimeVarying():
+            return True
+        p = p.GetParent()
+    return False
+
+
 def _sample_range(attr):
     """``(first, last)`` time sample of ``attr`` (by bracketing), or None."""
     from pxr import Usd
@@ -505,6 +520,9 @@ class _Scene:
                 )
 
         jelly, clouds, terrain_tris, terrain_cols = [], [], [], []
+        # Moving terrain: (prim, points attr, triangles, colours, face mask) re-read at every frame.
+        self.moving_terrain = []
+        softsim = any(p.GetName().startswith("Jelly_") for p in stage.Traverse())
         skipped, others = [], {}  # what was not drawn, for the message of a stage with nothing to draw
         sample_lo, sample_hi = math.inf, -math.inf
         t0 = Usd.TimeCode(authored["startTimeCode"]) if "startTimeCode" in authored else Usd.TimeCode.EarliestTime()
@@ -537,7 +555,11 @@ class _Scene:
             samples = attr.GetNumTimeSamples()
             # Deforming: more than one time sample; also a softsim jelly (``Jelly_*/Surface`` or
             # ``Particles``), whether its run has written one frame so far or the stage is static.
-            deforming = samples > 1 or prim.GetParent().GetName().startswith("Jelly")
+            in_jelly = prim.GetParent().GetName().startswith("Jelly")
+            deforming = samples > 1 or in_jelly
+            moving_terrain = False
+            if is_mesh and not in_jelly and (softsim or samples <= 1) and _moves(prim, attr, UsdGeom):
+                deforming, moving_terrain = False, True
             if deforming and samples:
                 lo_hi = _sample_range(attr)
                 if lo_hi:
@@ -580,6 +602,8 @@ class _Scene:
                     continue
                 terrain_tris.append(pts[tri][ok])
                 terrain_cols.append(cols[ok])
+                if moving_terrain:
+                    self.moving_terrain.append((prim, attr, tri, cols, ok, len(terrain_tris) - 1))
 
         # Time range: the authored one; an end not authored comes from the deforming prims' samples.
         has_samples = sample_lo <= sample_hi
@@ -604,6 +628,7 @@ class _Scene:
                 radius = 0.5 * float(np.median(widths)) if len(widths) else 0.0
                 jelly.append(_Deforming(self.path, attr, matrix, radius=radius))
         self.jelly = jelly
+        self._terrain_parts = terrain_tris
         self.terrain = np.concatenate(terrain_tris) if terrain_tris else np.zeros((0, 3, 3))
         self.terrain_rgb = np.concatenate(terrain_cols) if terrain_cols else np.zeros((0, 3))
         if not jelly and len(self.terrain) == 0:
@@ -646,6 +671,23 @@ class _Scene:
         for body in jelly:
             if body.tri is None and body.radius <= 0.0:
                 body.radius = 0.25 * self.edge
+
+    def terrain_at(self, frame):
+        """The terrain's triangles at ``frame``: the static ones as read, the moving ones where
+        their points and transforms are then (a face that is not finite there keeps its place)."""
+        if not self.moving_terrain:
+            return self.terrain
+        from pxr import Usd, UsdGeom
+
+        parts = list(self._terrain_parts)
+        cache = UsdGeom.XformCache(Usd.TimeCode(float(frame)))
+        for prim, attr, tri, _cols, ok, k in self.moving_terrain:
+            matrix = np.array(cache.GetLocalToWorldTransform(prim), dtype=np.float64)
+            pts = _transform(_points_array(_read(self.path, attr, Usd.TimeCode(float(frame)))), matrix)
+            if len(pts) > tri.max():
+                moved = pts[tri][ok]
+                parts[k] = np.where(_sane(moved)[..., None], moved, parts[k])
+        return np.concatenate(parts)
 
     def _setup_body(self, body, edges):
         """Orientation and culling of a jelly mesh from its first frame; typical edge lengths."""
@@ -926,9 +968,12 @@ class _Renderer:
         self.fig, self.ax = fig, ax
         self.background = None
 
-    def _prepare_terrain(self):
+    def _prepare_terrain(self, frame=None):
         scene, cam = self.scene, self.cam
         tris, rgb = scene.terrain, scene.terrain_rgb
+        if frame is not None:
+            tris = scene.terrain_at(frame)
+        self.terrain_frame = frame
         self.t_xy = np.zeros((0, 3, 2))
         self.t_depth = np.zeros(0)
         self.t_rgb = np.zeros((0, 3))
@@ -1082,8 +1127,15 @@ class _Renderer:
             text += f"  ({self.left_out} non-finite points not drawn)"
         self.label.set_text(text)
 
+    def _move_terrain(self, frame):
+        """Put moving terrain where it is at ``frame`` (prepared again: it is shaded and projected
+        once per frame instead of once); nothing for a stage whose terrain stands still."""
+        if self.scene.moving_terrain and self.terrain_frame != frame:
+            self._prepare_terrain(frame)
+
     def draw(self, frame):
         """Draw a frame the plain way: every triangle, one painter's pass, full canvas draw."""
+        self._move_terrain(frame)
         bodies = self._bodies(frame)
         t_rgb, _ = self._terrain_rgb(bodies)
         depth = np.concatenate([self.t_depth] + [b[1] for b in bodies])
@@ -1147,6 +1199,9 @@ class _Renderer:
         """
         from matplotlib.transforms import Bbox
 
+        if self.scene.moving_terrain:  # no terrain-only picture to restore: every triangle, drawn again
+            self.draw(frame)
+            return np.asarray(self.canvas.buffer_rgba())[..., :3].copy()
         background = self._background()
         bodies = self._bodies(frame)
         t_rgb, shadowed = self._terrain_rgb(bodies)

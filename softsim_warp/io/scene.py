@@ -545,6 +545,8 @@ SCHEMA = Table(
                     "friction": Float(0.3, lo=0),
                     "thickness": Float(0.1, lo=0, lo_open=True, doc="how far behind its surface a mesh pushes particles out [m]"),
                     "transform": MESH_TRANSFORM,
+                    "motion": MOTION,
+                    "animated": Bool(False, doc="follow the USD asset's time-sampled points and transforms"),
                 }
             )
         ),
@@ -958,13 +960,14 @@ def validate(data: dict, source: str, base=None) -> dict:
                      bowl["cut_height"])
     for i, pin in enumerate(out.get("pin", [])):
         _check_pin(pin, f"pin.{i}", out["jelly"], ctx)
-    for kind in ("plane", "bowl", "sphere"):
+    for kind in ("plane", "bowl", "sphere", "mesh"):
         for i, entry in enumerate(out.get(kind, [])):
+            moving = [name for name in ("motion", "animated") if entry.get(name)]
             if "motion" in entry:
                 _check_motion(entry["motion"], f"{kind}.{i}.motion", ctx)
-                if sim["integrator"] == "implicit":
-                    ctx.fail(f"{kind}.{i}.motion", "the implicit integrator does not take moving terrain; "
-                             "use an explicit integrator", sim["integrator"])
+            if moving and sim["integrator"] == "implicit":
+                ctx.fail(f"{kind}.{i}.{moving[0]}", "the implicit integrator does not take moving terrain; "
+                         "use an explicit integrator", sim["integrator"])
     # Checks of the scene as a whole (sizes, precision range, a jelly starting inside terrain);
     # see checks.py.
 

@@ -12,6 +12,7 @@ from pathlib import Path
 import numpy as np
 
 from ..core import lattice
+from ..core.mesh_terrain import face_varying_normals, sample_points
 from ..core.pins import motion_transform
 from ..core.terrain import fan_triangles, vertex_normals
 from ..core.errors import CommandLineError
@@ -258,6 +259,13 @@ class UsdWriter:
                                  primvars=extra[1] if len(extra) > 1 else ())
         for prim_path, motion in getattr(model, "terrain_motions", lambda roots: [])(self.roots):
             self._animate(UsdGeom.Mesh.Get(stage, prim_path), motion)
+        # Animated meshes: their points (and extent and flat normals) sampled at every frame.
+        self.animated_meshes = []
+        for prim_path, times, samples in getattr(model, "terrain_animations", lambda roots: [])(self.roots):
+            mesh = UsdGeom.Mesh.Get(stage, prim_path)
+            counts = np.asarray(mesh.GetFaceVertexCountsAttr().Get(), dtype=np.int64)
+            indices = np.asarray(mesh.GetFaceVertexIndicesAttr().Get(), dtype=np.int64)
+            self.animated_meshes.append((mesh, times, samples, counts, indices))
         self.save()
 
     def _animate(self, mesh, motion):
@@ -317,6 +325,16 @@ class UsdWriter:
             m[:3, :3] = rot.T
             m[3, :3] = shift
             op.Set(Gf.Matrix4d(m.tolist()), code)
+        if self.animated_meshes:
+            Vt = self._pxr[4]
+            UsdGeom = self._pxr[3]
+            for mesh, times, samples, counts, indices in self.animated_meshes:
+                pts = sample_points(times, samples, t)
+                p32 = Vt.Vec3fArray.FromNumpy(np.ascontiguousarray(pts, dtype=np.float32))
+                mesh.GetPointsAttr().Set(p32, code)
+                mesh.GetExtentAttr().Set(UsdGeom.PointBased.ComputeExtent(p32), code)
+                normals = face_varying_normals(pts, counts, indices)[1]
+                mesh.GetNormalsAttr().Set(Vt.Vec3fArray.FromNumpy(np.ascontiguousarray(normals, dtype=np.float32)), code)
         self.last_frame = frame
         self.stage.SetEndTimeCode(max(code, 0))
         if frame > 0 and frame % self.save_every == 0:
