@@ -213,6 +213,7 @@ def build(scalar):
         mesh_first: wp.array(dtype=wp.int32),
         mesh_id: wp.array(dtype=wp.uint64),
         mesh_closed: wp.array(dtype=wp.int32),
+        mesh_reach: wp.array(dtype=scalar),
         mesh_tri_start: wp.array(dtype=wp.int32),
         mesh_tris: wp.array(dtype=wp.vec3i),
         mesh_points: wp.array(dtype=vec3),
@@ -248,9 +249,13 @@ def build(scalar):
             if is_surface(phi):
                 worst = wp.max(worst, -phi)
         for m in range(mesh_first[w], mesh_first[w + 1]):
-            # The whole mesh within reach: a particle deeper than the contact layer is still inside.
-            phi, _n = mesh_distance(x, mesh_id[m], mesh_closed[m], scalar(NO_SURFACE), mesh_tri_start[m], mesh_tris,
-                                    mesh_points)
+            # A closed mesh's inside is all of it (the winding number says which), however deep; an
+            # open sheet is solid only as far behind it as it pushes particles out (its reach), or
+            # all space below a ground sheet's plane, beside it too, would count.
+            reach = mesh_reach[m]
+            if mesh_closed[m] != 0:
+                reach = scalar(NO_SURFACE)
+            phi, _n = mesh_distance(x, mesh_id[m], mesh_closed[m], reach, mesh_tri_start[m], mesh_tris, mesh_points)
             if is_surface(phi):
                 worst = wp.max(worst, -phi)
         if worst > scalar(0.0):

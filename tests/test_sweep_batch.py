@@ -294,3 +294,27 @@ def test_no_terrain_no_reference_launches_nothing_for_them(monkeypatch):
     for a, b in zip(lean, full):
         assert a["max_penetration"] == b["max_penetration"] == 0.0
         assert {k: v for k, v in a.items() if "second" not in k} == {k: v for k, v in b.items() if "second" not in k}
+
+
+def test_penetration_into_meshes(tmp_path):
+    # A closed unit box (tests/test_mesh_jelly.py's) is solid however deep: a particle inside is in by
+    # its distance to the nearest face, as the float64 NumPy distance says. An open square sheet
+    # facing up at y = 0 (tests/test_mesh_terrain.py's) is solid only within its thickness behind
+    # it: 0.25 under it is inside, 1.5 under it or beside it below its plane is not.
+    from tests.test_mesh_jelly import box_mesh, write_usd
+    from tests.test_mesh_terrain import quad, write_mesh
+
+    box = write_usd(tmp_path / "box.usda", *box_mesh([1.0, 1.0, 1.0]))
+    sheet = write_mesh(tmp_path / "ground.usda", *quad([0, 1, 0]))
+    sheet_entry = {"path": sheet, "thickness": 0.5}
+    datas = _worlds([{"mesh": [{"path": box}]}, {"mesh": [sheet_entry]}, {"mesh": [sheet_entry]},
+                     {"mesh": [sheet_entry]}])
+    batch = batch_mod._Batch(datas, "cpu", use_graph=False)
+    q = np.tile([0.0, 5.0, 0.0], (4 * 64, 1))
+    q[3] = [0.1, -0.2, 0.15]  # 0.3 inside the box (from the bottom face)
+    q[64 + 3] = [1.0, -0.25, 0.5]
+    q[128 + 9] = [-2.0, -1.5, 3.0]
+    q[192 + 1] = [9.0, -1.0, 0.0]
+    got = _depths(batch, q)
+    np.testing.assert_allclose(got, [0.3, 0.25, 0.0, 0.0], rtol=1e-12, atol=0)
+    assert got[0] == pytest.approx(penetration(datas[0], q[:64], [(0, 64)]), rel=1e-12)

@@ -174,7 +174,9 @@ class PenetrationProbe:
 
     Solid terrain (planes, spheres, meshes): the largest ``-phi`` over the world's particles with
     signed distance ``phi < 0``, measured by the contact kernels' own distance functions against
-    the terrain where it is now (moving terrain included). A bowl is a shell with free space on both
+    the terrain where it is now (moving terrain included). A closed mesh is solid however deep; an
+    open sheet only as far behind it as its ``thickness`` (the depth from which contact pushes
+    particles out). A bowl is a shell with free space on both
     sides, so a particle behind it is not by itself inside anything: a jelly that the bowl cuts, some
     particles on each side, penetrates by the smaller of its deepest excursions on the two sides (0
     when it lies on one side). Distances are in the model's precision.
@@ -217,7 +219,7 @@ class PenetrationProbe:
             inputs=[m.particle_world, m.particle_jelly,
                     m.plane_first, m.plane_point, m.plane_normal, m.plane_hole_center, m.plane_hole_radius,
                     m.sphere_first, m.sphere_center, m.sphere_radius,
-                    m.mesh_first, m.mesh_id, m.mesh_closed, m.mesh_tri_start, m.mesh_tris, m.mesh_points,
+                    m.mesh_first, m.mesh_id, m.mesh_closed, m.mesh_reach, m.mesh_tri_start, m.mesh_tris, m.mesh_points,
                     m.bowl_first, m.bowl_center, m.bowl_radius, m.bowl_cut_height, *self._motion, self.bowl_slots,
                     state.particle_q],
             outputs=[self.depth, self.shell_lo, self.shell_hi],

@@ -3,7 +3,7 @@
 ``softsim compare`` and ``softsim sweep`` both batch variants this way. A world shares no
 particles, springs or terrain with another, and each world's explosion bound and metrics are what a
 single run of its variant would compute: on the CPU a world of a batch steps bit for bit like that
-single run (tests/test_sweep.py), as long as the batch uses one integrator (the stage count and
+single run (tests/test_sweep_batch.py), as long as the batch uses one integrator (the stage count and
 the contact filter between stages are per model).
 """
 

@@ -120,18 +120,24 @@ def _record_frame(world: _World, frame: dict, k: int, step: int, t: float) -> bo
     return True
 
 
-def _simulate(variants: list[dict], device, use_graph=True) -> list[dict]:
-    """Run one batch (all of one group) as worlds of one model; one result dict per variant."""
+def _simulate(variants: list[dict], device, use_graph=True, timings=None) -> list[dict]:
+    """Run one batch (all of one group) as worlds of one model; one result dict per variant.
+
+    ``timings``: a dict that gets the seconds of the batch's build (its models, the reference's
+    too), of loading its kernels and of its frames (benchmarks/bench_sweep.py).
+    """
     from ..metrics import PositionErrorProbe  # noqa: PLC0415
     from ..runinfo import energy_drift  # noqa: PLC0415
     from ..worlds import world_frame, world_frames  # noqa: PLC0415
 
+    t_build = time.perf_counter()
     batch = _Batch([v["data"] for v in variants], device, use_graph)
     ref = errors = None
     if variants[0].get("reference") is not None:
         ref = _Batch([v["reference"] for v in variants], device, use_graph, penetration=False)
         errors = PositionErrorProbe(batch.model, batch.ranges)
     t_compile = time.perf_counter()
+    build_seconds = t_compile - t_build
     batch.sim.warm_up()
     if ref is not None:
         ref.sim.warm_up()
@@ -180,6 +186,9 @@ def _simulate(variants: list[dict], device, use_graph=True) -> list[dict]:
         if not any(alive):
             break
     batch.step_seconds = time.perf_counter() - t_start
+    if timings is not None:
+        timings.update(build_seconds=build_seconds, compile_seconds=compile_seconds, step_seconds=batch.step_seconds,
+                       model=batch.model)
     particles = [b - a for a, b in batch.ranges]
     work = sum(n * w.steps for n, w in zip(particles, batch.worlds))
     out = []
@@ -246,7 +255,7 @@ def _init_warp():
 
 
 def _test_hooks(spec, phase):
-    """Test seam (tests/test_sweep.py): with SOFTSIM_SWEEP_TEST_DIR set, a task marks its start and
+    """Test seam (tests/test_sweep_cluster.py, tests/test_sweep_store.py): with SOFTSIM_SWEEP_TEST_DIR set, a task marks its start and
     end there (``<task>.<pid>.running`` / ``.done``) and, at start, waits ``SOFTSIM_SWEEP_TEST_DELAY``
     seconds, so a test can kill a worker while it holds a task. Unset, it costs an environment lookup."""
     folder = os.environ.get("SOFTSIM_SWEEP_TEST_DIR")
