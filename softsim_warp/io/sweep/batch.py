@@ -101,6 +101,34 @@ class _Batch:
         return self.done_steps, t, probe_arrays(self.sim.probe), depth
 
 
+class _Captured:
+    """The per-frame reductions of a batch (``launch``) replayed as a captured graph, one for each
+    state buffer the frame can end in (a graph reads fixed buffers), captured on first use: one
+    launch a frame instead of one per kernel. Without graphs, or on a first use, launched directly."""
+
+    def __init__(self, device, launch, use_graph):
+        self.device = device
+        self.launch = launch
+        self.use_graph = use_graph
+        self.graphs = {}
+
+    def __call__(self, key):
+        import warp as wp  # noqa: PLC0415
+
+        graph = self.graphs.get(key)
+        if graph is not None:
+            wp.capture_launch(graph)
+            return
+        # Launched directly first (it loads the kernels, and its results are this frame's); the
+        # capture records the same launches for the next frames. Every reduction starts from zero,
+        # so running them twice gives the same values.
+        self.launch()
+        if self.use_graph:
+            with wp.ScopedCapture(device=self.device, force_module_load=False) as capture:
+                self.launch()
+            self.graphs[key] = capture.graph
+
+
 def _record_frame(world: _World, frame: dict, k: int, step: int, t: float) -> bool:
     """Judge and record frame ``k`` of a world as ``Simulator.run`` does; False once it has exploded."""
     from ..metrics import explosion_reason  # noqa: PLC0415
@@ -150,12 +178,17 @@ def _simulate(variants: list[dict], device, use_graph=True, timings=None) -> lis
     for b in (batch, ref):
         if b is not None:
             b.launch_frame(0)
-    for k in range(batch.frames + 1):
+    def launch_reductions():
         for b in (batch, ref):
             if b is not None:
                 b.measure()
         if errors is not None:
             errors.launch(batch.sim.state.particle_q, ref.sim.state.particle_q)
+
+    measure = _Captured(batch.model.device, launch_reductions, use_graph)
+    for k in range(batch.frames + 1):
+        # The batch and its reference take the same steps: their current buffers agree.
+        measure(batch.sim.current)
         step, t, arrays, depth = batch.read_frame()
         if ref is not None:
             _, _, ref_arrays, _ = ref.read_frame()
