@@ -318,3 +318,28 @@ def test_penetration_into_meshes(tmp_path):
     got = _depths(batch, q)
     np.testing.assert_allclose(got, [0.3, 0.25, 0.0, 0.0], rtol=1e-12, atol=0)
     assert got[0] == pytest.approx(penetration(datas[0], q[:64], [(0, 64)]), rel=1e-12)
+
+
+def test_run_compare_and_sweep_judge_an_explosion_alike(tmp_path):
+    # ks = 1e6 makes symplectic and rk4 explode at dt = 1e-3 (omega dt > 2.8): the frame and the
+    # reason are the same in softsim run, in a copy of softsim compare and in a row of softsim sweep
+    # (one explosion test, io/metrics.explosion_reason, on the device's per-jelly values).
+    ks = ["--set", "jelly.0.springs.structural.ks=1e6", "--set", "jelly.0.springs.shear.ks=1e6",
+          "--set", "jelly.0.springs.bending.ks=1e6"]
+    common = ["seed_bowl", *SMALL, *ks, "--duration", "1.0", "--allow-unstable"]
+    cmp_json = tmp_path / "cmp.json"
+    assert cli.main(["compare", *common, "--integrators", "symplectic,rk4", "--out", str(tmp_path / "c.usda"),
+                     "--metrics", str(cmp_json), "--quiet"]) == 3  # copies exploded
+    copies = {v["name"]: v["exploded"] for v in json.loads(cmp_json.read_text())["variants"]}
+    rc, out = sweep(tmp_path, *ks, "--duration", "1.0", "--integrators", "symplectic,rk4", "--workers", "1",
+                    "--allow-unstable")
+    assert rc == 0
+    rows = {r["integrator"]: r for r in read_results(out)}
+    for method in ("symplectic", "rk4"):
+        metrics = tmp_path / f"{method}.json"
+        code = cli.main(["run", *common, "--integrator", method, "--out", str(tmp_path / f"{method}.usda"),
+                         "--metrics", str(metrics), "--quiet"])
+        explosion = json.loads(metrics.read_text())["summary"]["explosion"]
+        assert code == 3 and explosion is not None
+        assert copies[method]["frame"] == rows[method]["explosion_frame"] == explosion["frame"]
+        assert copies[method]["reason"] == rows[method]["explosion_reason"] == explosion["reason"]
