@@ -145,17 +145,18 @@ def time_batch(args) -> dict:
     batch_mod._Batch([specs[0]["data"]], device, True)
     startup = time.perf_counter() - t0
     build = compile_s = frames = 0.0
-    rows, model = [], None
+    rows, model, integrator = [], None, None
     for i in range(0, len(specs), size):
         t = {}
         rows += batch_mod._simulate(specs[i: i + size], device, timings=t)
         build += t["build_seconds"]
         compile_s += t["compile_seconds"]
         frames += t["step_seconds"]
-        model = t["model"]
+        model, integrator = t["model"], t["integrator"]
     work = sum(r["particles"] * r["steps"] for r in rows)
     data = specs[0]["data"]["simulation"]
     case = _OurCase(model, data["integrator"], data["dt"], args.bench_steps, use_graph=True)
+    case.integrator = integrator  # the batch's own (one method per world), as its steps used it
     case.prepare()
     for _ in range(args.repeats):
         case.time_once()

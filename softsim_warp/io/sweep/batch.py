@@ -221,7 +221,7 @@ def _simulate(variants: list[dict], device, use_graph=True, timings=None) -> lis
     batch.step_seconds = time.perf_counter() - t_start
     if timings is not None:
         timings.update(build_seconds=build_seconds, compile_seconds=compile_seconds, step_seconds=batch.step_seconds,
-                       model=batch.model)
+                       model=batch.model, integrator=batch.integrator)
     particles = [b - a for a, b in batch.ranges]
     work = sum(n * w.steps for n, w in zip(particles, batch.worlds))
     out = []
