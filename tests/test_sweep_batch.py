@@ -343,3 +343,15 @@ def test_run_compare_and_sweep_judge_an_explosion_alike(tmp_path):
         assert code == 3 and explosion is not None
         assert copies[method]["frame"] == rows[method]["explosion_frame"] == explosion["frame"]
         assert copies[method]["reason"] == rows[method]["explosion_reason"] == explosion["reason"]
+
+
+def test_penetration_into_moving_terrain_is_measured_where_it_is_now():
+    # A sphere rising at 1 m/s: after 0.1 s its centre is 0.1 m higher, and a particle 0.3 m above
+    # its rest centre is 0.1 m inside it (it would be on its surface at rest).
+    sphere = {"center": [0.0, -0.5, 0.0], "radius": 0.4, "motion": {"velocity": [0.0, 1.0, 0.0]}}
+    datas = _worlds([{"sphere": [sphere]}, {"sphere": [dict(sphere, motion={"velocity": [0.0, 0.0, 0.0]})]}])
+    batch = batch_mod._Batch(datas, "cpu", use_graph=False)
+    batch.sim.advance(round(0.1 / datas[0]["simulation"]["dt"]))
+    q = np.tile([0.0, 5.0, 0.0], (2 * 64, 1))
+    q[0] = q[64] = [0.0, -0.1, 0.0]
+    np.testing.assert_allclose(_depths(batch, q), [0.1, 0.0], rtol=1e-12, atol=1e-12)
