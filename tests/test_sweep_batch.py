@@ -355,3 +355,25 @@ def test_penetration_into_moving_terrain_is_measured_where_it_is_now():
     q = np.tile([0.0, 5.0, 0.0], (2 * 64, 1))
     q[0] = q[64] = [0.0, -0.1, 0.0]
     np.testing.assert_allclose(_depths(batch, q), [0.1, 0.0], rtol=1e-12, atol=1e-12)
+
+
+def test_each_worlds_speed_bound_is_its_single_runs():
+    # Worlds of different terrain (a moving bowl and a moving sphere included), jelly placement and
+    # initial velocity: each world's explosion bound is, bit for bit, the bound a model of that
+    # variant alone derives (io/metrics.speed_bound).
+    from softsim_warp.core.model import build_model
+    from softsim_warp.io.metrics import speed_bound
+    from softsim_warp.io.worlds import world_speed_bound
+
+    bowl = {"center": [40.0, 9.0, 0.0], "radius": 9.0, "cut_height": 5.0}
+    terrains = [{}, {"plane": [{"point": [0.0, -3.0, 0.0], "normal": [0.0, 1.0, 0.0]}]},
+                {"bowl": [dict(bowl, motion={"velocity": [0.5, 0.0, 0.0]})]},
+                {"sphere": [{"center": [30.0, 0.0, 0.0], "radius": 2.0, "motion": {"velocity": [0.0, 2.0, 0.0]}}]}]
+    datas = _worlds(terrains)
+    for w, data in enumerate(datas):
+        data["jelly"][0]["velocity"] = [0.3 * w, -1.0, 0.7]
+        data["jelly"][0]["center"] = [-5.0 + w, 10.0 + 0.5 * w, 0.0]
+    batch = batch_mod._Batch(datas, "cpu", use_graph=False)
+    for w, data in enumerate(datas):
+        alone = speed_bound(build_model(scene_mod.Scene(data), "cpu"))
+        assert world_speed_bound(batch.model, *batch.ranges[w], w) == alone == batch.worlds[w].bound
