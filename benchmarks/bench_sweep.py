@@ -1,8 +1,18 @@
-"""Variants per second: ``softsim sweep`` against the same variants as separate ``softsim run`` processes.
+"""Variants per second of ``softsim sweep``: one batch against ``softsim bench``, and against separate runs.
 
 The study is the seed jelly (``seed_bowl``, 10^3 particles) for ``--duration`` simulated seconds
 (default 1 s) at the scene's integrator and step, with every spring type's ks spread over
-``--variants`` values from 1000 to 8000 N/m. Three ways to run it:
+``--variants`` values from 1000 to 8000 N/m.
+
+By default (the issue 46 "Speed" table) the sweep's own task code runs in this process on
+``--device``: the variants as one batch (or batches of ``--batch`` worlds), as a worker runs them.
+It reports the batch's build time, its kernel loading (start-up, not counted in the rates), the
+frames' time (stepping, the per-world reductions on the device and judging each world on the host),
+variants/s (build and frames counted) and particle-steps/s (frames), and ``softsim bench`` stepping
+the same worlds (the batch's model, its integrator, ``--bench-steps`` steps as one captured graph,
+median of ``--repeats``): the sweep's particle-steps/s over bench's is its share of the device.
+
+``--processes`` instead compares whole processes, three ways:
 
 * ``sweep``: one ``softsim sweep`` process (its worker start-up, kernel loading and results file
   included), ``--workers`` local worker processes (on CUDA: one per GPU, or as given);
@@ -20,8 +30,10 @@ start-up (the ``N run in T s`` of its summary line). Prints a table and writes J
 
 Usage::
 
-    python benchmarks/bench_sweep.py --device cpu --variants 16 --workers 2
-    python benchmarks/bench_sweep.py --device cuda:0 --variants 4000 --runs 32 --workers 1 --out bench_sweep_cuda.json
+    python benchmarks/bench_sweep.py --device cpu --variants 64
+    python benchmarks/bench_sweep.py --device cuda:0 --variants 1024
+    python benchmarks/bench_sweep.py --processes --device cpu --variants 16 --workers 2
+    python benchmarks/bench_sweep.py --processes --device cuda:0 --variants 4000 --runs 32 --workers 1
     python benchmarks/bench_sweep.py --device cuda --variants 4000 --scaling 1,2,4 --out bench_sweep_scaling.json
 """
 
@@ -106,10 +118,100 @@ def time_runs(args, folder: Path, parallel: int) -> dict:
     }
 
 
+def plan(args) -> list[dict]:
+    """The variants as the sweep's tasks receive them (validated scene dicts)."""
+    from softsim_warp.io import scene as scene_mod  # noqa: PLC0415
+    from softsim_warp.io.sweep import parse_axis, plan_sweep  # noqa: PLC0415
+
+    _, source, base = scene_mod.read_scene_data(SCENE)
+    base["simulation"]["duration"] = args.duration
+    variants = plan_sweep(base, source, [parse_axis(f"jelly.0.springs.*.ks={KS_LO}:{KS_HI}:{args.variants}")])
+    return [{"id": v.id, "data": v.data, "reference": v.reference} for v in variants]
+
+
+def time_batch(args) -> dict:
+    """The sweep's task code on ``args.device`` in this process, and ``softsim bench`` on its model."""
+    import numpy as np  # noqa: PLC0415
+
+    from softsim_warp.commands.bench import _OurCase  # noqa: PLC0415
+    from softsim_warp.io.sweep import batch as batch_mod  # noqa: PLC0415
+
+    wp = batch_mod._init_warp()
+    device = wp.get_device(args.device)
+    specs = plan(args)
+    size = args.batch or len(specs)
+    # Start-up, not timed: a first model builds the kernel objects and loads the modules a build uses.
+    t0 = time.perf_counter()
+    batch_mod._Batch([specs[0]["data"]], device, True)
+    startup = time.perf_counter() - t0
+    build = compile_s = frames = 0.0
+    rows, model, integrator = [], None, None
+    for i in range(0, len(specs), size):
+        t = {}
+        rows += batch_mod._simulate(specs[i: i + size], device, timings=t)
+        build += t["build_seconds"]
+        compile_s += t["compile_seconds"]
+        frames += t["step_seconds"]
+        model, integrator = t["model"], t["integrator"]
+    work = sum(r["particles"] * r["steps"] for r in rows)
+    data = specs[0]["data"]["simulation"]
+    case = _OurCase(model, data["integrator"], data["dt"], args.bench_steps, use_graph=True)
+    case.integrator = integrator  # the batch's own (one method per world), as its steps used it
+    case.prepare()
+    for _ in range(args.repeats):
+        case.time_once()
+    bench_rate = model.particle_count / (case.ms_per_step() * 1e-3)
+    sweep_rate = work / frames
+    statuses = {s: sum(r["status"] == s for r in rows) for s in {r["status"] for r in rows}}
+    return {
+        "device": str(device),
+        "variants": len(specs),
+        "batch": size,
+        "particles_per_variant": rows[0]["particles"],
+        "steps_per_variant": int(np.max([r["steps"] for r in rows])),
+        "statuses": statuses,
+        "build_seconds": build,
+        "startup_seconds": startup,
+        "compile_seconds": compile_s,
+        "frames_seconds": frames,
+        "variants_per_second": len(specs) / (build + frames),
+        "variants_per_second_frames": len(specs) / frames,
+        "particle_steps_per_second": sweep_rate,
+        "bench_particles": model.particle_count,
+        "bench_steps": case.steps,
+        "bench_ms_per_step": case.ms_per_step(),
+        "bench_particle_steps_per_second": bench_rate,
+        "share_of_bench": sweep_rate / bench_rate,
+    }
+
+
+def run_batch_table(args):
+    r = time_batch(args)
+    print(f"{SCENE} (10^3 particles), {args.duration:g} s simulated, ks {KS_LO}..{KS_HI} over {r['variants']} "
+          f"variants in batches of {r['batch']}, device {r['device']} ({r['statuses']})")
+    print(f"{'build [s]':>10}{'load [s]':>10}{'frames [s]':>11}{'variants/s':>12}{'particle-steps/s':>18}"
+          f"{'bench p-steps/s':>17}{'sweep/bench':>13}")
+    print(f"{r['build_seconds']:>10.3f}{r['compile_seconds']:>10.2f}{r['frames_seconds']:>11.3f}"
+          f"{r['variants_per_second']:>12.4g}{r['particle_steps_per_second']:>18.4g}"
+          f"{r['bench_particle_steps_per_second']:>17.4g}{r['share_of_bench']:>12.0%}")
+    print(f"(variants/s counts the build and the frames, not the start-up ({r['startup_seconds']:.2f} s) or the "
+          f"kernels' loading; frames alone: "
+          f"{r['variants_per_second_frames']:.4g} variants/s; bench: {r['bench_particles']} particles, "
+          f"{r['bench_ms_per_step']:.3f} ms/step over {r['bench_steps']} steps)")
+    report = {"scene": SCENE, "duration": args.duration, "host": platform.node(),
+              "cpus": len(os.sched_getaffinity(0)), "batch": r}
+    Path(args.out).write_text(json.dumps(report, indent=1) + "\n")
+    print(f"-> {args.out}")
+
+
 def main(argv=None):
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--device", default="cpu")
     p.add_argument("--variants", type=int, default=16)
+    p.add_argument("--processes", action="store_true",
+                   help="compare whole processes: softsim sweep against separate softsim run processes")
+    p.add_argument("--bench-steps", type=int, default=100, help="steps of the softsim bench replay (default 100)")
+    p.add_argument("--repeats", type=int, default=5, help="softsim bench replays timed (median; default 5)")
     p.add_argument("--runs", type=int, help="separate runs timed (default: every variant)")
     p.add_argument("--workers", type=int, help="sweep workers and parallel runs (default: sweep's default; runs: CPUs)")
     p.add_argument("--batch", type=int, help="the sweep's --batch")
@@ -122,6 +224,9 @@ def main(argv=None):
 
     if args.scaling:
         run_scaling(args)
+        return
+    if not args.processes:
+        run_batch_table(args)
         return
     rows = []
     with tempfile.TemporaryDirectory() as tmp:

@@ -3,11 +3,21 @@
 ``reduce_particles`` and ``reduce_springs`` sum with atomic adds. For ``--deterministic`` runs the
 chunk kernels sum in a fixed order instead: per chunk of consecutive particles (springs) by one
 thread each, then per jelly over its chunks in order. ``max`` and integer counts need no fixed order.
+
+Per world, for ``softsim sweep`` (one value per world a frame, so the host never reads particles):
+``measure_penetration`` and ``combine_shell_depths`` find the deepest particle inside terrain with the
+contact kernels' own signed distances (kernels/contact.py, kernels/mesh.py), and
+``measure_position_error`` the RMS distance to a reference run's particles, summed in particle order
+by one thread per world (the same on the CPU and on CUDA).
 """
 
 import warp as wp
 
-from . import springs
+from . import contact, mesh, pins, springs
+
+# What the contact distances return where a primitive does not collide (a plane's hole, above a
+# bowl's cut, a mesh beyond reach): such a distance is no penetration.
+NO_SURFACE = 1.0e30
 
 wp.set_module_options({"enable_backward": False})
 
@@ -16,6 +26,12 @@ def build(scalar):
     vec3 = wp.types.vector(3, scalar)
     spring_funcs = springs.build(scalar)
     spring_energy = spring_funcs["spring_energy"]
+    surfaces = contact.build(scalar)
+    plane_distance = surfaces["plane_distance"]
+    sphere_distance = surfaces["sphere_distance"]
+    bowl_distance = surfaces["bowl_distance"]
+    mesh_distance = mesh.build(scalar)["mesh_distance"]
+    rotate = pins.build(scalar)["rotate"]
 
     @wp.kernel(module="unique")
     def reduce_particles(
@@ -177,7 +193,131 @@ def build(scalar):
             total += spring_energy[c]
         spring_energy_out[j] = total
 
+    @wp.func
+    def is_surface(phi: scalar):
+        return wp.isfinite(phi) and phi < scalar(NO_SURFACE)
+
+    @wp.kernel(module="unique")
+    def measure_penetration(
+        # Model:
+        particle_world: wp.array(dtype=wp.int32),
+        particle_jelly: wp.array(dtype=wp.int32),
+        plane_first: wp.array(dtype=wp.int32),
+        plane_point: wp.array(dtype=vec3),
+        plane_normal: wp.array(dtype=vec3),
+        plane_hole_center: wp.array(dtype=vec3),
+        plane_hole_radius: wp.array(dtype=scalar),
+        sphere_first: wp.array(dtype=wp.int32),
+        sphere_center: wp.array(dtype=vec3),
+        sphere_radius: wp.array(dtype=scalar),
+        mesh_first: wp.array(dtype=wp.int32),
+        mesh_id: wp.array(dtype=wp.uint64),
+        mesh_closed: wp.array(dtype=wp.int32),
+        mesh_reach: wp.array(dtype=scalar),
+        mesh_tri_start: wp.array(dtype=wp.int32),
+        mesh_tris: wp.array(dtype=wp.vec3i),
+        mesh_points: wp.array(dtype=vec3),
+        bowl_first: wp.array(dtype=wp.int32),
+        bowl_center: wp.array(dtype=vec3),
+        bowl_radius: wp.array(dtype=scalar),
+        bowl_cut_height: wp.array(dtype=scalar),
+        # Per bowl its moving index (-1: static), and the moving primitives' turn and rest point:
+        # a moving bowl's cut is a height in its own frame (as ``collide_moving_bowls`` reads it).
+        bowl_motion: wp.array(dtype=wp.int32),
+        motion_turn_now: wp.array(dtype=vec3),
+        motion_rest_point: wp.array(dtype=vec3),
+        bowl_slots: int,
+        # State in:
+        particle_q: wp.array(dtype=vec3),
+        # Out, zeroed by the caller: per world the deepest particle inside solid terrain (planes,
+        # spheres, meshes) [m]; per jelly and bowl slot (jelly * bowl_slots + the bowl's index in its
+        # world) the least and largest signed distance to the bowl, set to +/-NO_SURFACE by the caller.
+        depth_out: wp.array(dtype=scalar),
+        shell_lo_out: wp.array(dtype=scalar),
+        shell_hi_out: wp.array(dtype=scalar),
+    ):
+        i = wp.tid()
+        w = particle_world[i]
+        x = particle_q[i]
+        worst = scalar(0.0)
+        for p in range(plane_first[w], plane_first[w + 1]):
+            phi = plane_distance(x, plane_point[p], plane_normal[p], plane_hole_center[p], plane_hole_radius[p])
+            if is_surface(phi):
+                worst = wp.max(worst, -phi)
+        for s in range(sphere_first[w], sphere_first[w + 1]):
+            phi, _n = sphere_distance(x, sphere_center[s], sphere_radius[s])
+            if is_surface(phi):
+                worst = wp.max(worst, -phi)
+        for m in range(mesh_first[w], mesh_first[w + 1]):
+            # A closed mesh's inside is all of it (the winding number says which), however deep; an
+            # open sheet is solid only as far behind it as it pushes particles out (its reach), or
+            # all space below a ground sheet's plane, beside it too, would count.
+            reach = mesh_reach[m]
+            if mesh_closed[m] != 0:
+                reach = scalar(NO_SURFACE)
+            phi, _n = mesh_distance(x, mesh_id[m], mesh_closed[m], reach, mesh_tri_start[m], mesh_tris, mesh_points)
+            if is_surface(phi):
+                worst = wp.max(worst, -phi)
+        if worst > scalar(0.0):
+            wp.atomic_max(depth_out, w, worst)
+        first = bowl_first[w]
+        for b in range(first, bowl_first[w + 1]):
+            c = bowl_center[b]
+            cut = bowl_cut_height[b]
+            above = False
+            mo = bowl_motion[b]
+            if mo >= 0:
+                above = rotate(-motion_turn_now[mo], x - c)[1] + motion_rest_point[mo][1] >= cut
+                cut = scalar(NO_SURFACE)
+            phi, _n = bowl_distance(x, c, bowl_radius[b], cut)
+            if is_surface(phi) and not above:
+                slot = particle_jelly[i] * bowl_slots + (b - first)
+                wp.atomic_min(shell_lo_out, slot, phi)
+                wp.atomic_max(shell_hi_out, slot, phi)
+
+    @wp.kernel(module="unique")
+    def combine_shell_depths(
+        jelly_world: wp.array(dtype=wp.int32),
+        bowl_first: wp.array(dtype=wp.int32),
+        bowl_slots: int,
+        shell_lo: wp.array(dtype=scalar),
+        shell_hi: wp.array(dtype=scalar),
+        # In and out, per world: the deepest particle inside terrain [m].
+        depth: wp.array(dtype=scalar),
+    ):
+        # A bowl is a shell, free space on both sides: a jelly is inside it only when the shell cuts
+        # it, some particles on each side, and then by the shallower of its two excursions.
+        t = wp.tid()
+        j = t // bowl_slots
+        w = jelly_world[j]
+        if t % bowl_slots < bowl_first[w + 1] - bowl_first[w]:
+            lo = shell_lo[t]
+            hi = shell_hi[t]
+            if lo < scalar(0.0) and hi > scalar(0.0):
+                wp.atomic_max(depth, w, wp.min(-lo, hi))
+
+    @wp.kernel(module="unique")
+    def measure_position_error(
+        world_start: wp.array(dtype=wp.int32),
+        particle_q: wp.array(dtype=vec3),
+        reference_q: wp.array(dtype=wp.vec3d),
+        # Out, per world: RMS over its particles of |x - x_ref| [m], in float64.
+        error_out: wp.array(dtype=wp.float64),
+    ):
+        w = wp.tid()
+        a = world_start[w]
+        b = world_start[w + 1]
+        total = wp.float64(0.0)
+        for i in range(a, b):
+            x = particle_q[i]
+            d = wp.vec3d(wp.float64(x[0]), wp.float64(x[1]), wp.float64(x[2])) - reference_q[i]
+            total += wp.dot(d, d)
+        error_out[w] = wp.sqrt(total / wp.float64(wp.max(b - a, 1)))
+
     return {
+        "measure_penetration": measure_penetration,
+        "combine_shell_depths": combine_shell_depths,
+        "measure_position_error": measure_position_error,
         "reduce_particles": reduce_particles,
         "reduce_springs": reduce_springs,
         "reduce_particle_chunks": reduce_particle_chunks,

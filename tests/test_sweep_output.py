@@ -23,7 +23,8 @@ from softsim_warp.io import sweep as engine
 from softsim_warp.io.sweep import check_scheduler_address, read_results
 
 sys.path.insert(0, str(Path(__file__).parent))
-from test_sweep import _env, _interrupt_after_two_parts
+from test_sweep_store import _interrupt_after_two_parts
+from tests.sweep_helpers import env as _env
 
 KS = "jelly.0.springs.structural.ks"
 

@@ -19,7 +19,8 @@ frame, with a reference trajectory:
 * **Steps.** Frames are compared at the same times, so each ``dt`` is rounded to the nearest value
   that divides the frame interval ``1/fps`` (``n = round(1 / (fps dt))`` steps per frame); the report
   gives the step actually used.
-* **Unstable runs** (non-finite state or a speed over the explosion bound, as in ``softsim run``)
+* **Unstable runs** (non-finite state, a speed over the explosion bound or an energy overflow, judged
+  as ``softsim run`` judges them: ``io.metrics.explosion_reason`` on the probe's reductions)
   are kept in the table and the plots, marked, with the time at which they stopped.
 
 Contact makes every method first order near an impact, so convergence orders are measured on the
@@ -39,6 +40,7 @@ from ..core.errors import CommandLineError
 from ..core.model import build_model
 from ..core.stepper import make_integrator
 from ..io.mesh_scene import add_asset_inputs
+from ..io.metrics import explosion_reason
 from ..io.outputs import JSON_SUFFIXES, Outputs, save_report
 from ..io.resources import MAX_RUN_DAYS, check_fits, scene_counts, step_seconds_floor
 from ..io.simulate import Simulator
@@ -180,19 +182,15 @@ def run_trajectory(scene, integrator, dt, *, device=None, precision=None, fps=No
         sim.advance(n)
         wp.synchronize_device(model.device)
         step_seconds += time.perf_counter() - t0
-        q = sim.state.particle_q.numpy().astype(np.float64)
-        qd = sim.state.particle_qd.numpy().astype(np.float64)
-        finite = np.isfinite(q).all() and np.isfinite(qd).all()
-        speed = float(np.sqrt((qd * qd).sum(axis=1)).max()) if finite and qd.size else 0.0
-        if not finite or speed > sim.max_speed:
+        # Judged as softsim run judges a frame: the probe's reductions on the device, one test.
+        m = sim.probe.measure(sim.state, k, float(times[k]))
+        reason = explosion_reason(m.nonfinite, m.max_speed, m.kinetic_energy, m.spring_energy, m.gravity_energy,
+                                  m.total_energy, sim.max_speed, precision)
+        if reason is not None:
             exploded = True
-            reason = (
-                "non-finite state" if not finite
-                else f"max speed {speed:.4g} m/s exceeds the bound {sim.max_speed:.4g} m/s"
-            )
             explosion = {"frame": k, "time": float(times[k]), "reason": reason}
             break
-        out[k] = q
+        out[k] = sim.state.particle_q.numpy()  # the trajectory the errors are measured on
         done = k + 1
     return Trajectory(
         integrator=integ.name if isinstance(integrator, str) else str(integrator),

@@ -36,6 +36,7 @@ from ..core.stepper import make_integrator
 from ..io import scene as scene_mod
 from ..io import stable_step
 from ..io.mesh_scene import add_asset_inputs
+from ..io.metrics import explosion_reason
 from ..io.outputs import JSON_SUFFIXES, USD_SUFFIXES, Outputs, kept_partial_path, save_atomic, write_json_atomic
 from ..io.resources import check_fits
 from ..io.scene import parse_override
@@ -530,17 +531,14 @@ def run_comparison(plan: Plan, device, out, metrics_path=None, plot_path=None, c
                 ds, de = display_ranges[v.world]
                 if res.exploded is None:
                     jm = [m.jellies[i] for i, j in enumerate(g.model.jellies) if j.world == lw]
-                    nonfinite = not (np.all(np.isfinite(q[start:end])) and np.all(np.isfinite(qd[start:end])))
-                    vmax = max(x["max_speed"] for x in jm)
-                    overflow = not all(math.isfinite(x["total_energy"]) for x in jm)  # as Simulator.run
-                    if nonfinite or vmax > bounds[v.world] or overflow:
-                        res.exploded = {
-                            "frame": k,
-                            "time": t_frame,
-                            "reason": "non-finite state" if nonfinite
-                            else (f"max speed {vmax:.4g} m/s exceeds the bound {bounds[v.world]:.4g} m/s"
-                                  if vmax > bounds[v.world] else "non-finite energy (overflow)"),
-                        }
+                    # The world judged as Simulator.run judges a run, from the probe's per-jelly values.
+                    reason = explosion_reason(
+                        sum(x["nonfinite"] for x in jm), max(x["max_speed"] for x in jm),
+                        *(sum(x[e] for x in jm) for e in ("kinetic_energy", "spring_energy", "gravity_energy",
+                                                           "total_energy")),
+                        bounds[v.world], g.model.precision)
+                    if reason is not None:
+                        res.exploded = {"frame": k, "time": t_frame, "reason": reason}
                     else:
                         positions[ds:de] = q[start:end]
                         velocities[ds:de] = qd[start:end]

@@ -3,6 +3,11 @@
 :class:`MetricsProbe` sums with atomics; :class:`DeterministicMetricsProbe` (``--deterministic``
 runs) sums in a fixed order, chunks of particles and then jellies, so the metrics of two runs
 agree bit for bit on CUDA too. :func:`make_probe` picks the one the model asks for.
+
+For a batch of worlds (``softsim sweep``), :class:`PenetrationProbe` and :class:`PositionErrorProbe`
+reduce the rest of what a row records on the device too, one number per world a frame, so the host
+never reads the particles. :func:`explosion_reason` is the one explosion test of a run and of a
+sweep's world.
 """
 
 from __future__ import annotations
@@ -15,6 +20,7 @@ import warp as wp
 
 from ..core.contact import terrain_speed
 from ..core.model import Model, State
+from ..kernels.metrics import NO_SURFACE
 
 
 @dataclass
@@ -65,6 +71,10 @@ class MetricsProbe:
         for k, info in enumerate(model.jellies):
             masses[k] = model.particle_mass_host[info.particle_start : info.particle_start + info.particle_count].sum()
         self.jelly_mass = masses
+
+    def reduce(self, state: State):
+        """Fill the per-jelly arrays for ``state`` on the device (launches only; ``measure`` reads them)."""
+        self._reduce(state)
 
     def _reduce(self, state: State):
         """Fill the per-jelly arrays for ``state`` (atomics; see DeterministicMetricsProbe for fixed order)."""
@@ -140,6 +150,117 @@ class MetricsProbe:
             nonfinite=int(bad.sum()),
             jellies=jellies,
         )
+
+
+def explosion_reason(nonfinite, max_speed, kinetic, spring, gravity, total, bound, precision) -> str | None:
+    """Why a frame with these whole-scene (or whole-world) metrics is an explosion, or None.
+
+    Non-finite particles, a speed above ``bound``, or energies that overflow ``precision`` (a speed
+    of 1e38 m/s squared in float32 is infinite while every coordinate is still finite: no result
+    after it means anything).
+    """
+    if nonfinite:
+        return f"{nonfinite} particles with non-finite state"
+    if max_speed > bound:
+        return f"max speed {max_speed:.4g} m/s exceeds the bound {bound:.4g} m/s"
+    if not all(math.isfinite(e) for e in (kinetic, spring, gravity, total)):
+        return (f"the energy overflows the {precision} range (kinetic {kinetic:.4g} J, "
+                f"spring {spring:.4g} J, gravity {gravity:.4g} J)")
+    return None
+
+
+class PenetrationProbe:
+    """Deepest particle of each world inside terrain [m], reduced on the device: one number per world.
+
+    Solid terrain (planes, spheres, meshes): the largest ``-phi`` over the world's particles with
+    signed distance ``phi < 0``, measured by the contact kernels' own distance functions against
+    the terrain where it is now (moving terrain included). A closed mesh is solid however deep; an
+    open sheet only as far behind it as its ``thickness`` (the depth from which contact pushes
+    particles out). A bowl is a shell with free space on both
+    sides, so a particle behind it is not by itself inside anything: a jelly that the bowl cuts, some
+    particles on each side, penetrates by the smaller of its deepest excursions on the two sides (0
+    when it lies on one side). Distances are in the model's precision.
+    """
+
+    def __init__(self, model: Model):
+        self.model = model
+        dev = model.device
+        worlds = model.world_count
+        self.depth = wp.zeros(worlds, dtype=model.scalar, device=dev)
+        bowls_per_world = np.diff(model.bowl_first.numpy()) if model.bowl_count else np.zeros(1, np.int32)
+        self.bowl_slots = max(int(bowls_per_world.max()), 1)
+        jellies = max(len(model.jellies), 1)
+        np_scalar = np.float32 if model.scalar == wp.float32 else np.float64
+        slots = jellies * self.bowl_slots
+        self._shell_lo_init = wp.array(np.full(slots, NO_SURFACE, np_scalar), dtype=model.scalar, device=dev)
+        self._shell_hi_init = wp.array(np.full(slots, -NO_SURFACE, np_scalar), dtype=model.scalar, device=dev)
+        self.shell_lo = wp.empty_like(self._shell_lo_init)
+        self.shell_hi = wp.empty_like(self._shell_hi_init)
+        world_of = np.array([j.world for j in model.jellies] or [0], dtype=np.int32)
+        self.jelly_world = wp.array(world_of, dtype=wp.int32, device=dev)
+        motion = getattr(model, "terrain_motion", None)
+        if motion is not None:
+            self._motion = (model.bowl_motion, motion.turn_now, motion.rest_point)
+        else:
+            self._motion = (wp.array(np.full(model.bowl_count, -1, np.int32), dtype=wp.int32, device=dev),
+                            wp.zeros(0, dtype=model.vec3, device=dev), wp.zeros(0, dtype=model.vec3, device=dev))
+
+    def launch(self, state: State):
+        """Reduce ``state``'s penetration per world into ``depth`` (launches only)."""
+        m = self.model
+        k = m.kernels
+        self.depth.zero_()
+        if m.bowl_count:
+            wp.copy(self.shell_lo, self._shell_lo_init)
+            wp.copy(self.shell_hi, self._shell_hi_init)
+        wp.launch(
+            k.measure_penetration,
+            dim=m.particle_count,
+            inputs=[m.particle_world, m.particle_jelly,
+                    m.plane_first, m.plane_point, m.plane_normal, m.plane_hole_center, m.plane_hole_radius,
+                    m.sphere_first, m.sphere_center, m.sphere_radius,
+                    m.mesh_first, m.mesh_id, m.mesh_closed, m.mesh_reach, m.mesh_tri_start, m.mesh_tris, m.mesh_points,
+                    m.bowl_first, m.bowl_center, m.bowl_radius, m.bowl_cut_height, *self._motion, self.bowl_slots,
+                    state.particle_q],
+            outputs=[self.depth, self.shell_lo, self.shell_hi],
+            device=m.device,
+        )
+        if m.bowl_count:
+            wp.launch(
+                k.combine_shell_depths,
+                dim=self.shell_lo.shape[0],
+                inputs=[self.jelly_world, m.bowl_first, self.bowl_slots, self.shell_lo, self.shell_hi],
+                outputs=[self.depth],
+                device=m.device,
+            )
+
+    def read(self) -> np.ndarray:
+        """The last :meth:`launch`'s depths, one per world (float64; synchronises)."""
+        return self.depth.numpy().astype(np.float64)
+
+
+class PositionErrorProbe:
+    """RMS over each world's particles of the distance to a reference run's [m], on the device.
+
+    ``world_ranges``: each world's ``(first particle, end)``, consecutive; the reference model holds
+    the same worlds in the same order (float64). Each world is summed in particle order by one
+    thread, in float64, so the result is the same on the CPU and on CUDA.
+    """
+
+    def __init__(self, model: Model, world_ranges):
+        starts = [a for a, _ in world_ranges] + [world_ranges[-1][1]]
+        if any(b != a2 for (_, b), a2 in zip(world_ranges, starts[1:])):
+            raise ValueError("the worlds' particle ranges are not consecutive")
+        self.model = model
+        self.world_start = wp.array(np.asarray(starts, dtype=np.int32), dtype=wp.int32, device=model.device)
+        self.error = wp.zeros(len(world_ranges), dtype=wp.float64, device=model.device)
+
+    def launch(self, q, q_ref):
+        wp.launch(self.model.kernels.measure_position_error, dim=self.error.shape[0],
+                  inputs=[self.world_start, q, q_ref], outputs=[self.error], device=self.model.device)
+
+    def read(self) -> np.ndarray:
+        return self.error.numpy()
 
 
 def speed_bound(model: Model) -> float:

@@ -22,7 +22,7 @@ from ..core import stepper as stepper_mod
 from ..core.integrators import Integrator
 from ..core.model import Model, State
 from ..core.stepper import Stepper
-from .metrics import FrameMetrics, make_probe, speed_bound  # noqa: F401 - FrameMetrics re-exported
+from .metrics import FrameMetrics, explosion_reason, make_probe, speed_bound  # noqa: F401 - FrameMetrics re-exported
 
 # Seconds a frame may go on after a stop request before it is dropped (see the module docstring).
 STOP_GRACE_SECONDS = 0.5
@@ -142,20 +142,14 @@ class Simulator(Stepper):
             prev_step += n
             # Energies that overflow (a speed of 1e38 m/s squared in float32) are an explosion too,
             # even while every coordinate is still finite: no result after them means anything.
-            energy_bad = not all(math.isfinite(e) for e in (metrics.kinetic_energy, metrics.spring_energy,
-                                                            metrics.gravity_energy, metrics.total_energy))
-            if metrics.nonfinite or metrics.max_speed > self.max_speed or energy_bad:
+            reason = explosion_reason(metrics.nonfinite, metrics.max_speed, metrics.kinetic_energy,
+                                      metrics.spring_energy, metrics.gravity_energy, metrics.total_energy,
+                                      self.max_speed, self.model.precision)
+            if reason is not None:
                 result.steps = prev_step  # the steps done, up to the frame that exploded
                 result.exploded = True
                 bad = [i for i, j in enumerate(metrics.jellies) if j["nonfinite"] or j["max_speed"] > self.max_speed
                        or not math.isfinite(j["total_energy"])]
-                if metrics.nonfinite:
-                    reason = f"{metrics.nonfinite} particles with non-finite state"
-                elif metrics.max_speed > self.max_speed:
-                    reason = f"max speed {metrics.max_speed:.4g} m/s exceeds the bound {self.max_speed:.4g} m/s"
-                else:
-                    reason = (f"the energy overflows the {self.model.precision} range (kinetic {metrics.kinetic_energy:.4g} J, "
-                              f"spring {metrics.spring_energy:.4g} J, gravity {metrics.gravity_energy:.4g} J)")
                 result.explosion = {"frame": k, "time": t_frame, "jelly": bad[0] if bad else 0, "reason": reason}
                 if not metrics.nonfinite and not metrics.max_speed > self.max_speed:
                     result.explosion["overflow"] = True  # the values, not the step, are out of range

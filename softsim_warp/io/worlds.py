@@ -3,7 +3,7 @@
 ``softsim compare`` and ``softsim sweep`` both batch variants this way. A world shares no
 particles, springs or terrain with another, and each world's explosion bound and metrics are what a
 single run of its variant would compute: on the CPU a world of a batch steps bit for bit like that
-single run (tests/test_sweep.py), as long as the batch uses one integrator (the stage count and
+single run (tests/test_sweep_batch.py), as long as the batch uses one integrator (the stage count and
 the contact filter between stages are per model).
 """
 
@@ -51,22 +51,39 @@ def world_jellies(model) -> list[tuple[int, int]]:
 def world_speed_bound(model, start, end, world):
     """The explosion speed bound a single run of this world's variant would use (see ``metrics.speed_bound``)."""
 
-    # The model's initial velocities as the device holds them and its terrain by world, made once
-    # for all worlds of a batch.
+    # Made once for all worlds of a batch: each world's particle box (its least and largest
+    # coordinates), its fastest particle's initial velocity as the device holds it, and its terrain.
     shared = model.__dict__.get("_world_bound_inputs")
     if shared is None:
+        ranges = world_ranges(model)
+        starts = np.array([a for a, _ in ranges])
+        q, qd = model.particle_q_host, model.particle_qd.numpy()
+        consecutive = all(b == a2 for (_, b), a2 in zip(ranges, [*starts[1:], q.shape[0]]))
+        if consecutive and q.shape[0]:
+            lo, hi = np.minimum.reduceat(q, starts, axis=0), np.maximum.reduceat(q, starts, axis=0)
+        else:
+            lo = np.array([q[a:b].min(axis=0) for a, b in ranges])
+            hi = np.array([q[a:b].max(axis=0) for a, b in ranges])
+        speed = np.linalg.norm(qd, axis=1)  # row by row: each world's values as its own run computes them
+        fastest = [a + int(np.argmax(speed[a:b])) for a, b in ranges]
         by_world = {}
         for kind in ("planes", "bowls", "spheres"):
             for item in getattr(model, kind):
                 by_world.setdefault(item["world"], {"planes": [], "bowls": [], "spheres": []})[kind].append(item)
-        shared = model.__dict__["_world_bound_inputs"] = (model.particle_qd.numpy(), by_world)
-    velocities, by_world = shared
+        shared = model.__dict__["_world_bound_inputs"] = (dict(zip(starts.tolist(), zip(lo, hi, fastest))), qd,
+                                                         by_world)
+    boxes, velocities, by_world = shared
+    lo, hi, fastest = boxes[start]
     terrain = by_world.get(world, {"planes": [], "bowls": [], "spheres": []})
-    qd = velocities[start:end]
-    # speed_bound reads only these host-side fields; this view holds one world's share of them.
+    qd = velocities[fastest : fastest + 1]
+    # speed_bound reads only these host-side fields; this view holds one world's share of them: the
+    # box's two corners stand for its particles (the same extremes), the fastest particle for all
+    # of them (the same largest speed).
     view = types.SimpleNamespace(
-        particle_q_host=model.particle_q_host[start:end],
+        particle_q_host=np.stack([lo, hi]),
         planes=terrain["planes"],
+        bowls=terrain["bowls"],
+        spheres=terrain["spheres"],
         terrain_anchor_points=terrain_anchors(terrain["bowls"], terrain["spheres"]),
         particle_qd=types.SimpleNamespace(numpy=lambda: qd),
         particle_count=end - start,

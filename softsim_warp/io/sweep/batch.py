@@ -1,0 +1,343 @@
+"""Running one batch of a sweep on a device, in a Dask worker: variants as worlds of one model.
+
+One model holds the batch's variants as worlds (:mod:`~softsim_warp.io.worlds`, what ``softsim
+compare`` does) and one launch of each kernel steps them all. Each world is judged frame by frame as
+``softsim run`` judges its run: the same explosion test (:func:`~softsim_warp.io.metrics.explosion_reason`)
+and the same metrics, so on the CPU a row equals a single run bit for bit. Everything a row records
+is reduced per world on the device (:mod:`~softsim_warp.io.metrics`): the per-jelly energies, centre
+of mass, largest speed and non-finite count, the penetration into terrain and the error against the
+reference run; the host reads a few numbers per world a frame, never the particles. A sweep without
+terrain launches nothing for penetration, and one without ``--reference`` nothing for the error.
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import time
+import types
+from pathlib import Path
+
+import numpy as np
+
+from .. import scene as scene_mod
+from ..checks import TERRAIN_SDF
+from .plan import SweepVariant
+
+
+class _World:
+    """What one world of a batch accumulates frame by frame (what ``Simulator.run`` records for a run)."""
+
+    def __init__(self, bound, precision):
+        self.bound = bound
+        self.precision = precision
+        self.frames = []  # per frame written: namespace(total_energy, gravity_energy, com, max_speed)
+        self.exploded = None
+        self.steps = 0
+        self.sim_time = 0.0
+        self.penetration = 0.0
+        self.ref_error = 0.0
+        self.ref_com_error = None
+        self.ref_exploded = None
+
+
+class _Batch:
+    """A batch's model, integrator and stepper, with each world's ranges and explosion bound, and the
+    device probes of what its rows record."""
+
+    def __init__(self, datas, device, use_graph, penetration=True):
+        from ...core.integrators import ExplicitIntegrator  # noqa: PLC0415
+        from ...core.stepper import make_integrator  # noqa: PLC0415
+        from ..metrics import PenetrationProbe  # noqa: PLC0415
+        from ..simulate import Simulator  # noqa: PLC0415
+        from ..worlds import make_builder, world_jellies, world_ranges, world_speed_bound  # noqa: PLC0415
+
+        sim = datas[0]["simulation"]
+        self.datas = datas
+        self.model = make_builder(datas).finalize(device, sim["precision"])
+        method = sim["integrator"]
+        if method == "implicit":
+            self.integrator = make_integrator("implicit", self.model, datas[0].get("implicit"))
+        else:
+            self.integrator = ExplicitIntegrator(self.model, [method] * len(datas))
+        first = scene_mod.Scene(datas[0])
+        frames = first.frame_count()
+        self.sim = Simulator(self.model, self.integrator, sim["dt"], sim["fps"], frames, use_graph=use_graph,
+                             max_speed=math.inf, end_time=first.end_time())
+        self.frames = frames
+        self.ranges = world_ranges(self.model)
+        self.jellies = world_jellies(self.model)
+        self.worlds = []
+        for w, data in enumerate(datas):
+            bound = data["simulation"].get("max_speed")
+            a, b = self.ranges[w]
+            bound = float(bound) if bound is not None else world_speed_bound(self.model, a, b, w)
+            self.worlds.append(_World(bound, sim["precision"]))
+        # Penetration is measured into terrain only: without any, nothing is launched for it.
+        has_terrain = any(d.get(kind) for d in datas for kind in TERRAIN_SDF)
+        self.penetration = PenetrationProbe(self.model) if penetration and has_terrain else None
+        self.done_steps = 0
+        self.step_seconds = 0.0
+
+    def launch_frame(self, k: int):
+        """Launch the steps up to frame ``k``: asynchronous on CUDA, so the host can work meanwhile."""
+        target = self.sim.step_of_frame(k)
+        self.sim.advance(target - self.done_steps)
+        self.done_steps = target
+
+    def measure(self):
+        """Launch the reductions of the frame the launched steps reach (asynchronous)."""
+        self.sim.probe.reduce(self.sim.state)
+        if self.penetration is not None:
+            self.penetration.launch(self.sim.state)
+
+    def read_frame(self):
+        """The measured frame on the host (synchronises): ``(step, time, per-jelly arrays, per-world
+        penetration or None)``; a few numbers per jelly and per world, no particle."""
+        from ..worlds import probe_arrays  # noqa: PLC0415
+
+        t = self.done_steps * self.sim.dt
+        depth = self.penetration.read() if self.penetration is not None else None
+        return self.done_steps, t, probe_arrays(self.sim.probe), depth
+
+
+class _Captured:
+    """The per-frame reductions of a batch (``launch``) replayed as a captured graph, one for each
+    state buffer the frame can end in (a graph reads fixed buffers), captured on first use: one
+    launch a frame instead of one per kernel. Without graphs, or on a first use, launched directly."""
+
+    def __init__(self, device, launch, use_graph):
+        self.device = device
+        self.launch = launch
+        self.use_graph = use_graph
+        self.graphs = {}
+
+    def __call__(self, key):
+        import warp as wp  # noqa: PLC0415
+
+        graph = self.graphs.get(key)
+        if graph is not None:
+            wp.capture_launch(graph)
+            return
+        # Launched directly first (it loads the kernels, and its results are this frame's); the
+        # capture records the same launches for the next frames. Every reduction starts from zero,
+        # so running them twice gives the same values.
+        self.launch()
+        if self.use_graph:
+            with wp.ScopedCapture(device=self.device, force_module_load=False) as capture:
+                self.launch()
+            self.graphs[key] = capture.graph
+
+
+def _record_frame(world: _World, frame: dict, k: int, step: int, t: float) -> bool:
+    """Judge and record frame ``k`` of a world as ``Simulator.run`` does; False once it has exploded."""
+    from ..metrics import explosion_reason  # noqa: PLC0415
+
+    reason = explosion_reason(frame["nonfinite"], frame["max_speed"], frame["kinetic_energy"],
+                              frame["spring_energy"], frame["gravity_energy"], frame["total_energy"], world.bound,
+                              world.precision)
+    if reason is not None:
+        world.steps = step
+        world.exploded = {"frame": k, "time": t, "reason": reason}
+        return False
+    world.frames.append(types.SimpleNamespace(total_energy=frame["total_energy"],
+                                              gravity_energy=frame["gravity_energy"], com=frame["com"],
+                                              max_speed=frame["max_speed"]))
+    world.steps = step
+    world.sim_time = t
+    return True
+
+
+def _simulate(variants: list[dict], device, use_graph=True, timings=None) -> list[dict]:
+    """Run one batch (all of one group) as worlds of one model; one result dict per variant.
+
+    ``timings``: a dict that gets the seconds of the batch's build (its models, the reference's
+    too), of loading its kernels and of its frames (benchmarks/bench_sweep.py).
+    """
+    from ..metrics import PositionErrorProbe  # noqa: PLC0415
+    from ..runinfo import energy_drift  # noqa: PLC0415
+    from ..worlds import world_frame, world_frames  # noqa: PLC0415
+
+    t_build = time.perf_counter()
+    batch = _Batch([v["data"] for v in variants], device, use_graph)
+    ref = errors = None
+    if variants[0].get("reference") is not None:
+        ref = _Batch([v["reference"] for v in variants], device, use_graph, penetration=False)
+        errors = PositionErrorProbe(batch.model, batch.ranges)
+    t_compile = time.perf_counter()
+    build_seconds = t_compile - t_build
+    batch.sim.warm_up()
+    if ref is not None:
+        ref.sim.warm_up()
+    compile_seconds = time.perf_counter() - t_compile
+    alive = [True] * len(variants)
+    ref_alive = [True] * len(variants)
+    # Frame k+1's steps are launched before frame k is judged on the host: on CUDA the host work
+    # (judging each world) overlaps the device's; on the CPU launches run at once.
+    t_start = time.perf_counter()
+    for b in (batch, ref):
+        if b is not None:
+            b.launch_frame(0)
+    def launch_reductions():
+        for b in (batch, ref):
+            if b is not None:
+                b.measure()
+        if errors is not None:
+            errors.launch(batch.sim.state.particle_q, ref.sim.state.particle_q)
+
+    measure = _Captured(batch.model.device, launch_reductions, use_graph)
+    for k in range(batch.frames + 1):
+        # The batch and its reference take the same steps: their current buffers agree.
+        measure(batch.sim.current)
+        step, t, arrays, depth = batch.read_frame()
+        if ref is not None:
+            _, _, ref_arrays, _ = ref.read_frame()
+            ref_error = errors.read()
+        if k < batch.frames:
+            for b in (batch, ref):
+                if b is not None:
+                    b.launch_frame(k + 1)
+        frames = world_frames(arrays, batch.jellies)
+        for w, world in enumerate(batch.worlds):
+            if not alive[w]:
+                continue
+            frame = frames[w]
+            alive[w] = _record_frame(world, frame, k, step, t)
+            if not alive[w]:
+                continue
+            if depth is not None:
+                world.penetration = max(world.penetration, float(depth[w]))
+            if ref is not None and ref_alive[w]:
+                rframe = world_frame(ref_arrays, ref.jellies[w])
+                rworld = ref.worlds[w]
+                ref_alive[w] = _record_frame(rworld, rframe, k, step, t)
+                if ref_alive[w]:
+                    world.ref_error = max(world.ref_error, float(ref_error[w]))
+                    world.ref_com_error = float(np.linalg.norm(np.asarray(frame["com"]) - np.asarray(rframe["com"])))
+                else:
+                    world.ref_exploded = rworld.exploded
+        if not any(alive):
+            break
+    batch.step_seconds = time.perf_counter() - t_start
+    if timings is not None:
+        timings.update(build_seconds=build_seconds, compile_seconds=compile_seconds, step_seconds=batch.step_seconds,
+                       model=batch.model, integrator=batch.integrator)
+    particles = [b - a for a, b in batch.ranges]
+    work = sum(n * w.steps for n, w in zip(particles, batch.worlds))
+    out = []
+    for w, (v, world) in enumerate(zip(variants, batch.worlds)):
+        drift, rel = energy_drift(world.frames)
+        last = world.frames[-1] if world.frames else None
+        row = {
+            "variant_id": v["id"],
+            "status": "exploded" if world.exploded else "completed",
+            "explosion_time": world.exploded["time"] if world.exploded else None,
+            "explosion_frame": world.exploded["frame"] if world.exploded else None,
+            "explosion_reason": world.exploded["reason"] if world.exploded else None,
+            "error": None,
+            "steps": world.steps,
+            "frames": len(world.frames),
+            "sim_time": world.sim_time,
+            "particles": particles[w],
+            "batch_size": len(variants),
+            "wall_seconds": batch.step_seconds,
+            "compile_seconds": compile_seconds,
+            "particle_steps_per_second": work / batch.step_seconds if batch.step_seconds > 0 else 0.0,
+            "energy_start": world.frames[0].total_energy if world.frames else None,
+            "energy_end": last.total_energy if last else None,
+            "energy_change": drift,
+            "energy_change_relative": rel,
+            "com_x": last.com[0] if last else None,
+            "com_y": last.com[1] if last else None,
+            "com_z": last.com[2] if last else None,
+            "max_speed": max(f.max_speed for f in world.frames) if world.frames else None,
+            "max_penetration": world.penetration,
+        }
+        if ref is not None:
+            rworld = ref.worlds[w]
+            row["ref_status"] = "exploded" if rworld.exploded else "completed"
+            row["ref_position_error"] = world.ref_error if world.frames else None
+            row["ref_com_error"] = world.ref_com_error
+        out.append(row)
+    return out
+
+
+def _failed(v: dict, error: BaseException, batch_size: int) -> dict:
+    return {"variant_id": v["id"], "status": "failed", "error": f"{type(error).__name__}: {error}".strip(),
+            "batch_size": batch_size}
+
+
+_WARP_READY = False
+
+
+def _init_warp():
+    global _WARP_READY
+    import warp as wp  # noqa: PLC0415
+
+    if not _WARP_READY:
+        # As commands.common.init_warp: Warp's banner and missing-driver notice (written by native
+        # code to descriptor 2) would repeat once per worker; they are held back.
+        from ...core.native_output import held_stderr  # noqa: PLC0415
+
+        wp.config.quiet = True
+        wp.config.log_level = wp.LOG_WARNING
+        with held_stderr():
+            wp.init()
+        _WARP_READY = True
+    return wp
+
+
+def _test_hooks(spec, phase):
+    """Test seam (tests/test_sweep_cluster.py, tests/test_sweep_store.py): with SOFTSIM_SWEEP_TEST_DIR set, a task marks its start and
+    end there (``<task>.<pid>.running`` / ``.done``) and, at start, waits ``SOFTSIM_SWEEP_TEST_DELAY``
+    seconds, so a test can kill a worker while it holds a task. Unset, it costs an environment lookup."""
+    folder = os.environ.get("SOFTSIM_SWEEP_TEST_DIR")
+    if not folder:
+        return
+    name = Path(folder) / f"{spec['task']}.{os.getpid()}"
+    if phase == "start":
+        name.with_suffix(name.suffix + ".running").write_text("")
+        time.sleep(float(os.environ.get("SOFTSIM_SWEEP_TEST_DELAY", "0")))
+    else:
+        name.with_suffix(name.suffix + ".done").write_text("")
+
+
+def run_batch(spec: dict) -> list[dict]:
+    """A Dask task: simulate the batch ``spec["variants"]`` on ``spec["device"]``; one result per variant.
+
+    A batch that fails as a whole is rerun variant by variant, so one bad variant fails alone.
+    """
+    _test_hooks(spec, "start")
+    wp = _init_warp()
+    device = wp.get_device(spec["device"])
+    variants = spec["variants"]
+    use_graph = spec.get("use_graph", True)
+    try:
+        rows = _simulate(variants, device, use_graph)
+    except Exception as e:  # noqa: BLE001 - a variant's failure is its row's result
+        if len(variants) == 1:
+            rows = [_failed(variants[0], e, 1)]
+        else:
+            rows = []
+            for v in variants:
+                try:
+                    rows += _simulate([v], device, use_graph)
+                except Exception as e1:  # noqa: BLE001
+                    rows.append(_failed(v, e1, len(variants)))
+    host = os.uname().nodename
+    for r in rows:
+        r["device"] = str(device)
+        r["worker"] = f"{host}:{os.getpid()}"
+    _test_hooks(spec, "end")
+    return rows
+
+
+def task_spec(batch: list[SweepVariant], device: str, number: int, use_graph=True) -> dict:
+    """What a task needs: plain data only (it travels to the worker)."""
+    return {
+        "task": f"task{number:06d}",
+        "device": device,
+        "use_graph": use_graph,
+        "variants": [{"id": v.id, "data": v.data, "reference": v.reference} for v in batch],
+    }
+
