@@ -57,6 +57,8 @@ MAX_AXIS_VALUES = 100_000
 MAX_VARIANTS = 1_000_000
 # Seconds between rewrites of the results file while tasks finish (parts are written at once).
 CONSOLIDATE_SECONDS = 5.0
+# Seconds between a task's asks whether the sweep was stopped (each ask is a round trip to the scheduler).
+STOP_POLL_SECONDS = 0.2
 # In a sweep's parts folder: this sweep may not replace --out until it is complete (RowStore.keep_out).
 KEEP_OUT_MARK = "keep-out"
 # Share of a worker's memory (device memory on CUDA, host memory on the CPU) one batch may take.
@@ -601,11 +603,13 @@ class _Batch:
         self.has_terrain = any(d.get(kind) for d in datas for kind in TERRAIN_SDF)
         self.done_steps = 0
         self.step_seconds = 0.0
+        self.stop = None  # asked between chunks of a long frame (stop_check): the sweep was stopped
 
     def launch_frame(self, k: int):
         """Launch the steps up to frame ``k``: asynchronous on CUDA, so the host can work meanwhile."""
         target = self.sim.step_of_frame(k)
-        self.sim.advance(target - self.done_steps)
+        if not self.sim.advance_frame(target - self.done_steps, stop=self.stop):
+            raise TaskStopped
         self.done_steps = target
 
     def read_frame(self, k: int, positions=True):
@@ -638,15 +642,51 @@ def _record_frame(world: _World, frame: dict, k: int, step: int, t: float) -> bo
     return True
 
 
-def _simulate(variants: list[dict], device, use_graph=True) -> list[dict]:
-    """Run one batch (all of one group) as worlds of one model; one result dict per variant."""
+class TaskStopped(Exception):
+    """The client stopped the sweep while this task ran (its rows are not wanted)."""
+
+
+def stop_check(name: str | None):
+    """In a task: a callable that is true once the client has set the sweep's stop event ``name``
+    (``run_tasks``), or the worker has lost its scheduler. It asks the scheduler at most every
+    STOP_POLL_SECONDS, the first time that long after the task started, so a task of short frames
+    never asks. None without a name."""
+    if not name:
+        return None
+    seen = {"at": time.perf_counter(), "set": False, "event": None}
+
+    def stop():
+        now = time.perf_counter()
+        if not seen["set"] and now - seen["at"] >= STOP_POLL_SECONDS:
+            seen["at"] = now
+            try:
+                if seen["event"] is None:
+                    from distributed import Event, get_worker  # noqa: PLC0415
+
+                    get_worker()  # ValueError outside a worker
+                    seen["event"] = Event(name)
+                seen["set"] = seen["event"].is_set()
+            except ValueError:  # not in a worker (a task run directly): nothing can stop it
+                seen["at"] = math.inf
+            except Exception:  # noqa: BLE001 - the worker lost its scheduler (closing): no one takes the rows
+                seen["set"] = True
+        return seen["set"]
+
+    return stop
+
+
+def _simulate(variants: list[dict], device, use_graph=True, stop=None) -> list[dict]:
+    """Run one batch (all of one group) as worlds of one model; one result dict per variant.
+    ``stop``: asked between chunks of a long frame; when true the task ends (``TaskStopped``)."""
     from .runinfo import energy_drift  # noqa: PLC0415
     from .worlds import world_frame, world_frames  # noqa: PLC0415
 
     batch = _Batch([v["data"] for v in variants], device, use_graph)
+    batch.stop = stop
     ref = None
     if variants[0].get("reference") is not None:
         ref = _Batch([v["reference"] for v in variants], device, use_graph)
+        ref.stop = stop
     t_compile = time.perf_counter()
     batch.sim.warm_up()
     if ref is not None:
@@ -787,8 +827,11 @@ def run_batch(spec: dict) -> list[dict]:
     device = wp.get_device(spec["device"])
     variants = spec["variants"]
     use_graph = spec.get("use_graph", True)
+    stop = stop_check(spec.get("stop_event"))
     try:
-        rows = _simulate(variants, device, use_graph)
+        rows = _simulate(variants, device, use_graph, stop)
+    except TaskStopped:
+        return []  # the client stopped the sweep: no row of this task is wanted
     except Exception as e:  # noqa: BLE001 - a variant's failure is its row's result
         if len(variants) == 1:
             rows = [_failed(variants[0], e, 1)]
@@ -796,7 +839,9 @@ def run_batch(spec: dict) -> list[dict]:
             rows = []
             for v in variants:
                 try:
-                    rows += _simulate([v], device, use_graph)
+                    rows += _simulate([v], device, use_graph, stop)
+                except TaskStopped:
+                    return []
                 except Exception as e1:  # noqa: BLE001
                     rows.append(_failed(v, e1, len(variants)))
     host = os.uname().nodename
@@ -1191,7 +1236,11 @@ def run_tasks(cluster: Cluster, fn, specs: list[dict], on_rows, stop_requested=N
     client = cluster.client
     outcome = Outcome()
     futures = {}
+    # Set when the sweep stops: a running task reads it between chunks of a long frame and ends
+    # (stop_check), so its worker is free and the cluster closes at once.
+    stop_event = f"softsim-stop-{os.getpid()}-{time.time_ns()}"
     for spec in specs:
+        spec = {**spec, "stop_event": stop_event}
         f = client.submit(fn, spec, key=f"softsim-{spec['task']}-{os.getpid()}-{time.time_ns()}", pure=False)
         futures[f.key] = (f, spec)
     pending = {f for f, _ in futures.values()}
@@ -1200,6 +1249,10 @@ def run_tasks(cluster: Cluster, fn, specs: list[dict], on_rows, stop_requested=N
         while pending:
             if stop_requested is not None and stop_requested():
                 outcome.interrupted = True
+                try:
+                    distributed.Event(stop_event, client=client).set()
+                except Exception:  # noqa: BLE001 - a lost scheduler: its tasks are gone anyway
+                    pass
                 break
             if not ac.has_ready():
                 if ac.is_empty():
