@@ -217,3 +217,22 @@ def test_mesh_jelly_without_lattice_keys_runs(tmp_path, critter, capsys):
     err = capsys.readouterr().err
     assert code == 0, err
     assert err.startswith("drop: 3 frames") and len(err.splitlines()) == 1, err  # the summary, no warning
+
+
+@pytest.mark.parametrize("command", [["run", "jelly_drop", "--frames", "2"], ["compare", "jelly_drop", "--frames", "2"]])
+def test_full_disk_when_the_usd_file_is_created(tmp_path, command):
+    """A disk with room for the lock but not for the new USD file (a real write limit, RLIMIT_FSIZE
+    of 64 bytes: USD's CreateNew writes the file at once): one line naming --out, exit 2, no
+    temporary left (it was a traceback and a hidden .partial file)."""
+    import resource  # noqa: PLC0415
+
+    def limit():
+        signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
+        resource.setrlimit(resource.RLIMIT_FSIZE, (64, 64))
+
+    proc = subprocess.run([sys.executable, "-m", "softsim_warp", *command, "--quiet", "--out", "o.usdc"],
+                          cwd=tmp_path, capture_output=True, text=True, preexec_fn=limit, timeout=600)
+    lines = proc.stderr.strip().splitlines()
+    assert proc.returncode == 2, proc.stderr
+    assert len(lines) == 1 and lines[0].startswith("error: command line: --out: cannot write") and "o.usdc" in lines[0], lines
+    assert sorted(p.name for p in tmp_path.iterdir()) == []
