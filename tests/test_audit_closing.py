@@ -236,3 +236,25 @@ def test_full_disk_when_the_usd_file_is_created(tmp_path, command):
     assert proc.returncode == 2, proc.stderr
     assert len(lines) == 1 and lines[0].startswith("error: command line: --out: cannot write") and "o.usdc" in lines[0], lines
     assert sorted(p.name for p in tmp_path.iterdir()) == []
+
+
+@pytest.mark.skipif(importlib.util.find_spec("distributed") is None, reason="needs the sweep extra")
+def test_sweep_full_disk_is_a_write_error_not_a_lost_scheduler(tmp_path):
+    """The rows' part file cannot be written (RLIMIT_FSIZE of 64 bytes, as a full disk): one line
+    naming --out and the cause, exit 2 (it said "the scheduler was lost", exit 1), and no empty parts
+    folder left to demand --resume of the next sweep."""
+    import resource  # noqa: PLC0415
+
+    def limit():
+        signal.signal(signal.SIGXFSZ, signal.SIG_IGN)
+        resource.setrlimit(resource.RLIMIT_FSIZE, (64, 64))
+
+    proc = subprocess.run(
+        [sys.executable, "-m", "softsim_warp", "sweep", "jelly_drop", "--vary", "jelly.0.total_mass=1,2",
+         "--set", "simulation.frames=2", "--set", "jelly.0.resolution=3", "--workers", "1", "--quiet", "--out", "s.csv"],
+        cwd=tmp_path, capture_output=True, text=True, preexec_fn=limit, timeout=600)
+    lines = proc.stderr.strip().splitlines()
+    assert proc.returncode == 2, proc.stderr
+    assert len(lines) == 1 and lines[0].startswith("error: command line: --out: cannot write the rows of"), lines
+    assert "scheduler" not in lines[0]
+    assert sorted(p.name for p in tmp_path.iterdir()) == []

@@ -8,6 +8,7 @@ summary. docs/SWEEP.md documents the options and the results' columns.
 from __future__ import annotations
 
 import copy
+import shutil
 import sys
 import time
 
@@ -324,6 +325,11 @@ def run(args) -> int:
                         store.add(rows)
                         if store.due():
                             store.consolidate()
+                    except OSError as e:  # a full disk; run_tasks would read an OSError as a lost scheduler
+                        if not store.rows:  # nothing kept: no parts folder to --resume from
+                            shutil.rmtree(store.parts, ignore_errors=True)
+                        raise CommandLineError("--out", f"cannot write the rows of '{target_of(out)}': "
+                                               f"{e.strerror or e}", str(out)) from None
                     finally:
                         writing[0] = False
 
