@@ -258,3 +258,22 @@ def test_sweep_full_disk_is_a_write_error_not_a_lost_scheduler(tmp_path):
     assert len(lines) == 1 and lines[0].startswith("error: command line: --out: cannot write the rows of"), lines
     assert "scheduler" not in lines[0]
     assert sorted(p.name for p in tmp_path.iterdir()) == []
+
+
+def test_size_warning_suggests_units_only_when_not_given(tmp_path, capsys):
+    """An OBJ read as metres at 1.2 mm: the warning offers size or units; given units that still
+    make it 1.2 mm, it offers size alone (units were already given)."""
+    obj = tmp_path / "box.obj"
+    corners = [(x, y, z) for x in (0, 1.2) for y in (0, 1.0) for z in (0, 1.0)]
+    faces = [(1, 3, 4, 2), (5, 6, 8, 7), (1, 2, 6, 5), (3, 7, 8, 4), (1, 5, 7, 3), (2, 4, 8, 6)]
+    obj.write_text("".join(f"v {x} {y} {z}\n" for x, y, z in corners) + "".join(f"f {a} {b} {c} {d}\n" for a, b, c, d in faces))
+    base = {"mesh": str(obj), "center": [0.0, 1.0, 0.0], "total_mass": 0.5, "springs": {"structural": {"ks": 120.0, "kd": 0.15}}}
+    scene_from_dict({"simulation": {"dt": 2.5e-4, "frames": 1}, "jelly": [{**base, "units": "mm", "resolution": 4}]})
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "is 0.0012 m along its longest side" in err[0], err
+    assert err[0].endswith("give size (its longest side [m]) (got nothing)"), err
+    obj_m = tmp_path / "tiny.obj"
+    obj_m.write_text(obj.read_text().replace("1.2", "0.0012").replace(" 1.0", " 0.001"))
+    scene_from_dict({"simulation": {"dt": 2.5e-4, "frames": 1}, "jelly": [{**base, "mesh": str(obj_m), "resolution": 4}]})
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "give size (its longest side [m]) or units" in err[0], err

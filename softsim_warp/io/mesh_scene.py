@@ -116,7 +116,7 @@ def _mesh_jelly(i, j, ctx, base):
         # would simulate, but not as the asset the user has in mind.
         warn(ctx.source, f"{key}.size", f"the mesh {Path(j['mesh']).name} is {longest0:.4g} m along its longest "
              f"side, outside {SANE_SIZE[0] * 100:g} cm to {SANE_SIZE[1]:g} m; give size (its longest side [m])"
-             + (" or units" if not j["mesh"].lower().endswith(USD_SUFFIXES) else ""))
+             + (" or units" if "units" not in j and not j["mesh"].lower().endswith(USD_SUFFIXES) else ""))
     scale = 1.0
     if "size" in j:
         if len(set(j["size"])) != 1:
