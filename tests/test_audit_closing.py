@@ -231,7 +231,7 @@ def test_full_disk_when_the_usd_file_is_created(tmp_path, command):
         resource.setrlimit(resource.RLIMIT_FSIZE, (64, 64))
 
     proc = subprocess.run([sys.executable, "-m", "softsim_warp", *command, "--quiet", "--out", "o.usdc"],
-                          cwd=tmp_path, capture_output=True, text=True, preexec_fn=limit, timeout=600)
+                          check=False, cwd=tmp_path, capture_output=True, text=True, preexec_fn=limit, timeout=600)
     lines = proc.stderr.strip().splitlines()
     assert proc.returncode == 2, proc.stderr
     assert len(lines) == 1 and lines[0].startswith("error: command line: --out: cannot write") and "o.usdc" in lines[0], lines
@@ -252,7 +252,7 @@ def test_sweep_full_disk_is_a_write_error_not_a_lost_scheduler(tmp_path):
     proc = subprocess.run(
         [sys.executable, "-m", "softsim_warp", "sweep", "jelly_drop", "--vary", "jelly.0.total_mass=1,2",
          "--set", "simulation.frames=2", "--set", "jelly.0.resolution=3", "--workers", "1", "--quiet", "--out", "s.csv"],
-        cwd=tmp_path, capture_output=True, text=True, preexec_fn=limit, timeout=600)
+        check=False, cwd=tmp_path, capture_output=True, text=True, preexec_fn=limit, timeout=600)
     lines = proc.stderr.strip().splitlines()
     assert proc.returncode == 2, proc.stderr
     assert len(lines) == 1 and lines[0].startswith("error: command line: --out: cannot write the rows of"), lines
