@@ -609,7 +609,7 @@ class _Batch:
         """Launch the steps up to frame ``k``: asynchronous on CUDA, so the host can work meanwhile."""
         target = self.sim.step_of_frame(k)
         if not self.sim.advance_frame(target - self.done_steps, stop=self.stop):
-            raise TaskStopped
+            raise TaskStopped("the sweep was stopped, or the worker lost its scheduler")
         self.done_steps = target
 
     def read_frame(self, k: int, positions=True):
@@ -643,7 +643,9 @@ def _record_frame(world: _World, frame: dict, k: int, step: int, t: float) -> bo
 
 
 class TaskStopped(Exception):
-    """The client stopped the sweep while this task ran (its rows are not wanted)."""
+    """The client stopped the sweep while this task ran, or the worker could not ask (``stop_check``).
+    Raised out of the task, not returned as no rows: a task that stopped gives no row, and when the
+    client still listens it counts the task's variants as lost, for ``--resume``."""
 
 
 def stop_check(name: str | None):
@@ -831,7 +833,7 @@ def run_batch(spec: dict) -> list[dict]:
     try:
         rows = _simulate(variants, device, use_graph, stop)
     except TaskStopped:
-        return []  # the client stopped the sweep: no row of this task is wanted
+        raise
     except Exception as e:  # noqa: BLE001 - a variant's failure is its row's result
         if len(variants) == 1:
             rows = [_failed(variants[0], e, 1)]
@@ -841,7 +843,7 @@ def run_batch(spec: dict) -> list[dict]:
                 try:
                     rows += _simulate([v], device, use_graph, stop)
                 except TaskStopped:
-                    return []
+                    raise
                 except Exception as e1:  # noqa: BLE001
                     rows.append(_failed(v, e1, len(variants)))
     host = os.uname().nodename
