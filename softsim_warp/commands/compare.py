@@ -513,12 +513,20 @@ def run_comparison(plan: Plan, device, out, metrics_path=None, plot_path=None, c
             for g in groups:
                 g.sim.warm_up()
         t0 = time.perf_counter()
+        # A stop request is read between chunks of a long frame, as in softsim run; one grace clock
+        # (the first group's) for all groups, so the stop acts within about a second however many.
+        groups[0].sim.stop_requested = stop_requested
+        stop = groups[0].sim.stop_within_frame if stop_requested is not None else None
         for k in range(plan.frames + 1):
             target = groups[0].sim.step_of_frame(k)
             with stoppable():
                 for g in groups:
-                    g.sim.advance(target - g.done_steps)
+                    if not g.sim.advance_frame(target - g.done_steps, stop=stop):
+                        result.interrupted = True  # stopped within a long frame: it is dropped
+                        break
                     g.done_steps = target
+            if result.interrupted:
+                break
             t_frame = target * plan.dt
             per_group = {}
             for g in groups:

@@ -8,10 +8,11 @@ summary. docs/SWEEP.md documents the options and the results' columns.
 from __future__ import annotations
 
 import copy
+import shutil
 import sys
 import time
 
-from ..core.errors import CommandLineError
+from ..core.errors import CommandLineError, SceneError
 from ..io import scene as scene_mod
 from ..io import stable_step
 from ..io import sweep as engine
@@ -244,18 +245,24 @@ def run(args) -> int:
             local = wp.get_device("cuda:0")
         else:
             local = common.resolve_device(device, args.debug)
-        # Every group's largest variant must fit and finish (as softsim run checks a run).
-        seen = set()
-        for v in variants:
-            key = engine.group_key(v)
-            if key not in seen:
-                seen.add(key)
-                scene = scene_mod.Scene(v.data, source=source)
-                if mode == "stable_dt":
-                    check_fits(scene, local, frames=0)
-                else:
-                    check_fits(scene, local, frames=scene.frame_count())
-    check_variant_steps(variants, source, mode, local if args.scheduler is None else args.device)
+    try:
+        if args.scheduler is None:
+            # Every group's largest variant must fit and finish (as softsim run checks a run).
+            seen = set()
+            for v in variants:
+                key = engine.group_key(v)
+                if key not in seen:
+                    seen.add(key)
+                    scene = scene_mod.Scene(v.data, source=source)
+                    if mode == "stable_dt":
+                        check_fits(scene, local, frames=0)
+                    else:
+                        check_fits(scene, local, frames=scene.frame_count())
+        check_variant_steps(variants, source, mode, local if args.scheduler is None else args.device)
+    except SceneError as e:
+        if args.dts and e.key == "simulation.dt":  # the dt that --dts gave: name the flag the user typed
+            raise CommandLineError("--dts", e.message.replace("raise simulation.dt", "raise --dts"), e.value) from None
+        raise
     meta = {"scene": name, "source": source, "mode": mode, "keys": [a.key for a in axes]}
     schema = engine.make_schema(axes, variants, mode, meta)
     if args.metric is not None:
@@ -318,6 +325,11 @@ def run(args) -> int:
                         store.add(rows)
                         if store.due():
                             store.consolidate()
+                    except OSError as e:  # a full disk; run_tasks would read an OSError as a lost scheduler
+                        if not store.rows:  # nothing kept: no parts folder to --resume from
+                            shutil.rmtree(store.parts, ignore_errors=True)
+                        raise CommandLineError("--out", f"cannot write the rows of '{target_of(out)}': "
+                                               f"{e.strerror or e}", str(out)) from None
                     finally:
                         writing[0] = False
 

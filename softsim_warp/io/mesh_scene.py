@@ -31,6 +31,10 @@ from .resources import MAX_LATTICE_POINTS, check_lattice_build
 
 MESH_ONLY = ("mesh_prim", "spacing", "up_axis", "units")
 """``[[jelly]]`` keys that only a mesh jelly takes."""
+DEFAULT_RESOLUTION = 12
+"""Lattice cells along a mesh jelly's longest side when the scene gives neither ``resolution`` nor
+``spacing``: fine enough for thin legs and ears to get cells of their own (tests/test_surface_contact.py's
+critter), coarse enough to step fast; an asset dropped in as it comes needs no lattice settings."""
 SANE_SIZE = (0.01, 50.0)
 """The longest side [m] of a jelly asset taken at its own size without a word; outside it a warning."""
 
@@ -105,7 +109,7 @@ def _mesh_jelly(i, j, ctx, base):
     if "resolution" in j and "spacing" in j:
         ctx.fail(f"{key}.spacing", "give resolution or spacing for a mesh jelly, not both", j["spacing"])
     if "resolution" not in j and "spacing" not in j:
-        ctx.fail(f"{key}.resolution", "is required for a mesh jelly (cells along its longest side), or give spacing")
+        j["resolution"] = [DEFAULT_RESOLUTION] * 3
     lo, hi = asset.points.min(axis=0), asset.points.max(axis=0)
     extent0 = hi - lo
     longest0 = float(extent0.max())
@@ -114,7 +118,7 @@ def _mesh_jelly(i, j, ctx, base):
         # would simulate, but not as the asset the user has in mind.
         warn(ctx.source, f"{key}.size", f"the mesh {Path(j['mesh']).name} is {longest0:.4g} m along its longest "
              f"side, outside {SANE_SIZE[0] * 100:g} cm to {SANE_SIZE[1]:g} m; give size (its longest side [m])"
-             + (" or units" if not j["mesh"].lower().endswith(USD_SUFFIXES) else ""))
+             + (" or units" if "units" not in j and not j["mesh"].lower().endswith(USD_SUFFIXES) else ""))
     scale = 1.0
     if "size" in j:
         if len(set(j["size"])) != 1:

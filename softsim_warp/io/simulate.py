@@ -84,7 +84,7 @@ class Simulator(Stepper):
             return t * self.fps
         return k
 
-    def _stop_within_frame(self) -> bool:
+    def stop_within_frame(self) -> bool:
         """True when a stop was requested more than STOP_GRACE_SECONDS ago (read between chunks of steps)."""
         if self.stop_requested is None or not self.stop_requested():
             return False
@@ -92,6 +92,20 @@ class Simulator(Stepper):
         if self._stop_seen is None:
             self._stop_seen = now
         return now - self._stop_seen > STOP_GRACE_SECONDS
+
+    def advance_frame(self, n: int, stop=None) -> bool:
+        """Take a frame's ``n`` steps; False when a stop cut them short (the frame is then dropped).
+
+        A frame of more than one chunk (``core.stepper.MAX_GRAPH_STEPS`` steps) asks ``stop`` (by
+        default: a request from ``stop_requested`` older than STOP_GRACE_SECONDS) between chunks;
+        the chunks are the same either way, so is the result. ``softsim run``, ``compare`` and the
+        tasks of ``sweep`` all step their frames here."""
+        if stop is None and self.stop_requested is not None:
+            stop = self.stop_within_frame
+        if stop is not None and n > stepper_mod.MAX_GRAPH_STEPS:
+            return self.advance(n, stop=stop) == n
+        self.advance(n)
+        return True
 
     def warm_up(self) -> float:
         """Compile and load every kernel a run needs, the metrics' too; returns the seconds it took
@@ -125,13 +139,9 @@ class Simulator(Stepper):
             n = self.step_of_frame(k) - prev_step
             ts = time.perf_counter()
             try:
-                if self.stop_requested is not None and n > stepper_mod.MAX_GRAPH_STEPS:
-                    # A frame of several chunks: a stop request is read between them.
-                    if self.advance(n, stop=self._stop_within_frame) < n:
-                        result.interrupted = True  # stopped within a long frame: it is dropped
-                        break
-                else:
-                    self.advance(n)
+                if not self.advance_frame(n):
+                    result.interrupted = True  # stopped within a long frame: it is dropped
+                    break
                 t_frame = self.step_of_frame(k) * self.dt
                 metrics = self.probe.measure(self.state, k, t_frame)  # synchronises: the frame is done
             except KeyboardInterrupt:

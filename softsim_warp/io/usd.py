@@ -166,7 +166,18 @@ class UsdWriter:
         self.last_frame = -1
         self.nonfinite_frames = 0
         discard(self.tmp)
-        layer = Sdf.Layer.CreateNew(str(self.tmp))
+        from pxr import Tf  # noqa: PLC0415
+
+        try:
+            layer = Sdf.Layer.CreateNew(str(self.tmp))
+        except Tf.ErrorException:
+            layer = None
+        if layer is None:  # USD writes the new file at once: a full disk fails here, as in save()
+            discard(self.tmp)
+            free = _free_bytes(self.tmp.parent)
+            raise CommandLineError(
+                "--out", f"cannot write '{target_of(self.path)}': the write failed (a full disk, a quota or a "
+                "file size limit)" + (f" ({free / 1e6:.0f} MB free)" if free is not None else ""), str(self.path))
         stage = Usd.Stage.Open(layer)
         self.stage = stage
         UsdGeom.SetStageUpAxis(stage, UsdGeom.Tokens.y)

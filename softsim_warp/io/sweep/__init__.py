@@ -25,7 +25,7 @@ from __future__ import annotations
 # The private names commands/sweep.py's own tasks use (a value's identity, Warp's start, the test seam).
 from .batch import _init_warp as _init_warp
 from .batch import _test_hooks as _test_hooks
-from .batch import run_batch, task_spec
+from .batch import STOP_POLL_SECONDS, TaskStopped, run_batch, stop_check, task_spec
 from .cluster import (
     SCHEDULER_EXPECTED,
     SCHEDULER_SCHEMES,

@@ -24,6 +24,9 @@ from .. import scene as scene_mod
 from ..checks import TERRAIN_SDF
 from .plan import SweepVariant
 
+# Seconds between a task's asks whether the sweep was stopped (each ask is a round trip to the scheduler).
+STOP_POLL_SECONDS = 0.2
+
 
 class _World:
     """What one world of a batch accumulates frame by frame (what ``Simulator.run`` records for a run)."""
@@ -78,11 +81,13 @@ class _Batch:
         self.penetration = PenetrationProbe(self.model) if penetration and has_terrain else None
         self.done_steps = 0
         self.step_seconds = 0.0
+        self.stop = None  # asked between chunks of a long frame (stop_check): the sweep was stopped
 
     def launch_frame(self, k: int):
         """Launch the steps up to frame ``k``: asynchronous on CUDA, so the host can work meanwhile."""
         target = self.sim.step_of_frame(k)
-        self.sim.advance(target - self.done_steps)
+        if not self.sim.advance_frame(target - self.done_steps, stop=self.stop):
+            raise TaskStopped("the sweep was stopped, or the worker lost its scheduler")
         self.done_steps = target
 
     def measure(self):
@@ -148,8 +153,44 @@ def _record_frame(world: _World, frame: dict, k: int, step: int, t: float) -> bo
     return True
 
 
-def _simulate(variants: list[dict], device, use_graph=True, timings=None) -> list[dict]:
+class TaskStopped(Exception):
+    """The client stopped the sweep while this task ran, or the worker could not ask (``stop_check``).
+    Raised out of the task, not returned as no rows: a task that stopped gives no row, and when the
+    client still listens it counts the task's variants as lost, for ``--resume``."""
+
+
+def stop_check(name: str | None):
+    """In a task: a callable that is true once the client has set the sweep's stop event ``name``
+    (``run_tasks``), or the worker has lost its scheduler. It asks the scheduler at most every
+    STOP_POLL_SECONDS, the first time that long after the task started, so a task of short frames
+    never asks. None without a name."""
+    if not name:
+        return None
+    seen = {"at": time.perf_counter(), "set": False, "event": None}
+
+    def stop():
+        now = time.perf_counter()
+        if not seen["set"] and now - seen["at"] >= STOP_POLL_SECONDS:
+            seen["at"] = now
+            try:
+                if seen["event"] is None:
+                    from distributed import Event, get_worker  # noqa: PLC0415
+
+                    get_worker()  # ValueError outside a worker
+                    seen["event"] = Event(name)
+                seen["set"] = seen["event"].is_set()
+            except ValueError:  # not in a worker (a task run directly): nothing can stop it
+                seen["at"] = math.inf
+            except Exception:  # noqa: BLE001 - the worker lost its scheduler (closing): no one takes the rows
+                seen["set"] = True
+        return seen["set"]
+
+    return stop
+
+
+def _simulate(variants: list[dict], device, use_graph=True, timings=None, stop=None) -> list[dict]:
     """Run one batch (all of one group) as worlds of one model; one result dict per variant.
+    ``stop``: asked between chunks of a long frame; when true the task ends (``TaskStopped``).
 
     ``timings``: a dict that gets the seconds of the batch's build (its models, the reference's
     too), of loading its kernels and of its frames (benchmarks/bench_sweep.py).
@@ -160,9 +201,11 @@ def _simulate(variants: list[dict], device, use_graph=True, timings=None) -> lis
 
     t_build = time.perf_counter()
     batch = _Batch([v["data"] for v in variants], device, use_graph)
+    batch.stop = stop
     ref = errors = None
     if variants[0].get("reference") is not None:
         ref = _Batch([v["reference"] for v in variants], device, use_graph, penetration=False)
+        ref.stop = stop
         errors = PositionErrorProbe(batch.model, batch.ranges)
     t_compile = time.perf_counter()
     build_seconds = t_compile - t_build
@@ -312,8 +355,11 @@ def run_batch(spec: dict) -> list[dict]:
     device = wp.get_device(spec["device"])
     variants = spec["variants"]
     use_graph = spec.get("use_graph", True)
+    stop = stop_check(spec.get("stop_event"))
     try:
-        rows = _simulate(variants, device, use_graph)
+        rows = _simulate(variants, device, use_graph, stop=stop)
+    except TaskStopped:
+        raise
     except Exception as e:  # noqa: BLE001 - a variant's failure is its row's result
         if len(variants) == 1:
             rows = [_failed(variants[0], e, 1)]
@@ -321,7 +367,9 @@ def run_batch(spec: dict) -> list[dict]:
             rows = []
             for v in variants:
                 try:
-                    rows += _simulate([v], device, use_graph)
+                    rows += _simulate([v], device, use_graph, stop=stop)
+                except TaskStopped:
+                    raise
                 except Exception as e1:  # noqa: BLE001
                     rows.append(_failed(v, e1, len(variants)))
     host = os.uname().nodename

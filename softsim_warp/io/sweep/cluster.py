@@ -179,7 +179,11 @@ def run_tasks(cluster: Cluster, fn, specs: list[dict], on_rows, stop_requested=N
     client = cluster.client
     outcome = Outcome()
     futures = {}
+    # Set when the sweep stops: a running task reads it between chunks of a long frame and ends
+    # (stop_check), so its worker is free and the cluster closes at once.
+    stop_event = f"softsim-stop-{os.getpid()}-{time.time_ns()}"
     for spec in specs:
+        spec = {**spec, "stop_event": stop_event}
         f = client.submit(fn, spec, key=f"softsim-{spec['task']}-{os.getpid()}-{time.time_ns()}", pure=False)
         futures[f.key] = (f, spec)
     pending = {f for f, _ in futures.values()}
@@ -188,6 +192,10 @@ def run_tasks(cluster: Cluster, fn, specs: list[dict], on_rows, stop_requested=N
         while pending:
             if stop_requested is not None and stop_requested():
                 outcome.interrupted = True
+                try:
+                    distributed.Event(stop_event, client=client).set()
+                except Exception:  # noqa: BLE001 - a lost scheduler: its tasks are gone anyway
+                    pass
                 break
             if not ac.has_ready():
                 if ac.is_empty():
