@@ -98,10 +98,10 @@ def test_a_failing_variant_fails_alone(monkeypatch):
     bad = variants[1].id
     simulate = batch_mod._simulate
 
-    def failing(batch, device, use_graph=True):
+    def failing(batch, device, use_graph=True, **kw):
         if any(v["id"] == bad for v in batch):
             raise RuntimeError("boom")
-        return simulate(batch, device, use_graph)
+        return simulate(batch, device, use_graph, **kw)
 
     monkeypatch.setattr(batch_mod, "_simulate", failing)
     rows = engine.run_batch(engine.task_spec(variants, "cpu", 0))
