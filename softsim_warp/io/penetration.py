@@ -192,24 +192,27 @@ class PenetrationCheck:
 
     def measure(self, q: np.ndarray, t: float) -> dict:
         """Counts and deepest penetration [m] of each kind, and inverted cells, at positions ``q``, time ``t``."""
-        out = {}
-        depth = self._colliders(q, t)
-        out["collider"] = {"count": int(np.count_nonzero(depth > 0)), "deepest": float(depth.max(initial=0.0))}
-        jelly, own = self._jellies(q)
-        out["jelly"] = {"count": int(np.count_nonzero(jelly > 0)), "deepest": float(jelly.max(initial=0.0))}
-        out["self"] = {"count": int(np.count_nonzero(own > 0)), "deepest": float(own.max(initial=0.0))}
+        out = {kind: {"count": int(np.count_nonzero(d > 0)), "deepest": float(d.max(initial=0.0))}
+               for kind, d in zip(KINDS, self.depths(q, t))}
         out["inverted_cells"] = int(np.count_nonzero(cell_volumes(q, self.cells) < 0)) if len(self.cells) else 0
         return out
 
+    def depths(self, q: np.ndarray, t: float) -> tuple:
+        """Each particle's depth [m] inside a collider, another jelly and its own folded body (0: outside)."""
+        return (self._colliders(q, t), *self._jellies(q))
+
     def summary(self) -> dict:
         """The worst frame of each kind: the largest count, the deepest penetration [m] and as a
-        fraction of the smallest lattice spacing, and the most inverted cells."""
+        fraction of the smallest lattice spacing, the first frame time [s] deeper than 1 % of the
+        spacing (None: none), and the most inverted cells."""
         h = float(self.spacing.min()) if len(self.spacing) else 1.0
         out = {"frames": len(self.frames), "spacing": h}
         for kind in KINDS:
             deepest = max((f[kind]["deepest"] for f in self.frames), default=0.0)
+            over = [f["time"] for f in self.frames if f[kind]["deepest"] > 0.01 * h]
             out[kind] = {"count": max((f[kind]["count"] for f in self.frames), default=0),
-                         "deepest": deepest, "deepest_over_spacing": deepest / h}
+                         "deepest": deepest, "deepest_over_spacing": deepest / h,
+                         "first_time_over_1_percent": over[0] if over else None}
         out["inverted_cells"] = max((f["inverted_cells"] for f in self.frames), default=0)
         return out
 
