@@ -152,3 +152,15 @@ def test_check_finds_jellies_through_each_other_without_jelly_contact(tmp_path, 
     else:
         assert summary["penetration"]["jelly"]["deepest_over_spacing"] > 1.0, summary["penetration"]
         assert summary["penetration"]["jelly"]["count"] > 100
+
+
+def test_check_skips_non_finite_and_torn_lattices():
+    # A NaN particle (and the cells it is a corner of) is left out; a corner thrown 1 km away
+    # stretches cells over the whole scene without enumerating a grid of that size.
+    model, a, c = two_jellies()
+    q = model.particle_q_host.copy()
+    q[a.particle_start] = np.nan
+    q[c.particle_start] = (1000.0, 0.5, 0.0)
+    out = PenetrationCheck(model).measure(q, 0.0)
+    assert out["collider"]["count"] == 0
+    assert all(np.isfinite(out[k]["deepest"]) for k in ("collider", "jelly", "self"))

@@ -175,7 +175,6 @@ class PenetrationCheck:
         self.cell_jelly = np.concatenate(owner) if owner else np.zeros(0, np.int64)
         self.jelly_of = np.concatenate([np.full(j.particle_count, n) for n, j in enumerate(model.jellies)]) \
             if model.jellies else np.zeros(0, np.int64)
-        self.first = np.array([j.particle_start for j in model.jellies], dtype=np.int64)
         self.count = sum(j.particle_count for j in model.jellies)
         # Rest positions in the lattice's own frame (the self-exclusion is a rest distance).
         self.rest = np.concatenate([l * s for l, s in zip(ijk, spacing)]) if ijk else np.zeros((0, 3))
@@ -276,9 +275,14 @@ class PenetrationCheck:
         finite = np.isfinite(corners).all(axis=(1, 2))
         lo, hi = corners.min(axis=1), corners.max(axis=1)
         ok_points = np.isfinite(q).all(axis=1)
-        point, cell = _candidate_pairs(np.where(ok_points[:, None], q, 0.0), np.where(finite[:, None], lo, np.inf),
-                                       np.where(finite[:, None], hi, -np.inf), float(self.spacing.max()))
-        keep = ok_points[point] & finite[cell]
+        # Grid bins of a spacing, or larger where a cell has been stretched far (at most 9 bins a side
+        # per cell, so a torn lattice does not enumerate millions of bins).
+        extent = float((hi - lo)[finite].max(initial=0.0))
+        h = max(float(self.spacing.max()), extent / 8.0)
+        live = np.flatnonzero(finite)
+        point, cell = _candidate_pairs(np.where(ok_points[:, None], q, 0.0), lo[live], hi[live], h)
+        cell = live[cell]
+        keep = ok_points[point]
         point, cell = point[keep], cell[keep]
         pj, cj = self.jelly_of[point], self.cell_jelly[cell]
         keep = self.worlds[point] == self.worlds[self.cells[cell, 0]]
