@@ -10,8 +10,9 @@ import numpy as np
 import pytest
 
 from softsim_warp.commands.cli import main
-from softsim_warp.core.model import ModelBuilder
+from softsim_warp.core.model import ModelBuilder, build_model
 from softsim_warp.io.penetration import PenetrationCheck, jelly_cells, winding_numbers
+from softsim_warp.io.scene import load_scene
 
 SPRINGS = {"structural": {"ks": 100.0}, "shear": {"ks": 100.0}, "bending": {"ks": 50.0}}
 BOUND = 0.01  # of the lattice spacing
@@ -35,7 +36,7 @@ def test_untouched_jellies_have_no_penetration():
 def test_particle_inside_another_jelly_at_its_depth():
     # A corner of the small jelly moved to 0.03 m inside the big one's -x face, 0.1 m off its
     # other faces: its depth is its distance to the big jelly's boundary, 0.03 m.
-    model, a, c = two_jellies()
+    model, a, _ = two_jellies()
     q = model.particle_q_host.copy()
     q[a.particle_start] = (0.8 + 0.03, 0.45, 0.05)
     out = PenetrationCheck(model).measure(q, 0.0)
@@ -46,7 +47,7 @@ def test_particle_inside_another_jelly_at_its_depth():
 
 def test_particles_inside_colliders_at_their_depth():
     # One particle 0.02 m behind the plane, one 0.05 m inside the sphere (0.2 m from its centre).
-    model, a, c = two_jellies()
+    model, a, _ = two_jellies()
     q = model.particle_q_host.copy()
     q[a.particle_start] = (0.0, -0.02, 0.0)
     q[a.particle_start + 1] = (3.2, 0.5, 0.0)
@@ -57,7 +58,7 @@ def test_particles_inside_colliders_at_their_depth():
 
 def test_moving_plane_is_checked_where_it_is_at_the_frame():
     # A plane rising at 0.1 m/s: at t = 2 s it is at y = 0.2, so a particle at y = 0.15 is 0.05 deep.
-    model, a, c = two_jellies(motion={"velocity": (0.0, 0.1, 0.0)})
+    model, a, _ = two_jellies(motion={"velocity": (0.0, 0.1, 0.0)})
     q = model.particle_q_host.copy()
     q[a.particle_start] = (0.0, 0.15, 0.0)
     check = PenetrationCheck(model)
@@ -87,12 +88,7 @@ def test_folded_jelly_is_self_penetration_and_neighbours_are_not():
 def test_mesh_jelly_cells_and_boundary_are_closed():
     # A mesh jelly's cells (the cells with all eight corners) bound a closed body: the winding
     # number of their boundary is 1 at every cell centre.
-    from pathlib import Path  # noqa: PLC0415
-
-    from softsim_warp.core.model import build_model  # noqa: PLC0415
-    from softsim_warp.io.scene import load_scene  # noqa: PLC0415
-
-    scene = load_scene(str(Path(__file__).resolve().parents[1] / "scenes" / "roller.toml"))
+    scene = load_scene("roller")
     model = build_model(scene, "cpu")
     check = PenetrationCheck(model)
     cells, _ = jelly_cells(model.jellies[0])
