@@ -12,6 +12,7 @@
   normals and UVs, CollisionAPI;
 * ``critter.usda``: a creature with thin legs and ears (about one lattice cell thick at 12 cells
   along it), its parts closed surfaces that overlap;
+* ``plate.usda``: a thin closed box (1 x 1 m, 2 cm thick, facing x), a plate to throw jellies at;
 * ``blob_open.usda``: the blob with its base cut off (an open mesh, as scans often are);
 * ``bracket.stl``: an L-shaped CAD bracket in ASCII STL whose shared corners differ by 1e-16 where
   they should be 0 (a closed solid once welded with a tolerance).
@@ -200,6 +201,15 @@ def pebble_radius(dirs, a=(0.22, 0.12, 0.16), p=3.0):
     """A superellipsoid |x/a|^p + |y/b|^p + |z/c|^p = 1 along each direction: a rounded pebble."""
     s = np.sum(np.abs(dirs / np.asarray(a)) ** p, axis=1)
     return s ** (-1.0 / p)
+
+
+def plate(width=1.0, height=1.0, thickness=0.02):
+    """A thin box centred on the origin, ``thickness`` along x: six quads wound outward."""
+    hx, hy, hz = 0.5 * thickness, 0.5 * height, 0.5 * width
+    pts = np.array([[x, y, z] for x in (-hx, hx) for y in (-hy, hy) for z in (-hz, hz)], dtype=np.float64)
+    # Corner c has bits (x, y, z) = (c >> 2, c >> 1, c) & 1; each face counter-clockwise from outside.
+    idx = [0, 1, 3, 2, 4, 6, 7, 5, 0, 4, 5, 1, 2, 3, 7, 6, 0, 2, 6, 4, 1, 5, 7, 3]
+    return pts, np.full(6, 4), np.array(idx)
 
 
 def stairs(steps=5, run=0.35, rise=0.15, width=1.2):
@@ -579,8 +589,10 @@ def main(argv=None):
     pts, counts, idx, uv = lat_long(blob_radius)
     pts, counts, idx = cut_base(pts, counts, idx, pts[:, 1].min() + 0.03)
     write_mesh(out / "blob_open.usda", "BlobOpen", pts, counts, idx, color=(0.9, 0.35, 0.45))
+    pts, counts, idx = plate()
+    write_mesh(out / "plate.usda", "Plate", pts, counts, idx, normals=_flat_normals(pts, counts, idx), collision=True)
     write_stl(out / "bracket.stl", bracket_triangles(), jitter=1e-16)
-    for name in ("blob", "torus", "pebble", "stairs", "bumpy_floor", "critter", "blob_open"):
+    for name in ("blob", "torus", "pebble", "stairs", "bumpy_floor", "critter", "blob_open", "plate"):
         print(out / f"{name}.usda")
     print(out / "bracket.stl")
 

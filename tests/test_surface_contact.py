@@ -23,6 +23,7 @@ from softsim_warp.core.mesh_assets import load_mesh
 from softsim_warp.core.model import build_model
 from softsim_warp.core.stepper import make_integrator
 from softsim_warp.core.terrain import fan_triangles, signed_volume, sphere_mesh
+from softsim_warp.io.penetration import distances_to_triangles, winding_numbers
 from softsim_warp.io.scene import scene_from_dict
 from softsim_warp.io.simulate import Simulator
 
@@ -48,50 +49,9 @@ def assets(tmp_path_factory):
 # -- An independent point-in-mesh test ------------------------------------------------------------
 
 
-def winding_numbers(points, triangles, queries) -> np.ndarray:
-    """Generalized winding number of the triangle mesh at each query point (Van Oosterom and
-    Strackee's solid angle of each triangle, summed over 4 pi)."""
-    p = np.asarray(points, dtype=np.float64)
-    t = np.asarray(triangles, dtype=np.int64)
-    out = np.zeros(len(queries))
-    for s in range(0, len(queries), 256):
-        q = np.asarray(queries[s : s + 256], dtype=np.float64)
-        a, b, c = (p[t[:, k]][None, :, :] - q[:, None, :] for k in range(3))
-        la, lb, lc = (np.linalg.norm(v, axis=2) for v in (a, b, c))
-        det = np.einsum("qtk,qtk->qt", a, np.cross(b, c))
-        den = (la * lb * lc + np.einsum("qtk,qtk->qt", a, b) * lc + np.einsum("qtk,qtk->qt", b, c) * la
-               + np.einsum("qtk,qtk->qt", c, a) * lb)
-        out[s : s + 256] = 2.0 * np.arctan2(det, den).sum(axis=1) / (4.0 * math.pi)
-    return out
-
-
 def distance_to_triangles(points, triangles, queries) -> np.ndarray:
-    """Distance from each query point to the nearest point of the triangle mesh (Ericson 5.1.5,
-    vectorised: the closest point in the face, else on one of its three edges)."""
-    p = np.asarray(points, dtype=np.float64)
-    t = np.asarray(triangles, dtype=np.int64)
-    a, b, c = p[t[:, 0]], p[t[:, 1]], p[t[:, 2]]
-    n = np.cross(b - a, c - a)
-    n2 = np.einsum("tk,tk->t", n, n)
-    out = np.full(len(queries), np.inf)
-
-    def to_segment(q, u, v):
-        d = v - u
-        s = np.clip(np.einsum("qtk,tk->qt", q[:, None, :] - u[None], d) / np.maximum(np.einsum("tk,tk->t", d, d), 1e-300), 0, 1)
-        return np.linalg.norm(q[:, None, :] - (u[None] + s[..., None] * d[None]), axis=2)
-
-    for s in range(0, len(queries), 64):
-        q = np.asarray(queries[s : s + 64], dtype=np.float64)
-        w = q[:, None, :] - a[None]
-        h = np.einsum("qtk,tk->qt", w, n) / np.maximum(n2, 1e-300)
-        foot = q[:, None, :] - h[..., None] * n[None]
-        inside = np.ones(h.shape, dtype=bool)
-        for u, v in ((a, b), (b, c), (c, a)):
-            inside &= np.einsum("qtk,tk->qt", np.cross(v - u, foot - u[None]), n) >= 0
-        face = np.where(inside, np.abs(h) * np.sqrt(n2), np.inf)
-        edge = np.minimum(np.minimum(to_segment(q, a, b), to_segment(q, b, c)), to_segment(q, c, a))
-        out[s : s + 64] = np.minimum(face, edge).min(axis=1)
-    return out
+    """Distance from each query point to the nearest point of the triangle mesh."""
+    return distances_to_triangles(points, triangles, queries)
 
 
 def test_independent_point_in_mesh_on_a_sphere():

@@ -62,10 +62,10 @@ def test_builtin_scene_output_is_valid(tmp_path, name, springs):
     _, _, data = read_scene_data(name)
     # A jelly that starts mirrored (initial_scale with one negative component) is inside out.
     mirrored = {f"Jelly_{i}" for i, j in enumerate(data.get("jelly", [])) if np.prod(j.get("initial_scale", 1.0)) < 0}
-    _check_geometry(stage, mirrored)
+    _check_geometry(stage, mirrored, [np.asarray(p["normal"], dtype=np.float64) for p in data.get("plane", [])])
 
 
-def _check_geometry(stage, mirrored=()):
+def _check_geometry(stage, mirrored=(), plane_normals=None):
     data = stage.GetRootLayer().customLayerData
     assert len(data["softsim:gravity"]) == 3 and "softsim:dt" in data and "softsim:integrator" in data
     times = [float(t) for t in range(3)]
@@ -85,10 +85,10 @@ def _check_geometry(stage, mirrored=()):
         elif prim.IsA(UsdGeom.BasisCurves):
             assert UsdGeom.BasisCurves(prim).GetExtentAttr().GetTimeSamples() == times
         elif prim.IsA(UsdGeom.Mesh):
-            _check_mesh(UsdGeom.Mesh(prim), times, prim.GetParent().GetName() in mirrored)
+            _check_mesh(UsdGeom.Mesh(prim), times, prim.GetParent().GetName() in mirrored, plane_normals)
 
 
-def _check_mesh(mesh, times, mirrored=False):
+def _check_mesh(mesh, times, mirrored=False, plane_normals=None):
     counts = np.array(mesh.GetFaceVertexCountsAttr().Get())
     indices = np.array(mesh.GetFaceVertexIndicesAttr().Get())
     tris = fan_triangles(counts, indices)
@@ -113,7 +113,10 @@ def _check_mesh(mesh, times, mirrored=False):
         # A plane's faces wind towards the side that collides: its normal, +y for the ground.
         x = np.array(mesh.GetPointsAttr().Get(), dtype=np.float64)
         area = np.cross(x[tris[:, 1]] - x[tris[:, 0]], x[tris[:, 2]] - x[tris[:, 0]]).sum(0)
-        assert area[1] > 0 or abs(area[1]) < 1e-9 * np.linalg.norm(area)
+        if plane_normals is not None:  # the scene's normal, whichever way it faces (a lid faces down)
+            assert area @ plane_normals[int(name.split("_")[1])] > 0.999 * np.linalg.norm(area)
+        else:
+            assert area[1] > 0 or abs(area[1]) < 1e-9 * np.linalg.norm(area)
     if name.startswith("Sphere") or (name == "Surface" and not _flat(mesh) and not mirrored):
         x = np.array(mesh.GetPointsAttr().Get(times[0] if moving else Usd.TimeCode.Default()), dtype=np.float64)
         assert signed_volume(x, tris) > 0  # closed and wound outward

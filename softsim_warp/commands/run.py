@@ -15,6 +15,8 @@ from ..core.model import build_model
 from ..core.stepper import make_integrator
 from ..io.mesh_scene import add_asset_inputs
 from ..io.outputs import JSON_SUFFIXES, USD_SUFFIXES, Outputs, kept_partial_path, write_json_atomic
+from ..io.penetration import PenetrationCheck
+from ..io.penetration import summary_line as penetration_line
 from ..io.resources import check_fits
 from ..io.runinfo import explosion_message, profile_table, summary_dict, summary_line
 from ..io.simulate import Simulator
@@ -52,6 +54,10 @@ def add_parser(subparsers, add_common):
     run.add_argument("--allow-unstable", action="store_true",
                      help="run even when dt is above a jelly's predicted stable step (to watch it explode)")
     run.add_argument("--preview", metavar="GIF", help="also render the written USD to this animated GIF (softsim preview)")
+    run.add_argument("--check-penetration", action="store_true",
+                     help="check every written frame for particles inside a collider, another jelly or their own "
+                          "folded jelly, from the positions alone (io/penetration.py): a line on stdout, and a "
+                          "penetration key in --metrics")
     add_common(run)
 
 
@@ -103,6 +109,7 @@ def _run_locked(args, signals, scene, out, metrics_path, preview_path) -> int:
     writer = UsdWriter(out, model, sim["fps"], springs=args.springs,
                        metadata={"softsim:scene": scene.name, "softsim:integrator": sim["integrator"], "softsim:dt": sim["dt"],
                                  "softsim:deterministic": bool(args.deterministic)})
+    check = PenetrationCheck(model) if args.check_penetration else None
     progress = None
     try:
         pause_for_test("writer", signals)
@@ -123,7 +130,7 @@ def _run_locked(args, signals, scene, out, metrics_path, preview_path) -> int:
         # written first; a second one stops it with no output.
         pause_for_test("compile", signals)
         with signals.stoppable():
-            result = simulator.run([writer], progress=progress)
+            result = simulator.run([writer] + ([check] if check is not None else []), progress=progress)
     except BaseException as exc:
         # A stop-now outside the steps, or an error: keep the frames written (a signal now is only recorded).
         pause_for_test("cleanup", signals)
@@ -145,6 +152,8 @@ def _run_locked(args, signals, scene, out, metrics_path, preview_path) -> int:
     summary = summary_dict(scene, model, integrator, simulator, result, device)
     summary["status"] = status
     summary["deterministic"] = bool(args.deterministic)
+    if check is not None:
+        summary["penetration"] = check.summary()
     if result.exploded:
         message = explosion_message(scene, model, result)
         summary["explosion"]["message"] = message
@@ -158,6 +167,8 @@ def _run_locked(args, signals, scene, out, metrics_path, preview_path) -> int:
     print(summary_line(summary, written), file=sys.stderr)
     if args.profile:
         print(profile_table(summary))
+    if check is not None:
+        print(penetration_line(summary["penetration"]))
     if kept:
         print(f"note: {out} existed and the run did not complete: it is unchanged, the frames are in {written}",
               file=sys.stderr)
