@@ -448,12 +448,23 @@ def test_overflow_is_an_explosion(tmp_path, monkeypatch, capsys, overrides):
     assert "nan J" not in err and "dissipated" not in err
 
 
+def test_gravity_near_the_float64_end_is_an_explosion(tmp_path, monkeypatch, capsys):
+    """jelly_drop under gravity 1e308 in float64: no energy overflows to inf (m g h ~ 1e308 J), yet
+    every energy is past sqrt(max), where the energy change means nothing: an explosion, not a
+    report of '1e+308 J dissipated'."""
+    monkeypatch.chdir(tmp_path)
+    code, err = _main(["run", "jelly_drop", "--frames", "2", "--out", "g.usdc", "--quiet", "--set",
+                       "simulation.gravity=[0, -1e308, 0]", "--set", 'simulation.precision="float64"'], capsys)
+    assert code == 3, err
+    assert "overflows" in err and "dissipated" not in err
+
+
 def test_energy_overflow_mid_run_keeps_frames(tmp_path, monkeypatch, capsys):
     """Finite at the start, overflowing later: the good frames are kept, marked exploded, strict JSON."""
     monkeypatch.chdir(tmp_path)
-    _fall(tmp_path, timing="frames = 20\nfps = 30.0", extra="max_speed = 3e38", velocity="[1e17, 0, 0]")
+    _fall(tmp_path, timing="frames = 20\nfps = 30.0", extra="max_speed = 3e38", velocity="[1e8, 0, 0]")
     code, err = _main(["run", "fall.toml", "--out", "v.usda", "--metrics", "v.json", "--quiet",
-                       "--set", "simulation.gravity=[0, -1e36, 0]"], capsys)
+                       "--set", "simulation.gravity=[0, -1e15, 0]"], capsys)
     assert code == 3, err
     assert "RuntimeWarning" not in err
     data = json.loads((tmp_path / "v.json").read_text())  # strict JSON: parses

@@ -163,9 +163,13 @@ def explosion_reason(nonfinite, max_speed, kinetic, spring, gravity, total, boun
         return f"{nonfinite} particles with non-finite state"
     if max_speed > bound:
         return f"max speed {max_speed:.4g} m/s exceeds the bound {bound:.4g} m/s"
-    if not all(math.isfinite(e) for e in (kinetic, spring, gravity, total)):
+    # An energy beyond the square root of the largest number has overflowed in all but name: the
+    # products it is made of (m v^2, m g h, ks dx^2) are a step from infinity, and the sums that
+    # compare two of them (the energy change) mean nothing (gravity of 1e308 in float64).
+    safe = math.sqrt(float(np.finfo(np.dtype(str(precision))).max))
+    if not all(math.isfinite(e) and abs(e) < safe for e in (kinetic, spring, gravity, total)):
         return (f"the energy overflows the {precision} range (kinetic {kinetic:.4g} J, "
-                f"spring {spring:.4g} J, gravity {gravity:.4g} J)")
+                f"spring {spring:.4g} J, gravity {gravity:.4g} J; the range's safe end is {safe:.3g} J)")
     return None
 
 
