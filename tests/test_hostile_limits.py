@@ -612,3 +612,15 @@ def test_builtin_multi_jelly_scenes_not_warned():
     for name in ("stack", "collide", "pile", "hard_mass_ratio"):
         sc = load_scene(name)
         assert checks.jelly_overlaps(sc.data) == [], name
+
+
+def test_moving_terrain_not_blamed_on_integrator():
+    """A lid, a platform or a roller does work on the jellies, like a driven pin: the summary says so
+    and gives no dt advice; a terrain entry without motion drives nothing."""
+    from softsim_warp.io.runinfo import pins_drive
+    from softsim_warp.io.scene import load_scene
+
+    for name in ("squeeze", "platform", "roller", "turntable", "hang"):
+        assert pins_drive(load_scene(name)), name
+    for name in ("jelly_drop", "seed_bowl", "mesh_drop"):
+        assert not pins_drive(load_scene(name)), name

@@ -32,15 +32,21 @@ def energy_floor(model, metrics) -> float:
     return floor if math.isfinite(floor) else math.inf
 
 
+def _moves(motion: dict) -> bool:
+    """A pin's or a terrain entry's motion keys move it (a velocity, a spin or keyframes)."""
+    spin = motion.get("spin") or {}
+    return bool(any(float(c) != 0.0 for c in motion.get("velocity", (0.0, 0.0, 0.0)))
+                or float(spin.get("degrees_per_second", 0.0)) != 0.0 or motion.get("keyframes"))
+
+
 def pins_drive(scene) -> bool:
-    """The scene has pins that move (a velocity, a spin or keyframes): they do work on the jelly, so
-    its energy may rise without any fault of the integrator."""
-    for pin in scene.data.get("pin", []):
-        spin = pin.get("spin") or {}
-        if (any(float(c) != 0.0 for c in pin.get("velocity", (0.0, 0.0, 0.0)))
-                or float(spin.get("degrees_per_second", 0.0)) != 0.0 or pin.get("keyframes")):
-            return True
-    return False
+    """The scene has pins or terrain that move (a velocity, a spin, keyframes, an animated mesh):
+    they do work on the jellies, so their energy may rise without any fault of the integrator."""
+    data = scene.data
+    if any(_moves(pin) for pin in data.get("pin", [])):
+        return True
+    return any(_moves(t.get("motion") or {}) or t.get("animated")
+               for kind in ("plane", "sphere", "bowl", "mesh") for t in data.get(kind, []))
 
 
 def energy_drift(metrics, floor: float = 0.0) -> tuple[float, float]:
@@ -137,7 +143,7 @@ def summary_line(s: dict, out) -> str:
     elif rel is None or not math.isfinite(rel):  # no energy to compare with (JSON writes NaN as null)
         energy = f"; energy change {drift:.4g} J"
     elif s.get("pins_drive"):  # the pins' work is in the change: neither a loss nor a gain of the method
-        energy = f"; energy change {drift:+.4g} J ({rel:+.1f}%), including the work of the driven pins"
+        energy = f"; energy change {drift:+.4g} J ({rel:+.1f}%), including the work of the driven pins and moving terrain"
     elif drift <= 0:
         energy = f"; {abs(drift):.4g} J ({abs(rel):.1f}% of the energy available) dissipated by damping, friction and contact"
     else:
