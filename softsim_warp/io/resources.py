@@ -31,6 +31,8 @@ HOST_BUILD_PER_PARTICLE = 96  # float64 q, qd, mass, int32 jelly/world, lattice 
 # A box jelly is recorded as a whole lattice (no spring list at build time): its placed rest pose,
 # surface quads and the lattice tables finalize makes from it (measured ~355 B a particle at 16^3 to 32^3).
 HOST_BUILD_PER_LATTICE_PARTICLE = 320
+USD_ADDRESS_RESERVE = 640 << 20  # address space usd-core maps when a stage opens (measured ~600 MiB)
+WARP_ADDRESS_RESERVE = 384 << 20  # address space Warp's initialisation maps (measured ~360 MiB)
 HOST_MODEL_PER_SPRING = 44  # host copies kept in the Model: pairs, type, rest/ks/kd (float64)
 HOST_MODEL_PER_PARTICLE = 32  # q and mass (float64) kept in the Model
 USD_POINT_BYTES = 12  # one float32 point of one time sample
@@ -264,7 +266,22 @@ def _address_space_available() -> int | None:
                     break
     except (OSError, ValueError, IndexError):
         pass
-    return max(soft - mapped, 0)
+    # Libraries a run maps after this check take address space that no estimate counts: opening a
+    # USD stage maps about 600 MiB (usd-core's plugins and thread stacks), Warp's initialisation about
+    # 360 MiB; under a tight limit they crash in native code rather than raise.
+    import sys  # noqa: PLC0415
+
+    reserve = (0 if "pxr.Usd" in sys.modules else USD_ADDRESS_RESERVE) + (
+        0 if _warp_initialized() else WARP_ADDRESS_RESERVE)
+    return max(soft - mapped - reserve, 0)
+
+
+def _warp_initialized() -> bool:
+    import sys  # noqa: PLC0415
+
+    wp = sys.modules.get("warp")
+    context = getattr(wp, "context", None) if wp is not None else None
+    return getattr(context, "runtime", None) is not None
 
 
 def host_memory_limits() -> dict:
