@@ -61,9 +61,11 @@ def resolve_meshes(data: dict, ctx, base=None):
     base = Path(base) if base is not None else scene_base(ctx.source)
     for i, t in enumerate(terrain):
         t["path"] = _resolve(t["path"], base)
-        load_mesh(t["path"], t.get("prim"), source=ctx.source, key=f"mesh.{i}.path", **mesh_options(t))
         if t.get("animated"):  # its samples read (and cached) now: an asset without them is an error here
+            # (load_mesh_samples refuses a file that is not USD before reading it, as it needs no reader)
             load_mesh_samples(t["path"], t.get("prim"), source=ctx.source, key=f"mesh.{i}.path", **mesh_options(t))
+        else:
+            load_mesh(t["path"], t.get("prim"), source=ctx.source, key=f"mesh.{i}.path", **mesh_options(t))
     for i, j in jellies:
         _mesh_jelly(i, j, ctx, base)
 
