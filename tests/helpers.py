@@ -34,3 +34,35 @@ def energies(model, state):
     stretch = np.linalg.norm(q[p[:, 0]] - q[p[:, 1]], axis=1) - model.spring_rest_host
     se = 0.5 * np.sum(model.spring_stiffness_host * stretch**2)
     return ke, se
+
+
+def sigterm_after_first_frame(monkeypatch, delay: float) -> dict:
+    """Send this process SIGTERM ``delay`` seconds after the first frame is written to USD (inside a
+    long frame that follows); the returned dict gets the send time as ``"t"`` (perf_counter)."""
+    import os
+    import signal
+    import threading
+    import time
+
+    from softsim_warp.io.usd import UsdWriter
+
+    first = threading.Event()
+    real = UsdWriter.write_frame
+
+    def write_frame(self, frame, *a, **kw):
+        real(self, frame, *a, **kw)
+        if frame == 0:
+            first.set()
+
+    monkeypatch.setattr(UsdWriter, "write_frame", write_frame)
+    sent = {}
+
+    def kill():
+        if first.wait(300):
+            time.sleep(delay)
+            sent["t"] = time.perf_counter()
+            os.kill(os.getpid(), signal.SIGTERM)
+
+    sent["thread"] = threading.Thread(target=kill, daemon=True)
+    sent["thread"].start()
+    return sent

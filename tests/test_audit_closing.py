@@ -15,7 +15,6 @@ import os
 import signal
 import subprocess
 import sys
-import threading
 import time
 from pathlib import Path
 
@@ -26,6 +25,7 @@ from softsim_warp.commands import cli
 from softsim_warp.core.model import build_model
 from softsim_warp.io import mesh_scene
 from softsim_warp.io.scene import scene_from_dict
+from tests.helpers import sigterm_after_first_frame
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -54,34 +54,15 @@ def test_compare_stops_within_a_long_frame(tmp_path, monkeypatch, capsys):
     two groups) exits 143 within seconds, frame 0 kept in <stem>.partial and marked interrupted."""
     from pxr import Sdf  # noqa: PLC0415
 
-    from softsim_warp.io.usd import UsdWriter  # noqa: PLC0415
 
     monkeypatch.chdir(tmp_path)
     (tmp_path / "long.toml").write_text(LONG)
     (tmp_path / "c.usda").write_text("#usda 1.0\n")  # an existing output stays as it was
-    first = threading.Event()
-    real = UsdWriter.write_frame
-
-    def write_frame(self, frame, *a, **kw):
-        real(self, frame, *a, **kw)
-        if frame == 0:
-            first.set()
-
-    monkeypatch.setattr(UsdWriter, "write_frame", write_frame)
-    sent = {}
-
-    def kill():
-        if first.wait(300):
-            time.sleep(1.0)  # well inside the long frame
-            sent["t"] = time.perf_counter()
-            os.kill(os.getpid(), signal.SIGTERM)
-
-    t = threading.Thread(target=kill, daemon=True)
-    t.start()
+    sent = sigterm_after_first_frame(monkeypatch, 1.0)  # well inside the long frame
     code = cli.main(["compare", "long.toml", "--integrators", "symplectic,implicit", "--out", "c.usda",
                      "--metrics", "c.json", "--quiet"])
     stopped = time.perf_counter()
-    t.join(5)
+    sent["thread"].join(5)
     err = capsys.readouterr().err
     assert code == 128 + signal.SIGTERM, err
     assert stopped - sent["t"] < 5.0, stopped - sent["t"]  # the frame alone would take hours

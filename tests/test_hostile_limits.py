@@ -7,12 +7,10 @@ from __future__ import annotations
 
 import json
 import math
-import os
 import resource
 import signal
 import subprocess
 import sys
-import threading
 import time
 from pathlib import Path
 from types import SimpleNamespace
@@ -25,6 +23,7 @@ from softsim_warp.commands import cli
 from softsim_warp.core.errors import SceneError
 from softsim_warp.io import checks, resources, runinfo
 from softsim_warp.io import scene as scene_mod
+from tests.helpers import sigterm_after_first_frame
 
 GIB = 1 << 30
 
@@ -322,32 +321,13 @@ def test_half_frame_ends_at_duration_free_fall(tmp_path, monkeypatch, capsys):
 def test_stop_within_a_long_frame_keeps_frames(tmp_path, monkeypatch, capsys):
     """A real SIGTERM during a frame of 10^7 steps (fps = 1e-4) stops the run within about a second:
     exit 143, frame 0 kept and marked interrupted (the long frame is dropped)."""
-    from softsim_warp.io.usd import UsdWriter  # noqa: PLC0415
 
     monkeypatch.chdir(tmp_path)
     _fall(tmp_path, timing="duration = 20000.0\nfps = 0.0001")
-    first = threading.Event()
-    real = UsdWriter.write_frame
-
-    def write_frame(self, frame, *a, **kw):
-        real(self, frame, *a, **kw)
-        if frame == 0:
-            first.set()
-
-    monkeypatch.setattr(UsdWriter, "write_frame", write_frame)
-    sent = {}
-
-    def kill():
-        if first.wait(300):
-            time.sleep(0.5)  # well inside the long frame
-            sent["t"] = time.perf_counter()
-            os.kill(os.getpid(), signal.SIGTERM)
-
-    t = threading.Thread(target=kill, daemon=True)
-    t.start()
+    sent = sigterm_after_first_frame(monkeypatch, 0.5)  # well inside the long frame
     code, err = _main(["run", "fall.toml", "--out", "l.usda", "--metrics", "l.json", "--quiet"], capsys)
     stopped = time.perf_counter()
-    t.join(5)
+    sent["thread"].join(5)
     assert code == 128 + signal.SIGTERM, err
     assert stopped - sent["t"] < 5.0  # the frame alone would take minutes
     summary = json.loads((tmp_path / "l.json").read_text())
