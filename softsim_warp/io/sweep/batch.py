@@ -246,17 +246,25 @@ def _simulate(variants: list[dict], device, use_graph=True, timings=None, stop=N
     ref_error = np.zeros(len(variants))
     com_gap = np.zeros((len(variants), 3))  # batch minus reference centre of mass, the last frame both recorded
     has_gap = np.zeros(len(variants), dtype=bool)
+    # Where a frame's time goes (benchmarks/bench_sweep.py): launching the steps (on the CPU: taking
+    # them), the reductions and reading them (on CUDA: mostly waiting for the steps), judging.
+    phase = {"launch_seconds": 0.0, "read_seconds": 0.0, "judge_seconds": 0.0}
     for k in range(batch.frames + 1):
+        t0 = time.perf_counter()
         # The batch and its reference take the same steps: their current buffers agree.
         measure(batch.sim.current)
         step, t, arrays, depth = batch.read_frame()
         if ref is not None:
             _, _, ref_arrays, _ = ref.read_frame()
             errors_now = errors.read()
+        t1 = time.perf_counter()
         if k < batch.frames:
             for b in (batch, ref):
                 if b is not None:
                     b.launch_frame(k + 1)
+        t2 = time.perf_counter()
+        phase["read_seconds"] += t1 - t0
+        phase["launch_seconds"] += t2 - t1
         # Every world at once; each column holds the numbers a single run of its variant computes, and
         # a running largest keeps the earlier value unless the new one is larger, as max() does.
         cols = world_columns(arrays, batch.jellies)
@@ -271,12 +279,13 @@ def _simulate(variants: list[dict], device, use_graph=True, timings=None, stop=N
             ref_error[larger] = errors_now[larger]
             com_gap[both] = cols["com"][both] - ref_cols["com"][both]
             has_gap |= both
+        phase["judge_seconds"] += time.perf_counter() - t2
         if not worlds.alive.any():
             break
     batch.step_seconds = time.perf_counter() - t_start
     if timings is not None:
         timings.update(build_seconds=build_seconds, compile_seconds=compile_seconds, step_seconds=batch.step_seconds,
-                       model=batch.model, integrator=batch.integrator)
+                       model=batch.model, integrator=batch.integrator, **phase)
     particles = [b - a for a, b in batch.ranges]
     work = sum(n * steps for n, steps in zip(particles, worlds.steps.tolist()))
     out = []
