@@ -7,9 +7,9 @@ The study is the seed jelly (``seed_bowl``, 10^3 particles) for ``--duration`` s
 By default (the issue 46 "Speed" table) the sweep's own task code runs in this process on
 ``--device``: the variants as one batch (or batches of ``--batch`` worlds), as a worker runs them.
 It reports the batch's build time, its kernel loading (start-up, not counted in the rates), the
-frames' time (stepping, the per-world reductions on the device and judging each world on the host),
-variants/s (build and frames counted) and particle-steps/s (frames), and ``softsim bench`` stepping
-the same worlds (the batch's model, its integrator, ``--bench-steps`` steps as one captured graph,
+frames' time (stepping, the per-world reductions on the device and judging all worlds on the host,
+each part timed too), variants/s (build and frames counted) and particle-steps/s (frames), and
+``softsim bench`` stepping the same worlds (the batch's model, its integrator, ``--bench-steps`` steps as one captured graph,
 median of ``--repeats``): the sweep's particle-steps/s over bench's is its share of the device.
 
 ``--processes`` instead compares whole processes, three ways:
@@ -145,6 +145,7 @@ def time_batch(args) -> dict:
     batch_mod._Batch([specs[0]["data"]], device, True)
     startup = time.perf_counter() - t0
     build = compile_s = frames = 0.0
+    phases = {"launch_seconds": 0.0, "read_seconds": 0.0, "judge_seconds": 0.0}
     rows, model, integrator = [], None, None
     for i in range(0, len(specs), size):
         t = {}
@@ -152,6 +153,8 @@ def time_batch(args) -> dict:
         build += t["build_seconds"]
         compile_s += t["compile_seconds"]
         frames += t["step_seconds"]
+        for key in phases:
+            phases[key] += t[key]
         model, integrator = t["model"], t["integrator"]
     work = sum(r["particles"] * r["steps"] for r in rows)
     data = specs[0]["data"]["simulation"]
@@ -174,6 +177,8 @@ def time_batch(args) -> dict:
         "startup_seconds": startup,
         "compile_seconds": compile_s,
         "frames_seconds": frames,
+        **{f"frames_{key}": value for key, value in phases.items()},
+        "judge_us_per_world_frame": phases["judge_seconds"] / max(sum(r["frames"] for r in rows), 1) * 1e6,
         "variants_per_second": len(specs) / (build + frames),
         "variants_per_second_frames": len(specs) / frames,
         "particle_steps_per_second": sweep_rate,
@@ -198,6 +203,10 @@ def run_batch_table(args):
           f"kernels' loading; frames alone: "
           f"{r['variants_per_second_frames']:.4g} variants/s; bench: {r['bench_particles']} particles, "
           f"{r['bench_ms_per_step']:.3f} ms/step over {r['bench_steps']} steps)")
+    print(f"frames: launching the steps {r['frames_launch_seconds']:.3f} s (on the CPU: taking them), the reductions "
+          f"and reading them {r['frames_read_seconds']:.3f} s (on CUDA: mostly waiting for the steps), judging the "
+          f"worlds on the host {r['frames_judge_seconds']:.4f} s ({r['judge_us_per_world_frame']:.2f} us per world "
+          f"a frame)")
     report = {"scene": SCENE, "duration": args.duration, "host": platform.node(),
               "cpus": len(os.sched_getaffinity(0)), "batch": r}
     Path(args.out).write_text(json.dumps(report, indent=1) + "\n")

@@ -376,4 +376,52 @@ def test_each_worlds_speed_bound_is_its_single_runs():
     batch = batch_mod._Batch(datas, "cpu", use_graph=False)
     for w, data in enumerate(datas):
         alone = speed_bound(build_model(scene_mod.Scene(data), "cpu"))
-        assert world_speed_bound(batch.model, *batch.ranges[w], w) == alone == batch.worlds[w].bound
+        assert world_speed_bound(batch.model, *batch.ranges[w], w) == alone == batch.worlds.bound[w]
+
+
+# ---------------------------------------------------------------------------------------------
+# A frame of all worlds judged at once is each world judged alone
+
+
+@pytest.mark.parametrize("precision", ["float32", "float64"])
+def test_exploded_mask_is_explosion_reason_of_each_world(precision):
+    # Every combination of the edge values of the test: a count of non-finite particles, speeds at,
+    # just above and beyond the bound (NaN included), energies at and past the overflow limit (NaN,
+    # +-inf, +-safe, just below it). The batch's mask is True exactly where the single run's test
+    # gives a reason.
+    import itertools  # noqa: PLC0415
+    import math  # noqa: PLC0415
+
+    from softsim_warp.io.metrics import exploded_mask, explosion_reason  # noqa: PLC0415
+
+    safe = math.sqrt(float(np.finfo(np.dtype(precision)).max))
+    bound = 7.5
+    energies = [0.0, -3.0, 1e3, np.nextafter(safe, 0.0), safe, -safe, math.inf, -math.inf, math.nan]
+    speeds = [0.0, bound, np.nextafter(bound, math.inf), math.inf, math.nan]
+    combos = list(itertools.product([0, 3], speeds, energies, energies, energies, energies))
+    cols = [np.array(c) for c in zip(*combos)]
+    mask = exploded_mask(*cols, np.full(len(combos), bound), precision)
+    expected = [explosion_reason(*c, bound, precision) is not None for c in combos]
+    assert mask.tolist() == expected
+    assert 0 < sum(expected) < len(expected)
+
+
+def test_world_columns_are_world_frame_of_each_world():
+    # One jelly a world (the sweep's case) is vectorised; several jellies a world are summed by
+    # world_frame. Both give each world's values bit for bit as world_frame of that world alone.
+    from softsim_warp.io.worlds import world_columns, world_frame  # noqa: PLC0415
+
+    rng = np.random.default_rng(7)
+    jellies_count = 9
+    arrays = {"ke": rng.random(jellies_count), "ge": rng.normal(size=jellies_count) * 1e3,
+              "se": rng.random(jellies_count) * 1e-3, "mom": rng.normal(size=(jellies_count, 3)),
+              "vmax": rng.random(jellies_count) * 10, "bad": np.array([0, 0, 2, 0, 0, 0, 1, 0, 0], np.int32),
+              "mass": np.array([1.0, 2.0, 0.0, 0.5, 3.0, 1.5, 1.0, 2.5, 0.25])}
+    for layout in ([(j, j + 1) for j in range(jellies_count)], [(0, 1), (1, 4), (4, 5), (5, 9)]):
+        cols = world_columns(arrays, layout)
+        for w, jellies in enumerate(layout):
+            alone = world_frame(arrays, jellies)
+            assert cols["com"][w].tolist() == alone["com"]
+            assert int(cols["nonfinite"][w]) == alone["nonfinite"]
+            for key in ("kinetic_energy", "spring_energy", "gravity_energy", "total_energy", "max_speed"):
+                assert float(cols[key][w]) == alone[key], key

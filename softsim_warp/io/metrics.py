@@ -173,6 +173,22 @@ def explosion_reason(nonfinite, max_speed, kinetic, spring, gravity, total, boun
     return None
 
 
+def exploded_mask(nonfinite, max_speed, kinetic, spring, gravity, total, bound, precision) -> np.ndarray:
+    """:func:`explosion_reason` of many worlds at once, as a mask: True where it gives a reason.
+
+    Arguments are arrays over worlds (``bound`` one per world too). A batch tests every world a
+    frame with this and asks :func:`explosion_reason` for the words only where it is True.
+    """
+    safe = math.sqrt(float(np.finfo(np.dtype(str(precision))).max))
+    with np.errstate(invalid="ignore"):
+        # As the scalar test: NaN speeds are not above the bound; NaN or infinite energies overflow.
+        out = (np.asarray(nonfinite) != 0) | (np.asarray(max_speed) > np.asarray(bound))
+        for e in (kinetic, spring, gravity, total):
+            e = np.asarray(e, dtype=np.float64)
+            out |= ~(np.isfinite(e) & (np.abs(e) < safe))
+    return out
+
+
 class PenetrationProbe:
     """Deepest particle of each world inside terrain [m], reduced on the device: one number per world.
 

@@ -127,18 +127,20 @@ def world_frame(arrays, jellies) -> dict:
     }
 
 
-def world_frames(arrays, jellies) -> list[dict]:
-    """:func:`world_frame` of every world; vectorised when each world has one jelly (the sums over one
-    jelly are that jelly's values, so the result is the same bit for bit)."""
+def world_columns(arrays, jellies) -> dict:
+    """:func:`world_frame` of every world at once, as one array per quantity (``com`` [worlds, 3], the
+    others [worlds]): the host's share of a batch's frame is a few NumPy operations, not a loop over
+    worlds. Vectorised when each world has one jelly (the sums over one jelly are that jelly's values,
+    so the result is the same bit for bit); worlds of several jellies are summed by :func:`world_frame`."""
     if not all(b - a == 1 for a, b in jellies):
-        return [world_frame(arrays, j) for j in jellies]
+        frames = [world_frame(arrays, j) for j in jellies]
+        cols = {key: np.array([f[key] for f in frames], dtype=np.float64) for key in frames[0] if key != "nonfinite"}
+        cols["nonfinite"] = np.array([f["nonfinite"] for f in frames], dtype=np.int64)
+        return cols
     idx = np.array([a for a, _ in jellies])
     ke, ge, se = arrays["ke"][idx], arrays["ge"][idx], arrays["se"][idx]
     mass = arrays["mass"][idx]
     with np.errstate(divide="ignore", invalid="ignore"):
-        com = np.where(mass[:, None] > 0, arrays["mom"][idx] / mass[:, None], 0.0).tolist()
-    total = (ke + se + ge).tolist()
-    vmax, bad = arrays["vmax"][idx].tolist(), arrays["bad"][idx].tolist()
-    ke, ge, se = ke.tolist(), ge.tolist(), se.tolist()
-    return [{"com": com[w], "kinetic_energy": ke[w], "spring_energy": se[w], "gravity_energy": ge[w],
-             "total_energy": total[w], "max_speed": vmax[w], "nonfinite": int(bad[w])} for w in range(len(idx))]
+        com = np.where(mass[:, None] > 0, arrays["mom"][idx] / mass[:, None], 0.0)
+    return {"com": com, "kinetic_energy": ke, "spring_energy": se, "gravity_energy": ge, "total_energy": ke + se + ge,
+            "max_speed": arrays["vmax"][idx], "nonfinite": arrays["bad"][idx].astype(np.int64)}

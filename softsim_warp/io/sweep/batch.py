@@ -28,20 +28,53 @@ from .plan import SweepVariant
 STOP_POLL_SECONDS = 0.2
 
 
-class _World:
-    """What one world of a batch accumulates frame by frame (what ``Simulator.run`` records for a run)."""
+class _Worlds:
+    """What the worlds of a batch accumulate frame by frame (what ``Simulator.run`` records for a run),
+    one column per world: frame k of every world that recorded it is row k of ``total``, ``gravity``,
+    ``max_speed`` and ``com``, so judging a frame is a few NumPy operations over all worlds."""
 
-    def __init__(self, bound, precision):
-        self.bound = bound
+    def __init__(self, bounds, precision, frames):
+        worlds = len(bounds)
+        self.bound = np.asarray(bounds, dtype=np.float64)
         self.precision = precision
-        self.frames = []  # per frame written: namespace(total_energy, gravity_energy, com, max_speed)
-        self.exploded = None
-        self.steps = 0
-        self.sim_time = 0.0
-        self.penetration = 0.0
-        self.ref_error = 0.0
-        self.ref_com_error = None
-        self.ref_exploded = None
+        self.total = np.zeros((frames + 1, worlds))
+        self.gravity = np.zeros((frames + 1, worlds))
+        self.max_speed = np.zeros((frames + 1, worlds))
+        self.com = np.zeros((frames + 1, worlds, 3))
+        self.alive = np.ones(worlds, dtype=bool)
+        self.frames = np.zeros(worlds, dtype=np.int64)  # frames recorded: rows 0 .. frames - 1
+        self.steps = np.zeros(worlds, dtype=np.int64)
+        self.sim_time = np.zeros(worlds)
+        self.exploded = [None] * worlds
+
+    def record(self, cols: dict, k: int, step: int, t: float, among=None) -> np.ndarray:
+        """Judge frame ``k`` (:func:`~softsim_warp.io.worlds.world_columns`) of the worlds still alive (and
+        in the mask ``among``) as ``Simulator.run`` does; returns the mask of the worlds that recorded it."""
+        from ..metrics import exploded_mask, explosion_reason  # noqa: PLC0415
+
+        live = self.alive if among is None else self.alive & among
+        energies = (cols["kinetic_energy"], cols["spring_energy"], cols["gravity_energy"], cols["total_energy"])
+        bad = live & exploded_mask(cols["nonfinite"], cols["max_speed"], *energies, self.bound, self.precision)
+        for w in np.flatnonzero(bad).tolist():  # the words of the few that exploded, as a single run words them
+            reason = explosion_reason(int(cols["nonfinite"][w]), float(cols["max_speed"][w]),
+                                      *(float(e[w]) for e in energies), float(self.bound[w]), self.precision)
+            self.exploded[w] = {"frame": k, "time": t, "reason": reason}
+        ok = live & ~bad
+        self.total[k, ok] = cols["total_energy"][ok]
+        self.gravity[k, ok] = cols["gravity_energy"][ok]
+        self.max_speed[k, ok] = cols["max_speed"][ok]
+        self.com[k, ok] = cols["com"][ok]
+        self.frames[ok] = k + 1
+        self.steps[live] = step
+        self.sim_time[ok] = t
+        self.alive = self.alive & ~bad
+        return ok
+
+    def metrics(self, w: int) -> list:
+        """World ``w``'s recorded frames as ``energy_drift`` reads a run's metrics."""
+        n = int(self.frames[w])
+        return [types.SimpleNamespace(total_energy=e, gravity_energy=g)
+                for e, g in zip(self.total[:n, w].tolist(), self.gravity[:n, w].tolist())]
 
 
 class _Batch:
@@ -70,12 +103,12 @@ class _Batch:
         self.frames = frames
         self.ranges = world_ranges(self.model)
         self.jellies = world_jellies(self.model)
-        self.worlds = []
+        bounds = []
         for w, data in enumerate(datas):
             bound = data["simulation"].get("max_speed")
             a, b = self.ranges[w]
-            bound = float(bound) if bound is not None else world_speed_bound(self.model, a, b, w)
-            self.worlds.append(_World(bound, sim["precision"]))
+            bounds.append(float(bound) if bound is not None else world_speed_bound(self.model, a, b, w))
+        self.worlds = _Worlds(bounds, sim["precision"], frames)
         # Penetration is measured into terrain only: without any, nothing is launched for it.
         has_terrain = any(d.get(kind) for d in datas for kind in TERRAIN_SDF)
         self.penetration = PenetrationProbe(self.model) if penetration and has_terrain else None
@@ -134,25 +167,6 @@ class _Captured:
             self.graphs[key] = capture.graph
 
 
-def _record_frame(world: _World, frame: dict, k: int, step: int, t: float) -> bool:
-    """Judge and record frame ``k`` of a world as ``Simulator.run`` does; False once it has exploded."""
-    from ..metrics import explosion_reason  # noqa: PLC0415
-
-    reason = explosion_reason(frame["nonfinite"], frame["max_speed"], frame["kinetic_energy"],
-                              frame["spring_energy"], frame["gravity_energy"], frame["total_energy"], world.bound,
-                              world.precision)
-    if reason is not None:
-        world.steps = step
-        world.exploded = {"frame": k, "time": t, "reason": reason}
-        return False
-    world.frames.append(types.SimpleNamespace(total_energy=frame["total_energy"],
-                                              gravity_energy=frame["gravity_energy"], com=frame["com"],
-                                              max_speed=frame["max_speed"]))
-    world.steps = step
-    world.sim_time = t
-    return True
-
-
 class TaskStopped(Exception):
     """The client stopped the sweep while this task ran, or the worker could not ask (``stop_check``).
     Raised out of the task, not returned as no rows: a task that stopped gives no row, and when the
@@ -197,7 +211,7 @@ def _simulate(variants: list[dict], device, use_graph=True, timings=None, stop=N
     """
     from ..metrics import PositionErrorProbe  # noqa: PLC0415
     from ..runinfo import energy_drift  # noqa: PLC0415
-    from ..worlds import world_frame, world_frames  # noqa: PLC0415
+    from ..worlds import world_columns  # noqa: PLC0415
 
     t_build = time.perf_counter()
     batch = _Batch([v["data"] for v in variants], device, use_graph)
@@ -213,10 +227,8 @@ def _simulate(variants: list[dict], device, use_graph=True, timings=None, stop=N
     if ref is not None:
         ref.sim.warm_up()
     compile_seconds = time.perf_counter() - t_compile
-    alive = [True] * len(variants)
-    ref_alive = [True] * len(variants)
     # Frame k+1's steps are launched before frame k is judged on the host: on CUDA the host work
-    # (judging each world) overlaps the device's; on the CPU launches run at once.
+    # (judging all worlds) overlaps the device's; on the CPU launches run at once.
     t_start = time.perf_counter()
     for b in (batch, ref):
         if b is not None:
@@ -229,78 +241,88 @@ def _simulate(variants: list[dict], device, use_graph=True, timings=None, stop=N
             errors.launch(batch.sim.state.particle_q, ref.sim.state.particle_q)
 
     measure = _Captured(batch.model.device, launch_reductions, use_graph)
+    worlds = batch.worlds
+    penetration = np.zeros(len(variants))
+    ref_error = np.zeros(len(variants))
+    com_gap = np.zeros((len(variants), 3))  # batch minus reference centre of mass, the last frame both recorded
+    has_gap = np.zeros(len(variants), dtype=bool)
+    # Where a frame's time goes (benchmarks/bench_sweep.py): launching the steps (on the CPU: taking
+    # them), the reductions and reading them (on CUDA: mostly waiting for the steps), judging.
+    phase = {"launch_seconds": 0.0, "read_seconds": 0.0, "judge_seconds": 0.0}
     for k in range(batch.frames + 1):
+        t0 = time.perf_counter()
         # The batch and its reference take the same steps: their current buffers agree.
         measure(batch.sim.current)
         step, t, arrays, depth = batch.read_frame()
         if ref is not None:
             _, _, ref_arrays, _ = ref.read_frame()
-            ref_error = errors.read()
+            errors_now = errors.read()
+        t1 = time.perf_counter()
         if k < batch.frames:
             for b in (batch, ref):
                 if b is not None:
                     b.launch_frame(k + 1)
-        frames = world_frames(arrays, batch.jellies)
-        for w, world in enumerate(batch.worlds):
-            if not alive[w]:
-                continue
-            frame = frames[w]
-            alive[w] = _record_frame(world, frame, k, step, t)
-            if not alive[w]:
-                continue
-            if depth is not None:
-                world.penetration = max(world.penetration, float(depth[w]))
-            if ref is not None and ref_alive[w]:
-                rframe = world_frame(ref_arrays, ref.jellies[w])
-                rworld = ref.worlds[w]
-                ref_alive[w] = _record_frame(rworld, rframe, k, step, t)
-                if ref_alive[w]:
-                    world.ref_error = max(world.ref_error, float(ref_error[w]))
-                    world.ref_com_error = float(np.linalg.norm(np.asarray(frame["com"]) - np.asarray(rframe["com"])))
-                else:
-                    world.ref_exploded = rworld.exploded
-        if not any(alive):
+        t2 = time.perf_counter()
+        phase["read_seconds"] += t1 - t0
+        phase["launch_seconds"] += t2 - t1
+        # Every world at once; each column holds the numbers a single run of its variant computes, and
+        # a running largest keeps the earlier value unless the new one is larger, as max() does.
+        cols = world_columns(arrays, batch.jellies)
+        ok = worlds.record(cols, k, step, t)
+        if depth is not None:
+            deeper = ok & (depth > penetration)
+            penetration[deeper] = depth[deeper]
+        if ref is not None:
+            ref_cols = world_columns(ref_arrays, ref.jellies)
+            both = ref.worlds.record(ref_cols, k, step, t, among=ok)
+            larger = both & (errors_now > ref_error)
+            ref_error[larger] = errors_now[larger]
+            com_gap[both] = cols["com"][both] - ref_cols["com"][both]
+            has_gap |= both
+        phase["judge_seconds"] += time.perf_counter() - t2
+        if not worlds.alive.any():
             break
     batch.step_seconds = time.perf_counter() - t_start
     if timings is not None:
         timings.update(build_seconds=build_seconds, compile_seconds=compile_seconds, step_seconds=batch.step_seconds,
-                       model=batch.model, integrator=batch.integrator)
+                       model=batch.model, integrator=batch.integrator, **phase)
     particles = [b - a for a, b in batch.ranges]
-    work = sum(n * w.steps for n, w in zip(particles, batch.worlds))
+    work = sum(n * steps for n, steps in zip(particles, worlds.steps.tolist()))
     out = []
-    for w, (v, world) in enumerate(zip(variants, batch.worlds)):
-        drift, rel = energy_drift(world.frames)
-        last = world.frames[-1] if world.frames else None
+    for w, v in enumerate(variants):
+        drift, rel = energy_drift(worlds.metrics(w))
+        n = int(worlds.frames[w])
+        last = n - 1
+        exploded = worlds.exploded[w]
         row = {
             "variant_id": v["id"],
-            "status": "exploded" if world.exploded else "completed",
-            "explosion_time": world.exploded["time"] if world.exploded else None,
-            "explosion_frame": world.exploded["frame"] if world.exploded else None,
-            "explosion_reason": world.exploded["reason"] if world.exploded else None,
+            "status": "exploded" if exploded else "completed",
+            "explosion_time": exploded["time"] if exploded else None,
+            "explosion_frame": exploded["frame"] if exploded else None,
+            "explosion_reason": exploded["reason"] if exploded else None,
             "error": None,
-            "steps": world.steps,
-            "frames": len(world.frames),
-            "sim_time": world.sim_time,
+            "steps": int(worlds.steps[w]),
+            "frames": n,
+            "sim_time": float(worlds.sim_time[w]),
             "particles": particles[w],
             "batch_size": len(variants),
             "wall_seconds": batch.step_seconds,
             "compile_seconds": compile_seconds,
             "particle_steps_per_second": work / batch.step_seconds if batch.step_seconds > 0 else 0.0,
-            "energy_start": world.frames[0].total_energy if world.frames else None,
-            "energy_end": last.total_energy if last else None,
+            "energy_start": float(worlds.total[0, w]) if n else None,
+            "energy_end": float(worlds.total[last, w]) if n else None,
             "energy_change": drift,
             "energy_change_relative": rel,
-            "com_x": last.com[0] if last else None,
-            "com_y": last.com[1] if last else None,
-            "com_z": last.com[2] if last else None,
-            "max_speed": max(f.max_speed for f in world.frames) if world.frames else None,
-            "max_penetration": world.penetration,
+            "com_x": float(worlds.com[last, w, 0]) if n else None,
+            "com_y": float(worlds.com[last, w, 1]) if n else None,
+            "com_z": float(worlds.com[last, w, 2]) if n else None,
+            "max_speed": max(worlds.max_speed[:n, w].tolist()) if n else None,
+            "max_penetration": float(penetration[w]),
         }
         if ref is not None:
-            rworld = ref.worlds[w]
-            row["ref_status"] = "exploded" if rworld.exploded else "completed"
-            row["ref_position_error"] = world.ref_error if world.frames else None
-            row["ref_com_error"] = world.ref_com_error
+            row["ref_status"] = "exploded" if ref.worlds.exploded[w] else "completed"
+            row["ref_position_error"] = float(ref_error[w]) if n else None
+            row["ref_com_error"] = float(np.linalg.norm(com_gap[w])) if has_gap[w] else None
         out.append(row)
     return out
 
