@@ -66,3 +66,11 @@ def sigterm_after_first_frame(monkeypatch, delay: float) -> dict:
     sent["thread"] = threading.Thread(target=kill, daemon=True)
     sent["thread"].start()
     return sent
+
+
+def rate_about_y(x, v):
+    """Least-squares rate [rad/s] at which particles at ``x`` with velocities ``v`` turn about the y
+    axis through the origin (v_xz = omega (z, -x)), and the radius of their centre [m]."""
+    r = x[:, [0, 2]]
+    tangent = np.stack([r[:, 1], -r[:, 0]], axis=1)
+    return float((tangent * v[:, [0, 2]]).sum() / (tangent**2).sum()), float(np.linalg.norm(r.mean(axis=0)))

@@ -22,6 +22,7 @@ from pxr import Usd, UsdGeom, UsdValidation
 import softsim_warp as ss
 from softsim_warp.core.errors import SceneError
 from softsim_warp.core.mesh_assets import MeshAsset
+from tests.helpers import rate_about_y
 
 ROOT = Path(__file__).resolve().parent.parent
 MU, G = 0.8, 9.8
@@ -210,11 +211,9 @@ def test_jelly_on_a_turning_mesh_turns_with_it(tmp_path):
     st.advance(round(1.0 / sc.sim["dt"]))
     x = st.state.particle_q.numpy().astype(np.float64)
     v = st.state.particle_qd.numpy().astype(np.float64)
-    r = x[:, [0, 2]]
-    tangent = np.stack([r[:, 1], -r[:, 0]], axis=1)
-    rate = float((tangent * v[:, [0, 2]]).sum() / (tangent**2).sum())
+    rate, radius = rate_about_y(x, v)
     assert abs(rate - omega) < 0.01 * omega, (rate, omega)
-    assert abs(np.linalg.norm(r.mean(axis=0)) - 0.3) < 0.005
+    assert abs(radius - 0.3) < 0.005
     assert x[:, 1].min() > -1e-5
 
 
