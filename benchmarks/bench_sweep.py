@@ -135,8 +135,9 @@ def time_batch(args) -> dict:
 
     from softsim_warp.commands.bench import _OurCase  # noqa: PLC0415
     from softsim_warp.io.sweep import batch as batch_mod  # noqa: PLC0415
+    from softsim_warp.io.warp_init import init_warp  # noqa: PLC0415
 
-    wp = batch_mod._init_warp()
+    wp = init_warp()
     device = wp.get_device(args.device)
     specs = plan(args)
     size = args.batch or len(specs)

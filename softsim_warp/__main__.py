@@ -1,9 +1,7 @@
 """``python -m softsim_warp``: the ``softsim`` command line (``commands.cli.main``)."""
 
-import os
 import signal
 import sys
-import time
 
 from .commands import process
 
@@ -27,9 +25,6 @@ def entry() -> int:
     for sig in process.STOP_SIGNALS:
         signal.signal(sig, _stop)
     process.guard_stdout()
-    if "import" in os.environ.get("SOFTSIM_TEST_PAUSE", "").split(","):  # test seam, see commands/common.py
-        print("softsim-test: paused at import", file=sys.stderr, flush=True)
-        time.sleep(60)
     from .commands.cli import main  # noqa: PLC0415
 
     return main()

@@ -2,11 +2,11 @@
 
 from __future__ import annotations
 
-import os
 import sys
 import time
 
 from softsim_warp.commands import cli
+from tests.subprocess_hooks import hooked_env
 
 # 4^3 particles at 20 frames per second: the jelly reaches the hole's rim at t = 1.34 s.
 SMALL = ["--set", "jelly.0.resolution=4", "--set", "simulation.fps=20"]
@@ -20,12 +20,9 @@ def sweep(tmp_path, *argv, name="r.parquet"):
 
 
 def env(test_dir=None, delay=0.0):
-    e = dict(os.environ)
-    e.pop("SOFTSIM_TEST_PAUSE", None)
-    if test_dir is not None:
-        e["SOFTSIM_SWEEP_TEST_DIR"] = str(test_dir)
-        e["SOFTSIM_SWEEP_TEST_DELAY"] = str(delay)
-    return e
+    """The sweep's environment; with ``test_dir``, each task marks its start and end there and waits
+    ``delay`` seconds at its start (``tests/hooks/sitecustomize.py``)."""
+    return hooked_env(marks=test_dir, delay=delay)
 
 
 def wait_for(predicate, timeout=60.0):

@@ -1,5 +1,6 @@
 """The command line end to end on tiny scenes."""
 
+import contextlib
 import json
 import math
 import subprocess
@@ -129,6 +130,65 @@ def test_compile_notice_only_for_a_slow_warm_up(capsys):
     err = capsys.readouterr().err.splitlines()
     assert len(err) == 1 and err[0].startswith("compiling kernels (first run only; cached in ")
     common.compile_notice.shown = False
+
+
+@pytest.mark.parametrize("argv", [
+    ["run", "jelly_drop", "--frames", "2", "--out", "o.usdc"],
+    ["compare", "jelly_drop", "--integrators", "euler,implicit", "--frames", "2", "--out", "o.usdc"],
+    ["accuracy", "jelly_drop", "--integrators", "symplectic", "--dts", "0.002", "--duration", "0.02"],
+    ["stability", "jelly_drop", "--integrators", "symplectic", "--ks", "none", "--steps", "10", "--lattice", "2",
+     "--no-scene"],
+], ids=lambda a: a[0])
+@pytest.mark.parametrize("quiet", [False, True], ids=["shown", "quiet"])
+def test_every_warm_up_of_a_command_gets_the_compile_notice(argv, quiet, tmp_path, monkeypatch):
+    """The commands that simulate hand the compile notice to every simulator they make (its
+    ``on_warm_up``), with --quiet passed on; no global hook list in the core."""
+    from softsim_warp.commands import cli, common  # noqa: PLC0415
+    from softsim_warp.core import stepper  # noqa: PLC0415
+
+    entered = []
+
+    @contextlib.contextmanager
+    def notice(quiet=False, after=common.COMPILE_NOTICE_AFTER):
+        entered.append(quiet)
+        yield
+
+    warm_ups = []
+    warm_up = stepper.Stepper.warm_up
+
+    def counted(self):
+        warm_ups.append(self)
+        return warm_up(self)
+
+    monkeypatch.setattr(common, "compile_notice", notice)
+    monkeypatch.setattr(stepper.Stepper, "warm_up", counted)
+    monkeypatch.chdir(tmp_path)
+    argv = argv + ["--set", "jelly.0.resolution=3"] + (["--quiet"] if quiet else [])
+    assert cli.main(argv) == 0
+    assert warm_ups and entered == [quiet] * len(warm_ups)
+
+
+def test_a_stepper_enters_on_warm_up_around_its_warm_up_only():
+    """``on_warm_up`` wraps the warm-up step (where kernels compile, before the first capture), not
+    the steps after it."""
+    import softsim_warp as ss  # noqa: PLC0415
+
+    from tests.helpers import jelly_builder  # noqa: PLC0415
+
+    model = jelly_builder().finalize("cpu")
+    events = []
+
+    @contextlib.contextmanager
+    def around():
+        events.append("enter")
+        yield
+        events.append("exit")
+
+    stepper = ss.Stepper(model, ss.make_integrator("symplectic", model), 1e-3, on_warm_up=around)
+    stepper.advance(3)
+    stepper.advance(3)
+    assert events == ["enter", "exit"] and stepper.warmed_up
+    assert ss.Stepper(model, ss.make_integrator("symplectic", model), 1e-3).on_warm_up is None
 
 
 def test_preview_refuses_flags_it_has_no_use_for(tmp_path, capsys):

@@ -1,8 +1,8 @@
 """SIGINT and SIGTERM at every phase of ``softsim run``, with real processes and real signals.
 
-Each test starts ``python -m softsim_warp run`` on a tiny jelly with the test seam
-``SOFTSIM_TEST_PAUSE=<phase>`` (``commands/common.py``): at that phase the process writes
-``softsim-test: paused at <phase>`` to stderr and waits for a signal. The test sends it and checks
+Each test starts ``python -m softsim_warp run`` on a tiny jelly with ``SOFTSIM_TEST_PAUSE=<phase>``
+and the test-only hooks of ``tests/hooks/sitecustomize.py`` loaded (``tests/subprocess_hooks.py``):
+at that phase the process writes ``softsim-test: paused at <phase>`` to stderr and waits for a signal. The test sends it and checks
 that the run ends with 128 + signum, prints no traceback, leaves no hidden temporary
 (``.<stem>.partial-<pid><suffix>``) or lock file (``.<name>.lock``), keeps outputs that existed
 unchanged unless the run had completed, and leaves what the phase promises: nothing before the
@@ -19,6 +19,8 @@ import time
 
 import pytest
 
+from tests.subprocess_hooks import hooked_env
+
 pytestmark = pytest.mark.skipif(sys.platform == "win32", reason="POSIX signals")
 
 FRAMES = 20
@@ -33,10 +35,7 @@ class Run:
     """A ``softsim run`` subprocess in ``cwd`` whose stderr is read continuously."""
 
     def __init__(self, cwd, pauses="", args=ARGS):
-        env = dict(os.environ)
-        env.pop("SOFTSIM_TEST_PAUSE", None)
-        if pauses:
-            env["SOFTSIM_TEST_PAUSE"] = pauses
+        env = hooked_env(pauses=pauses)
         self.proc = subprocess.Popen([sys.executable, "-m", "softsim_warp", *args], cwd=cwd, env=env,
                                      stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
         self.err = b""
@@ -238,10 +237,7 @@ def _terminal_run(args, cwd, pauses="", controlling=False):
     sys.path.insert(0, os.path.dirname(__file__))
     from terminal import TerminalRun  # noqa: PLC0415
 
-    env = dict(os.environ)
-    env.pop("SOFTSIM_TEST_PAUSE", None)
-    if pauses:
-        env["SOFTSIM_TEST_PAUSE"] = pauses
+    env = hooked_env(pauses=pauses)
     return TerminalRun([sys.executable, "-m", "softsim_warp", *args], cwd, env=env, controlling=controlling)
 
 
@@ -313,7 +309,7 @@ def test_sighup_in_every_command(args, tmp_path):
 def test_nohup_keeps_ignoring_sighup(tmp_path):
     """Started with SIGHUP ignored (``nohup``), a run outlives its terminal: SIGHUP changes nothing,
     and the SIGTERM sent after it is the signal that stops the run (143, frames 0..2 kept)."""
-    env = dict(os.environ, SOFTSIM_TEST_PAUSE="run")
+    env = hooked_env(pauses="run")
     proc = subprocess.Popen([sys.executable, "-m", "softsim_warp", *ARGS], cwd=tmp_path, env=env,
                             stdout=subprocess.DEVNULL, stderr=subprocess.PIPE,
                             preexec_fn=lambda: signal.signal(signal.SIGHUP, signal.SIG_IGN))

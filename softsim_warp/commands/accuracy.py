@@ -45,7 +45,7 @@ from ..io.outputs import JSON_SUFFIXES, Outputs, save_report
 from ..io.resources import MAX_RUN_DAYS, check_fits, scene_counts, step_seconds_floor
 from ..io.simulate import Simulator
 from .common import (ALL_INTEGRATORS, ProgressLog, check_positive, load_for_cli, parse_methods, parse_positive_list,
-                     resolve_device)
+                     resolve_device, warm_up_notice)
 
 COMMAND = "accuracy"
 REFERENCE_METHOD = "rk4"
@@ -124,7 +124,7 @@ def jelly_size(scene) -> float:
 
 
 def run_trajectory(scene, integrator, dt, *, device=None, precision=None, fps=None, frames=None,
-                   use_graph=True, max_speed=None) -> Trajectory:
+                   use_graph=True, max_speed=None, on_warm_up=None) -> Trajectory:
     """Run ``scene`` with ``integrator`` at (frame-rounded) ``dt`` and keep every frame's positions.
 
     Args:
@@ -137,6 +137,7 @@ def run_trajectory(scene, integrator, dt, *, device=None, precision=None, fps=No
         frames: frames after frame 0; default the scene's.
         use_graph: replay each frame's steps from a captured graph, as ``softsim run`` does.
         max_speed: explosion speed bound [m/s]; default the scene's or the derived bound.
+        on_warm_up: entered around the warm-up (``Simulator``'s), or None.
 
     Returns:
         A :class:`Trajectory`; on an explosion, the frames before it.
@@ -155,7 +156,7 @@ def run_trajectory(scene, integrator, dt, *, device=None, precision=None, fps=No
     integ = make_integrator(integrator, model, scene.data.get("implicit"))
     graph = bool(use_graph)
     sim = Simulator(model, integ, h, fps, frames, use_graph=graph,
-                    max_speed=max_speed if max_speed is not None else scene.sim.get("max_speed"))
+                    max_speed=max_speed if max_speed is not None else scene.sim.get("max_speed"), on_warm_up=on_warm_up)
     compile_seconds = sim.warm_up()
     if graph:
         # Capture the per-frame graphs now (one per buffer parity), then restart from frame 0, so
@@ -278,7 +279,7 @@ def pairwise_orders(dts, errors):
 
 
 def measure(scene, integrators=ALL_INTEGRATORS, dts=None, *, device=None, precision=None, duration=None,
-            reference_dt=None, fps=None, use_graph=True, log=None, progress=None) -> dict:
+            reference_dt=None, fps=None, use_graph=True, log=None, progress=None, on_warm_up=None) -> dict:
     """Run every integrator at every step against the reference; return the report as a dict.
 
     Args:
@@ -296,6 +297,7 @@ def measure(scene, integrators=ALL_INTEGRATORS, dts=None, *, device=None, precis
         log: callable taking a progress line, or None.
         progress: callable ``progress(total)`` returning a bar with ``update()`` and ``close()``,
             advanced once per run (the two reference runs included), or None.
+        on_warm_up: entered around every run's warm-up (``Simulator``'s), or None.
 
     Returns:
         A JSON-ready dict (see ``docs/ACCURACY.md`` for the fields).
@@ -320,10 +322,10 @@ def measure(scene, integrators=ALL_INTEGRATORS, dts=None, *, device=None, precis
     tick = bar.update if bar else (lambda: None)
     say(f"reference: {REFERENCE_METHOD} {REFERENCE_PRECISION} at dt={ref_dt:.4g} s and {ref_dt / 2:.4g} s")
     ref_coarse = run_trajectory(scene, REFERENCE_METHOD, ref_dt, device=dev, precision=REFERENCE_PRECISION,
-                                fps=fps, frames=frames, use_graph=use_graph)
+                                fps=fps, frames=frames, use_graph=use_graph, on_warm_up=on_warm_up)
     tick()
     ref = run_trajectory(scene, REFERENCE_METHOD, ref_dt / 2, device=dev, precision=REFERENCE_PRECISION,
-                         fps=fps, frames=frames, use_graph=use_graph)
+                         fps=fps, frames=frames, use_graph=use_graph, on_warm_up=on_warm_up)
     tick()
     if ref.exploded or ref_coarse.exploded:
         raise RuntimeError(
@@ -337,7 +339,7 @@ def measure(scene, integrators=ALL_INTEGRATORS, dts=None, *, device=None, precis
         for dt in per_method[name]:
             try:
                 tr = run_trajectory(scene, name, dt, device=dev, precision=precision, fps=fps, frames=frames,
-                                    use_graph=use_graph)
+                                    use_graph=use_graph, on_warm_up=on_warm_up)
             except ImportError as e:
                 skipped[name] = f"not available ({e})"
                 say(f"{name}: skipped, not available ({e})")
@@ -608,7 +610,7 @@ def _measure_and_save(args, scene, methods, dts, device, shown) -> int:
     try:
         report = measure(scene, methods, dts, device=device, precision=args.precision, duration=args.duration,
                          reference_dt=args.reference_dt, fps=args.fps, use_graph=not args.no_graph, log=shown.log,
-                         progress=shown.progress)
+                         progress=shown.progress, on_warm_up=warm_up_notice(args))
     except RuntimeError as e:
         if "reference run" in str(e):
             given = (args.reference_dt,) if args.reference_dt else ()

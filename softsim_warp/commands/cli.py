@@ -14,7 +14,7 @@ still gets Python's defaults.
 
 Before the command runs, every path flag is checked not to be empty (``--out ''``, an unset shell
 variable, is an error, not the default name) and Warp is initialised quietly with its kernel cache
-checked (``common.init_warp``), for every command that uses Warp. Standard output failing
+checked (``io.warp_init.init_warp``), for every command that uses Warp. Standard output failing
 (``process.StdoutError``) ends any command the same way: quietly with 141 for a closed pipe, else
 one line and exit 2.
 """
@@ -23,7 +23,6 @@ from __future__ import annotations
 
 import argparse
 import contextlib
-import functools
 import re
 import signal
 import sys
@@ -31,8 +30,8 @@ import threading
 import traceback
 import warnings
 
-from ..core import stepper
 from ..core.errors import CommandLineError, UserError
+from ..io.warp_init import init_warp
 from . import accuracy, bench, common, compare, preview, process, run, scenes, stability, sweep
 
 SUBCOMMANDS = (run, scenes, compare, preview, bench, accuracy, stability, sweep)
@@ -109,9 +108,10 @@ def _install(handler) -> dict:
     return {sig: signal.signal(sig, handler) for sig in process.STOP_SIGNALS}
 
 
-def _received_signal(stop: _Stop) -> int:
-    """The signal that stopped the command: the one its ``common.Signals`` recorded, else main's."""
-    return int(getattr(common.ACTIVE_SIGNALS, "received", None) or stop.received or signal.SIGINT)
+def _received_signal(stop: _Stop, interrupt: KeyboardInterrupt) -> int:
+    """The signal that stopped the command: the first one its ``common.Signals`` recorded (carried
+    by the ``KeyboardInterrupt`` that left it), else main's."""
+    return int(getattr(interrupt, "signal", None) or stop.received or signal.SIGINT)
 
 
 def main(argv=None) -> int:
@@ -133,8 +133,8 @@ def main(argv=None) -> int:
                 sys.stdout.flush()
         finally:
             stop.armed = False  # from here on a signal is only recorded
-    except KeyboardInterrupt:
-        code = 128 + _received_signal(stop)
+    except KeyboardInterrupt as interrupt:
+        code = 128 + _received_signal(stop, interrupt)
     except process.StdoutError as e:
         code = process.stdout_failed(e)
     finally:
@@ -163,8 +163,6 @@ def _quiet_float_warnings(debug: bool):
 
 def _main(argv) -> int:
     args = None
-    common.ACTIVE_SIGNALS = None  # main may run more than once in a process
-    common.pause_for_test("start")  # test seam: the first signal raises KeyboardInterrupt here
     try:
         parser = build_parser()
         if not argv:  # bare `softsim`: what it can do, not an error line
@@ -176,14 +174,9 @@ def _main(argv) -> int:
         args = parser.parse_args(argv)
         _check_paths(parser, args)
         if args.command not in NO_WARP:
-            common.init_warp(getattr(args, "debug", False))
-        notice = functools.partial(common.compile_notice, getattr(args, "quiet", False))
-        stepper.WARM_UP_HOOKS.append(notice)
-        try:
-            with _quiet_float_warnings(getattr(args, "debug", False)):
-                return commands[args.command](args)
-        finally:
-            stepper.WARM_UP_HOOKS.remove(notice)
+            init_warp(getattr(args, "debug", False))
+        with _quiet_float_warnings(getattr(args, "debug", False)):
+            return commands[args.command](args)
     except UserError as e:
         if getattr(args, "debug", False) or (args is None and "--debug" in argv):
             traceback.print_exc()

@@ -5,18 +5,16 @@ signal handling, progress display and the parsing of list-valued flags.
 from __future__ import annotations
 
 import contextlib
+import functools
 import math
-import os
 import re
 import signal
 import sys
-import tempfile
 import threading
-import time
 
 from ..core.errors import CommandLineError, SceneError, UserError
-from ..core.native_output import held_stderr
 from ..io import scene as scene_mod
+from ..io.warp_init import init_warp
 from . import process
 
 EXIT_EXPLODED = 3
@@ -97,58 +95,11 @@ def warn_overlaps(data, source):
 
 
 def init_warp_for_meshes(data, args):
-    """Initialise Warp (quietly, see :func:`init_warp`) before validating a scene with mesh jellies:
-    validation voxelises them with Warp (io/mesh_scene.py)."""
+    """Initialise Warp (quietly, see :func:`~softsim_warp.io.warp_init.init_warp`) before validating
+    a scene with mesh jellies: validation voxelises them with Warp (io/mesh_scene.py)."""
     jellies = data.get("jelly") if isinstance(data.get("jelly"), list) else [data.get("jelly")]
     if any(isinstance(j, dict) and "mesh" in j for j in jellies):
         init_warp(getattr(args, "debug", False))
-
-
-def init_warp(debug=False):
-    """Import and initialise Warp without its banner, module-load lines or missing-driver notice,
-    and check that its kernel cache can be written.
-
-    A user error must read as one line; Warp prints a start-up banner (on stdout) and, on a machine
-    without a CUDA driver, a notice from native code straight to file descriptor 2. Both are held
-    back unless ``debug``. ``cli.main`` calls this before every command that uses Warp.
-
-    A kernel cache that cannot be created or written (``HOME=/proc``, ``WARP_CACHE_PATH`` read-only
-    or naming a file) is a one-line error naming the directory, raised before any work.
-    """
-    import warp as wp  # noqa: PLC0415
-
-    try:
-        if debug:
-            wp.init()
-        else:
-            wp.config.quiet = True
-            wp.config.log_level = wp.LOG_WARNING
-            with held_stderr():
-                wp.init()
-    except OSError as e:
-        raise _kernel_cache_error(wp, e) from None
-    try:
-        fd, probe = tempfile.mkstemp(prefix=".softsim-probe-", dir=wp.config.kernel_cache_dir)
-    except OSError as e:
-        raise _kernel_cache_error(wp, e) from None
-    os.close(fd)
-    os.unlink(probe)
-    return wp
-
-
-def _kernel_cache_error(wp, error: OSError) -> UserError:
-    """The one line for a Warp kernel cache that cannot be made or written (``wp.init`` sets
-    ``kernel_cache_dir`` before it creates the directory)."""
-    cache = wp.config.kernel_cache_dir
-    given = os.environ.get("WARP_CACHE_PATH")
-    name = os.fspath(error.filename) if error.filename else cache
-    where = "" if name == cache or name.startswith(cache + os.sep) else f" ('{name}')"
-    return UserError(
-        "environment", "WARP_CACHE_PATH",
-        f"cannot use '{cache}' as Warp's kernel cache: {error.strerror or error}{where}; "
-        "set WARP_CACHE_PATH to a writable directory",
-        given, has_value=given is not None,
-    )
 
 
 COMPILE_NOTICE_AFTER = 1.0  # seconds; loading cached kernels takes milliseconds
@@ -156,10 +107,10 @@ COMPILE_NOTICE_AFTER = 1.0  # seconds; loading cached kernels takes milliseconds
 
 @contextlib.contextmanager
 def compile_notice(quiet=False, after=COMPILE_NOTICE_AFTER):
-    """Say once, on stderr, that Warp is compiling kernels, when the block (a warm-up:
-    ``core.stepper.WARM_UP_HOOKS``, which ``cli.main`` fills) takes longer than ``after`` seconds:
-    only the first run compiles (minutes on the CPU), later runs load the cached kernels in
-    milliseconds."""
+    """Say once, on stderr, that Warp is compiling kernels, when the block (a warm-up: the
+    ``on_warm_up`` of a Stepper or Simulator, see :func:`warm_up_notice`) takes longer than
+    ``after`` seconds: only the first run compiles (minutes on the CPU), later runs load the cached
+    kernels in milliseconds."""
     if quiet or getattr(compile_notice, "shown", False):
         yield
         return
@@ -177,6 +128,11 @@ def compile_notice(quiet=False, after=COMPILE_NOTICE_AFTER):
         yield
     finally:
         timer.cancel()
+
+
+def warm_up_notice(args):
+    """The ``on_warm_up`` a command gives its simulators: :func:`compile_notice`, silent with --quiet."""
+    return functools.partial(compile_notice, getattr(args, "quiet", False))
 
 
 def progress_bar(total, desc, unit="run", quiet=False):
@@ -303,45 +259,13 @@ class Signals:
         """128 + the first signal (130 for SIGINT, 143 for SIGTERM, 129 for SIGHUP)."""
         return 128 + int(self.received or signal.SIGINT)
 
-    def __exit__(self, *exc):
+    def __exit__(self, exc_type, exc, tb):
         for sig, old in self._old.items():
             signal.signal(sig, old)
+        # A stop-now leaving the command carries the first signal, for main's exit code.
+        if isinstance(exc, KeyboardInterrupt) and self.received is not None and getattr(exc, "signal", None) is None:
+            exc.signal = self.received
         return False
-
-
-ACTIVE_SIGNALS = None  # the running command's Signals, for main's exit code after a stop-now
-
-
-def _test_pauses(text: str) -> dict:
-    out = {}
-    for item in text.split(","):
-        name, _, count = item.strip().partition(":")
-        if name:
-            out[name] = int(count or 1)
-    return out
-
-
-# Test seam (tests/test_signals.py): SOFTSIM_TEST_PAUSE="phase[:n],..." makes a command stop at each
-# named phase, write "softsim-test: paused at <phase>" to stderr and wait there until n signals
-# (default 1) have come (60 s at most), so a test can signal a process that sits in that phase.
-# Unset, a pause point costs a dict lookup. Phases: import (``python -m softsim_warp`` before it
-# imports the command line), start (cli.main before the command), and in ``softsim run``: scene,
-# build, writer, compile, run (after frame 2), save, cleanup (a run ended by an exception), preview.
-TEST_PAUSES = _test_pauses(os.environ.get("SOFTSIM_TEST_PAUSE", ""))
-
-
-def pause_for_test(phase: str, signals: Signals | None = None):
-    """Wait at ``phase`` when SOFTSIM_TEST_PAUSE names it (see TEST_PAUSES)."""
-    wanted = TEST_PAUSES.get(phase)
-    if wanted is None:
-        return
-    # The count before the marker: a signal sent as soon as the test reads the marker may come
-    # before the next line runs, and counted after it, the wait would miss it.
-    start = signals.count if signals is not None else 0
-    print(f"softsim-test: paused at {phase}", file=sys.stderr, flush=True)
-    deadline = time.monotonic() + 60
-    while time.monotonic() < deadline and (signals is None or signals.count - start < wanted):
-        time.sleep(0.01)
 
 
 def float_list(text):

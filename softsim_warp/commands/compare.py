@@ -112,11 +112,11 @@ def run(args) -> int:
     progress = common.progress_bar(plan.frames + 1, f"{plan.name} x{len(plan.variants)}", "frame", args.quiet)
     try:
         with common.Signals(regions=True) as signals, outputs:
-            common.ACTIVE_SIGNALS = signals
             result = run_comparison(plan, device, out, metrics_path=args.metrics, plot_path=args.plot,
                                     columns=args.columns, gap=args.gap, springs=args.springs,
                                     use_graph=None if not args.no_graph else False, progress=progress,
-                                    stop_requested=lambda: signals.received, stoppable=signals.stoppable)
+                                    stop_requested=lambda: signals.received, stoppable=signals.stoppable,
+                                    on_warm_up=common.warm_up_notice(args))
     finally:
         if progress is not None:
             progress.close()
@@ -400,7 +400,8 @@ class ComparisonResult:
 class _Group:
     """Variants advanced by one model and one integrator (the explicit batch, or one implicit copy)."""
 
-    def __init__(self, variants, builder_fn, device, precision, dt, fps, frames, use_graph, max_speed, end_time=None):
+    def __init__(self, variants, builder_fn, device, precision, dt, fps, frames, use_graph, max_speed, end_time=None,
+                 on_warm_up=None):
         self.variants = variants
         self.model = builder_fn([v.data for v in variants]).finalize(device, precision)
         if all(v.integrator != "implicit" for v in variants):
@@ -410,7 +411,7 @@ class _Group:
             integrator = make_integrator("implicit", self.model, variants[0].data.get("implicit"))
         self.integrator = integrator
         self.sim = Simulator(self.model, integrator, dt, fps, frames, use_graph=use_graph, max_speed=max_speed,
-                             end_time=end_time)
+                             end_time=end_time, on_warm_up=on_warm_up)
         self.done_steps = 0
         # Particle range of each local world (populate adds a variant's jellies one after another).
         self.ranges = []
@@ -443,11 +444,13 @@ def rigid_deviation(rest: np.ndarray, current: np.ndarray, mass: np.ndarray) -> 
 
 
 def run_comparison(plan: Plan, device, out, metrics_path=None, plot_path=None, columns=None, gap=None,
-                   springs=False, use_graph=None, progress=None, stop_requested=None, stoppable=None) -> ComparisonResult:
+                   springs=False, use_graph=None, progress=None, stop_requested=None, stoppable=None,
+                   on_warm_up=None) -> ComparisonResult:
     """Run every variant of ``plan`` and write the stage (and metrics / plot when asked).
 
     ``stoppable()``: a context manager around the steps, the only place a stop-now signal may
     interrupt (``common.Signals(regions=True).stoppable``); writing and closing are never cut short.
+    ``on_warm_up``: entered around each group's warm-up (``Simulator``'s).
     """
     import time  # noqa: PLC0415
 
@@ -472,10 +475,10 @@ def run_comparison(plan: Plan, device, out, metrics_path=None, plot_path=None, c
     max_speed = plan.sim.get("max_speed")
     if explicit:
         groups.append(_Group(explicit, _make_builder, device, precision, plan.dt, plan.fps, plan.frames, use_graph, max_speed,
-                             plan.end_time))
+                             plan.end_time, on_warm_up))
     for v in implicit:
         groups.append(_Group([v], _make_builder, device, precision, plan.dt, plan.fps, plan.frames, use_graph, max_speed,
-                             plan.end_time))
+                             plan.end_time, on_warm_up))
 
     display_ranges = []
     for v in variants:

@@ -23,8 +23,7 @@ from ..io.simulate import Simulator
 from ..io.stable_step import check_stable_dt
 from ..io.usd import UsdWriter
 from . import common
-from .common import (EXIT_EXPLODED, TEST_PAUSES, Signals, check_deterministic, load_for_cli, pause_for_test,
-                     resolve_device)
+from .common import EXIT_EXPLODED, Signals, check_deterministic, load_for_cli, resolve_device
 from .preview import render_gif_or_error
 
 COMMAND = "run"
@@ -68,12 +67,10 @@ def run(args) -> int:
     # progress, with every frame written -- and a second one stops at once, but only inside the
     # ``signals.stoppable()`` blocks below, whose KeyboardInterrupt this module cleans up after.
     with Signals(regions=True) as signals:
-        common.ACTIVE_SIGNALS = signals
         return _run(args, signals)
 
 
 def _run(args, signals) -> int:
-    pause_for_test("scene", signals)
     scene = load_for_cli(args)
     check_stable_dt(scene.data, scene.source, blame=lambda e: common.blame_flag(e, args), refuse=not args.allow_unstable)
     outputs = Outputs()
@@ -90,7 +87,6 @@ def _run(args, signals) -> int:
 
 
 def _run_locked(args, signals, scene, out, metrics_path, preview_path) -> int:
-    pause_for_test("build", signals)
     device = resolve_device(args.device, args.debug)
     sim = scene.sim
     if args.deterministic:
@@ -103,7 +99,7 @@ def _run_locked(args, signals, scene, out, metrics_path, preview_path) -> int:
         integrator = make_integrator(sim["integrator"], model, scene.data.get("implicit"))
         simulator = Simulator(model, integrator, sim["dt"], sim["fps"], frames,
                               use_graph=None if not args.no_graph else False, max_speed=sim.get("max_speed"),
-                              profile=args.profile, end_time=scene.end_time())
+                              profile=args.profile, end_time=scene.end_time(), on_warm_up=common.warm_up_notice(args))
     if signals.received is not None:
         return signals.exit_code()
     writer = UsdWriter(out, model, sim["fps"], springs=args.springs,
@@ -112,28 +108,18 @@ def _run_locked(args, signals, scene, out, metrics_path, preview_path) -> int:
     check = PenetrationCheck(model) if args.check_penetration else None
     progress = None
     try:
-        pause_for_test("writer", signals)
         if signals.received is not None:  # nothing simulated: no output
             writer.discard()
             return signals.exit_code()
         progress = common.progress_bar(frames + 1, f"{scene.name} {sim['integrator']}", "frame", args.quiet)
         simulator.stop_requested = lambda: signals.received
-        if "run" in TEST_PAUSES:
-            def stop_requested():
-                if writer.last_frame == 2:
-                    pause_for_test("run", signals)
-                return signals.received
-
-            simulator.stop_requested = stop_requested
         signals.busy = lambda: simulator.writing
         # A signal during kernel compilation (the warm-up, first in Simulator.run) lets frame 0 be
         # written first; a second one stops it with no output.
-        pause_for_test("compile", signals)
         with signals.stoppable():
             result = simulator.run([writer] + ([check] if check is not None else []), progress=progress)
     except BaseException as exc:
         # A stop-now outside the steps, or an error: keep the frames written (a signal now is only recorded).
-        pause_for_test("cleanup", signals)
         if writer.last_frame < 0:
             writer.discard()
         else:
@@ -147,7 +133,6 @@ def _run_locked(args, signals, scene, out, metrics_path, preview_path) -> int:
         writer.discard()
         return signals.exit_code()
     # From here on the outputs are written whole: a signal is recorded, and reported by the exit code.
-    pause_for_test("save", signals)
     status = "exploded" if result.exploded else ("interrupted" if result.interrupted else "complete")
     summary = summary_dict(scene, model, integrator, simulator, result, device)
     summary["status"] = status
@@ -179,7 +164,6 @@ def _run_locked(args, signals, scene, out, metrics_path, preview_path) -> int:
         # The outputs are in place; a signal now stops the rendering at once (nothing half-written:
         # the GIF goes to a temporary first).
         with signals.stoppable(immediate=True):
-            pause_for_test("preview", signals)
             render_gif_or_error(written, kept_partial_path(preview_path) if kept else preview_path)
     if result.exploded:
         print("error: " + message, file=sys.stderr)

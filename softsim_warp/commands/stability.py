@@ -54,7 +54,7 @@ from ..io.outputs import JSON_SUFFIXES, Outputs, save_report
 from ..io.resources import check_fits
 from ..io.simulate import Simulator
 from .common import (ALL_INTEGRATORS, ProgressLog, check_positive, load_for_cli, parse_methods, parse_positive_list,
-                     resolve_device)
+                     resolve_device, warm_up_notice)
 
 COMMAND = "stability"
 R_MAX = 100.0
@@ -123,10 +123,12 @@ class Probe:
     seconds: float
 
 
-def probe(model, integrator, dt, steps, *, displacement=None, samples=SAMPLES, use_graph=True) -> Probe:
+def probe(model, integrator, dt, steps, *, displacement=None, samples=SAMPLES, use_graph=True,
+          on_warm_up=None) -> Probe:
     """Run ``steps`` steps of ``integrator`` at ``dt`` from the model's start plus ``displacement`` and judge stability.
 
-    See the module docstring for the criterion.
+    See the module docstring for the criterion. ``on_warm_up``: entered around the warm-up
+    (``Simulator``'s), or None.
     """
     import warp as wp  # noqa: PLC0415
 
@@ -134,7 +136,7 @@ def probe(model, integrator, dt, steps, *, displacement=None, samples=SAMPLES, u
     chunk = max(1, math.ceil(steps / samples))
     n_chunks = math.ceil(steps / chunk)
     sim = Simulator(model, integrator, dt, fps=1.0, frames=1, use_graph=use_graph,
-                    max_speed=math.inf)
+                    max_speed=math.inf, on_warm_up=on_warm_up)
     if displacement is not None:
         q0 = model.particle_q_host + displacement
 
@@ -210,7 +212,7 @@ def find_limit(is_stable, guess, min_dt=MIN_DT, max_dt=1.0, rtol=DEFAULT_RTOL) -
 
 
 def measure_limit(model, method, *, guess, steps=None, duration=None, max_dt, min_dt=MIN_DT, rtol=DEFAULT_RTOL,
-                  max_steps=None, options=None, use_graph=True) -> dict:
+                  max_steps=None, options=None, use_graph=True, on_warm_up=None) -> dict:
     """Largest stable dt of ``method`` on ``model``, by :func:`find_limit` over :func:`probe` runs.
 
     The run is ``steps`` steps, or ``duration`` seconds (``ceil(duration / dt)`` steps, at most
@@ -225,7 +227,7 @@ def measure_limit(model, method, *, guess, steps=None, duration=None, max_dt, mi
     disp = perturbation(model)
     # Compile once outside the timed probes.
 
-    Simulator(model, integ, guess, 1.0, 1, use_graph=False).warm_up()
+    Simulator(model, integ, guess, 1.0, 1, use_graph=False, on_warm_up=on_warm_up).warm_up()
     notes = []
 
     def is_stable(h):
@@ -233,7 +235,7 @@ def measure_limit(model, method, *, guess, steps=None, duration=None, max_dt, mi
         if n > max_steps:
             notes.append(f"dt={h:.3g} s needs {n} steps > max_steps={max_steps}; counted unstable")
             return False
-        return probe(model, integ, h, n, displacement=disp, use_graph=use_graph).stable
+        return probe(model, integ, h, n, displacement=disp, use_graph=use_graph, on_warm_up=on_warm_up).stable
 
     out = find_limit(is_stable, guess, min_dt=min_dt, max_dt=max_dt, rtol=rtol)
     out["notes"] = notes
@@ -250,7 +252,7 @@ def _guess(pred, fallback):
 
 def analyse(scene, integrators=ALL_INTEGRATORS, *, ks_values=DEFAULT_KS, device=None, precision=None, steps=DEFAULT_STEPS,
             duration=None, rtol=DEFAULT_RTOL, scene_runs=True, max_dt=None, use_graph=True, lattice_max=None,
-            jelly_index=0, log=None, progress=None) -> dict:
+            jelly_index=0, log=None, progress=None, on_warm_up=None) -> dict:
     """Measured and predicted stability limits of every integrator; returns the JSON-ready report.
 
     Args:
@@ -270,6 +272,7 @@ def analyse(scene, integrators=ALL_INTEGRATORS, *, ks_values=DEFAULT_KS, device=
         log: callable taking a progress line.
         progress: callable ``progress(total)`` returning an object with ``update()`` and ``close()``
             (a tqdm bar), advanced once per measured limit.
+        on_warm_up: entered around every run's warm-up (``Simulator``'s), or None.
     """
     import warp as wp  # noqa: PLC0415
 
@@ -303,14 +306,16 @@ def analyse(scene, integrators=ALL_INTEGRATORS, *, ks_values=DEFAULT_KS, device=
             row = {"integrator": method, "damping": "none" if undamped else "scene", "predicted": p}
             t0 = time.perf_counter()
             row["jelly"] = _clean(measure_limit(lat, method, guess=_guess(p, fallback), steps=steps, max_dt=max_dt,
-                                                rtol=rtol, options=options, use_graph=use_graph))
+                                                rtol=rtol, options=options, use_graph=use_graph,
+                                                on_warm_up=on_warm_up))
             if sc is not None and p == 0.0:
                 # Unstable at every dt (euler or midpoint without damping): a finite run only finds
                 # how small a step hides the growth for `duration`, at up to max_steps per probe.
                 row["scene_note"] = "not measured: the linear analysis finds no stable dt"
             elif sc is not None:
                 row["scene"] = _clean(measure_limit(sc, method, guess=_guess(p, fallback), duration=duration,
-                                                    max_dt=max_dt, rtol=rtol, options=options, use_graph=use_graph))
+                                                    max_dt=max_dt, rtol=rtol, options=options, use_graph=use_graph,
+                                                    on_warm_up=on_warm_up))
             rows.append(row)
             say(f"{method:>10} {'undamped' if undamped else 'damped':>8}: predicted {_fmt_dt(p)}, jelly "
                 f"{_fmt_limit(row['jelly'])}" + (f", scene {_fmt_limit(row['scene'])}" if "scene" in row else "")
@@ -326,7 +331,7 @@ def analyse(scene, integrators=ALL_INTEGRATORS, *, ks_values=DEFAULT_KS, device=
         for method in available:
             p = float(pred[method])
             m = _clean(measure_limit(lat, method, guess=_guess(p, fallback), steps=steps, max_dt=max_dt, rtol=rtol,
-                                     options=options, use_graph=use_graph))
+                                     options=options, use_graph=use_graph, on_warm_up=on_warm_up))
             ks_map.append({"ks": ks, "integrator": method, "predicted": p, "measured": m})
             say(f"ks={ks:g} {method:>10}: predicted {_fmt_dt(p)}, measured {_fmt_limit(m)}")
             if bar:
@@ -582,7 +587,7 @@ def run(args) -> int:
         report = analyse(scene, methods, ks_values=ks, device=device, precision=args.precision, steps=args.steps,
                          duration=args.duration, rtol=args.rtol, scene_runs=not args.no_scene,
                          use_graph=not args.no_graph, lattice_max=args.lattice, jelly_index=args.jelly, log=shown.log,
-                         progress=shown.progress)
+                         progress=shown.progress, on_warm_up=warm_up_notice(args))
         print(format_table(report))
         save_report(report, args.out, args.plot, plot_report)
     return 0

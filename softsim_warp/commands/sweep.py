@@ -19,6 +19,7 @@ from ..io import sweep as engine
 from ..io.mesh_scene import add_asset_inputs
 from ..io.outputs import Outputs, is_stream, kept_partial_path, target_of
 from ..io.resources import check_fits, check_steps
+from ..io.warp_init import init_warp
 from . import common
 
 COMMAND = "sweep"
@@ -146,8 +147,7 @@ def stable_dt_task(spec: dict) -> list[dict]:
     """
     from . import stability  # noqa: PLC0415
 
-    engine._test_hooks(spec, "start")
-    wp = engine._init_warp()
+    wp = init_warp()
     device = wp.get_device(spec["device"])
     rows = []
     for v in spec["variants"]:
@@ -182,7 +182,6 @@ def stable_dt_task(spec: dict) -> list[dict]:
         row["wall_seconds"] = time.perf_counter() - t0
         row["worker"] = f"{_node()}:{_pid()}"
         rows.append(row)
-    engine._test_hooks(spec, "end")
     return rows
 
 
@@ -238,7 +237,7 @@ def run(args) -> int:
     gpus = 0
     if args.scheduler is None:
         if device == "cuda":
-            wp = common.init_warp(args.debug)
+            wp = init_warp(args.debug)
             gpus = wp.get_cuda_device_count()
             if gpus == 0:
                 raise CommandLineError("--device", "no CUDA device here", device)
@@ -275,7 +274,6 @@ def run(args) -> int:
     plot_existed = plot_path is not None and target_of(plot_path).exists() and not is_stream(plot_path)
 
     with common.Signals() as signals, outputs:
-        common.ACTIVE_SIGNALS = signals
         store = engine.RowStore(out, schema, resume=args.resume)
         done = store.done_ids()
         stale = done - set(by_id)

@@ -51,9 +51,6 @@ def make_integrator(name, model: Model, options: dict | None = None) -> Integrat
     return ExplicitIntegrator(model, name)
 
 
-# Context-manager factories entered around every warm-up (the step that compiles and loads the
-# kernels): the CLI adds its "compiling kernels" notice here.
-WARM_UP_HOOKS: list = []
 
 class Stepper:
     """Advances a model's state with ``integrator`` in fixed steps of ``dt``, whole frames at a time.
@@ -68,6 +65,8 @@ class Stepper:
             given to the integrator as ``integrator.profile`` and kept as ``self.profile``). Each
             part is bracketed by a synchronise, which a captured graph cannot hold, so the steps are
             launched one by one.
+        on_warm_up: a callable returning a context manager that :meth:`warm_up` enters around its
+            step (the command line passes its "compiling kernels" notice), or None.
 
     ``state`` is the current state; ``advance(n)`` takes ``n`` steps. Between calls the state may be
     read (``state.particle_q.numpy()``) or written; a captured graph reads whichever of the two
@@ -78,7 +77,8 @@ class Stepper:
     loaded outside the capture (the implicit integrator's conditional graph nodes need that).
     """
 
-    def __init__(self, model: Model, integrator: Integrator, dt: float, use_graph=None, profile=False):
+    def __init__(self, model: Model, integrator: Integrator, dt: float, use_graph=None, profile=False,
+                 on_warm_up=None):
         if profile and use_graph:
             raise ValueError("a profiled stepper launches its steps one by one: use_graph must be off")
         self.model = model
@@ -96,14 +96,13 @@ class Stepper:
         forget_contact_history(model)  # a run from the initial state: no contact impulses of another
         self._graphs = {}
         self.warmed_up = False
+        self.on_warm_up = on_warm_up
 
     def warm_up(self) -> float:
         """Compile and load every kernel a step launches (one step into a spare state, which leaves
         ``state`` as it was); returns the seconds it took."""
         t0 = time.perf_counter()
-        with contextlib.ExitStack() as hooks:
-            for hook in WARM_UP_HOOKS:
-                hooks.enter_context(hook())
+        with self.on_warm_up() if self.on_warm_up is not None else contextlib.nullcontext():
             self._warm_up_step()
         self.warmed_up = True
         return time.perf_counter() - t0

@@ -57,11 +57,12 @@ class Simulator(Stepper):
         max_speed: speed treated as an explosion [m/s]; ``None`` derives it from the scene.
         profile: time the parts of every step, launched one by one
             (:class:`~softsim_warp.core.stepper.Stepper`); the run's summary then holds them.
+        on_warm_up: entered around the warm-up (:class:`~softsim_warp.core.stepper.Stepper`).
     """
 
     def __init__(self, model: Model, integrator: Integrator, dt: float, fps: float, frames: int, use_graph=None,
-                 max_speed=None, profile=False, end_time=None):
-        super().__init__(model, integrator, dt, use_graph, profile)
+                 max_speed=None, profile=False, end_time=None, on_warm_up=None):
+        super().__init__(model, integrator, dt, use_graph, profile, on_warm_up)
         self.fps = float(fps)
         self.frames = int(frames)
         # The last frame's time when the duration is not a whole number of frames (Scene.end_time).

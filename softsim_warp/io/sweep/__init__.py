@@ -22,9 +22,6 @@ them. The row schema is documented in docs/SWEEP.md.
 
 from __future__ import annotations
 
-# The private names commands/sweep.py's own tasks use (a value's identity, Warp's start, the test seam).
-from .batch import _init_warp as _init_warp
-from .batch import _test_hooks as _test_hooks
 from .batch import STOP_POLL_SECONDS, TaskStopped, run_batch, stop_check, task_spec
 from .cluster import (
     SCHEDULER_EXPECTED,
@@ -55,6 +52,7 @@ from .plan import (
     split_values,
     variant_bytes,
 )
+# The private name commands/sweep.py's own tasks use (a value's identity).
 from .plan import _canonical as _canonical
 from .store import (
     CONSOLIDATE_SECONDS,

@@ -16,12 +16,12 @@ import math
 import os
 import time
 import types
-from pathlib import Path
 
 import numpy as np
 
 from .. import scene as scene_mod
 from ..checks import TERRAIN_SDF
+from ..warp_init import init_warp
 from .plan import SweepVariant
 
 # Seconds between a task's asks whether the sweep was stopped (each ask is a round trip to the scheduler).
@@ -332,48 +332,12 @@ def _failed(v: dict, error: BaseException, batch_size: int) -> dict:
             "batch_size": batch_size}
 
 
-_WARP_READY = False
-
-
-def _init_warp():
-    global _WARP_READY
-    import warp as wp  # noqa: PLC0415
-
-    if not _WARP_READY:
-        # As commands.common.init_warp: Warp's banner and missing-driver notice (written by native
-        # code to descriptor 2) would repeat once per worker; they are held back.
-        from ...core.native_output import held_stderr  # noqa: PLC0415
-
-        wp.config.quiet = True
-        wp.config.log_level = wp.LOG_WARNING
-        with held_stderr():
-            wp.init()
-        _WARP_READY = True
-    return wp
-
-
-def _test_hooks(spec, phase):
-    """Test seam (tests/test_sweep_cluster.py, tests/test_sweep_store.py): with SOFTSIM_SWEEP_TEST_DIR set, a task marks its start and
-    end there (``<task>.<pid>.running`` / ``.done``) and, at start, waits ``SOFTSIM_SWEEP_TEST_DELAY``
-    seconds, so a test can kill a worker while it holds a task. Unset, it costs an environment lookup."""
-    folder = os.environ.get("SOFTSIM_SWEEP_TEST_DIR")
-    if not folder:
-        return
-    name = Path(folder) / f"{spec['task']}.{os.getpid()}"
-    if phase == "start":
-        name.with_suffix(name.suffix + ".running").write_text("")
-        time.sleep(float(os.environ.get("SOFTSIM_SWEEP_TEST_DELAY", "0")))
-    else:
-        name.with_suffix(name.suffix + ".done").write_text("")
-
-
 def run_batch(spec: dict) -> list[dict]:
     """A Dask task: simulate the batch ``spec["variants"]`` on ``spec["device"]``; one result per variant.
 
     A batch that fails as a whole is rerun variant by variant, so one bad variant fails alone.
     """
-    _test_hooks(spec, "start")
-    wp = _init_warp()
+    wp = init_warp()
     device = wp.get_device(spec["device"])
     variants = spec["variants"]
     use_graph = spec.get("use_graph", True)
@@ -398,7 +362,6 @@ def run_batch(spec: dict) -> list[dict]:
     for r in rows:
         r["device"] = str(device)
         r["worker"] = f"{host}:{os.getpid()}"
-    _test_hooks(spec, "end")
     return rows
 
 

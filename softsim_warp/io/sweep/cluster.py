@@ -13,7 +13,7 @@ import time
 from dataclasses import dataclass, field
 
 from ...core.errors import CommandLineError
-from .batch import _init_warp
+from ..warp_init import init_warp
 from .store import require
 
 
@@ -134,7 +134,7 @@ def start_cluster(device: str, workers: int | None = None, scheduler: str | None
 
 
 def _start_worker():
-    _init_warp()
+    init_warp()
 
 
 def dask_setup(worker):
