@@ -9,6 +9,9 @@ from ..core.errors import UserError
 from ..core.native_output import held_stderr
 
 
+_READY = False  # Warp started and its cache checked in this process: later calls only return it
+
+
 def init_warp(debug=False):
     """Import and initialise Warp without its banner, module-load lines or missing-driver notice,
     and check that its kernel cache can be written; returns the ``warp`` module.
@@ -19,10 +22,14 @@ def init_warp(debug=False):
     ``cli.main`` calls this before every command that uses Warp, a sweep worker before its tasks.
 
     A kernel cache that cannot be created or written (``HOME=/proc``, ``WARP_CACHE_PATH`` read-only
-    or naming a file) is a one-line error naming the directory, raised before any work.
+    or naming a file) is a one-line error naming the directory, raised before any work. Warp reads
+    its cache's place once, when it starts, so the check is made once per process.
     """
+    global _READY
     import warp as wp  # noqa: PLC0415
 
+    if _READY:
+        return wp
     try:
         if debug:
             wp.init()
@@ -39,6 +46,7 @@ def init_warp(debug=False):
         raise _kernel_cache_error(wp, e) from None
     os.close(fd)
     os.unlink(probe)
+    _READY = True
     return wp
 
 
