@@ -17,7 +17,7 @@ of ``--integrator`` are timed ``--repeats`` times (on CUDA one captured graph, w
 launch by launch, this thread's CPU time). The table gives the median time per particle-step
 and the ratio of each case to the box on the lattice path (``x box lattice``: the box of the
 sphere's count; ``x box same N``: the box of the case's own count, the torus's for the torus), the
-issue's measure (a mesh jelly within 1.5x of a full box of the same particle count). Compile time
+goal's measure (a mesh jelly within 1.5x of a full box of the same particle count). Compile time
 is recorded apart. Nothing here is asserted.
 
 ``--contact``: the critter asset (thin legs and ears) resting on a plane at each resolution, on its

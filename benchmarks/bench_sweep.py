@@ -4,7 +4,7 @@ The study is the seed jelly (``seed_bowl``, 10^3 particles) for ``--duration`` s
 (default 1 s) at the scene's integrator and step, with every spring type's ks spread over
 ``--variants`` values from 1000 to 8000 N/m.
 
-By default (the issue 46 "Speed" table) the sweep's own task code runs in this process on
+By default (docs/SWEEP.md's "Speed" table) the sweep's own task code runs in this process on
 ``--device``: the variants as one batch (or batches of ``--batch`` worlds), as a worker runs them.
 It reports the batch's build time, its kernel loading (start-up, not counted in the rates), the
 frames' time (stepping, the per-world reductions on the device and judging all worlds on the host,

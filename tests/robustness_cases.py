@@ -375,7 +375,7 @@ CASES = [
         "jelly.0.size: particle spacing",
         (("center = [0.0, 1.0, 0.0]", "center = [1e3, 1e3, 0.0]"), ("size = 0.5", "size = 1e-6")),
     ),
-    # --- limits (issue 47): counts with bounds, causes named ------------------------------------
+    # --- limits: counts with bounds, causes named ----------------------------------------------
     Case(
         "initial_scale_below_precision",
         "initial_scale = 1e-20 crushes the start below float32's resolution",
@@ -649,7 +649,7 @@ CASES = [
         "command line: --metrics: is a directory",
         args=(SCENE, "--metrics", "adir.usdc"),
     ),
-    # --- the process's surroundings (issue 47) ---------------------------------------------------------
+    # --- the process's surroundings -------------------------------------------------------------------
     Case(
         "out_empty",
         "--out '' (an unset shell variable): not the default name",

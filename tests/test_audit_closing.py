@@ -1,4 +1,4 @@
-"""Issues 44 and 47 tried as a new user after the merge: what did not hold, now tested.
+"""What a new user meets first, tested:
 
 * A stop acts within about a second however long a frame is, in ``compare`` and ``sweep`` too (the
   steps of a frame taken in chunks, the stop request read between them: ``Simulator.advance_frame``).
@@ -116,7 +116,7 @@ def test_stop_check_outside_a_worker_never_stops():
 def test_sweep_stops_within_a_long_frame(tmp_path):
     """SIGTERM to `softsim sweep` while its one worker steps a frame of 10^7 steps: the task reads
     the sweep's stop event between chunks and ends, so the cluster closes and the command exits 143
-    within seconds (before, it waited for the worker's close to time out)."""
+    within seconds (a worker still in its frame would hold the cluster's close until it timed out)."""
     (tmp_path / "long.toml").write_text(LONG)
     env = dict(os.environ, PYTHONUNBUFFERED="1")
     proc = subprocess.Popen(
@@ -138,7 +138,7 @@ def test_sweep_stops_within_a_long_frame(tmp_path):
         if proc.poll() is None:
             proc.kill()
     assert proc.returncode == 128 + signal.SIGTERM, "".join(lines) + rest
-    assert took < 4.0, took  # closing a cluster whose worker is busy took 4 s more
+    assert took < 4.0, took  # a busy worker's close would time out after 4 s more
     assert "interrupted" in rest and "Traceback" not in rest
 
 

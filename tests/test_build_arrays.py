@@ -1,4 +1,4 @@
-"""Models built as arrays (issue 46, point 1): what ``ModelBuilder`` records for a whole lattice jelly
+"""Models built as arrays: what ``ModelBuilder`` records for a whole lattice jelly
 (no spring list, no ``detect_lattice``) gives the model a spring-by-spring loop builds.
 
 The reference here is built one spring at a time, in Python loops over every lattice point and

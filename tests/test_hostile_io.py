@@ -1,4 +1,4 @@
-"""The process and its surroundings misused (issue 47): empty and over-long paths, a full disk at the
+"""The process and its surroundings misused: empty and over-long paths, a full disk at the
 lock, special files as outputs, an unusable Warp kernel cache, a deleted working directory, a
 failing standard output, progress bars in log files, Warp's start-up text, USD's own diagnostics,
 symlinked mesh assets and a byte-order mark.

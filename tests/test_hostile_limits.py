@@ -1,4 +1,4 @@
-"""Issue 47, limits and results: memory limits other than free memory, step counts checked in every
+"""Limits and results: memory limits other than free memory, step counts checked in every
 command before any work, durations that are not whole frames and stops within long frames, bounded
 iteration counts, overflow reported as an explosion, the initial scale in the precision check, the
 energy summary's advice, and jellies that start overlapping."""
@@ -96,7 +96,7 @@ def test_address_space_limit_refuses_in_every_command(tmp_path, args):
     proc = subprocess.run([sys.executable, "-m", "softsim_warp", *args, "--quiet"], cwd=tmp_path, capture_output=True,
                           text=True, timeout=300, preexec_fn=_limited(4 * GIB), check=False)
     err = proc.stderr
-    if args[0] == "bench":  # bench's Warp start-up lines are issue 47's output part, fixed apart from this
+    if args[0] == "bench":  # Warp's start-up lines are tested elsewhere (test_hostile_io): only the error here
         err = "\n".join(line for line in err.splitlines() if not line.startswith(("Warp ", "   ", "Module ")))
     line = _one_error_line(err)
     assert proc.returncode == 2, proc.stderr
@@ -280,7 +280,8 @@ def test_frame_count_and_end_time(duration, fps, dt, frames, end):
 
 
 def test_tiny_fps_is_few_steps_not_a_billion():
-    """fps = 1e-6, duration = 0.1 once made one frame of 10^6 s (10^9 steps at dt = 1 ms): now 100."""
+    """fps = 1e-6, duration = 0.1: the run's steps are the duration's, 100, not one frame of 10^6 s
+    (10^9 steps at dt = 1 ms)."""
     sc = load_scene("jelly_drop", ["simulation.duration=0.1", "simulation.fps=1e-6", "simulation.dt=1e-3"])
     assert resources.check_steps(sc, SimpleNamespace(is_cuda=False), sc.frame_count()) == pytest.approx(100.0)
 
@@ -289,8 +290,8 @@ def test_half_frame_ends_at_duration_free_fall(tmp_path, monkeypatch, capsys):
     """fps = 1, duration = 0.5: two frames, the last at t = 0.5 s (metrics, USD time code and end
     time), and the jelly has fallen as free fall says: symplectic Euler's closed form
     y_n = y_0 - g dt^2 n (n + 1) / 2, v_n = -g n dt, after n = 500 steps (within the float32
-    rounding of the positions), and the continuous 0.5 g t^2 within g dt t / 2 (a run of 1 s, as
-    before, would be 4.9 m lower)."""
+    rounding of the positions), and the continuous 0.5 g t^2 within g dt t / 2 (a run of the whole
+    last frame, 1 s, would be 4.9 m lower)."""
     from pxr import Usd, UsdGeom  # noqa: PLC0415
 
     monkeypatch.chdir(tmp_path)

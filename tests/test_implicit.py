@@ -581,8 +581,8 @@ def test_stiff_cube_flat_impact_converges_to_rigid_restitution():
 def test_stiff_seed_bowl_is_stable_at_dt_0_01():
     # seed_bowl (a 1000 kg, 4 m jelly onto a plane with a hole, then into the bowl below;
     # restitution 0.8, friction 0.2) with every spring at ks = 1e5, 5 s at dt = 0.01 (euler fails
-    # above 6.1e-4 s here, docs/IMPLICIT.md). Whole-velocity contact constraints used to make the bowl's
-    # curved contact patch a velocity source: +1e4 J in a frame.
+    # above 6.1e-4 s here, docs/IMPLICIT.md). Whole-velocity contact constraints would make the bowl's
+    # curved contact patch a velocity source (+1e4 J in a frame): this run would explode.
     scene = load_scene("seed_bowl", _stiff_overrides(1.0e5))
     model = build_model(scene, "cpu")
     integ = make_integrator("implicit", model)

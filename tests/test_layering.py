@@ -137,7 +137,8 @@ def test_imports_only_go_down():
 
 
 def test_the_checker_sees_function_level_and_dynamic_imports(tmp_path):
-    """The parser would catch the cycle shapes the package used to have (guards the test itself)."""
+    """The parser catches function-level and dynamic imports, the shapes a hidden cycle takes (guards
+    the test itself)."""
     src = "def f():\n    from ..io import scene\n    importlib.import_module('softsim_warp.commands.cli')\n"
     MODULES["softsim_warp.core._probe"] = tmp_path / "_probe.py"
     try:

@@ -1,4 +1,4 @@
-"""Frames of many steps: captured graphs hold at most ``MAX_GRAPH_STEPS`` steps (a tiny dt once made
+"""Frames of many steps: captured graphs hold at most ``MAX_GRAPH_STEPS`` steps (so a tiny dt cannot make
 one frame's capture try 10^10 steps and abort in ``std::bad_alloc``), chunked replay steps exactly
 as launching the steps one by one, and a run whose steps cannot finish is refused up front."""
 

@@ -5,7 +5,7 @@ while it slides, its momentum grows by mu times the normal impulse, v_x = mu (g 
 centre's vertical velocity), and it reaches the plane's speed where mu g predicts. A moving wall
 reflects the relative normal speed by its restitution. A jelly on a turntable turns at the table's
 rate. A keyframed plane is where NumPy's interpolation of its keys puts it at every step's end.
-A scene where nothing moves launches what it did before, with bitwise the results it had.
+A scene where nothing moves launches no terrain motion and no moving contact variant.
 """
 
 import math

@@ -14,8 +14,8 @@ from tests.subprocess_hooks import VARIABLES
 ROOT = pathlib.Path(__file__).resolve().parents[1]
 SOURCES = sorted([*(ROOT / "softsim_warp").rglob("*.py"), *(ROOT / "kernels").rglob("*.py")])
 
-# Seams that once tied the package to its tests: a pause at named phases, a global of the running
-# command's signals, a list of warm-up hooks the command line filled, a sweep task's marks.
+# Seams that would tie the package to its tests: a pause at named phases, a global of the running
+# command's signals, a list of warm-up hooks the command line fills, a sweep task's marks.
 SEAM_NAMES = ("pause_for_test", "TEST_PAUSES", "_test_pauses", "ACTIVE_SIGNALS", "WARM_UP_HOOKS", "_test_hooks",
               "softsim-test:")
 

@@ -1,4 +1,4 @@
-"""Assets as other tools write them (issue 44, points 3, 4, 5 and 8): units and up axes, USD files of
+"""Assets as other tools write them: units and up axes, USD files of
 several Meshes, skinned Meshes with static normals, OBJ/PLY files with what trimesh warns about.
 
 The assets are made by ``assets/make_assets.py --real`` (``write_real_assets``), nothing is

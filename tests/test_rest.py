@@ -1,9 +1,9 @@
 """Jellies at rest and sliding on terrain: friction holds what it should and brakes what slides.
 
-Regression tests for issue 3's contact at rest: micro-bounces of a jelly's vibrating bottom layer
-were reflected without friction (``slide`` accelerated 14 % too fast), and the damping of a
-multi-stage method's stage states ate part of the normal force (a jelly crept on a slope that
-friction should hold). Float32 on the CPU, the built-in scenes' settings.
+They guard contact at rest: micro-bounces of a jelly's vibrating bottom layer must not be reflected
+without friction (``slide`` would accelerate 14 % too fast), nor may the damping of a multi-stage
+method's stage states eat part of the normal force (a jelly would creep on a slope that friction
+should hold). Float32 on the CPU, the built-in scenes' settings.
 """
 
 import math
@@ -63,8 +63,8 @@ def test_slide_accelerates_at_block_law(method):
 @pytest.mark.parametrize("method", METHODS)
 def test_jelly_sticks_when_friction_exceeds_slope(method):
     # A 4^3 jelly set down on the 30 degree slope with mu = 0.7 > tan 30: it shears under its weight,
-    # settles and must then stay. Before the stage filter, midpoint crept 2.7 mm/s and RK4 0.8 mm/s
-    # (their stage velocities carried particles into the slope and the dampers answered, taking more
+    # settles and must then stay. Without the stage filter midpoint creeps 2.7 mm/s and RK4 0.8 mm/s
+    # (their stage velocities carry particles into the slope and the dampers answer, taking more
     # off the normal force than off the tangential one).
     c = NORMAL * 2.001
     scene = load_scene(

@@ -1,4 +1,4 @@
-"""The visible surface of a mesh jelly collides, and imperfect meshes load (issue 44).
+"""The visible surface of a mesh jelly collides, and imperfect meshes load.
 
 A mesh jelly's particles are the corners of every lattice cell its solid touches, and each surface
 vertex is a convex combination of the corners of the cell that holds it (core/voxelize.py). The
@@ -64,11 +64,11 @@ def test_independent_point_in_mesh_on_a_sphere():
                                                                 abs=sagitta)
 
 
-# -- The old embedding, for the controls ----------------------------------------------------------
+# -- The interior-only embedding, for the controls ----------------------------------------------------------
 
 
 def interior_embedding(monkeypatch):
-    """Make mesh jellies as before issue 44: the lattice points inside the mesh only, each vertex in
+    """Make mesh jellies without the surface embedding: the lattice points inside the mesh only, each vertex in
     the nearest cell with all eight corners inside (trilinear weights extrapolating outside it)."""
     kept = {}
 

@@ -257,7 +257,7 @@ def _specs(base, source, mode="run"):
 @pytest.mark.parametrize("mode", ["run", "reference"])
 def test_the_host_reads_no_particles(monkeypatch, mode):
     """However many frames a batch runs, it copies no more particle arrays to the host (those of its
-    set-up only): each frame it reads a few numbers per jelly and per world (issue 46, point 2)."""
+    set-up only): each frame it reads a few numbers per jelly and per world."""
     _, source, base = scene_mod.read_scene_data("seed_bowl")
     base["jelly"][0]["resolution"] = [4, 4, 4]
     base["simulation"]["fps"] = 20
@@ -277,7 +277,7 @@ def test_the_host_reads_no_particles(monkeypatch, mode):
 
 def test_no_terrain_no_reference_launches_nothing_for_them(monkeypatch):
     """A sweep with nothing to measure penetration into, and no reference, launches nothing for them
-    (issue 46, point 6); its rows are those of the sweep that does, penetration 0 in both."""
+    (its rows are those of the sweep that does, penetration 0 in both)."""
     _, source, base = scene_mod.read_scene_data("free_flight")
     base["simulation"]["duration"] = 0.1
     specs = _specs(base, source)

@@ -47,11 +47,9 @@ CONTACT_PER_PARTICLE = 300
 
 # Lower bounds of the time one step takes, for refusing a run that cannot finish (check_steps).
 # They are floors, not estimates: every step launches at least two kernels (symplectic; RK4 eight,
-# implicit fourteen) over every particle. Measured (Warp 1.19, graphs replayed, symplectic, the
-# cheapest method): on the CPU (one core) 1.0 us a step for 8 particles and 17-20 ns a particle
-# for 10^3 to 8000 particles, hence 0.5 us and 5 ns; on an H100 5.1 us a step for 8 to 1000
-# particles and 78 ps a particle for 216,000, hence 2 us and 10 ps (a step moves at least ~48
-# bytes a particle, q and qd read and written in float32: 10 ps at 4.8 TB/s).
+# implicit fourteen) over every particle and moves at least q and qd, read and written; each floor
+# lies well below the cheapest step measured on its device (docs/PERFORMANCE.md, "The smallest
+# step"), so a run is refused only when it surely cannot finish.
 STEP_FLOOR_SECONDS = {"cpu": 0.5e-6, "cuda": 2.0e-6}
 STEP_SECONDS_PER_PARTICLE = {"cpu": 5.0e-9, "cuda": 1.0e-11}
 MAX_RUN_DAYS = 30

@@ -52,8 +52,8 @@ class Simulator(Stepper):
         frames: number of frames after frame 0.
         use_graph: capture each frame's steps as a graph (or graphs of at most
             ``core.stepper.MAX_GRAPH_STEPS`` steps each) and replay it (CUDA and CPU; default on:
-            on the CPU, Warp 1.19 replays a captured graph in C++, which removes the Python
-            launch overhead, 2.6x faster on a 10^3 jelly, see docs/PERFORMANCE.md).
+            on the CPU, Warp replays a captured graph in C++, which removes the Python launch
+            overhead; its gain is in docs/PERFORMANCE.md).
         max_speed: speed treated as an explosion [m/s]; ``None`` derives it from the scene.
         profile: time the parts of every step, launched one by one
             (:class:`~softsim_warp.core.stepper.Stepper`); the run's summary then holds them.

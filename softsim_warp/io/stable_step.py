@@ -20,7 +20,7 @@ A box jelly of more than :data:`BLOCK` particles along an axis is analysed as a 
 limit): the highest frequencies, which set the limit, belong to the finest modes and hardly depend on
 the jelly's extent (jelly_drop's springs: symplectic 9.410e-4 s at 24^3, 9.389e-4 at 32^3, 9.384e-4
 at 40^3, 0.3 % apart, well inside :data:`REFUSE_FACTOR`), while the whole jelly's analysis would
-take about 10 kB and 60 us of the host per particle before the run.
+cost host memory and time in proportion to its particles, all of it before the run starts.
 
 Predictions are cached per jelly (springs, masses, lattice, pins), so the variants of a sweep or a
 comparison that differ elsewhere share them.
