@@ -191,6 +191,33 @@ def test_a_stepper_enters_on_warm_up_around_its_warm_up_only():
     assert ss.Stepper(model, ss.make_integrator("symplectic", model), 1e-3).on_warm_up is None
 
 
+def test_a_command_hands_its_first_signal_to_mains_handler():
+    """A command's own handler (``common.Signals``) gives the first signal it took to the handler it
+    puts back (``cli.main``'s): a stop after the block, or one leaving it, reports that signal, with
+    no module global between them. Real signals, sent to this process."""
+    import os  # noqa: PLC0415
+    import signal  # noqa: PLC0415
+
+    from softsim_warp.commands import cli, common, process  # noqa: PLC0415
+
+    stop = cli._Stop()
+    stop.armed = False  # record only: this test is its own process's main
+    previous = {sig: signal.signal(sig, stop) for sig in process.STOP_SIGNALS}
+    try:
+        with common.Signals() as signals:
+            os.kill(os.getpid(), signal.SIGTERM)  # the first: recorded, no stop yet
+            os.kill(os.getpid(), signal.SIGINT)  # the second: stop now
+        raise AssertionError("the second signal did not stop the block")
+    except KeyboardInterrupt:
+        pass
+    finally:
+        restored = signal.getsignal(signal.SIGTERM)
+        for sig, old in previous.items():
+            signal.signal(sig, old)
+    assert (signals.received, signals.count, signals.stopped) == (signal.SIGTERM, 2, True)
+    assert restored is stop and stop.received == signal.SIGTERM
+
+
 def test_preview_refuses_flags_it_has_no_use_for(tmp_path, capsys):
     """`softsim preview` draws a USD file: it has no scene to `--set` and runs no kernel on a
     `--device`, so both are refused (one line, exit 2) rather than silently ignored."""

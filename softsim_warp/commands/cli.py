@@ -92,9 +92,14 @@ class _Stop:
         self.received = None
         self.armed = True
 
-    def __call__(self, signum, frame):
+    def note_received(self, signum):
+        """A signal a command's own handler (``common.Signals``) took while it stood in for this one:
+        the first signal, whichever handler took it, gives the exit code."""
         if self.received is None:
             self.received = signum
+
+    def __call__(self, signum, frame):
+        self.note_received(signum)
         process.on_stop_signal(signum)
         if self.armed:
             self.armed = False
@@ -108,10 +113,6 @@ def _install(handler) -> dict:
     return {sig: signal.signal(sig, handler) for sig in process.STOP_SIGNALS}
 
 
-def _received_signal(stop: _Stop, interrupt: KeyboardInterrupt) -> int:
-    """The signal that stopped the command: the first one its ``common.Signals`` recorded (carried
-    by the ``KeyboardInterrupt`` that left it), else main's."""
-    return int(getattr(interrupt, "signal", None) or stop.received or signal.SIGINT)
 
 
 def main(argv=None) -> int:
@@ -133,8 +134,8 @@ def main(argv=None) -> int:
                 sys.stdout.flush()
         finally:
             stop.armed = False  # from here on a signal is only recorded
-    except KeyboardInterrupt as interrupt:
-        code = 128 + _received_signal(stop, interrupt)
+    except KeyboardInterrupt:
+        code = 128 + int(stop.received or signal.SIGINT)
     except process.StdoutError as e:
         code = process.stdout_failed(e)
     finally:

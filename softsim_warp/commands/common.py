@@ -259,12 +259,14 @@ class Signals:
         """128 + the first signal (130 for SIGINT, 143 for SIGTERM, 129 for SIGHUP)."""
         return 128 + int(self.received or signal.SIGINT)
 
-    def __exit__(self, exc_type, exc, tb):
+    def __exit__(self, *exc):
         for sig, old in self._old.items():
             signal.signal(sig, old)
-        # A stop-now leaving the command carries the first signal, for main's exit code.
-        if isinstance(exc, KeyboardInterrupt) and self.received is not None and getattr(exc, "signal", None) is None:
-            exc.signal = self.received
+            # The handler put back learns of the first signal (``cli.main``'s: a stop-now leaving
+            # this block, or a signal after it, ends the command with that first signal's code).
+            note = getattr(old, "note_received", None)
+            if self.received is not None and note is not None:
+                note(self.received)
         return False
 
 
