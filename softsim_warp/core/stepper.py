@@ -51,7 +51,6 @@ def make_integrator(name, model: Model, options: dict | None = None) -> Integrat
     return ExplicitIntegrator(model, name)
 
 
-
 class Stepper:
     """Advances a model's state with ``integrator`` in fixed steps of ``dt``, whole frames at a time.
 
