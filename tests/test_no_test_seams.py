@@ -33,9 +33,9 @@ def _environment_reads(tree: ast.AST) -> set[str]:
         key = None
         if isinstance(node, ast.Call) and node.args:
             f = node.func
-            reads_environ = isinstance(f, ast.Attribute) and f.attr in ("get", "pop", "setdefault") and is_environ(f.value)
-            getenv = (isinstance(f, ast.Attribute) and f.attr == "getenv") or (isinstance(f, ast.Name) and f.id == "getenv")
-            if reads_environ or getenv:
+            name = f.attr if isinstance(f, ast.Attribute) else f.id if isinstance(f, ast.Name) else None
+            from_environ = isinstance(f, ast.Attribute) and is_environ(f.value)
+            if (from_environ and name in ("get", "pop", "setdefault")) or name == "getenv":
                 key = node.args[0]
         elif isinstance(node, ast.Subscript) and is_environ(node.value):
             key = node.slice

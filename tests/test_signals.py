@@ -3,10 +3,11 @@
 Each test starts ``python -m softsim_warp run`` on a tiny jelly with ``SOFTSIM_TEST_PAUSE=<phase>``
 and the test-only hooks of ``tests/hooks/sitecustomize.py`` loaded (``tests/subprocess_hooks.py``):
 at that phase the process writes ``softsim-test: paused at <phase>`` to stderr and waits for a
-signal. The test sends it and checks that the run ends with 128 + signum, prints no traceback, leaves no hidden temporary
-(``.<stem>.partial-<pid><suffix>``) or lock file (``.<name>.lock``), keeps outputs that existed
-unchanged unless the run had completed, and leaves what the phase promises: nothing before the
-first frame, the frames written (as ``<stem>.partial<suffix>`` next to an existing output) after.
+signal. The test sends it and checks that the run ends with 128 + signum, prints no traceback,
+leaves no hidden temporary (``.<stem>.partial-<pid><suffix>``) or lock file (``.<name>.lock``),
+keeps outputs that existed unchanged unless the run had completed, and leaves what the phase
+promises: nothing before the first frame, the frames written (as ``<stem>.partial<suffix>`` next to
+an existing output) after.
 """
 
 import json
