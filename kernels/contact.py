@@ -81,7 +81,7 @@ def build(scalar):
         phi is the signed distance after the step (positive outside) and normal the outward unit
         normal there; vn_prev is the normal velocity before the step, measured along the surface's
         normal at the step's start point. beta_h is h times the position gain the integrator gives a
-        constant force over the step (dx = beta h dv; ``core/integrators.CONTACT_BETA``): 1 for
+        constant force over the step (dx = beta h dv; ``core/methods.Method.contact_beta``): 1 for
         symplectic and implicit Euler, 0 for explicit Euler, and 0 for midpoint and RK4 too, whose
         stage states already carry the contact force of resting particles (``filter_stage_contacts``).
 
