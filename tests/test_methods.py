@@ -188,3 +188,21 @@ def test_scene_schema_and_cli_read_the_registry():
     with pytest.raises(SceneError, match="simulation.integrator: must be one of"):
         scene.load_scene("jelly_drop", ["simulation.integrator=rk5"])
     assert scene.load_scene("jelly_drop").data["simulation"]["integrator"] in NAMES
+
+
+def test_resources_read_stages_from_the_registry():
+    from softsim_warp.io import resources  # noqa: PLC0415
+
+    # The size checks assume the method with the largest buffers: the implicit one, else the most stages.
+    assert resources.heaviest(NAMES) == methods.IMPLICIT.name
+    most = max((m for m in METHODS if m.explicit), key=lambda m: m.stages)
+    assert resources.heaviest(EXPLICIT_NAMES) == most.name
+    # One-stage methods keep no stage state; more stages add the stage state and the RK accumulators.
+    one = [m.name for m in METHODS if m.stages == 1]
+    more = [m.name for m in METHODS if m.stages is not None and m.stages > 1]
+    assert one and more
+    for a in one:
+        for b in more:
+            assert resources._device_per_particle(8, a) < resources._device_per_particle(8, b)
+    with pytest.raises(ValueError, match="unknown integrator"):
+        resources.heaviest(["rk5"])
