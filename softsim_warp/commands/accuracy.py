@@ -470,8 +470,6 @@ def _fmt(x, spec=".3g"):
     return format(x, spec)
 
 
-
-
 def plot_report(report: dict, path, title=None):
     """Work-precision (error vs wall time) and convergence (error vs dt) side by side in one figure.
 

@@ -422,8 +422,6 @@ def format_table(report: dict) -> str:
     return "\n".join(lines)
 
 
-
-
 def plot_report(report: dict, path):
     """Left: predicted vs measured limits per integrator; right (when the report has a ks map): stable dt over ks."""
     import matplotlib  # noqa: PLC0415

@@ -32,9 +32,8 @@ from collections.abc import Mapping
 import numpy as np
 
 from . import lattice
-# ``method`` is the argument naming a method throughout this module.
 from .methods import NAMES
-from .methods import method as method_of
+from .methods import method as method_of  # ``method`` is the argument naming a method in this module
 
 # Relative size below which an eigenvalue (or its real part) is taken as exactly zero. Eigenvalues
 # of a dense eigensolver are accurate to about eps * |A| in absolute terms, so the tolerance is

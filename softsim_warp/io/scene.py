@@ -20,8 +20,8 @@ from dataclasses import dataclass, field
 from importlib import resources
 from pathlib import Path
 
-from ..core.errors import COMMAND_LINE, SceneError
 from ..core import methods
+from ..core.errors import COMMAND_LINE, SceneError
 from ..core.mesh_assets import UNITS, UP_AXES, meters_per_unit
 from ..core.model import jelly_points
 from ..core.pins import FACES, INTERPOLATIONS, select_particles
