@@ -17,22 +17,25 @@ Three kernels evaluate the same forces:
   multiply-adds the compiler puts into the native gather (docs/PERFORMANCE.md).
 * ``integrate_lattice_stage`` (the explicit methods on CUDA) fuses the gather with an integrator
   stage and, on the last stage, plane contact: one kernel per stage. Its gather
-  (``gather_native``) is straight-line C++ generated per stencil (:func:`_gather_snippet`, the
-  same text on CPU and CUDA), 1.26x faster than the same sums as Warp loops (fused symplectic stage, 100^3, H200), the same
-  bits on the CPU. ``single_stage`` is the same kernel compiled for one jelly's shape, with its
+  (``make_gather_native``) is straight-line C++ generated per stencil (:func:`_gather_snippet`,
+  the same text on CPU and CUDA), faster on CUDA than the same sums as Warp loops and the same bits
+  on the CPU. ``make_single_stage`` builds the same kernel compiled for one jelly's shape, with its
   coefficients as a kernel argument and unconditional loads from padded state arrays
   (``Model.particle_array``): the stage of a one-jelly model from 2^18 particles on.
 * ``eval_lattice_rows`` (the CPU path): Warp's CPU backend runs a kernel's threads as one scalar
-  call each (about 5.5 ns per spring on the development machine), so a thread-per-particle
-  kernel cannot use the CPU's vector units. This kernel runs one thread per jelly and does the
-  work in a native C++ loop (``wp.func_native``) over the 16 half-stencil offsets; the inner loops
-  are plain array loops that the C++ compiler vectorises (about 1.4 ns per spring measured with
-  AVX-512, both ends included), and each spring is evaluated once.
+  call each, so a thread-per-particle kernel cannot use the CPU's vector units. This kernel runs
+  one thread per jelly and does the work in a native C++ loop (``wp.func_native``) over the 16
+  half-stencil offsets; the inner loops are plain array loops that the C++ compiler vectorises,
+  and each spring is evaluated once.
   ``integrate_lattice_rows_stage`` appends the stage update to the same loop. It is race-free on
   CUDA too (each thread owns one jelly's particles) but slow there, so the model uses it on the
   CPU only.
 
-Both agree with ``eval_springs`` over the spring list to float32 rounding (tests/test_perf_paths.py).
+The spring force of every one of them is ``springs.spring_force``: ``eval_masked_springs`` calls it,
+and the others (``stencil_spring_force``, the ``SOFTSIM_SPRING`` macro, the row loops) are it
+rewritten for speed and checked against it on random springs, as the native stage updates are
+against ``integration.stage_values`` (tests/test_kernels_lattice.py). They agree with
+``eval_springs`` over the spring list to float32 rounding (tests/test_perf_paths.py).
 Measurements and the reasons for each choice: docs/PERFORMANCE.md.
 """
 
@@ -215,21 +218,18 @@ def _gather_snippet(ctype, padded=False, uniform=False, shape=None, types=None, 
     finite (for ks r below 3.7e19 in float32). Two instructions a spring fewer than
     max(|d|^2, tiny) and kr / l - ks - kd (dv . d) / l^2.
 
-    Why it is faster than the Warp loops (H200, Nsight Compute, fused symplectic stage at 100^3):
-    the loops' select-then-index addressing and short-circuit bounds tests cost about 34 integer
-    instructions per spring; here a spring is about 38 instructions in all (20 floating point, 6
-    loads, 6 register moves for the stand-in, the reciprocal square root and its guard), the
-    kernel executes 54 M warp instructions instead of 69 M and needs 64 registers instead of 96.
-    On CUDA the reciprocal square root is ``rsqrt.approx.ftz`` (the instruction rsqrtf uses for
-    normal numbers, without its denormal fix-up).
+    Why it is faster than the Warp loops: their select-then-index addressing and short-circuit
+    bounds tests cost integer instructions per spring that the row pointers and per-axis flags here
+    do not (the counts are in docs/PERFORMANCE.md). On CUDA the reciprocal square root is
+    ``rsqrt.approx.ftz`` (the instruction rsqrtf uses for normal numbers, without its denormal
+    fix-up).
 
     ``padded``: for state arrays that sit inside an allocation reaching ``LatticeData.pad``
     elements past both ends (``Model.particle_array``), so that every stencil address of every
     particle is readable. Then all 64 neighbour loads are unconditional and a spring's force is
     added only when the spring exists: the add is predicated, so whatever an invalid neighbour's
     address holds (a particle of another jelly or world, even a non-finite one, or the zeroed pad)
-    never reaches the sum. No stand-in moves (11 % fewer instructions per thread), same sums in the
-    same order.
+    never reaches the sum. No stand-in moves, same sums in the same order.
 
     ``uniform``: for models whose jellies all have the same rest lengths, ks and kd
     (``LatticeData.uniform``). The coefficients (``common_coefficients``) come as the kernel
@@ -242,9 +242,9 @@ def _gather_snippet(ctype, padded=False, uniform=False, shape=None, types=None, 
     particle compiled in as constants, for a model of one jelly (``single_stage``). Then every
     neighbour's address is the thread's own plus a constant, which the load instruction carries: the
     gather needs two base pointers instead of one per lattice row (42), the lattice coordinate
-    divisions become multiplications, and the springs of absent types are not compiled at all. The
-    sm_90 build takes 48 registers instead of 64 and 1904 instructions instead of 2032
-    (``cuobjdump -res-usage``; 48 registers on the H200 too). Same arithmetic, same bits.
+    divisions become multiplications, and the springs of absent types are not compiled at all,
+    which takes registers and instructions off the build (docs/PERFORMANCE.md). Same arithmetic,
+    same bits.
     """
     flag = {-2: "m2", -1: "m1", 1: "p1", 2: "p2"}
     lines = [
@@ -334,9 +334,8 @@ def _masked_gather_snippet(ctype):
 
     A spring costs what the box gather's does plus one 4-byte grid load (shared by the 32 threads of
     a warp along a lattice row, so cached) and the select and two address computations of the
-    neighbour's index. Coefficients, grid dimensions and spring types come from the per-jelly tables
-    (a build with one jelly's compiled in measured 1.05x faster on an H100 at 268k particles, too
-    little to keep).
+    neighbour's index. Coefficients, grid dimensions and spring types come from the per-jelly tables:
+    compiling one jelly's in gained too little to keep (docs/PERFORMANCE.md).
     """
     lines = [
         f"typedef {ctype} T;",
@@ -399,21 +398,21 @@ def _rows_snippet(ctype, with_stage=False):
 
 _ROWS_STAGE = """
     // Stage update of the jelly's particles (stage_values, vectorised): a = f/m + g.
-    const T* __restrict__ im = (const T*)particle_inv_mass.data + start;
-    const T* __restrict__ xn = (const T*)q_n.data + 3 * start;
-    const T* __restrict__ vn = (const T*)qd_n.data + 3 * start;
-    T* __restrict__ xo = (T*)q_out.data + 3 * start;
-    T* __restrict__ vo = (T*)qd_out.data + 3 * start;
+    const T* __restrict__ inv_mass = (const T*)particle_inv_mass.data + start;
+    const T* __restrict__ x_n = (const T*)q_n.data + 3 * start;
+    const T* __restrict__ v_n = (const T*)qd_n.data + 3 * start;
+    T* __restrict__ x_out = (T*)q_out.data + 3 * start;
+    T* __restrict__ v_out = (T*)qd_out.data + 3 * start;
     const T g[3] = {gravity[0], gravity[1], gravity[2]};
     if (((const int*)world_symplectic.data)[w]) {
         // Semi-implicit Euler: velocity first, then position with the new velocity.
         for (int p = 0; p < n; ++p) {
-            const T mi = im[p];
+            const T inv_mass_p = inv_mass[p];
             for (int d = 0; d < 3; ++d) {
-                const T a = mi == T(0) ? T(0) : fo[3 * p + d] * mi + g[d];
-                const T vnew = vn[3 * p + d] + h * a;
-                vo[3 * p + d] = vnew;
-                xo[3 * p + d] = xn[3 * p + d] + h * vnew;
+                const T a = inv_mass_p == T(0) ? T(0) : force[3 * p + d] * inv_mass_p + g[d];
+                const T vnew = v_n[3 * p + d] + h * a;
+                v_out[3 * p + d] = vnew;
+                x_out[3 * p + d] = x_n[3 * p + d] + h * vnew;
             }
         }
         return;
@@ -421,30 +420,30 @@ _ROWS_STAGE = """
     const int cols = world_stage_b.shape[1];
     const T b = ((const T*)world_stage_b.data)[w * cols + stage];
     const T b0 = ((const T*)world_stage_b.data)[w * cols];
-    T* __restrict__ aq = (T*)acc_q_out.data + 3 * start;
-    T* __restrict__ aqd = (T*)acc_qd_out.data + 3 * start;
+    T* __restrict__ acc_x_out = (T*)acc_q_out.data + 3 * start;
+    T* __restrict__ acc_v_out = (T*)acc_qd_out.data + 3 * start;
     const bool first = stage == 0, last = stage == count - 1;
-    const T hc = last ? T(0) : h * ((const T*)world_stage_c.data)[w * cols + stage + 1];
-    T* __restrict__ xnext = (T*)q_next_out.data + 3 * start;
-    T* __restrict__ vnext = (T*)qd_next_out.data + 3 * start;
+    const T h_c_next = last ? T(0) : h * ((const T*)world_stage_c.data)[w * cols + stage + 1];
+    T* __restrict__ x_next = (T*)q_next_out.data + 3 * start;
+    T* __restrict__ v_next = (T*)qd_next_out.data + 3 * start;
     for (int p = 0; p < n; ++p) {
-        const T mi = im[p];
+        const T inv_mass_p = inv_mass[p];
         for (int d = 0; d < 3; ++d) {
             const int e = 3 * p + d;
-            const T a = mi == T(0) ? T(0) : fo[e] * mi + g[d];
+            const T a = inv_mass_p == T(0) ? T(0) : force[e] * inv_mass_p + g[d];
             const T vs = v[e];
             T acc_x = b * vs, acc_v = b * a;
             // Stage 0's position term b_0 v_n is recomputed at stage 1, not stored (stage_values).
-            if (stage == 1) { acc_x = acc_x + b0 * vn[e]; acc_v = acc_v + aqd[e]; }
-            else if (!first) { acc_x = acc_x + aq[e]; acc_v = acc_v + aqd[e]; }
+            if (stage == 1) { acc_x = acc_x + b0 * v_n[e]; acc_v = acc_v + acc_v_out[e]; }
+            else if (!first) { acc_x = acc_x + acc_x_out[e]; acc_v = acc_v + acc_v_out[e]; }
             if (last) {
-                xo[e] = xn[e] + h * acc_x;
-                vo[e] = vn[e] + h * acc_v;
+                x_out[e] = x_n[e] + h * acc_x;
+                v_out[e] = v_n[e] + h * acc_v;
             } else {
-                if (!first) aq[e] = acc_x;
-                aqd[e] = acc_v;
-                xnext[e] = xn[e] + hc * vs;
-                vnext[e] = vn[e] + hc * a;
+                if (!first) acc_x_out[e] = acc_x;
+                acc_v_out[e] = acc_v;
+                x_next[e] = x_n[e] + h_c_next * vs;
+                v_next[e] = v_n[e] + h_c_next * a;
             }
         }
     }
@@ -461,10 +460,10 @@ _ROWS_FORCES = """
     const int types = ((const int*)jelly_types.data)[j];
     const T* __restrict__ x = (const T*)q.data + 3 * start;
     const T* __restrict__ v = (const T*)qd.data + 3 * start;
-    const int* __restrict__ cz = (const int*)coord_k.data + start;
-    T* __restrict__ fo = (T*)f_out.data + 3 * start;
-    T* __restrict__ t = (T*)scratch.data + 3 * start;
-    for (int e = 0; e < 3 * n; ++e) fo[e] = T(0);
+    const int* __restrict__ coord_k_of = (const int*)coord_k.data + start;
+    T* __restrict__ force = (T*)f_out.data + 3 * start;
+    T* __restrict__ first_end_force = (T*)scratch.data + 3 * start;
+    for (int e = 0; e < 3 * n; ++e) force[e] = T(0);
     for (int o = 0; o < {NOFF}; ++o) {{
         const int di = OFFSETS[o][0], dj = OFFSETS[o][1], dk = OFFSETS[o][2], ty = OFFSETS[o][3];
         if (!((types >> ty) & 1)) continue;
@@ -483,24 +482,24 @@ _ROWS_FORCES = """
             // output, so the compiler vectorises it; an out-of-lattice partner gives zero.
             for (int p = p0; p < p1; ++p) {{
                 const int s = 3 * p, e = 3 * (p + L);
-                const bool ok = (unsigned)(cz[p] + dk) < (unsigned)nz;
+                const bool ok = (unsigned)(coord_k_of[p] + dk) < (unsigned)nz;
                 const T dx = x[s] - x[e], dy = x[s + 1] - x[e + 1], dz = x[s + 2] - x[e + 2];
                 const T ux = v[s] - v[e], uy = v[s + 1] - v[e + 1], uz = v[s + 2] - v[e + 2];
                 const T l2 = dx * dx + dy * dy + dz * dz;
                 // Coincident particles have no direction: zero force, as in spring_force.
                 const T inv = l2 > T(0) ? T(1) / wp::sqrt(l2) : T(0);
                 const T m_all = -(k * (l2 * inv - r) + c * (ux * dx + uy * dy + uz * dz) * inv) * inv;
-                // Select after computing: folding the test into the expression made the compiler
-                // predicate the divide and square root, 2.5x slower.
+                // Select after computing: folding the test into the expression makes the compiler
+                // predicate the divide and square root, which is much slower.
                 const T m = ok ? m_all : T(0);
                 const T fx = m * dx, fy = m * dy, fz = m * dz;
-                fo[s] += fx; fo[s + 1] += fy; fo[s + 2] += fz;
-                t[s] = fx; t[s + 1] = fy; t[s + 2] = fz;
+                force[s] += fx; force[s + 1] += fy; force[s + 2] += fz;
+                first_end_force[s] = fx; first_end_force[s + 1] = fy; first_end_force[s + 2] = fz;
             }}
             // Pass 2: the opposite force on the second end (apart from pass 1: p + L may be p + 1).
             for (int p = p0; p < p1; ++p) {{
                 const int s = 3 * p, e = 3 * (p + L);
-                fo[e] -= t[s]; fo[e + 1] -= t[s + 1]; fo[e + 2] -= t[s + 2];
+                force[e] -= first_end_force[s]; force[e + 1] -= first_end_force[s + 1]; force[e + 2] -= first_end_force[s + 2];
             }}
         }}
     }}
@@ -900,7 +899,7 @@ def make_integrate_lattice_stage(scalar, gather, single=False):
             else:
                 # The next stage state's resting contacts, as integrators.filter_stage_contacts
                 # does between stages (velocities only; h = 0: no position gain). Two calls rather
-                # than one on selected inputs, which measured slower (docs/PERFORMANCE.md).
+                # than one on selected inputs, which is slower on CUDA (docs/PERFORMANCE.md).
                 x, v = planes(
                     x,
                     v,

@@ -7,12 +7,11 @@ set, :func:`step_fused` from ``step``. The kernel follows the lattice kernel the
   and writes the particle's stage update; on a world's last stage it also applies plane contact
   (and between stages the resting-contact filter), so a symplectic or Euler step over planes is a
   single launch. A model of one jelly of one particle mass with shared coefficients, from
-  ``SINGLE_FROM`` particles on, steps with ``single_stage`` instead: the same kernel compiled for
+  ``SINGLE_FROM`` particles on, steps with the shape-compiled stage (``make_single_stage``) instead: the same kernel compiled for
   the jelly's shape and spring types, reading no per-particle jelly, world or mass and no bounds
-  (its states are padded, ``Model.particle_array``); 1.21x symplectic, 1.20x rk4 at 100^3 on an
-  H100 (docs/PERFORMANCE.md).
+  (its states are padded, ``Model.particle_array``); docs/PERFORMANCE.md has the gain.
 * masked (mesh jellies, ``model.masked``, core/masked_lattice.py): the same stage kernel around the
-  masked gather (``masked_stage``, kernels/lattice.py), each neighbour read through the jelly's
+  masked gather (``make_masked_stage``, kernels/lattice.py), each neighbour read through the jelly's
   index grid, coefficients from the per-jelly tables.
 * rows (CPU): ``integrate_lattice_rows_stage`` computes a jelly's forces with the vectorised row
   loops and then its particles' stage update; contact follows as its own kernel.
@@ -34,8 +33,8 @@ from .forces import check_force_terms
 from .lattice_model import LatticeData
 
 # Particles from which a one-jelly model steps with the shape-compiled stage (``single_stage``).
-# Below, a few blocks per SM leave the latency to the loads each thread has in flight: the
-# shared-coefficient build this stage grew from measured 0.95-0.96x at 40^3 on an H200 (docs/PERFORMANCE.md).
+# Below, a few blocks per SM leave the latency to the loads each thread has in flight, and the
+# shape-compiled stage does not pay (docs/PERFORMANCE.md).
 SINGLE_FROM = 1 << 18
 
 
