@@ -57,16 +57,16 @@ def rotation_matrix(axis_angle):
 
 
 @pytest.mark.parametrize("precision", PRECISIONS)
-def test_rotate_matches_a_rotation_matrix(precision):
+def test_rotate_matches_a_rotation_matrix(device, precision):
     scalar, np_scalar, tol = PRECISIONS[precision]
     v3 = wp.types.vector(3, scalar)
     rng = np.random.default_rng(4)
     axis_angle = rng.normal(size=(64, 3)) * 2.0
     axis_angle[0] = 0.0  # no turn at all: r comes back as it is
     r = rng.normal(size=(64, 3))
-    out = wp.zeros(64, dtype=v3, device="cpu")
-    wp.launch(rotate_points, 64, inputs=[wp.array(axis_angle.astype(np_scalar), dtype=v3, device="cpu"),
-                                         wp.array(r.astype(np_scalar), dtype=v3, device="cpu"), out], device="cpu")
+    out = wp.zeros(64, dtype=v3, device=device)
+    wp.launch(rotate_points, 64, inputs=[wp.array(axis_angle.astype(np_scalar), dtype=v3, device=device),
+                                         wp.array(r.astype(np_scalar), dtype=v3, device=device), out], device=device)
     got = out.numpy()
     expected = np.stack([rotation_matrix(a) @ x for a, x in zip(axis_angle.astype(np_scalar).astype(np.float64),
                                                                    r.astype(np_scalar).astype(np.float64))])
@@ -79,7 +79,7 @@ def test_rotate_matches_a_rotation_matrix(precision):
 
 @pytest.mark.parametrize("precision", PRECISIONS)
 @pytest.mark.parametrize("interpolation", ["linear", "smooth"])
-def test_pin_position_follows_the_host_path(precision, interpolation):
+def test_pin_position_follows_the_host_path(device, precision, interpolation):
     scalar, np_scalar, tol = PRECISIONS[precision]
     v3 = wp.types.vector(3, scalar)
     motion = make_motion(velocity=(0.3, -0.1, 0.2), spin=(0.0, 1.5, 0.5), center=(0.5, 1.0, -0.25),
@@ -88,14 +88,14 @@ def test_pin_position_follows_the_host_path(precision, interpolation):
                          interpolation=interpolation)
     x0 = np.array([1.0, 0.5, 0.75])
     times = np.array([0.0, 0.1, 0.25, 0.4, 0.45, 0.6, 0.8, 0.9, 1.3])
-    arrays = [wp.zeros(times.size, dtype=v3, device="cpu") for _ in range(3)]
+    arrays = [wp.zeros(times.size, dtype=v3, device=device) for _ in range(3)]
     wp.launch(pin_positions, times.size,
-              inputs=[wp.array(times.astype(np_scalar), dtype=scalar, device="cpu"), v3(*x0), v3(*motion["velocity"]),
+              inputs=[wp.array(times.astype(np_scalar), dtype=scalar, device=device), v3(*x0), v3(*motion["velocity"]),
                       v3(*motion["spin"]), v3(*motion["center"]), len(motion["key_times"]),
                       int(interpolation == "smooth"),
-                      wp.array(np.array(motion["key_times"], dtype=np_scalar), dtype=scalar, device="cpu"),
-                      wp.array(np.array(motion["key_offsets"], dtype=np_scalar), dtype=v3, device="cpu"), *arrays],
-              device="cpu")
+                      wp.array(np.array(motion["key_times"], dtype=np_scalar), dtype=scalar, device=device),
+                      wp.array(np.array(motion["key_offsets"], dtype=np_scalar), dtype=v3, device=device), *arrays],
+              device=device)
     got, centre, turn = (a.numpy() for a in arrays)
     expected = np.stack([path_position(motion, x0, t) for t in times])
     np.testing.assert_allclose(got, expected, rtol=0, atol=tol * 10)
