@@ -1,10 +1,11 @@
-"""The terrain contact functions of kernels/contact.py alone, in both precisions.
+"""The terrain contact functions of kernels/contact.py and kernels/mesh.py alone, in both precisions.
 
 Each function runs in a small test kernel (one thread a case) and is checked against what it must
 do by its definition: an impact leaves the surface at -e times its approach speed, a resting
 contact cancels the normal velocity, Coulomb friction takes at most mu times the normal impulse of
 tangential speed and never reverses it, a moving surface's response is the static one in its frame,
-and the distances are the closed forms of a plane (with its hole), a sphere and a bowl.
+and the distances are the closed forms of a plane (with its hole), a sphere, a bowl, a triangle and
+a closed box mesh.
 """
 
 import numpy as np
@@ -12,6 +13,7 @@ import pytest
 import warp as wp
 
 from softsim_warp.kernels import contact
+from softsim_warp.kernels import mesh as mesh_kernels
 from softsim_warp.kernels.precision import Float, both_precisions, vec3
 
 PRECISIONS = [(wp.float32, np.float32, 1e-5), (wp.float64, np.float64, 1e-12)]
@@ -298,3 +300,164 @@ def test_plane_sphere_and_bowl_distances_are_the_closed_forms(device, scalar, np
     np.testing.assert_allclose(bowl[below], radius - dist[below], rtol=0, atol=tol * 10)
     np.testing.assert_allclose(bowl_n[below], -d[below] / dist[below, None], rtol=0, atol=tol * 10)
     assert np.all(bowl[~below] == np_dtype(contact.NO_SURFACE))
+
+
+# -- Meshes (kernels/mesh.py): the same response, given the distance to the closest triangle ---------
+
+
+@both_precisions
+@wp.kernel
+def closest_points(p: wp.array(dtype=vec3), a: vec3, b: vec3, c: vec3, out: wp.array(dtype=vec3)):
+    i = wp.tid()
+    out[i] = mesh_kernels.closest_on_triangle(p[i], a, b, c)
+
+
+@both_precisions
+@wp.kernel
+def mesh_distances(
+    x: wp.array(dtype=vec3),
+    mesh_id: wp.uint64,
+    closed: int,
+    reach: Float,
+    tris: wp.array(dtype=wp.vec3i),
+    points: wp.array(dtype=vec3),
+    phi_out: wp.array(dtype=Float),
+    normal_out: wp.array(dtype=vec3),
+):
+    i = wp.tid()
+    phi, n = mesh_kernels.mesh_distance(x[i], mesh_id, closed, reach, 0, tris, points)
+    phi_out[i] = phi
+    normal_out[i] = n
+
+
+@both_precisions
+@wp.kernel
+def face_velocities(x: wp.array(dtype=vec3), a: vec3, b: vec3, c: vec3, va: vec3, vb: vec3, vc: vec3,
+                    out: wp.array(dtype=vec3)):
+    i = wp.tid()
+    out[i] = mesh_kernels.face_velocity(x[i], a, b, c, va, vb, vc)
+
+
+def closest_on_segment(p, a, b):
+    t = np.clip(((p - a) @ (b - a)) / ((b - a) @ (b - a)), 0.0, 1.0)
+    return a + np.outer(t, b - a)
+
+
+def closest_on_triangle_reference(p, a, b, c):
+    """The projection on the triangle's plane where it falls inside the triangle, else the closest
+    of the three edges' closest points (float64)."""
+    n = np.cross(b - a, c - a)
+    n /= np.linalg.norm(n)
+    proj = p - np.outer((p - a) @ n, n)
+    inside = np.ones(len(p), dtype=bool)
+    for u, w in ((a, b), (b, c), (c, a)):
+        inside &= np.cross(w - u, proj - u) @ n >= 0.0
+    best = proj.copy()
+    edges = np.stack([closest_on_segment(p, u, w) for u, w in ((a, b), (b, c), (c, a))])
+    nearest = edges[np.argmin(np.linalg.norm(edges - p, axis=2), axis=0), np.arange(len(p))]
+    best[~inside] = nearest[~inside]
+    return best, inside
+
+
+TRIANGLE = (np.array([0.0, 0.0, 0.0]), np.array([2.0, 0.0, 0.0]), np.array([0.0, 0.0, -2.0]))  # normal +y
+
+
+@pytest.mark.parametrize("scalar,np_dtype,tol", PRECISIONS)
+def test_closest_point_on_a_triangle(device, scalar, np_dtype, tol):
+    rng = np.random.default_rng(8)
+    vec = wp.types.vector(3, scalar)
+    a, b, c = (np.array([0.1, 0.2, -0.3]), np.array([1.7, -0.4, 0.2]), np.array([0.3, 1.1, 0.9]))
+    p = rng.uniform(-2.0, 3.0, size=(400, 3)).astype(np_dtype).astype(np.float64)
+    out = wp.zeros(len(p), dtype=vec, device=device)
+    wp.launch(closest_points, len(p), inputs=[wp.array(p.astype(np_dtype), dtype=vec, device=device), vec(*a), vec(*b),
+                                              vec(*c), out], device=device)
+    expected, inside = closest_on_triangle_reference(p, a, b, c)
+    assert inside.any() and not inside.all()  # the face and its edges and vertices
+    np.testing.assert_allclose(out.numpy(), expected, rtol=0, atol=tol * 10)
+
+
+@pytest.mark.parametrize("scalar,np_dtype,tol", PRECISIONS)
+def test_open_sheet_distance_is_the_distance_to_the_triangle(device, scalar, np_dtype, tol):
+    """One triangle as an open sheet: above its face the height over its plane (along its normal),
+    beside it the distance to its closest point, signed by the side of the face's normal."""
+    vec = wp.types.vector(3, scalar)
+    a, b, c = TRIANGLE
+    rng = np.random.default_rng(9)
+    x = rng.uniform([-1.0, -1.0, -3.0], [3.0, 1.0, 1.0], size=(300, 3)).astype(np_dtype).astype(np.float64)
+    points = np.stack([a, b, c])
+    bvh = wp.Mesh(points=wp.array(points, dtype=wp.vec3, device=device),
+                  indices=wp.array([0, 1, 2], dtype=wp.int32, device=device))
+    phi, normal = wp.zeros(len(x), dtype=scalar, device=device), wp.zeros(len(x), dtype=vec, device=device)
+    wp.launch(mesh_distances, len(x),
+              inputs=[wp.array(x.astype(np_dtype), dtype=vec, device=device), wp.uint64(bvh.id), 0, scalar(10.0),
+                      wp.array(np.array([[0, 1, 2]]), dtype=wp.vec3i, device=device),
+                      wp.array(points.astype(np_dtype), dtype=vec, device=device), phi, normal], device=device)
+    closest, over_face = closest_on_triangle_reference(x, a, b, c)
+    d = x - closest
+    dist = np.linalg.norm(d, axis=1)
+    side = np.where(d[:, 1] >= 0.0, 1.0, -1.0)
+    expected_normal = np.where(over_face[:, None], [0.0, 1.0, 0.0], d * (side / dist)[:, None])
+    assert over_face.any() and not over_face.all()
+    np.testing.assert_allclose(phi.numpy(), np.where(over_face, x[:, 1], side * dist), rtol=0, atol=tol * 10)
+    np.testing.assert_allclose(normal.numpy(), expected_normal, rtol=0, atol=tol * 100)
+
+
+def box_mesh():
+    """The cube [-1, 1]^3 as 12 triangles wound outward."""
+    corners = np.array([[x, y, z] for x in (-1.0, 1.0) for y in (-1.0, 1.0) for z in (-1.0, 1.0)])
+    tris = []
+    for axis in range(3):
+        for sign in (-1.0, 1.0):
+            face = [i for i, p in enumerate(corners) if p[axis] == sign]
+            u, v = [k for k in range(3) if k != axis]
+            centre = corners[face].mean(axis=0)
+            face.sort(key=lambda i: np.arctan2(corners[i][v] - centre[v], corners[i][u] - centre[u]))
+            for tri in ([face[0], face[1], face[2]], [face[0], face[2], face[3]]):
+                n = np.cross(corners[tri[1]] - corners[tri[0]], corners[tri[2]] - corners[tri[0]])
+                tris.append(tri if n[axis] * sign > 0 else tri[::-1])
+    return corners, np.array(tris, dtype=np.int32)
+
+
+@pytest.mark.parametrize("scalar,np_dtype,tol", PRECISIONS)
+def test_closed_mesh_distance_is_the_box_signed_distance(device, scalar, np_dtype, tol):
+    """A closed cube: inside, minus the distance to the nearest face; outside, the distance to the
+    box (to a face, an edge or a corner), the closed-form signed distance of a box."""
+    vec = wp.types.vector(3, scalar)
+    corners, tris = box_mesh()
+    rng = np.random.default_rng(10)
+    x = rng.uniform(-1.8, 1.8, size=(400, 3)).astype(np_dtype).astype(np.float64)
+    x = x[np.abs(np.abs(x) - 1.0).min(axis=1) > 1e-3]  # not on a face's plane, where the sign is either
+    bvh = wp.Mesh(points=wp.array(corners, dtype=wp.vec3, device=device),
+                  indices=wp.array(tris.ravel(), dtype=wp.int32, device=device))
+    phi, normal = wp.zeros(len(x), dtype=scalar, device=device), wp.zeros(len(x), dtype=vec, device=device)
+    wp.launch(mesh_distances, len(x),
+              inputs=[wp.array(x.astype(np_dtype), dtype=vec, device=device), wp.uint64(bvh.id), 1, scalar(10.0),
+                      wp.array(tris, dtype=wp.vec3i, device=device),
+                      wp.array(corners.astype(np_dtype), dtype=vec, device=device), phi, normal], device=device)
+    q = np.abs(x) - 1.0
+    expected = np.linalg.norm(np.maximum(q, 0.0), axis=1) + np.minimum(q.max(axis=1), 0.0)
+    assert (expected < 0).any() and (expected > 0).any()
+    np.testing.assert_allclose(phi.numpy(), expected, rtol=0, atol=tol * 10)
+    # The normal is the box distance's gradient: outward, unit.
+    np.testing.assert_allclose(np.linalg.norm(normal.numpy(), axis=1), 1.0, rtol=0, atol=tol * 10)
+    outside = expected > 0
+    grad = np.maximum(q, 0.0)[outside] / expected[outside, None] * np.sign(x[outside])
+    np.testing.assert_allclose(normal.numpy()[outside], grad, rtol=0, atol=tol * 100)
+
+
+@pytest.mark.parametrize("scalar,np_dtype,tol", PRECISIONS)
+def test_face_velocity_interpolates_a_linear_field_exactly(device, scalar, np_dtype, tol):
+    """Barycentric interpolation reproduces a velocity field linear in position: a rigid motion
+    (v = u + w x p) of the triangle gives every point of it its rigid velocity."""
+    vec = wp.types.vector(3, scalar)
+    a, b, c = np.array([0.1, 0.2, -0.3]), np.array([1.7, -0.4, 0.2]), np.array([0.3, 1.1, 0.9])
+    u, w = np.array([0.3, -0.2, 0.5]), np.array([1.0, 0.5, -2.0])
+    rigid = lambda p: u + np.cross(w, p)  # noqa: E731
+    rng = np.random.default_rng(11)
+    bary = rng.dirichlet([1.0, 1.0, 1.0], size=50)
+    x = bary @ np.stack([a, b, c])
+    out = wp.zeros(len(x), dtype=vec, device=device)
+    wp.launch(face_velocities, len(x), inputs=[wp.array(x.astype(np_dtype), dtype=vec, device=device), vec(*a),
+                                               vec(*b), vec(*c), vec(*rigid(a)), vec(*rigid(b)), vec(*rigid(c)), out],
+              device=device)
+    np.testing.assert_allclose(out.numpy(), u + np.cross(w, x), rtol=0, atol=tol * 10)
