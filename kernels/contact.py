@@ -2,10 +2,10 @@
 
 Contact runs once per step, after the integrator has advanced the smooth forces (springs and
 gravity) from y_n to y*. Runge-Kutta stages assume a smooth right-hand side; applying impulses to
-trial states (as the original program did inside every force evaluation) changes stage states
-that the method later combines, so midpoint and RK4 lose their meaning and can inject energy.
-Splitting contact off keeps every integrator's smooth part exact in its order and treats all of
-them alike at impacts, where every method is first order anyway.
+trial states (inside every force evaluation) would change stage states that the method later
+combines, so midpoint and RK4 would lose their meaning and could inject energy. Splitting contact
+off keeps every integrator's smooth part exact in its order and treats all of them alike at
+impacts, where every method is first order anyway.
 
 The one exception is resting contact in the intermediate stages of midpoint and RK4
 (``integrators.filter_stage_contacts``): a stage state lets a particle resting on a surface move
@@ -13,9 +13,14 @@ into it, and the springs' dampers would answer that fictitious velocity and take
 force that friction depends on. So the stage velocities of particles that the response would hold
 get the contact branch (normal approach cancelled, friction), never an impact or a position change.
 
-``resolve_contact`` is shared by every primitive: a primitive only supplies the signed distance
-and the outward normal at the particle. Impact or contact is decided by a restitution threshold
-derived from the particle's own pressing impulse over the step (see its comments and
+The response is written once, at the top of this module: ``resolve_contact`` (restitution, resting
+contact, ``coulomb_friction``) and, for a moving surface, ``resolve_moving`` (the same in the frame
+of the surface's velocity at the particle, ``surface_velocity``). Every primitive only supplies the
+signed distance and the outward normal at the particle (``plane_distance``, ``bowl_distance``,
+``sphere_distance``; ``mesh_distance`` in kernels/mesh.py), and every kernel that resolves terrain
+contact calls the response: the ``collide_*`` kernels here and in kernels/mesh.py, and the fused
+lattice stage through ``contact_planes_direct``. Impact or contact is decided by a restitution
+threshold derived from the particle's own pressing impulse over the step (see its comments and
 docs/SCENES.md, "Impact or contact").
 
 Where a particle touches: ``contact_epsilon`` is the layer within which a surface is looked at
@@ -35,15 +40,15 @@ from .precision import Float, both_precisions, vec3
 wp.set_module_options({"enable_backward": False})
 
 # A particle touches a surface once its step brings it within this fraction of contact_epsilon of
-# it (or through it). Contact at the whole layer held a slowly settling particle wherever it entered
-# the layer, so a resting jelly stood up to contact_epsilon above the ground. The fraction only has
-# to cover the rounding of a particle put back on the surface (1e-7 of a unit in float32), which
+# it (or through it). Contact across the whole layer would hold a slowly settling particle wherever
+# it entered the layer, so a resting jelly would stand up to contact_epsilon above the ground. The
+# fraction only has to cover the rounding of a particle put back on the surface (1e-7 of a unit in float32), which
 # must still count as touching on the next step.
 TOUCH_FRACTION = 1.0e-3
 # The ``stage`` argument of the response that lets a particle touch anywhere within contact_epsilon:
 # the implicit contact solve constrains every particle at the surface or about to reach it (a stiff
-# lattice needs them all in the solve: with only those that reached the surface, the ones the solve
-# turned into the ground were put back after it, +7.9 J at an impact of jelly_drop at ks = 1e6).
+# lattice needs them all in the solve: with only those that reached the surface, the solve drives the
+# others into the ground, and putting them back after it adds energy at an impact).
 LAYER_TOUCH = -1
 # The signed distance that stands for "no surface here": over a plane's hole, above a bowl's cut.
 NO_SURFACE = 1.0e30
@@ -105,8 +110,8 @@ def resolve_contact(
         # the surface turning under a sliding particle (|v|^2 h / R). Only u0 is an impact
         # speed: w is the impulse of a force acting over the step, and reflecting it bounces
         # a particle that the force presses back within a step or two (a pressed particle
-        # settles into reflecting e w / (1 + e) every step: a resting jelly's corners read
-        # 0.38 m/s). So, as Box2D, Bullet and Guendelman et al. 2003 do with a restitution
+        # settles into reflecting e w / (1 + e) every step, and a resting jelly never comes to
+        # rest). So, as Box2D, Bullet and Guendelman et al. 2003 do with a restitution
         # velocity threshold, an approach slower than rest_steps steps of the particle's own
         # pressing impulse (u0 < rest_steps w), or slower than eps_v, is a contact:
         # inelastic, with Coulomb friction. The threshold follows the force and the step
@@ -137,7 +142,8 @@ def resolve_contact(
         else:
             # Impact: reflect the approaching normal velocity; Coulomb friction removes at
             # most mu times the normal impulse (1 + e)(-vn) of tangential speed.
-            v = coulomb_friction(v - vn * normal, friction * (type(restitution)(1.0) + restitution) * (-vn)) - restitution * vn * normal
+            v_tangent = coulomb_friction(v - vn * normal, friction * (type(restitution)(1.0) + restitution) * (-vn))
+            v = v_tangent - restitution * vn * normal
     # A particle that moves away after the step (vn >= 0; on a convex surface the tangent of
     # the last step points outward by |v| h / R) is separating: the surface pushes nothing, so
     # neither normal cancellation nor friction applies (cancelling it would glue particles to
@@ -499,9 +505,9 @@ def move_terrain(
 
 
 # -- Kernels: one per primitive kind, so a scene launches only the kinds it has -------------
-# integrators.apply_contacts launches them all alike: (particle_inv_mass, particle_world,
-# the kind's arrays (first per world, then its parameters)..., eps, eps_v, rest_steps, h, world_contact_beta, q_prev, qd_prev)
-# in, (q_out, qd_out) corrected in place; each thread touches only its own particle.
+# core/contact.py launches them all alike: (particle_inv_mass, particle_world, the kind's arrays
+# (first per world, then its parameters)..., eps, eps_v, rest_steps, h, world_contact_beta, stage,
+# q_prev, qd_prev) in, (q_out, qd_out) corrected in place; each thread touches only its own particle.
 
 
 @both_precisions

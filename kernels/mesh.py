@@ -192,7 +192,8 @@ def collide_meshes(
         v = qd_out[i]
         # The meshes of world w are mesh_first[w] .. mesh_first[w + 1] - 1 (sorted by world).
         for m in range(mesh_first[w], mesh_first[w + 1]):
-            phi, n = mesh_distance(x, mesh_id[m], mesh_closed[m], mesh_reach[m], mesh_tri_start[m], mesh_tris, mesh_points)
+            phi, n = mesh_distance(x, mesh_id[m], mesh_closed[m], mesh_reach[m], mesh_tri_start[m], mesh_tris,
+                                   mesh_points)
             if phi < eps:
                 x, v = resolve_contact(
                     x,
