@@ -766,11 +766,6 @@ def make_masked_gather(scalar):
     return masked_gather
 
 
-def _contact_planes_direct(scalar):
-    """Plane contact reading the world's plane range, points and normals through data pointers."""
-    return contact.build(scalar)["make_contact_planes"](integration.int_contiguous, integration.load_contiguous)
-
-
 @functools.cache
 def make_integrate_lattice_stage(scalar, gather, single=False):
     """The fused stage kernel for ``scalar`` around a per-particle native gather (``make_gather_native``,
@@ -789,7 +784,6 @@ def make_integrate_lattice_stage(scalar, gather, single=False):
     the jelly is 0 and the world and inverse mass are particle 0's, so the kernel reads no
     per-particle jelly, world or mass.
     """
-    planes = _contact_planes_direct(scalar)
 
     @wp.kernel(module="unique")
     def integrate_lattice_stage(
@@ -877,7 +871,7 @@ def make_integrate_lattice_stage(scalar, gather, single=False):
         if with_contact != 0 and inv_mass != type(h)(0.0):
             if kind == 1:
                 # Plane contact on the step's result, as collide_planes does after the step.
-                x, v = planes(
+                x, v = contact.contact_planes_direct(
                     x,
                     v,
                     qd_n,
@@ -900,7 +894,7 @@ def make_integrate_lattice_stage(scalar, gather, single=False):
                 # The next stage state's resting contacts, as integrators.filter_stage_contacts
                 # does between stages (velocities only; h = 0: no position gain). Two calls rather
                 # than one on selected inputs, which is slower on CUDA (docs/PERFORMANCE.md).
-                x, v = planes(
+                x, v = contact.contact_planes_direct(
                     x,
                     v,
                     qd_n,
