@@ -499,7 +499,9 @@ _ROWS_FORCES = """
             // Pass 2: the opposite force on the second end (apart from pass 1: p + L may be p + 1).
             for (int p = p0; p < p1; ++p) {{
                 const int s = 3 * p, e = 3 * (p + L);
-                force[e] -= first_end_force[s]; force[e + 1] -= first_end_force[s + 1]; force[e + 2] -= first_end_force[s + 2];
+                force[e] -= first_end_force[s];
+                force[e + 1] -= first_end_force[s + 1];
+                force[e + 2] -= first_end_force[s + 2];
             }}
         }}
     }}
@@ -961,7 +963,8 @@ def eval_lattice_rows(
     # One thread per jelly; jellies own disjoint particle ranges, so threads never collide.
     j = wp.tid()
     lattice_rows_native(
-        j, jelly_start, jelly_shape, jelly_types, jelly_rest, jelly_ks, jelly_kd, particle_coord_k, q, qd, scratch, f_out
+        j, jelly_start, jelly_shape, jelly_types, jelly_rest, jelly_ks, jelly_kd, particle_coord_k, q, qd, scratch,
+        f_out,
     )
 
 

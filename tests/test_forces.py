@@ -5,9 +5,11 @@ import re
 import numpy as np
 import pytest
 import warp as wp
+from softsim_warp.kernels.precision import Float, both_precisions, vec3
 
-from softsim_warp import eval_forces
+from softsim_warp import ModelBuilder, eval_forces, make_integrator
 from softsim_warp.core import lattice
+from softsim_warp.core.forces import ForceTerm, ForceTermError, attach
 from tests.helpers import jelly_builder
 
 
@@ -100,11 +102,6 @@ def test_add_jelly_rejects_misspelt_springs(springs, needle):
 
 # -- Force terms beyond the springs (core/forces.py): they reach every path or the path refuses -------
 
-from softsim_warp import ModelBuilder, make_integrator  # noqa: E402
-from softsim_warp.core.forces import ForceTerm, ForceTermError  # noqa: E402
-from softsim_warp.kernels.precision import Float, both_precisions, vec3  # noqa: E402
-
-
 @both_precisions
 @wp.kernel
 def add_linear_drag(c: Float, qd: wp.array(dtype=vec3), f_out: wp.array(dtype=vec3)):
@@ -133,8 +130,6 @@ def dragged_pair(device, c, deterministic=False, ks=40.0, mass=0.1, stretch=0.05
     b.add_spring(0, 1, ks, 0.0, rest=1.0)
     model = b.finalize(device, "float64", force_terms=(LinearDrag(c),))
     if deterministic:
-        from softsim_warp.core.forces import attach  # noqa: PLC0415
-
         attach(model)
     return model
 

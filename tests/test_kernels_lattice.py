@@ -20,9 +20,9 @@ import itertools
 import numpy as np
 import pytest
 import warp as wp
-
 from softsim_warp.kernels import integration, lattice, springs
 from softsim_warp.kernels.precision import Float, both_precisions, vec3
+
 from tests.test_kernels_springs import random_springs, reference_force
 
 PRECISIONS = [(wp.float32, np.float32), (wp.float64, np.float64)]
@@ -134,7 +134,9 @@ def random_jelly(device, scalar, np_dtype, shape=(3, 4, 5), types=7, seed=0):
                 pair_rest.append(r)
                 pair_ks.append(ks[ty])
                 pair_kd.append(kd[ty])
-    to = lambda x, dtype: wp.array(np.asarray(x, dtype=np_dtype if dtype is scalar else None), dtype=dtype, device=device)  # noqa: E731
+    def to(x, dtype):
+        return wp.array(np.asarray(x, dtype=np_dtype if dtype is scalar else None), dtype=dtype, device=device)
+
     tables = [
         wp.array([0], dtype=wp.int32, device=device),
         wp.array([shape], dtype=wp.vec3i, device=device),
@@ -149,7 +151,8 @@ def random_jelly(device, scalar, np_dtype, shape=(3, 4, 5), types=7, seed=0):
         *(to(t, scalar) for t in (pair_rest, pair_ks, pair_kd)),
     ]
     state = [to(q, vec), to(qd, vec)]
-    host = (np.asarray(pairs), q.astype(np_dtype), qd.astype(np_dtype), *(np.asarray(t, dtype=np_dtype) for t in (pair_rest, pair_ks, pair_kd)))
+    lists = (np.asarray(t, dtype=np_dtype) for t in (pair_rest, pair_ks, pair_kd))
+    host = (np.asarray(pairs), q.astype(np_dtype), qd.astype(np_dtype), *lists)
     return tables, coord_k, spring_list, state, host
 
 
@@ -218,7 +221,7 @@ def test_row_stage_is_stage_values(device, scalar, np_dtype, method):
         wp.array2d(np.asarray([b], dtype=np_dtype), dtype=scalar, device=device),
     ]
     h = scalar(1.0e-3)
-    zeros = lambda: wp.zeros(n, dtype=vec, device=device)  # noqa: E731
+    zeros = lambda: wp.zeros(n, dtype=vec, device=device)
     runs = {}
     for fused in (True, False):
         out = [zeros() for _ in range(6)]  # acc_q, acc_qd, q_next, qd_next, q_out, qd_out
@@ -229,8 +232,10 @@ def test_row_stage_is_stage_values(device, scalar, np_dtype, method):
                 wp.launch(
                     lattice.integrate_lattice_rows_stage,
                     1,
-                    inputs=[stage, h, *tables, wp.zeros(1, dtype=wp.int32, device=device), coord_k, world[0], *world[1:],
-                            q, qd, q_s, qd_s, zeros(), zeros()],
+                    inputs=[
+                        stage, h, *tables, wp.zeros(1, dtype=wp.int32, device=device), coord_k, *world,
+                        q, qd, q_s, qd_s, zeros(), zeros(),
+                    ],
                     outputs=out,
                     device=device,
                 )
@@ -241,7 +246,10 @@ def test_row_stage_is_stage_values(device, scalar, np_dtype, method):
                 wp.launch(
                     integration.integrate_stage,
                     n,
-                    inputs=[stage, h, world[0], wp.zeros(n, dtype=wp.int32, device=device), *world[1:], q, qd, q_s, qd_s, f],
+                    inputs=[
+                        stage, h, world[0], wp.zeros(n, dtype=wp.int32, device=device), *world[1:],
+                        q, qd, q_s, qd_s, f,
+                    ],
                     outputs=out,
                     device=device,
                 )

@@ -204,20 +204,20 @@ def attach_masked(builder, m, force_path="auto", kernel=None) -> None:
 
 def eval_masked_forces(model, q: wp.array, qd: wp.array, f_out: wp.array):
     """Spring and damper forces of (q, qd) into ``f_out`` on the masked path; every entry is written."""
-    ml = model.masked
+    masked = model.masked
     wp.launch(
         model.kernels.eval_masked_springs,
         dim=model.particle_count,
         inputs=[
             model.particle_jelly,
-            ml.particle_cell,
-            ml.jelly_shape,
-            ml.jelly_grid_start,
-            ml.grid,
-            ml.jelly_types,
-            ml.jelly_rest,
-            ml.jelly_ks,
-            ml.jelly_kd,
+            masked.particle_cell,
+            masked.jelly_shape,
+            masked.jelly_grid_start,
+            masked.grid,
+            masked.jelly_types,
+            masked.jelly_rest,
+            masked.jelly_ks,
+            masked.jelly_kd,
             q,
             qd,
         ],
