@@ -10,6 +10,7 @@ from softsim_warp.kernels.precision import Float, both_precisions, vec3
 from softsim_warp import ModelBuilder, eval_forces, make_integrator
 from softsim_warp.core import lattice
 from softsim_warp.core.forces import ForceTerm, ForceTermError, attach
+from softsim_warp.core.integrators import ExplicitIntegrator
 from tests.helpers import jelly_builder
 
 
@@ -174,6 +175,10 @@ def test_paths_without_force_terms_refuse_them_in_one_line(device):
     with pytest.raises(ForceTermError) as refused:
         make_integrator("implicit", model)
     assert "\n" not in str(refused.value) and "implicit path" in str(refused.value)
+    # The fused stages exist on the lattice paths only, which the model did not take.
+    with pytest.raises(ValueError) as refused:
+        ExplicitIntegrator(model, "rk4", fused=True)
+    assert "\n" not in str(refused.value) and "force terms" in str(refused.value)
     # A model without force terms is unchanged: the lattice path, and the implicit integrator.
     plain = builder.finalize(device)
     assert plain.lattice is not None and plain.force_terms == ()

@@ -56,7 +56,9 @@ class ForceTermError(ValueError):
     """A force path that cannot evaluate a model's force terms refuses it (one line)."""
 
 
-# Every path that evaluates forces, and those of them that evaluate declared force terms.
+# Every path that evaluates forces, and those of them that evaluate declared force terms. "lattice"
+# is both of its kernels (the CUDA gather and the CPU row loops); "fused stage" every fused explicit
+# stage (gather, shape-compiled, masked and rows, core/fused.py).
 FORCE_PATHS = ("spring list", "lattice", "masked lattice", "fused stage", "implicit")
 PATHS_TAKING_FORCE_TERMS = ("spring list",)
 

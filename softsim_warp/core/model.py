@@ -529,7 +529,7 @@ class ModelBuilder:
         # on first use only, the spring list from its records; any other is searched
         # (detect_lattice) and keeps its list as given.
         m.lattice = None
-        m.lattice_reason = "force_path=springs"
+        m.lattice_reason = "force_path=springs" if not force_terms else "force terms need the spring list (core/forces.py)"
         if force_path != "springs":
             recorded = self.lattice_records() is not None
             layout, m.lattice_reason = recorded_lattice(self) if recorded else detect_lattice(self)
