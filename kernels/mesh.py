@@ -328,25 +328,25 @@ def collide_moving_meshes(
         v = qd_out[i]
         beta_h = h * world_contact_beta[w]
         for m in range(mesh_first[w], mesh_first[w + 1]):
-            mm = mesh_motion[m]
+            motion = mesh_motion[m]
             # The particle in the mesh's own frame (where its BVH was built).
-            xl = x
+            x_local = x
             turn = type(x)(type(h)(0.0))
-            if mm >= 0:
-                turn = motion_turn_now[mm]
-                xl = motion_center[mm] + rotate(-turn, x - motion_center_now[mm])
-            phi, nl, face = mesh_face_distance(xl, mesh_id[m], mesh_closed[m], mesh_reach[m], mesh_tri_start[m],
-                                               mesh_tris, mesh_points)
+            if motion >= 0:
+                turn = motion_turn_now[motion]
+                x_local = motion_center[motion] + rotate(-turn, x - motion_center_now[motion])
+            phi, normal_local, face = mesh_face_distance(x_local, mesh_id[m], mesh_closed[m], mesh_reach[m],
+                                                         mesh_tri_start[m], mesh_tris, mesh_points)
             if phi < eps:
-                n = rotate(turn, nl)
-                vs = surface_velocity(x, mm, motion_center_now, motion_velocity_step, motion_spin)
+                n = rotate(turn, normal_local)
+                v_surface = surface_velocity(x, motion, motion_center_now, motion_velocity_step, motion_spin)
                 if mesh_animated[m] != 0 and face >= 0:
                     t = mesh_tris[mesh_tri_start[m] + face]
-                    vl = face_velocity(xl - phi * nl, mesh_points[t[0]], mesh_points[t[1]], mesh_points[t[2]],
-                                       mesh_point_velocity[t[0]], mesh_point_velocity[t[1]],
-                                       mesh_point_velocity[t[2]])
-                    vs = vs + rotate(turn, vl)
-                x, v = resolve_moving(x, v, qd_prev[i], n, vs, phi, n, mesh_restitution[m], mesh_friction[m],
+                    v_local = face_velocity(x_local - phi * normal_local, mesh_points[t[0]], mesh_points[t[1]],
+                                            mesh_points[t[2]], mesh_point_velocity[t[0]], mesh_point_velocity[t[1]],
+                                            mesh_point_velocity[t[2]])
+                    v_surface = v_surface + rotate(turn, v_local)
+                x, v = resolve_moving(x, v, qd_prev[i], n, v_surface, phi, n, mesh_restitution[m], mesh_friction[m],
                                       eps, eps_v, rest_steps, beta_h, stage)
         q_out[i] = x
         qd_out[i] = v
