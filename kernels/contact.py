@@ -336,10 +336,13 @@ def moving_bowl_distance(x: vec3, center: vec3, radius: Float, cut_height: Float
     """``bowl_distance`` of a bowl that may move (moving index ``m``, -1: static, ``center`` its
     centre now): a moving bowl's cut is a height in its own frame, so it turns with the bowl.
     Returns (phi, inward normal)."""
-    if m < 0:
-        return bowl_distance(x, center, radius, cut_height)
-    phi, n = bowl_distance(x, center, radius, type(radius)(NO_SURFACE))
-    if rotate(-motion_turn_now[m], x - center)[1] + motion_rest_point[m][1] >= cut_height:
+    cut = cut_height
+    above = False
+    if m >= 0:
+        above = rotate(-motion_turn_now[m], x - center)[1] + motion_rest_point[m][1] >= cut_height
+        cut = type(radius)(NO_SURFACE)
+    phi, n = bowl_distance(x, center, radius, cut)
+    if above:
         phi = type(radius)(NO_SURFACE)
     return phi, n
 
