@@ -75,8 +75,8 @@ for _scalar, _ctype in ((wp.float32, "float"), (wp.float64, "double")):
     def load_contiguous(a: wp.array(dtype=_vec3), i: int) -> _vec3:
         """``a[i]`` of a contiguous array, addressed as data + 3 i scalars.
 
-        Warp's ``a[i]`` wraps a negative index and multiplies by the array's run-time 64-bit stride
-        (about 8 instructions an access on CUDA); here the element size is a constant, so a
+        Warp's ``a[i]`` wraps a negative index and multiplies by the array's run-time 64-bit stride;
+        here the element size is a constant, so a
         neighbour's address is the particle's plus an offset the compiler folds into the load, and
         the fused lattice stage's own loads and stores cost one address computation
         (docs/PERFORMANCE.md). Only for arrays the caller knows to be contiguous

@@ -9,11 +9,8 @@ it is the distance to the closest point, signed by the winding number (closed me
 the face's normal points to (open sheets, which collide from that side only).
 """
 
-import functools
-
 import warp as wp
 
-from . import springs
 from .contact import NO_SURFACE, resolve_contact, resolve_moving, surface_velocity
 from .pins import rotate
 from .precision import Float, both_precisions, vec3
@@ -352,82 +349,9 @@ def collide_moving_meshes(
         qd_out[i] = v
 
 
-@functools.cache
 def build(scalar):
-    """The masked-lattice kernels (still built per precision) and, as a temporary shim, the names
-    that the unconverted kernel files and ``model.kernels`` look up."""
-    vec3 = wp.types.vector(3, scalar)
-    spring_force = springs.build(scalar)["spring_force"]
-
-    # -- Masked lattices (mesh jellies): the lattice stencil over the points that exist -----------
-
-    @wp.func
-    def masked_neighbour(i: int, ok: bool, cell: int, offset: int, grid_start: int, grid: wp.array(dtype=wp.int32)):
-        """The particle at lattice index cell + offset, or i itself (zero force) when the offset is
-        off the lattice (``ok`` false) or the point is not in the jelly (grid entry -1)."""
-        p = grid[grid_start + wp.where(ok, cell + offset, cell)]
-        return wp.where(p < 0, i, p)
-
-    @wp.kernel(module="unique")
-    def eval_masked_springs(
-        # Model:
-        particle_jelly: wp.array(dtype=wp.int32),
-        particle_cell: wp.array(dtype=wp.int32),
-        jelly_shape: wp.array(dtype=wp.vec3i),
-        jelly_grid_start: wp.array(dtype=wp.int32),
-        grid: wp.array(dtype=wp.int32),
-        jelly_types: wp.array(dtype=wp.int32),
-        jelly_rest: wp.array2d(dtype=scalar),
-        jelly_ks: wp.array2d(dtype=scalar),
-        jelly_kd: wp.array2d(dtype=scalar),
-        # State in:
-        q: wp.array(dtype=vec3),
-        qd: wp.array(dtype=vec3),
-        # Out (every element written):
-        f_out: wp.array(dtype=vec3),
-    ):
-        # One thread per particle gathers the stencil springs to its present neighbours (as the
-        # lattice path's gather_lattice_force, with the neighbour looked up in the jelly's grid of
-        # particle indices): no atomics, a fixed order, so deterministic.
-        i = wp.tid()
-        j = particle_jelly[i]
-        shape = jelly_shape[j]
-        cell = particle_cell[i]
-        gs = jelly_grid_start[j]
-        c = cell % shape[2]
-        t = cell // shape[2]
-        b = t % shape[1]
-        a = t // shape[1]
-        row = shape[1] * shape[2]
-        types = jelly_types[j]
-        x = q[i]
-        v = qd[i]
-        f = vec3(scalar(0.0))
-        for di in range(-1, 2):
-            for dj in range(-1, 2):
-                for dk in range(-1, 2):
-                    m = wp.abs(di) + wp.abs(dj) + wp.abs(dk)
-                    if m > 0:
-                        ty = wp.min(m - 1, 1)  # one nonzero component: structural, else shear
-                        ok = ((types >> ty) & 1) != 0
-                        ok = ok and a + di >= 0 and a + di < shape[0] and b + dj >= 0 and b + dj < shape[1]
-                        ok = ok and c + dk >= 0 and c + dk < shape[2]
-                        p = masked_neighbour(i, ok, cell, di * row + dj * shape[2] + dk, gs, grid)
-                        rest = jelly_rest[j, (di + 1) * 9 + (dj + 1) * 3 + dk + 1]
-                        f += spring_force(x, q[p], v, qd[p], rest, jelly_ks[j, ty], jelly_kd[j, ty])
-        if ((types >> 2) & 1) != 0:
-            for axis in range(3):
-                for side in range(2):
-                    o = wp.vec3i(0, 0, 0)
-                    o[axis] = 4 * side - 2
-                    ok = a + o[0] >= 0 and a + o[0] < shape[0] and b + o[1] >= 0 and b + o[1] < shape[1]
-                    ok = ok and c + o[2] >= 0 and c + o[2] < shape[2]
-                    p = masked_neighbour(i, ok, cell, o[0] * row + o[1] * shape[2] + o[2], gs, grid)
-                    rest = jelly_rest[j, 27 + axis]
-                    f += spring_force(x, q[p], v, qd[p], rest, jelly_ks[j, 2], jelly_kd[j, 2])
-        f_out[i] = f
-
-    return {"masked_neighbour": masked_neighbour, "eval_masked_springs": eval_masked_springs,
-            "closest_on_triangle": closest_on_triangle, "mesh_distance": mesh_distance, "collide_meshes": collide_meshes,
+    """Temporary shim for files not yet converted: the module-level objects under their old names.
+    (The masked-lattice kernels live in kernels/lattice.py.)"""
+    return {"closest_on_triangle": closest_on_triangle, "mesh_distance": mesh_distance, "collide_meshes": collide_meshes,
             "mesh_face_distance": mesh_face_distance, "deform_mesh": deform_mesh,
             "collide_moving_meshes": collide_moving_meshes, "mark_inside_mesh": mark_inside_mesh}

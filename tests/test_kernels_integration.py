@@ -3,7 +3,6 @@
 import numpy as np
 import pytest
 import warp as wp
-
 from softsim_warp.kernels import integration
 from softsim_warp.kernels.precision import Float, both_precisions, vec3
 
@@ -48,7 +47,7 @@ def run_steps(device, scalar, np_dtype, method, direct, q0, v0, f, inv_mass, g, 
     vec = wp.types.vector(3, scalar)
     c, b = TABLEAUX.get(method, ((0.0,), (1.0,)))
     n = len(q0)
-    arr = lambda x: wp.array(np.asarray(x, dtype=np_dtype), dtype=vec, device=device)  # noqa: E731
+    arr = lambda x: wp.array(np.asarray(x, dtype=np_dtype), dtype=vec, device=device)
     q_n, qd_n = arr(q0), arr(v0)
     q_s, qd_s = arr(q0), arr(v0)
     f_s = arr(f)
@@ -137,10 +136,10 @@ def integrate_stage_direct(
 @pytest.mark.parametrize("scalar,np_dtype", PRECISIONS)
 @pytest.mark.parametrize("method", ["euler", "symplectic", "midpoint", "rk4"])
 def test_constant_force_steps_match_closed_form_and_both_accessors_agree_bitwise(device, scalar, np_dtype, method):
-    """Under a constant acceleration a every method here is exact up to rounding: v_n = v0 + a t exactly (all of them), and x_n = x0 + v0 t + a t^2 / 2 for midpoint and RK4
-    (second order suffices for a quadratic), x0 + v0 t + a t (t - h) / 2 for explicit Euler and
-    x0 + v0 t + a t (t + h) / 2 for symplectic Euler. The indexed and data-pointer stage updates
-    give the same bits."""
+    """Under a constant acceleration a every method here is exact up to rounding: v_n = v0 + a t
+    (all of them), x_n = x0 + v0 t + a t^2 / 2 for midpoint and RK4 (second order suffices for a
+    quadratic), x0 + v0 t + a t (t - h) / 2 for explicit Euler and x0 + v0 t + a t (t + h) / 2 for
+    symplectic Euler. The indexed and data-pointer stage updates give the same bits."""
     rng = np.random.default_rng(7)
     n, h, steps = 5, 0.01, 6
     q0, v0, f = (rng.uniform(-1, 1, (n, 3)) for _ in range(3))

@@ -3,7 +3,6 @@
 import numpy as np
 import pytest
 import warp as wp
-
 from softsim_warp.kernels import springs
 from softsim_warp.kernels.precision import Float, both_precisions, vec3
 
