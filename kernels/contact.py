@@ -818,20 +818,13 @@ def collide_moving_spheres(
         qd_out[i] = v
 
 
-def _direct_contact_planes(int_at, vec_at):
-    # The old factory's call (kernels/lattice.py): the contiguous accessors ask for the data-pointer variant.
-    if int_at is integration.int_contiguous and vec_at is integration.load_contiguous:
-        return contact_planes_direct
-    return contact_planes
-
-
 def build(scalar):
     """The names the unconverted kernel files and ``model.kernels`` still look up (temporary)."""
     return {
         "resolve_contact": resolve_contact,
         "plane_distance": plane_distance,
         "contact_planes": contact_planes,
-        "make_contact_planes": _direct_contact_planes,
+        "contact_planes_direct": contact_planes_direct,
         "collide_planes": collide_planes,
         "bowl_distance": bowl_distance,
         "bowl_holds": bowl_holds,
