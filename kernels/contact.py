@@ -42,13 +42,13 @@ wp.set_module_options({"enable_backward": False})
 # A particle touches a surface once its step brings it within this fraction of contact_epsilon of
 # it (or through it). Contact across the whole layer would hold a slowly settling particle wherever
 # it entered the layer, so a resting jelly would stand up to contact_epsilon above the ground. The
-# fraction only has to cover the rounding of a particle put back on the surface (1e-7 of a unit in float32), which
-# must still count as touching on the next step.
+# fraction only has to cover the rounding of a particle put back on the surface (1e-7 of a unit in
+# float32), which must still count as touching on the next step.
 TOUCH_FRACTION = 1.0e-3
 # The ``stage`` argument of the response that lets a particle touch anywhere within contact_epsilon:
 # the implicit contact solve constrains every particle at the surface or about to reach it (a stiff
-# lattice needs them all in the solve: with only those that reached the surface, the solve drives the
-# others into the ground, and putting them back after it adds energy at an impact).
+# lattice needs them all in the solve: with only those that reached the surface, the solve drives
+# the others into the ground, and putting them back after it adds energy at an impact).
 LAYER_TOUCH = -1
 # The signed distance that stands for "no surface here": over a plane's hole, above a bowl's cut.
 NO_SURFACE = 1.0e30
