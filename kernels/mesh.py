@@ -12,7 +12,7 @@ the face's normal points to (open sheets, which collide from that side only).
 import warp as wp
 
 from .contact import NO_SURFACE, resolve_contact, resolve_moving, surface_velocity
-from .pins import rotate
+from .pins import key_interval, rotate
 from .precision import Float, both_precisions, vec3
 
 wp.set_module_options({"enable_backward": False})
@@ -226,15 +226,9 @@ def collide_meshes(
 def sample_points(t: Float, first: int, count: int, times: wp.array(dtype=Float),
                   samples: wp.array2d(dtype=vec3), k: int):
     """Vertex ``k`` of an animated mesh at ``t``: linear between its samples, held outside them."""
-    last = first + count - 1
-    if t <= times[first]:
-        return samples[0, k]
-    if t >= times[last]:
-        return samples[count - 1, k]
-    s = first
-    while times[s + 1] < t:
-        s += 1
-    u = (t - times[s]) / (times[s + 1] - times[s])
+    s, u, held = key_interval(t, first, count, times)
+    if held != 0:
+        return samples[s - first, k]
     p0 = samples[s - first, k]
     return p0 + (samples[s + 1 - first, k] - p0) * u
 
