@@ -42,13 +42,13 @@ wp.set_module_options({"enable_backward": False})
 # A particle touches a surface once its step brings it within this fraction of contact_epsilon of
 # it (or through it). Contact across the whole layer would hold a slowly settling particle wherever
 # it entered the layer, so a resting jelly would stand up to contact_epsilon above the ground. The
-# fraction only has to cover the rounding of a particle put back on the surface (1e-7 of a unit in float32), which
-# must still count as touching on the next step.
+# fraction only has to cover the rounding of a particle put back on the surface (1e-7 of a unit in
+# float32), which must still count as touching on the next step.
 TOUCH_FRACTION = 1.0e-3
 # The ``stage`` argument of the response that lets a particle touch anywhere within contact_epsilon:
 # the implicit contact solve constrains every particle at the surface or about to reach it (a stiff
-# lattice needs them all in the solve: with only those that reached the surface, the solve drives the
-# others into the ground, and putting them back after it adds energy at an impact).
+# lattice needs them all in the solve: with only those that reached the surface, the solve drives
+# the others into the ground, and putting them back after it adds energy at an impact).
 LAYER_TOUCH = -1
 # The signed distance that stands for "no surface here": over a plane's hole, above a bowl's cut.
 NO_SURFACE = 1.0e30
@@ -180,7 +180,7 @@ def resolve_moving(
     v: vec3,
     v_prev: vec3,
     normal_prev: vec3,
-    vs: vec3,
+    v_surface: vec3,
     phi: Float,
     normal: vec3,
     restitution: Float,
@@ -191,14 +191,14 @@ def resolve_moving(
     beta_h: Float,
     stage: int,
 ):
-    """``resolve_contact`` in the frame of a surface moving at ``vs`` at the particle: the
+    """``resolve_contact`` in the frame of a surface moving at ``v_surface`` at the particle: the
     velocities before (along ``normal_prev``) and after the step are taken relative to it.
-    A particle that does not touch is returned untouched (not v - vs + vs, which rounds)."""
+    A particle that does not touch is returned untouched (not v - v_surface + v_surface, which rounds)."""
     if phi >= touch_distance(eps, stage):
         return x, v
-    x, v_rel = resolve_contact(x, v - vs, wp.dot(normal_prev, v_prev - vs), phi, normal, restitution, friction,
-                               eps, eps_v, rest_steps, beta_h, stage)
-    return x, v_rel + vs
+    x, v_rel = resolve_contact(x, v - v_surface, wp.dot(normal_prev, v_prev - v_surface), phi, normal, restitution,
+                               friction, eps, eps_v, rest_steps, beta_h, stage)
+    return x, v_rel + v_surface
 
 
 # -- Surfaces: each gives the response its signed distance and outward normal at the particle -----
@@ -336,10 +336,13 @@ def moving_bowl_distance(x: vec3, center: vec3, radius: Float, cut_height: Float
     """``bowl_distance`` of a bowl that may move (moving index ``m``, -1: static, ``center`` its
     centre now): a moving bowl's cut is a height in its own frame, so it turns with the bowl.
     Returns (phi, inward normal)."""
-    if m < 0:
-        return bowl_distance(x, center, radius, cut_height)
-    phi, n = bowl_distance(x, center, radius, type(radius)(NO_SURFACE))
-    if rotate(-motion_turn_now[m], x - center)[1] + motion_rest_point[m][1] >= cut_height:
+    cut = cut_height
+    above = False
+    if m >= 0:
+        above = rotate(-motion_turn_now[m], x - center)[1] + motion_rest_point[m][1] >= cut_height
+        cut = type(radius)(NO_SURFACE)
+    phi, n = bowl_distance(x, center, radius, cut)
+    if above:
         phi = type(radius)(NO_SURFACE)
     return phi, n
 
@@ -481,25 +484,26 @@ def move_terrain(
         count = motion_key_count[m]
         smooth = motion_smooth[m]
         c = motion_center[m]
-        c0, a0 = rigid_pose(t0, motion_velocity[m], motion_spin[m], c, first, count, smooth, key_time, key_value)
-        c1, a1 = rigid_pose(t0 + h, motion_velocity[m], motion_spin[m], c, first, count, smooth, key_time,
-                            key_value)
+        center_start, turn_start = rigid_pose(t0, motion_velocity[m], motion_spin[m], c, first, count, smooth,
+                                              key_time, key_value)
+        center_end, turn_end = rigid_pose(t0 + h, motion_velocity[m], motion_spin[m], c, first, count, smooth,
+                                          key_time, key_value)
         rest = motion_rest_point[m]
-        now = c1 + rotate(a1, rest - c)
-        motion_center_now[m] = c1
-        motion_turn_now[m] = a1
-        motion_velocity_step[m] = (c1 - c0) / h
-        motion_point_prev[m] = c0 + rotate(a0, rest - c)
+        point_end = center_end + rotate(turn_end, rest - c)
+        motion_center_now[m] = center_end
+        motion_turn_now[m] = turn_end
+        motion_velocity_step[m] = (center_end - center_start) / h
+        motion_point_prev[m] = center_start + rotate(turn_start, rest - c)
         k = motion_item[m]
         kind = motion_kind[m]
         if kind == 0:
-            plane_point[k] = now
-            plane_normal[k] = rotate(a1, motion_rest_normal[m])
-            plane_hole_center[k] = c1 + rotate(a1, motion_rest_hole[m] - c)
+            plane_point[k] = point_end
+            plane_normal[k] = rotate(turn_end, motion_rest_normal[m])
+            plane_hole_center[k] = center_end + rotate(turn_end, motion_rest_hole[m] - c)
         elif kind == 1:
-            bowl_center[k] = now
+            bowl_center[k] = point_end
         elif kind == 2:
-            sphere_center[k] = now
+            sphere_center[k] = point_end
         # A mesh (kind 3) stays where it was built: its contact reads the pose (kernels/mesh.py).
     clock[0] = clock[0] + 1
 
@@ -704,9 +708,9 @@ def collide_moving_planes(
             point = plane_point[p]
             if wp.dot(x - point, n) < eps:
                 phi = plane_distance(x, point, n, plane_hole_center[p], plane_hole_radius[p])
-                vs = surface_velocity(x, plane_motion[p], motion_center_now, motion_velocity_step, motion_spin)
-                x, v = resolve_moving(x, v, qd_prev[i], n, vs, phi, n, plane_restitution[p], plane_friction[p],
-                                      eps, eps_v, rest_steps, beta_h, stage)
+                v_surface = surface_velocity(x, plane_motion[p], motion_center_now, motion_velocity_step, motion_spin)
+                x, v = resolve_moving(x, v, qd_prev[i], n, v_surface, phi, n, plane_restitution[p],
+                                      plane_friction[p], eps, eps_v, rest_steps, beta_h, stage)
         q_out[i] = x
         qd_out[i] = v
 
@@ -757,9 +761,9 @@ def collide_moving_bowls(
             holds, n_out = bowl_holds(q_prev[i], c_prev, radius, eps)
             if holds:
                 phi, n = moving_bowl_distance(x, c, radius, bowl_cut_height[b], m, motion_turn_now, motion_rest_point)
-                vs = surface_velocity(x, m, motion_center_now, motion_velocity_step, motion_spin)
-                x, v = resolve_moving(x, v, qd_prev[i], -n_out, vs, phi, n, bowl_restitution[b], bowl_friction[b],
-                                      eps, eps_v, rest_steps, beta_h, stage)
+                v_surface = surface_velocity(x, m, motion_center_now, motion_velocity_step, motion_spin)
+                x, v = resolve_moving(x, v, qd_prev[i], -n_out, v_surface, phi, n, bowl_restitution[b],
+                                      bowl_friction[b], eps, eps_v, rest_steps, beta_h, stage)
         q_out[i] = x
         qd_out[i] = v
 
@@ -807,18 +811,11 @@ def collide_moving_spheres(
                 c_prev = motion_point_prev[m]
             phi, n = sphere_distance(x, c, radius)
             _phi_prev, n_prev = sphere_distance(q_prev[i], c_prev, radius)
-            vs = surface_velocity(x, m, motion_center_now, motion_velocity_step, motion_spin)
-            x, v = resolve_moving(x, v, qd_prev[i], n_prev, vs, phi, n, sphere_restitution[s], sphere_friction[s],
-                                  eps, eps_v, rest_steps, beta_h, stage)
+            v_surface = surface_velocity(x, m, motion_center_now, motion_velocity_step, motion_spin)
+            x, v = resolve_moving(x, v, qd_prev[i], n_prev, v_surface, phi, n, sphere_restitution[s],
+                                  sphere_friction[s], eps, eps_v, rest_steps, beta_h, stage)
         q_out[i] = x
         qd_out[i] = v
-
-
-def _direct_contact_planes(int_at, vec_at):
-    # The old factory's call (kernels/lattice.py): the contiguous accessors ask for the data-pointer variant.
-    if int_at is integration.int_contiguous and vec_at is integration.load_contiguous:
-        return contact_planes_direct
-    return contact_planes
 
 
 def build(scalar):
@@ -827,7 +824,7 @@ def build(scalar):
         "resolve_contact": resolve_contact,
         "plane_distance": plane_distance,
         "contact_planes": contact_planes,
-        "make_contact_planes": _direct_contact_planes,
+        "contact_planes_direct": contact_planes_direct,
         "collide_planes": collide_planes,
         "bowl_distance": bowl_distance,
         "bowl_holds": bowl_holds,

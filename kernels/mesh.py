@@ -12,7 +12,7 @@ the face's normal points to (open sheets, which collide from that side only).
 import warp as wp
 
 from .contact import NO_SURFACE, resolve_contact, resolve_moving, surface_velocity
-from .pins import rotate
+from .pins import key_interval, rotate
 from .precision import Float, both_precisions, vec3
 
 wp.set_module_options({"enable_backward": False})
@@ -226,15 +226,9 @@ def collide_meshes(
 def sample_points(t: Float, first: int, count: int, times: wp.array(dtype=Float),
                   samples: wp.array2d(dtype=vec3), k: int):
     """Vertex ``k`` of an animated mesh at ``t``: linear between its samples, held outside them."""
-    last = first + count - 1
-    if t <= times[first]:
-        return samples[0, k]
-    if t >= times[last]:
-        return samples[count - 1, k]
-    s = first
-    while times[s + 1] < t:
-        s += 1
-    u = (t - times[s]) / (times[s + 1] - times[s])
+    s, u, held = key_interval(t, first, count, times)
+    if held != 0:
+        return samples[s - first, k]
     p0 = samples[s - first, k]
     return p0 + (samples[s + 1 - first, k] - p0) * u
 
@@ -325,25 +319,25 @@ def collide_moving_meshes(
         v = qd_out[i]
         beta_h = h * world_contact_beta[w]
         for m in range(mesh_first[w], mesh_first[w + 1]):
-            mm = mesh_motion[m]
+            motion = mesh_motion[m]
             # The particle in the mesh's own frame (where its BVH was built).
-            xl = x
+            x_local = x
             turn = type(x)(type(h)(0.0))
-            if mm >= 0:
-                turn = motion_turn_now[mm]
-                xl = motion_center[mm] + rotate(-turn, x - motion_center_now[mm])
-            phi, nl, face = mesh_face_distance(xl, mesh_id[m], mesh_closed[m], mesh_reach[m], mesh_tri_start[m],
-                                               mesh_tris, mesh_points)
+            if motion >= 0:
+                turn = motion_turn_now[motion]
+                x_local = motion_center[motion] + rotate(-turn, x - motion_center_now[motion])
+            phi, normal_local, face = mesh_face_distance(x_local, mesh_id[m], mesh_closed[m], mesh_reach[m],
+                                                         mesh_tri_start[m], mesh_tris, mesh_points)
             if phi < eps:
-                n = rotate(turn, nl)
-                vs = surface_velocity(x, mm, motion_center_now, motion_velocity_step, motion_spin)
+                n = rotate(turn, normal_local)
+                v_surface = surface_velocity(x, motion, motion_center_now, motion_velocity_step, motion_spin)
                 if mesh_animated[m] != 0 and face >= 0:
                     t = mesh_tris[mesh_tri_start[m] + face]
-                    vl = face_velocity(xl - phi * nl, mesh_points[t[0]], mesh_points[t[1]], mesh_points[t[2]],
-                                       mesh_point_velocity[t[0]], mesh_point_velocity[t[1]],
-                                       mesh_point_velocity[t[2]])
-                    vs = vs + rotate(turn, vl)
-                x, v = resolve_moving(x, v, qd_prev[i], n, vs, phi, n, mesh_restitution[m], mesh_friction[m],
+                    v_local = face_velocity(x_local - phi * normal_local, mesh_points[t[0]], mesh_points[t[1]],
+                                            mesh_points[t[2]], mesh_point_velocity[t[0]], mesh_point_velocity[t[1]],
+                                            mesh_point_velocity[t[2]])
+                    v_surface = v_surface + rotate(turn, v_local)
+                x, v = resolve_moving(x, v, qd_prev[i], n, v_surface, phi, n, mesh_restitution[m], mesh_friction[m],
                                       eps, eps_v, rest_steps, beta_h, stage)
         q_out[i] = x
         qd_out[i] = v
@@ -352,6 +346,12 @@ def collide_moving_meshes(
 def build(scalar):
     """Temporary shim for files not yet converted: the module-level objects under their old names.
     (The masked-lattice kernels live in kernels/lattice.py.)"""
-    return {"closest_on_triangle": closest_on_triangle, "mesh_distance": mesh_distance, "collide_meshes": collide_meshes,
-            "mesh_face_distance": mesh_face_distance, "deform_mesh": deform_mesh,
-            "collide_moving_meshes": collide_moving_meshes, "mark_inside_mesh": mark_inside_mesh}
+    return {
+        "closest_on_triangle": closest_on_triangle,
+        "mesh_distance": mesh_distance,
+        "mesh_face_distance": mesh_face_distance,
+        "collide_meshes": collide_meshes,
+        "deform_mesh": deform_mesh,
+        "collide_moving_meshes": collide_moving_meshes,
+        "mark_inside_mesh": mark_inside_mesh,
+    }

@@ -34,22 +34,34 @@ def rotate(axis_angle: vec3, r: vec3):
 
 
 @wp.func
+def key_interval(t: Float, first: int, count: int, times: wp.array(dtype=Float)):
+    """Where ``t`` falls among the increasing ``times[first], ..., times[first + count - 1]``
+    (count > 0): (k, u, held). At or outside the ends ``held`` is 1 and ``k`` the end key that is
+    held; otherwise ``t`` lies in ``[times[k], times[k + 1]]`` at the fraction ``u`` of it. Shared by
+    the keyframed offsets here and the animated meshes' vertex samples (kernels/mesh.py)."""
+    last = first + count - 1
+    if t <= times[first]:
+        return first, type(t)(0.0), 1
+    if t >= times[last]:
+        return last, type(t)(0.0), 1
+    k = first
+    while times[k + 1] < t:
+        k += 1
+    return k, (t - times[k]) / (times[k + 1] - times[k]), 0
+
+
+@wp.func
 def key_offset(t: Float, first: int, count: int, smooth: int, key_time: wp.array(dtype=Float),
                key_value: wp.array(dtype=vec3)):
     """The keyframed offset at ``t``: held outside the keys, linear or Catmull-Rom between them."""
     if count == 0:
         return wp.vector(type(t)(0.0), length=3)
+    k, u, held = key_interval(t, first, count, key_time)
+    if held != 0:
+        return key_value[k]
     last = first + count - 1
-    if t <= key_time[first]:
-        return key_value[first]
-    if t >= key_time[last]:
-        return key_value[last]
-    k = first
-    while key_time[k + 1] < t:
-        k += 1
     t0 = key_time[k]
     t1 = key_time[k + 1]
-    u = (t - t0) / (t1 - t0)
     p0 = key_value[k]
     p1 = key_value[k + 1]
     if smooth == 0:

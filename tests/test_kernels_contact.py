@@ -461,3 +461,43 @@ def test_face_velocity_interpolates_a_linear_field_exactly(device, scalar, np_dt
                                                vec(*b), vec(*c), vec(*rigid(a)), vec(*rigid(b)), vec(*rigid(c)), out],
               device=device)
     np.testing.assert_allclose(out.numpy(), u + np.cross(w, x), rtol=0, atol=tol * 10)
+
+
+@pytest.mark.parametrize("scalar,np_dtype,tol", PRECISIONS)
+def test_flat_mesh_contact_is_plane_contact_bit_for_bit(device, scalar, np_dtype, tol):
+    """Over a face a mesh measures the distance to the face's plane, as an analytic plane does, and
+    both hand it to the same response: a flat two-triangle ground and the plane y = 0 give the same
+    bits for particles landing on it (impacts, resting contacts and free ones alike)."""
+    vec = wp.types.vector(3, scalar)
+    rng = np.random.default_rng(12)
+    n = 300
+    x = np.column_stack([rng.uniform(-0.9, 0.9, n), rng.uniform(-2e-3, 2e-3, n), rng.uniform(-0.9, 0.9, n)])
+    v = np.column_stack([rng.normal(size=n), rng.uniform(-3.0, 0.5, n), rng.normal(size=n)])
+    v_prev = v * rng.choice([0.0, 1.0], size=(n, 1))  # a resting contact (nothing brought in) or an impact
+    arr = lambda a, t=vec: wp.array(np.asarray(a, dtype=np_dtype), dtype=t, device=device)  # noqa: E731
+    ints = lambda a: wp.array(np.asarray(a, dtype=np.int32), dtype=wp.int32, device=device)  # noqa: E731
+    common = [arr(np.ones(n), scalar), ints(np.zeros(n))]
+    response = [arr([0.6], scalar), arr([0.4], scalar), scalar(EPS), scalar(EPS_V), scalar(REST_STEPS), scalar(1e-3),
+                arr([1.0], scalar), 0, arr(x - v * 1e-3), arr(v_prev)]
+    results = []
+    q_out, qd_out = arr(x), arr(v)
+    wp.launch(contact.collide_planes, n, inputs=[*common, ints([0, 1]), arr([[0.0, 0.0, 0.0]]), arr([[0.0, 1.0, 0.0]]),
+                                                 arr([[0.0, 0.0, 0.0]]), arr([0.0], scalar), *response, q_out, qd_out],
+              device=device)
+    results.append((q_out.numpy(), qd_out.numpy()))
+    corners = np.array([[-1.0, 0.0, -1.0], [1.0, 0.0, -1.0], [1.0, 0.0, 1.0], [-1.0, 0.0, 1.0]])
+    tris = np.array([[0, 2, 1], [0, 3, 2]], dtype=np.int32)  # wound so that the normal is +y
+    bvh = wp.Mesh(points=wp.array(corners, dtype=wp.vec3, device=device),
+                  indices=wp.array(tris.ravel(), dtype=wp.int32, device=device))
+    q_out, qd_out = arr(x), arr(v)
+    wp.launch(mesh_kernels.collide_meshes, n,
+              inputs=[*common, ints([0, 1]), wp.array([bvh.id], dtype=wp.uint64, device=device), ints([0]),
+                      arr([0.1], scalar), ints([0]), wp.array(tris, dtype=wp.vec3i, device=device), arr(corners),
+                      *response, q_out, qd_out], device=device)
+    results.append((q_out.numpy(), qd_out.numpy()))
+    (q_plane, v_plane), (q_mesh, v_mesh) = results
+    assert np.array_equal(q_mesh, q_plane) and np.array_equal(v_mesh, v_plane)
+    responded = np.any(v_plane != v.astype(np_dtype), axis=1)
+    assert responded.any() and not responded.all()
+    bounced = v_plane[:, 1] > 0.0
+    assert bounced.any()

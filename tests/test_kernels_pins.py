@@ -1,8 +1,9 @@
 """The pin functions of kernels/pins.py alone, in both precisions, through one-thread kernels.
 
-``rotate`` against a rotation matrix built from the axis-angle in NumPy (float64), and
+``rotate`` against a rotation matrix built from the axis-angle in NumPy (float64),
 ``pin_position`` (hence ``rigid_pose`` and ``key_offset``) against the host path of
-``core.pins.path_position``, for linear and Catmull-Rom keys, before, between and after them.
+``core.pins.path_position``, for linear and Catmull-Rom keys, before, between and after them, and
+``key_interval`` against NumPy's sorted search.
 """
 
 import numpy as np
@@ -103,3 +104,38 @@ def test_pin_position_follows_the_host_path(device, precision, interpolation):
     np.testing.assert_allclose(centre, np.stack([path_position(motion, motion["center"], t) for t in times]),
                                rtol=0, atol=tol * 10)
     np.testing.assert_allclose(turn, times[:, None] * motion["spin"], rtol=0, atol=tol * 10)
+
+
+@both_precisions
+@wp.kernel
+def key_intervals(t: wp.array(dtype=Float), first: int, count: int, times: wp.array(dtype=Float),
+                  k_out: wp.array(dtype=wp.int32), u_out: wp.array(dtype=Float), held_out: wp.array(dtype=wp.int32)):
+    i = wp.tid()
+    k, u, held = pins.key_interval(t[i], first, count, times)
+    k_out[i] = k
+    u_out[i] = u
+    held_out[i] = held
+
+
+@pytest.mark.parametrize("precision", PRECISIONS)
+def test_key_interval_finds_the_segment_and_the_fraction(device, precision):
+    """Keys 2..5 of an array (the range a pin or a mesh owns): before the first and after the last
+    the end key is held; between keys, t = t_k + u (t_{k+1} - t_k) with 0 <= u <= 1."""
+    scalar, np_scalar, tol = PRECISIONS[precision]
+    times = np.array([9.0, 9.5, 0.1, 0.4, 0.5, 0.9, 7.0])
+    first, count = 2, 4
+    t = np.array([-1.0, 0.1, 0.2, 0.4, 0.45, 0.7, 0.9, 2.0])
+    outs = [wp.zeros(t.size, dtype=d, device=device) for d in (wp.int32, scalar, wp.int32)]
+    wp.launch(key_intervals, t.size, inputs=[wp.array(t.astype(np_scalar), dtype=scalar, device=device), first, count,
+                                             wp.array(times.astype(np_scalar), dtype=scalar, device=device), *outs],
+              device=device)
+    k, u, held = (o.numpy() for o in outs)
+    keys = times[first:first + count]
+    assert held.tolist() == [1, 1, 0, 0, 0, 0, 1, 1]  # at an inner key (0.4): the end of its segment, u = 1
+    assert k[0] == k[1] == first and k[-1] == k[-2] == first + count - 1
+    inner = held == 0
+    seg = np.searchsorted(keys, t[inner], side="left") - 1 + first
+    assert np.array_equal(k[inner], seg)
+    expected_u = (t[inner] - times[seg]) / (times[seg + 1] - times[seg])
+    np.testing.assert_allclose(u[inner], expected_u, rtol=0, atol=tol * 10)
+    assert np.all((u[inner] >= 0.0) & (u[inner] <= 1.0))
