@@ -31,10 +31,9 @@ import time
 
 from softsim_warp.commands import stability
 from softsim_warp.core import stability_model as sm
+from softsim_warp.core.methods import EXPLICIT_NAMES as EXPLICIT
 from softsim_warp.io import stable_step
 from softsim_warp.io.scene import load_scene
-
-EXPLICIT = ("euler", "symplectic", "midpoint", "rk4")
 
 CASES = [
     ("box jelly_drop 10^3", "jelly_drop", []),

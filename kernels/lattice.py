@@ -17,31 +17,36 @@ Three kernels evaluate the same forces:
   multiply-adds the compiler puts into the native gather (docs/PERFORMANCE.md).
 * ``integrate_lattice_stage`` (the explicit methods on CUDA) fuses the gather with an integrator
   stage and, on the last stage, plane contact: one kernel per stage. Its gather
-  (``gather_native``) is straight-line C++ generated per stencil (:func:`_gather_snippet`, the
-  same text on CPU and CUDA), 1.26x faster than the same sums as Warp loops (fused symplectic stage, 100^3, H200), the same
-  bits on the CPU. ``single_stage`` is the same kernel compiled for one jelly's shape, with its
+  (``make_gather_native``) is straight-line C++ generated per stencil (:func:`_gather_snippet`,
+  the same text on CPU and CUDA), faster on CUDA than the same sums as Warp loops and the same bits
+  on the CPU. ``make_single_stage`` builds the same kernel compiled for one jelly's shape, with its
   coefficients as a kernel argument and unconditional loads from padded state arrays
   (``Model.particle_array``): the stage of a one-jelly model from 2^18 particles on.
 * ``eval_lattice_rows`` (the CPU path): Warp's CPU backend runs a kernel's threads as one scalar
-  call each (about 5.5 ns per spring on the development machine), so a thread-per-particle
-  kernel cannot use the CPU's vector units. This kernel runs one thread per jelly and does the
-  work in a native C++ loop (``wp.func_native``) over the 16 half-stencil offsets; the inner loops
-  are plain array loops that the C++ compiler vectorises (about 1.4 ns per spring measured with
-  AVX-512, both ends included), and each spring is evaluated once.
+  call each, so a thread-per-particle kernel cannot use the CPU's vector units. This kernel runs
+  one thread per jelly and does the work in a native C++ loop (``wp.func_native``) over the 16
+  half-stencil offsets; the inner loops are plain array loops that the C++ compiler vectorises,
+  and each spring is evaluated once.
   ``integrate_lattice_rows_stage`` appends the stage update to the same loop. It is race-free on
   CUDA too (each thread owns one jelly's particles) but slow there, so the model uses it on the
   CPU only.
 
-Both agree with ``eval_springs`` over the spring list to float32 rounding (tests/test_perf_paths.py).
+The spring force of every one of them is ``springs.spring_force``: ``eval_masked_springs`` calls it,
+and the others (``stencil_spring_force``, the ``SOFTSIM_SPRING`` macro, the row loops) are it
+rewritten for speed and checked against it on random springs, as the native stage updates are
+against ``integration.stage_values`` (tests/test_kernels_lattice.py). They agree with
+``eval_springs`` over the spring list to float32 rounding (tests/test_perf_paths.py).
 Measurements and the reasons for each choice: docs/PERFORMANCE.md.
 """
 
+import functools
 import itertools
 
 import numpy as np
 import warp as wp
 
-from . import contact, integration
+from . import contact, integration, springs
+from .precision import Float, both_precisions, concrete, is_generic, vec3
 
 # Spring types and their stencils: the lattice geometry that the gather kernels compile in.
 STRUCTURAL, SHEAR, BENDING = 0, 1, 2
@@ -123,9 +128,18 @@ def common_coefficients(rest, ks, kd, types, dtype):
     return coef
 
 
+# The smallest normal number of each precision, as C++ literals: the guard of the stencil spring
+# force (``stencil_spring_force``, ``SOFTSIM_SPRING``).
+_SMALLEST_NORMAL = {"float": "1.17549435e-38f", "double": "2.2250738585072014e-308"}
+
+
 def _spring_macros(ctype):
-    """The SOFTSIM_RSQRT and SOFTSIM_SPRING macros of the native gathers (see ``_gather_snippet``)."""
-    tiny = "1.17549435e-38f" if ctype == "float" else "2.2250738585072014e-308"
+    """The SOFTSIM_RSQRT and SOFTSIM_SPRING macros of the native gathers (see ``_gather_snippet``).
+
+    ``SOFTSIM_SPRING`` is ``stencil_spring_force`` in C++ (the same operations in the same order),
+    checked against it and against ``springs.spring_force`` by tests/test_kernels_lattice.py.
+    """
+    tiny = _SMALLEST_NORMAL[ctype]
     rsqrt = (
         "#if defined(__CUDA_ARCH__)\n"
         '#define SOFTSIM_RSQRT(a, r) asm("rsqrt.approx.ftz.f32 %0, %1;" : "=f"(r) : "f"(a))\n'
@@ -204,21 +218,18 @@ def _gather_snippet(ctype, padded=False, uniform=False, shape=None, types=None, 
     finite (for ks r below 3.7e19 in float32). Two instructions a spring fewer than
     max(|d|^2, tiny) and kr / l - ks - kd (dv . d) / l^2.
 
-    Why it is faster than the Warp loops (H200, Nsight Compute, fused symplectic stage at 100^3):
-    the loops' select-then-index addressing and short-circuit bounds tests cost about 34 integer
-    instructions per spring; here a spring is about 38 instructions in all (20 floating point, 6
-    loads, 6 register moves for the stand-in, the reciprocal square root and its guard), the
-    kernel executes 54 M warp instructions instead of 69 M and needs 64 registers instead of 96.
-    On CUDA the reciprocal square root is ``rsqrt.approx.ftz`` (the instruction rsqrtf uses for
-    normal numbers, without its denormal fix-up).
+    Why it is faster than the Warp loops: their select-then-index addressing and short-circuit
+    bounds tests cost integer instructions per spring that the row pointers and per-axis flags here
+    do not (the counts are in docs/PERFORMANCE.md). On CUDA the reciprocal square root is
+    ``rsqrt.approx.ftz`` (the instruction rsqrtf uses for normal numbers, without its denormal
+    fix-up).
 
     ``padded``: for state arrays that sit inside an allocation reaching ``LatticeData.pad``
     elements past both ends (``Model.particle_array``), so that every stencil address of every
     particle is readable. Then all 64 neighbour loads are unconditional and a spring's force is
     added only when the spring exists: the add is predicated, so whatever an invalid neighbour's
     address holds (a particle of another jelly or world, even a non-finite one, or the zeroed pad)
-    never reaches the sum. No stand-in moves (11 % fewer instructions per thread), same sums in the
-    same order.
+    never reaches the sum. No stand-in moves, same sums in the same order.
 
     ``uniform``: for models whose jellies all have the same rest lengths, ks and kd
     (``LatticeData.uniform``). The coefficients (``common_coefficients``) come as the kernel
@@ -231,9 +242,9 @@ def _gather_snippet(ctype, padded=False, uniform=False, shape=None, types=None, 
     particle compiled in as constants, for a model of one jelly (``single_stage``). Then every
     neighbour's address is the thread's own plus a constant, which the load instruction carries: the
     gather needs two base pointers instead of one per lattice row (42), the lattice coordinate
-    divisions become multiplications, and the springs of absent types are not compiled at all. The
-    sm_90 build takes 48 registers instead of 64 and 1904 instructions instead of 2032
-    (``cuobjdump -res-usage``; 48 registers on the H200 too). Same arithmetic, same bits.
+    divisions become multiplications, and the springs of absent types are not compiled at all,
+    which takes registers and instructions off the build (docs/PERFORMANCE.md). Same arithmetic,
+    same bits.
     """
     flag = {-2: "m2", -1: "m1", 1: "p1", 2: "p2"}
     lines = [
@@ -323,9 +334,8 @@ def _masked_gather_snippet(ctype):
 
     A spring costs what the box gather's does plus one 4-byte grid load (shared by the 32 threads of
     a warp along a lattice row, so cached) and the select and two address computations of the
-    neighbour's index. Coefficients, grid dimensions and spring types come from the per-jelly tables
-    (a build with one jelly's compiled in measured 1.05x faster on an H100 at 268k particles, too
-    little to keep).
+    neighbour's index. Coefficients, grid dimensions and spring types come from the per-jelly tables:
+    compiling one jelly's in gained too little to keep (docs/PERFORMANCE.md).
     """
     lines = [
         f"typedef {ctype} T;",
@@ -388,21 +398,21 @@ def _rows_snippet(ctype, with_stage=False):
 
 _ROWS_STAGE = """
     // Stage update of the jelly's particles (stage_values, vectorised): a = f/m + g.
-    const T* __restrict__ im = (const T*)particle_inv_mass.data + start;
-    const T* __restrict__ xn = (const T*)q_n.data + 3 * start;
-    const T* __restrict__ vn = (const T*)qd_n.data + 3 * start;
-    T* __restrict__ xo = (T*)q_out.data + 3 * start;
-    T* __restrict__ vo = (T*)qd_out.data + 3 * start;
+    const T* __restrict__ inv_mass = (const T*)particle_inv_mass.data + start;
+    const T* __restrict__ x_n = (const T*)q_n.data + 3 * start;
+    const T* __restrict__ v_n = (const T*)qd_n.data + 3 * start;
+    T* __restrict__ x_out = (T*)q_out.data + 3 * start;
+    T* __restrict__ v_out = (T*)qd_out.data + 3 * start;
     const T g[3] = {gravity[0], gravity[1], gravity[2]};
     if (((const int*)world_symplectic.data)[w]) {
         // Semi-implicit Euler: velocity first, then position with the new velocity.
         for (int p = 0; p < n; ++p) {
-            const T mi = im[p];
+            const T inv_mass_p = inv_mass[p];
             for (int d = 0; d < 3; ++d) {
-                const T a = mi == T(0) ? T(0) : fo[3 * p + d] * mi + g[d];
-                const T vnew = vn[3 * p + d] + h * a;
-                vo[3 * p + d] = vnew;
-                xo[3 * p + d] = xn[3 * p + d] + h * vnew;
+                const T a = inv_mass_p == T(0) ? T(0) : force[3 * p + d] * inv_mass_p + g[d];
+                const T vnew = v_n[3 * p + d] + h * a;
+                v_out[3 * p + d] = vnew;
+                x_out[3 * p + d] = x_n[3 * p + d] + h * vnew;
             }
         }
         return;
@@ -410,30 +420,30 @@ _ROWS_STAGE = """
     const int cols = world_stage_b.shape[1];
     const T b = ((const T*)world_stage_b.data)[w * cols + stage];
     const T b0 = ((const T*)world_stage_b.data)[w * cols];
-    T* __restrict__ aq = (T*)acc_q_out.data + 3 * start;
-    T* __restrict__ aqd = (T*)acc_qd_out.data + 3 * start;
+    T* __restrict__ acc_x_out = (T*)acc_q_out.data + 3 * start;
+    T* __restrict__ acc_v_out = (T*)acc_qd_out.data + 3 * start;
     const bool first = stage == 0, last = stage == count - 1;
-    const T hc = last ? T(0) : h * ((const T*)world_stage_c.data)[w * cols + stage + 1];
-    T* __restrict__ xnext = (T*)q_next_out.data + 3 * start;
-    T* __restrict__ vnext = (T*)qd_next_out.data + 3 * start;
+    const T h_c_next = last ? T(0) : h * ((const T*)world_stage_c.data)[w * cols + stage + 1];
+    T* __restrict__ x_next = (T*)q_next_out.data + 3 * start;
+    T* __restrict__ v_next = (T*)qd_next_out.data + 3 * start;
     for (int p = 0; p < n; ++p) {
-        const T mi = im[p];
+        const T inv_mass_p = inv_mass[p];
         for (int d = 0; d < 3; ++d) {
             const int e = 3 * p + d;
-            const T a = mi == T(0) ? T(0) : fo[e] * mi + g[d];
+            const T a = inv_mass_p == T(0) ? T(0) : force[e] * inv_mass_p + g[d];
             const T vs = v[e];
             T acc_x = b * vs, acc_v = b * a;
             // Stage 0's position term b_0 v_n is recomputed at stage 1, not stored (stage_values).
-            if (stage == 1) { acc_x = acc_x + b0 * vn[e]; acc_v = acc_v + aqd[e]; }
-            else if (!first) { acc_x = acc_x + aq[e]; acc_v = acc_v + aqd[e]; }
+            if (stage == 1) { acc_x = acc_x + b0 * v_n[e]; acc_v = acc_v + acc_v_out[e]; }
+            else if (!first) { acc_x = acc_x + acc_x_out[e]; acc_v = acc_v + acc_v_out[e]; }
             if (last) {
-                xo[e] = xn[e] + h * acc_x;
-                vo[e] = vn[e] + h * acc_v;
+                x_out[e] = x_n[e] + h * acc_x;
+                v_out[e] = v_n[e] + h * acc_v;
             } else {
-                if (!first) aq[e] = acc_x;
-                aqd[e] = acc_v;
-                xnext[e] = xn[e] + hc * vs;
-                vnext[e] = vn[e] + hc * a;
+                if (!first) acc_x_out[e] = acc_x;
+                acc_v_out[e] = acc_v;
+                x_next[e] = x_n[e] + h_c_next * vs;
+                v_next[e] = v_n[e] + h_c_next * a;
             }
         }
     }
@@ -450,10 +460,10 @@ _ROWS_FORCES = """
     const int types = ((const int*)jelly_types.data)[j];
     const T* __restrict__ x = (const T*)q.data + 3 * start;
     const T* __restrict__ v = (const T*)qd.data + 3 * start;
-    const int* __restrict__ cz = (const int*)coord_k.data + start;
-    T* __restrict__ fo = (T*)f_out.data + 3 * start;
-    T* __restrict__ t = (T*)scratch.data + 3 * start;
-    for (int e = 0; e < 3 * n; ++e) fo[e] = T(0);
+    const int* __restrict__ coord_k_of = (const int*)coord_k.data + start;
+    T* __restrict__ force = (T*)f_out.data + 3 * start;
+    T* __restrict__ first_end_force = (T*)scratch.data + 3 * start;
+    for (int e = 0; e < 3 * n; ++e) force[e] = T(0);
     for (int o = 0; o < {NOFF}; ++o) {{
         const int di = OFFSETS[o][0], dj = OFFSETS[o][1], dk = OFFSETS[o][2], ty = OFFSETS[o][3];
         if (!((types >> ty) & 1)) continue;
@@ -472,96 +482,252 @@ _ROWS_FORCES = """
             // output, so the compiler vectorises it; an out-of-lattice partner gives zero.
             for (int p = p0; p < p1; ++p) {{
                 const int s = 3 * p, e = 3 * (p + L);
-                const bool ok = (unsigned)(cz[p] + dk) < (unsigned)nz;
+                const bool ok = (unsigned)(coord_k_of[p] + dk) < (unsigned)nz;
                 const T dx = x[s] - x[e], dy = x[s + 1] - x[e + 1], dz = x[s + 2] - x[e + 2];
                 const T ux = v[s] - v[e], uy = v[s + 1] - v[e + 1], uz = v[s + 2] - v[e + 2];
                 const T l2 = dx * dx + dy * dy + dz * dz;
                 // Coincident particles have no direction: zero force, as in spring_force.
                 const T inv = l2 > T(0) ? T(1) / wp::sqrt(l2) : T(0);
                 const T m_all = -(k * (l2 * inv - r) + c * (ux * dx + uy * dy + uz * dz) * inv) * inv;
-                // Select after computing: folding the test into the expression made the compiler
-                // predicate the divide and square root, 2.5x slower.
+                // Select after computing: folding the test into the expression makes the compiler
+                // predicate the divide and square root, which is much slower.
                 const T m = ok ? m_all : T(0);
                 const T fx = m * dx, fy = m * dy, fz = m * dz;
-                fo[s] += fx; fo[s + 1] += fy; fo[s + 2] += fz;
-                t[s] = fx; t[s + 1] = fy; t[s + 2] = fz;
+                force[s] += fx; force[s + 1] += fy; force[s + 2] += fz;
+                first_end_force[s] = fx; first_end_force[s + 1] = fy; first_end_force[s + 2] = fz;
             }}
             // Pass 2: the opposite force on the second end (apart from pass 1: p + L may be p + 1).
             for (int p = p0; p < p1; ++p) {{
                 const int s = 3 * p, e = 3 * (p + L);
-                fo[e] -= t[s]; fo[e + 1] -= t[s + 1]; fo[e + 2] -= t[s + 2];
+                force[e] -= first_end_force[s];
+                force[e + 1] -= first_end_force[s + 1];
+                force[e + 2] -= first_end_force[s + 2];
             }}
         }}
     }}
 """
 
 
-def build(scalar):
-    vec3 = wp.types.vector(3, scalar)
-    contact_funcs = contact.build(scalar)
-    integration_funcs = integration.build(scalar)
-    contact_planes_direct = contact_funcs["make_contact_planes"](
-        integration_funcs["int_contiguous"], integration_funcs["load_contiguous"]
+# -- Module-level kernels and funcs (generic over float32 and float64, kernels/precision.py) ----------
+
+_CTYPES = {wp.float32: "float", wp.float64: "double"}
+
+# The uniform gather's coefficients (common_coefficients), passed by value.
+CoefVec = wp.types.vector(COEF_LENGTH, Float)
+
+
+def _for_precision(kernel, scalar):
+    """Declare ``kernel``'s overload for ``scalar`` only: a kernel around a native snippet or a
+    shape is built per precision by its factory (``both_precisions`` declares both)."""
+    wp.overload(kernel, {name: concrete(t, scalar) for name, t in kernel.adj.arg_types.items() if is_generic(t)})
+    return kernel
+
+
+# Native helpers: a snippet's return type cannot be generic, so each is declared for float32 and for
+# float64 under one name, and Warp picks the overload from the argument types.
+for _scalar, _ctype in _CTYPES.items():
+
+    @wp.func_native(
+        "#if defined(__CUDA_ARCH__)\nreturn rsqrtf(x);\n#else\nreturn 1.0f / wp::sqrt(x);\n#endif\n"
+        if _ctype == "float"
+        else "return 1.0 / wp::sqrt(x);"
     )
-
-    if scalar == wp.float32:
-        inv_sqrt_snippet = """
-#if defined(__CUDA_ARCH__)
-return rsqrtf(x);
-#else
-return 1.0f / wp::sqrt(x);
-#endif
-"""
-    else:
-        inv_sqrt_snippet = "return 1.0 / wp::sqrt(x);"
-
-    @wp.func_native(inv_sqrt_snippet)
-    def inv_sqrt(x: scalar) -> scalar:
+    def inv_sqrt(x: _scalar) -> _scalar:
         """1/sqrt(x): on CUDA in float32 the hardware rsqrtf (within 2 ulp), elsewhere exact."""
 
-    ctype = "float" if scalar == wp.float32 else "double"
+    @wp.func_native(f"return {_SMALLEST_NORMAL[_ctype]};")
+    def smallest_normal(like: _scalar) -> _scalar:
+        """The smallest normal number of ``like``'s type (the guard of ``stencil_spring_force``)."""
 
-    # a[i] of a contiguous vec3 array with the element size a constant (see load_contiguous).
-    load_vec = integration_funcs["load_contiguous"]
-    store_vec = integration_funcs["store_contiguous"]
+    @wp.func_native(_rows_snippet(_ctype))
+    def lattice_rows_native(
+        j: int,
+        jelly_start: wp.array(dtype=wp.int32),
+        jelly_shape: wp.array(dtype=wp.vec3i),
+        jelly_types: wp.array(dtype=wp.int32),
+        jelly_rest: wp.array2d(dtype=_scalar),
+        jelly_ks: wp.array2d(dtype=_scalar),
+        jelly_kd: wp.array2d(dtype=_scalar),
+        coord_k: wp.array(dtype=wp.int32),
+        q: wp.array(dtype=wp.types.vector(3, _scalar)),
+        qd: wp.array(dtype=wp.types.vector(3, _scalar)),
+        scratch: wp.array(dtype=wp.types.vector(3, _scalar)),
+        f_out: wp.array(dtype=wp.types.vector(3, _scalar)),
+    ):
+        """Spring forces of lattice jelly j by row loops (``_ROWS_FORCES``)."""
 
-    # a[j, k] of a contiguous 2-d table (row offset once per thread, column offset folded).
-    table_entry = integration_funcs["entry_contiguous"]
+    @wp.func_native(_rows_snippet(_ctype, with_stage=True))
+    def lattice_rows_stage_native(
+        j: int,
+        stage: int,
+        h: _scalar,
+        jelly_start: wp.array(dtype=wp.int32),
+        jelly_shape: wp.array(dtype=wp.vec3i),
+        jelly_types: wp.array(dtype=wp.int32),
+        jelly_rest: wp.array2d(dtype=_scalar),
+        jelly_ks: wp.array2d(dtype=_scalar),
+        jelly_kd: wp.array2d(dtype=_scalar),
+        jelly_world: wp.array(dtype=wp.int32),
+        coord_k: wp.array(dtype=wp.int32),
+        particle_inv_mass: wp.array(dtype=_scalar),
+        gravity: wp.types.vector(3, _scalar),
+        world_stage_count: wp.array(dtype=wp.int32),
+        world_symplectic: wp.array(dtype=wp.int32),
+        world_stage_c: wp.array2d(dtype=_scalar),
+        world_stage_b: wp.array2d(dtype=_scalar),
+        q_n: wp.array(dtype=wp.types.vector(3, _scalar)),
+        qd_n: wp.array(dtype=wp.types.vector(3, _scalar)),
+        q: wp.array(dtype=wp.types.vector(3, _scalar)),
+        qd: wp.array(dtype=wp.types.vector(3, _scalar)),
+        scratch: wp.array(dtype=wp.types.vector(3, _scalar)),
+        f_out: wp.array(dtype=wp.types.vector(3, _scalar)),
+        acc_q_out: wp.array(dtype=wp.types.vector(3, _scalar)),
+        acc_qd_out: wp.array(dtype=wp.types.vector(3, _scalar)),
+        q_next_out: wp.array(dtype=wp.types.vector(3, _scalar)),
+        qd_next_out: wp.array(dtype=wp.types.vector(3, _scalar)),
+        q_out: wp.array(dtype=wp.types.vector(3, _scalar)),
+        qd_out: wp.array(dtype=wp.types.vector(3, _scalar)),
+    ):
+        """Spring forces of lattice jelly j by row loops, then its particles' stage update (``_ROWS_STAGE``)."""
 
-    tiny = float(np.finfo(np.float32 if scalar == wp.float32 else np.float64).tiny)
 
-    @wp.func
-    def stencil_spring_force(x: vec3, xb: vec3, v: vec3, vb: vec3, kr: scalar, nks: scalar, kd: scalar):
-        """``spring_force`` as s d with one reciprocal square root (see ``_gather_snippet``).
+del _scalar, _ctype
 
-        ``kr`` is ks times the rest length, ``nks`` is -ks. The IEEE square root and the three
-        divisions of d / |d| cost the gather kernel a third of its time on an H200; rsqrtf's 2 ulp
-        are of the order of the float32 rounding the sum already has. Coincident particles give
-        zero force, as in ``spring_force``: the squared length has the smallest normal number
-        added, so s stays finite while d = 0. Same operations in the same order as the native
-        gather's spring (bitwise on the CPU).
-        """
-        d = x - xb
-        inv = inv_sqrt(d[0] * d[0] + (d[1] * d[1] + (d[2] * d[2] + scalar(tiny))))
-        s = (kr - kd * (wp.dot(v - vb, d) * inv)) * inv + nks
-        return s * d
 
-    @wp.func
-    def lattice_coord(local: int, shape: wp.vec3i):
-        """Lattice coordinate (a, b, c) of a jelly-local particle index (i*ny + j)*nz + k."""
-        c = local % shape[2]
-        t = local // shape[2]
-        return wp.vec3i(t // shape[1], t % shape[1], c)
+@wp.func
+def stencil_spring_force(x: vec3, xb: vec3, v: vec3, vb: vec3, kr: Float, nks: Float, kd: Float):
+    """``springs.spring_force`` as s d with one reciprocal square root (see ``_gather_snippet``).
 
-    @wp.func
-    def inside(a: int, b: int, c: int, shape: wp.vec3i):
-        return a >= 0 and a < shape[0] and b >= 0 and b < shape[1] and c >= 0 and c < shape[2]
+    Algebraically ``spring_force(x, xb, v, vb, rest, ks, kd)`` with ``kr`` = ks times the rest length
+    and ``nks`` = -ks: -(ks (l - r) + kd (dv . d) / l) d / l = ((ks r - kd (dv . d) / l) / l - ks) d.
+    The form exists because the IEEE square root and the three divisions of d / |d| dominate the
+    gather on CUDA, and the product ks r is one coefficient per stencil slot; rsqrtf's 2 ulp are of
+    the order of the float32 rounding the sum already has. Coincident particles give zero force, as
+    in ``spring_force``: the squared length has the smallest normal number added, so s stays finite
+    while d = 0. Same operations in the same order as the native gathers' ``SOFTSIM_SPRING``
+    (bitwise on the CPU); tests/test_kernels_lattice.py checks both against ``spring_force``.
+    """
+    d = x - xb
+    inv = inv_sqrt(d[0] * d[0] + (d[1] * d[1] + (d[2] * d[2] + smallest_normal(kr))))
+    s = (kr - kd * (wp.dot(v - vb, d) * inv)) * inv + nks
+    return s * d
 
-    # The uniform gather's coefficients (common_coefficients), passed by value.
-    coef_vec = wp.types.vector(COEF_LENGTH, scalar)
 
-    @wp.func
-    def gather_lattice_force(
+@wp.func
+def lattice_coord(local: int, shape: wp.vec3i):
+    """Lattice coordinate (a, b, c) of a jelly-local particle index (i*ny + j)*nz + k."""
+    c = local % shape[2]
+    t = local // shape[2]
+    return wp.vec3i(t // shape[1], t % shape[1], c)
+
+
+@wp.func
+def inside(a: int, b: int, c: int, shape: wp.vec3i):
+    return a >= 0 and a < shape[0] and b >= 0 and b < shape[1] and c >= 0 and c < shape[2]
+
+
+@wp.func
+def gather_lattice_force(
+    i: int,
+    j: int,
+    jelly_start: wp.array(dtype=wp.int32),
+    jelly_shape: wp.array(dtype=wp.vec3i),
+    jelly_types: wp.array(dtype=wp.int32),
+    jelly_rest: wp.array2d(dtype=Float),
+    jelly_ks: wp.array2d(dtype=Float),
+    jelly_kd: wp.array2d(dtype=Float),
+    q: wp.array(dtype=vec3),
+    qd: wp.array(dtype=vec3),
+):
+    """Spring force on particle i of lattice jelly j: the sum over its stencil neighbours, in Warp loops."""
+    shape = jelly_shape[j]
+    lc = lattice_coord(i - jelly_start[j], shape)
+    a = lc[0]
+    b = lc[1]
+    c = lc[2]
+    types = jelly_types[j]
+    # Per-type coefficients read once (the unrolled loop would otherwise load them per neighbour).
+    ks_structural = jelly_ks[j, 0]
+    ks_shear = jelly_ks[j, 1]
+    kd_structural = jelly_kd[j, 0]
+    kd_shear = jelly_kd[j, 1]
+    x = integration.load_contiguous(q, i)
+    v = integration.load_contiguous(qd, i)
+    f = type(x)(type(ks_structural)(0.0))
+    # Structural and shear: the 26 neighbours in the 3x3x3 block. These loops have constant
+    # bounds, so Warp unrolls them and every offset below is a compile-time constant.
+    # Branch-free: a neighbour outside the lattice (or of an absent spring type) is replaced by
+    # the particle itself, whose zero distance gives exactly zero force (stencil_spring_force).
+    # Every load is then unconditional, so the compiler can issue the 64 neighbour loads
+    # together instead of one guarded load after another; same sums in the same order
+    # (x + 0 = x), so the same bits.
+    row = shape[1] * shape[2]
+    for di in range(-1, 2):
+        for dj in range(-1, 2):
+            for dk in range(-1, 2):
+                m = wp.abs(di) + wp.abs(dj) + wp.abs(dk)
+                if m > 0:
+                    ty = wp.min(m - 1, 1)  # one nonzero component: structural, else shear
+                    ok = ((types >> ty) & 1) != 0 and inside(a + di, b + dj, c + dk, shape)
+                    p = wp.where(ok, i + di * row + dj * shape[2] + dk, i)
+                    rest = integration.entry_contiguous(jelly_rest, j, (di + 1) * 9 + (dj + 1) * 3 + dk + 1)
+                    ks = wp.where(ty == 0, ks_structural, ks_shear)
+                    kd = wp.where(ty == 0, kd_structural, kd_shear)
+                    f += stencil_spring_force(
+                        x, integration.load_contiguous(q, p), v, integration.load_contiguous(qd, p), rest * ks, -ks, kd
+                    )
+    # Bending: +-2 along each axis.
+    has_bending = ((types >> 2) & 1) != 0
+    ks_bending = jelly_ks[j, 2]
+    kd_bending = jelly_kd[j, 2]
+    for axis in range(3):
+        for side in range(2):
+            o = wp.vec3i(0, 0, 0)
+            o[axis] = 4 * side - 2
+            ok = has_bending and inside(a + o[0], b + o[1], c + o[2], shape)
+            p = wp.where(ok, i + o[0] * row + o[1] * shape[2] + o[2], i)
+            kr = integration.entry_contiguous(jelly_rest, j, 27 + axis) * ks_bending
+            f += stencil_spring_force(
+                x, integration.load_contiguous(q, p), v, integration.load_contiguous(qd, p), kr, -ks_bending, kd_bending
+            )
+    return f
+
+
+@both_precisions
+@wp.kernel
+def eval_lattice_springs(
+    # Model:
+    particle_jelly: wp.array(dtype=wp.int32),
+    jelly_start: wp.array(dtype=wp.int32),
+    jelly_shape: wp.array(dtype=wp.vec3i),
+    jelly_types: wp.array(dtype=wp.int32),
+    jelly_rest: wp.array2d(dtype=Float),
+    jelly_ks: wp.array2d(dtype=Float),
+    jelly_kd: wp.array2d(dtype=Float),
+    # State in:
+    q: wp.array(dtype=vec3),
+    qd: wp.array(dtype=vec3),
+    # Out (every element written; no zeroing needed):
+    f_out: wp.array(dtype=vec3),
+):
+    i = wp.tid()
+    j = particle_jelly[i]
+    f_out[i] = gather_lattice_force(i, j, jelly_start, jelly_shape, jelly_types, jelly_rest, jelly_ks, jelly_kd, q, qd)
+
+
+@functools.cache
+def make_gather_native(scalar, padded=False, uniform=False, shape=None, types=None, start=None):
+    """``gather_native`` for ``scalar`` with the given ``_gather_snippet`` options (``shape`` a tuple).
+
+    Its arguments are ``gather_lattice_force``'s and the uniform coefficients ``coef``, which a
+    uniform gather reads instead of the rest, ks and kd tables (the others ignore it).
+    """
+    vec = wp.types.vector(3, scalar)
+
+    @wp.func_native(
+        _gather_snippet(_CTYPES[scalar], padded=padded, uniform=uniform, shape=shape, types=types, start=start)
+    )
+    def gather_native(
         i: int,
         j: int,
         jelly_start: wp.array(dtype=wp.int32),
@@ -570,325 +736,23 @@ return 1.0f / wp::sqrt(x);
         jelly_rest: wp.array2d(dtype=scalar),
         jelly_ks: wp.array2d(dtype=scalar),
         jelly_kd: wp.array2d(dtype=scalar),
-        q: wp.array(dtype=vec3),
-        qd: wp.array(dtype=vec3),
-        coef: coef_vec,
-    ):
-        """Spring force on particle i of lattice jelly j: the sum over its stencil neighbours.
+        q: wp.array(dtype=vec),
+        qd: wp.array(dtype=vec),
+        coef: wp.types.vector(COEF_LENGTH, scalar),
+    ) -> vec: ...
 
-        Every gather takes the same arguments; this one reads the tables and ignores ``coef``.
-        """
-        shape = jelly_shape[j]
-        lc = lattice_coord(i - jelly_start[j], shape)
-        a = lc[0]
-        b = lc[1]
-        c = lc[2]
-        types = jelly_types[j]
-        # Per-type coefficients read once (the unrolled loop would otherwise load them per neighbour).
-        ks_structural = jelly_ks[j, 0]
-        ks_shear = jelly_ks[j, 1]
-        kd_structural = jelly_kd[j, 0]
-        kd_shear = jelly_kd[j, 1]
-        x = load_vec(q, i)
-        v = load_vec(qd, i)
-        f = vec3(scalar(0.0))
-        # Structural and shear: the 26 neighbours in the 3x3x3 block. These loops have constant
-        # bounds, so Warp unrolls them and every offset below is a compile-time constant.
-        # Branch-free: a neighbour outside the lattice (or of an absent spring type) is replaced by
-        # the particle itself, whose zero distance gives exactly zero force (stencil_spring_force).
-        # Every load is then unconditional, so the compiler can issue the 64 neighbour loads
-        # together instead of one guarded load after another: 1.27x faster at 100^3 on an H200;
-        # same sums in the same order (x + 0 = x), so the same bits.
-        row = shape[1] * shape[2]
-        for di in range(-1, 2):
-            for dj in range(-1, 2):
-                for dk in range(-1, 2):
-                    m = wp.abs(di) + wp.abs(dj) + wp.abs(dk)
-                    if m > 0:
-                        ty = wp.min(m - 1, 1)  # one nonzero component: structural, else shear
-                        ok = ((types >> ty) & 1) != 0 and inside(a + di, b + dj, c + dk, shape)
-                        p = wp.where(ok, i + di * row + dj * shape[2] + dk, i)
-                        rest = table_entry(jelly_rest, j, (di + 1) * 9 + (dj + 1) * 3 + dk + 1)
-                        ks = wp.where(ty == 0, ks_structural, ks_shear)
-                        kd = wp.where(ty == 0, kd_structural, kd_shear)
-                        f += stencil_spring_force(x, load_vec(q, p), v, load_vec(qd, p), rest * ks, -ks, kd)
-        # Bending: +-2 along each axis.
-        has_bending = ((types >> 2) & 1) != 0
-        ks_bending = jelly_ks[j, 2]
-        kd_bending = jelly_kd[j, 2]
-        for axis in range(3):
-            for side in range(2):
-                o = wp.vec3i(0, 0, 0)
-                o[axis] = 4 * side - 2
-                ok = has_bending and inside(a + o[0], b + o[1], c + o[2], shape)
-                p = wp.where(ok, i + o[0] * row + o[1] * shape[2] + o[2], i)
-                kr = table_entry(jelly_rest, j, 27 + axis) * ks_bending
-                f += stencil_spring_force(x, load_vec(q, p), v, load_vec(qd, p), kr, -ks_bending, kd_bending)
-        return f
+    return gather_native
 
-    def make_gather_native(**options):
-        """``gather_native`` with the given ``_gather_snippet`` options (each call its own function).
 
-        The arguments are ``gather_lattice_force``'s; a uniform gather reads ``coef`` instead of the
-        rest, ks and kd tables, the others ignore it.
-        """
+@functools.cache
+def make_masked_gather(scalar):
+    """``masked_gather`` for ``scalar``: the native gather of a masked lattice (``_masked_gather_snippet``),
+    with the arguments of ``make_gather_native``'s gathers."""
+    vec = wp.types.vector(3, scalar)
 
-        @wp.func_native(_gather_snippet(ctype, **options))
-        def gather_native(
-            i: int,
-            j: int,
-            jelly_start: wp.array(dtype=wp.int32),
-            jelly_shape: wp.array(dtype=wp.vec3i),
-            jelly_types: wp.array(dtype=wp.int32),
-            jelly_rest: wp.array2d(dtype=scalar),
-            jelly_ks: wp.array2d(dtype=scalar),
-            jelly_kd: wp.array2d(dtype=scalar),
-            q: wp.array(dtype=vec3),
-            qd: wp.array(dtype=vec3),
-            coef: coef_vec,
-        ) -> vec3: ...
-
-        return gather_native
-
-    gather_native = make_gather_native()
-
-    def make_eval_lattice_springs(gather):
-        """The force kernel around a per-particle gather (``gather_lattice_force`` or ``gather_native``)."""
-
-        @wp.kernel(module="unique")
-        def eval_lattice_springs(
-            # Model:
-            particle_jelly: wp.array(dtype=wp.int32),
-            jelly_start: wp.array(dtype=wp.int32),
-            jelly_shape: wp.array(dtype=wp.vec3i),
-            jelly_types: wp.array(dtype=wp.int32),
-            jelly_rest: wp.array2d(dtype=scalar),
-            jelly_ks: wp.array2d(dtype=scalar),
-            jelly_kd: wp.array2d(dtype=scalar),
-            # State in:
-            q: wp.array(dtype=vec3),
-            qd: wp.array(dtype=vec3),
-            # Out (every element written; no zeroing needed):
-            f_out: wp.array(dtype=vec3),
-        ):
-            i = wp.tid()
-            j = particle_jelly[i]
-            f_out[i] = gather(
-                i, j, jelly_start, jelly_shape, jelly_types, jelly_rest, jelly_ks, jelly_kd, q, qd, coef_vec()
-            )
-
-        return eval_lattice_springs
-
-    eval_lattice_springs = make_eval_lattice_springs(gather_lattice_force)
-
-    def make_integrate_lattice_stage(gather, single=False):
-        """The fused stage kernel around a per-particle native gather (``make_gather_native``).
-
-        The kernel passes the gather both the per-jelly tables and ``stencil_coef``, the jellies'
-        common coefficients (a kernel argument); a uniform gather reads the latter.
-
-        The particle's jelly, world and inverse mass, the per-world
-        tableau and the plane range, point and normal are read from the arrays' data pointers, one
-        address computation each, instead of through Warp's indexing (about 8 instructions an
-        access: the wrap of a negative index and a 64-bit multiply by the run-time stride). These
-        are the model's and the integrator's own arrays, contiguous by construction. Measured
-        1.02-1.05x at 100^3 and 40^3 on an H200 (docs/PERFORMANCE.md).
-
-        ``single``: for a model that is one jelly of particles of one mass (``LatticeData.single``):
-        the jelly is 0 and the world and inverse mass are particle 0's, so the kernel reads no
-        per-particle jelly, world or mass (12 of a symplectic stage's 60 bytes a particle).
-        """
-        sv = integration_funcs["stage_values_direct"]
-        planes = contact_planes_direct
-        int_at = integration_funcs["int_contiguous"]
-        scalar_at = integration_funcs["scalar_contiguous"]
-
-        @wp.kernel(module="unique")
-        def integrate_lattice_stage(
-            stage: int,
-            h: scalar,
-            with_contact: int,
-            # Model:
-            particle_inv_mass: wp.array(dtype=scalar),
-            particle_world: wp.array(dtype=wp.int32),
-            particle_jelly: wp.array(dtype=wp.int32),
-            gravity: vec3,
-            jelly_start: wp.array(dtype=wp.int32),
-            jelly_shape: wp.array(dtype=wp.vec3i),
-            jelly_types: wp.array(dtype=wp.int32),
-            jelly_rest: wp.array2d(dtype=scalar),
-            jelly_ks: wp.array2d(dtype=scalar),
-            jelly_kd: wp.array2d(dtype=scalar),
-            world_stage_count: wp.array(dtype=wp.int32),
-            world_symplectic: wp.array(dtype=wp.int32),
-            world_stage_c: wp.array2d(dtype=scalar),
-            world_stage_b: wp.array2d(dtype=scalar),
-            # Model, planes (read when with_contact != 0):
-            plane_first: wp.array(dtype=wp.int32),
-            plane_point: wp.array(dtype=vec3),
-            plane_normal: wp.array(dtype=vec3),
-            plane_hole_center: wp.array(dtype=vec3),
-            plane_hole_radius: wp.array(dtype=scalar),
-            plane_restitution: wp.array(dtype=scalar),
-            plane_friction: wp.array(dtype=scalar),
-            eps: scalar,
-            eps_v: scalar,
-            rest_steps: scalar,
-            world_contact_beta: wp.array(dtype=scalar),
-            # The jellies' common stencil coefficients (read by uniform gathers only):
-            stencil_coef: coef_vec,
-            # State in (y_n) and stage state (y_s):
-            q_n: wp.array(dtype=vec3),
-            qd_n: wp.array(dtype=vec3),
-            q_s: wp.array(dtype=vec3),
-            qd_s: wp.array(dtype=vec3),
-            # Out: accumulators, next stage state, and the step's result
-            acc_q_out: wp.array(dtype=vec3),
-            acc_qd_out: wp.array(dtype=vec3),
-            q_next_out: wp.array(dtype=vec3),
-            qd_next_out: wp.array(dtype=vec3),
-            q_out: wp.array(dtype=vec3),
-            qd_out: wp.array(dtype=vec3),
-        ):
-            # Forces, gravity and the stage update in one pass. A thread reads neighbours only from
-            # the stage state y_s and writes only its own particle into other buffers, so no thread
-            # depends on another's output within the launch.
-            i = wp.tid()
-            # The particle whose jelly, world and mass are read: itself, or 0 for all in a single jelly.
-            p = i
-            j = int(0)
-            if wp.static(single):
-                p = 0
-            else:
-                j = int_at(particle_jelly, i)
-            f = gather(
-                i, j, jelly_start, jelly_shape, jelly_types, jelly_rest, jelly_ks, jelly_kd, q_s, qd_s, stencil_coef
-            )
-            w = int_at(particle_world, p)
-            inv_mass = scalar_at(particle_inv_mass, p)
-            kind, x, v = sv(
-                i,
-                stage,
-                h,
-                f,
-                inv_mass,
-                w,
-                gravity,
-                world_stage_count,
-                world_symplectic,
-                world_stage_c,
-                world_stage_b,
-                q_n,
-                qd_n,
-                qd_s,
-                acc_q_out,
-                acc_qd_out,
-            )
-            if kind == 0:
-                return
-            # Contact acts on the stage's values before they are stored, so each particle is
-            # written once (storing first and reading back for contact cost a store and a load).
-            if with_contact != 0 and inv_mass != scalar(0.0):
-                if kind == 1:
-                    # Plane contact on the step's result, as collide_planes does after the step.
-                    x, v = planes(
-                        x,
-                        v,
-                        qd_n,
-                        i,
-                        w,
-                        plane_first,
-                        plane_point,
-                        plane_normal,
-                        plane_hole_center,
-                        plane_hole_radius,
-                        plane_restitution,
-                        plane_friction,
-                        eps,
-                        eps_v,
-                        rest_steps,
-                        h * scalar_at(world_contact_beta, w),
-                        0,
-                    )
-                else:
-                    # The next stage state's resting contacts, as integrators.filter_stage_contacts
-                    # does between stages (velocities only; h = 0: no position gain). Two calls rather
-                    # than one on selected inputs: the single call measured 4 % slower on an H200.
-                    x, v = planes(
-                        x,
-                        v,
-                        qd_n,
-                        i,
-                        w,
-                        plane_first,
-                        plane_point,
-                        plane_normal,
-                        plane_hole_center,
-                        plane_hole_radius,
-                        plane_restitution,
-                        plane_friction,
-                        eps,
-                        eps_v,
-                        rest_steps,
-                        scalar(0.0),
-                        1,
-                    )
-            if kind == 1:
-                store_vec(q_out, i, x)
-                store_vec(qd_out, i, v)
-            else:
-                store_vec(q_next_out, i, x)
-                store_vec(qd_next_out, i, v)
-
-        return integrate_lattice_stage
-
-    # The fused stage (CUDA): the native gather with bounds-checked loads, for any lattice model.
-    integrate_lattice_stage = make_integrate_lattice_stage(gather_native)
-
-    # The one-jelly stage compiled for a jelly's shape and spring types, one kernel per pair.
-    single_stages = {}
-
-    def single_stage(shape, types):
-        """The fused stage for a model of one jelly of one particle mass with padded states
-        (``LatticeData.single``, ``Model.particle_array``): the jelly's lattice shape, spring-type mask,
-        first particle (0) and coefficients compiled in or passed as a kernel argument, unconditional
-        neighbour loads, no per-particle jelly, world or mass read. 1.21x (symplectic) and 1.20x (rk4)
-        over ``integrate_lattice_stage`` at 100^3 on an H100 (docs/PERFORMANCE.md). Built once per
-        (shape, types) and compiled on first launch (Warp caches the build on disk)."""
-        key = (tuple(int(n) for n in shape), int(types))
-        if key not in single_stages:
-            gather = make_gather_native(padded=True, uniform=True, shape=key[0], types=key[1], start=0)
-            single_stages[key] = make_integrate_lattice_stage(gather, single=True)
-        return single_stages[key]
-
-    # The fused stage of masked lattices (mesh jellies, core/masked_lattice.py): the same stage kernel
-    # around the masked gather, built on first use.
-    masked_stages = {}
-
-    def masked_stage():
-        """The fused stage of a model on the masked path, built once."""
-        if not masked_stages:
-
-            @wp.func_native(_masked_gather_snippet(ctype))
-            def masked_gather(
-                i: int,
-                j: int,
-                jelly_start: wp.array(dtype=wp.int32),
-                jelly_shape: wp.array(dtype=wp.vec3i),
-                jelly_types: wp.array(dtype=wp.int32),
-                jelly_rest: wp.array2d(dtype=scalar),
-                jelly_ks: wp.array2d(dtype=scalar),
-                jelly_kd: wp.array2d(dtype=scalar),
-                q: wp.array(dtype=vec3),
-                qd: wp.array(dtype=vec3),
-                coef: coef_vec,
-            ) -> vec3: ...
-
-            masked_stages[None] = make_integrate_lattice_stage(masked_gather, single=False)
-        return masked_stages[None]
-
-    @wp.func_native(_rows_snippet("float" if scalar == wp.float32 else "double"))
-    def lattice_rows_native(
+    @wp.func_native(_masked_gather_snippet(_CTYPES[scalar]))
+    def masked_gather(
+        i: int,
         j: int,
         jelly_start: wp.array(dtype=wp.int32),
         jelly_shape: wp.array(dtype=wp.vec3i),
@@ -896,107 +760,72 @@ return 1.0f / wp::sqrt(x);
         jelly_rest: wp.array2d(dtype=scalar),
         jelly_ks: wp.array2d(dtype=scalar),
         jelly_kd: wp.array2d(dtype=scalar),
-        coord_k: wp.array(dtype=wp.int32),
-        q: wp.array(dtype=vec3),
-        qd: wp.array(dtype=vec3),
-        scratch: wp.array(dtype=vec3),
-        f_out: wp.array(dtype=vec3),
-    ): ...
+        q: wp.array(dtype=vec),
+        qd: wp.array(dtype=vec),
+        coef: wp.types.vector(COEF_LENGTH, scalar),
+    ) -> vec: ...
+
+    return masked_gather
+
+
+@functools.cache
+def make_integrate_lattice_stage(scalar, gather, single=False):
+    """The fused stage kernel for ``scalar`` around a per-particle native gather (``make_gather_native``,
+    ``make_masked_gather``).
+
+    The kernel passes the gather both the per-jelly tables and ``stencil_coef``, the jellies'
+    common coefficients (a kernel argument); a uniform gather reads the latter. The stage update is
+    ``integration.stage_values_direct``, the one stage update of kernels/integration.py.
+
+    The particle's jelly, world and inverse mass, the per-world tableau and the plane range, point
+    and normal are read from the arrays' data pointers, one address computation each, instead of
+    through Warp's indexing (the wrap of a negative index and a 64-bit multiply by the run-time
+    stride). These are the model's and the integrator's own arrays, contiguous by construction.
+
+    ``single``: for a model that is one jelly of particles of one mass (``LatticeData.single``):
+    the jelly is 0 and the world and inverse mass are particle 0's, so the kernel reads no
+    per-particle jelly, world or mass.
+    """
 
     @wp.kernel(module="unique")
-    def eval_lattice_rows(
-        # Model:
-        jelly_start: wp.array(dtype=wp.int32),
-        jelly_shape: wp.array(dtype=wp.vec3i),
-        jelly_types: wp.array(dtype=wp.int32),
-        jelly_rest: wp.array2d(dtype=scalar),
-        jelly_ks: wp.array2d(dtype=scalar),
-        jelly_kd: wp.array2d(dtype=scalar),
-        particle_coord_k: wp.array(dtype=wp.int32),
-        # State in:
-        q: wp.array(dtype=vec3),
-        qd: wp.array(dtype=vec3),
-        # Scratch (one vec3 per particle) and out (every element written):
-        scratch: wp.array(dtype=vec3),
-        f_out: wp.array(dtype=vec3),
-    ):
-        # One thread per jelly; jellies own disjoint particle ranges, so threads never collide.
-        j = wp.tid()
-        lattice_rows_native(
-            j,
-            jelly_start,
-            jelly_shape,
-            jelly_types,
-            jelly_rest,
-            jelly_ks,
-            jelly_kd,
-            particle_coord_k,
-            q,
-            qd,
-            scratch,
-            f_out,
-        )
-
-    @wp.func_native(_rows_snippet("float" if scalar == wp.float32 else "double", with_stage=True))
-    def lattice_rows_stage_native(
-        j: int,
+    def integrate_lattice_stage(
         stage: int,
-        h: scalar,
+        h: Float,
+        with_contact: int,
+        # Model:
+        particle_inv_mass: wp.array(dtype=Float),
+        particle_world: wp.array(dtype=wp.int32),
+        particle_jelly: wp.array(dtype=wp.int32),
+        gravity: vec3,
         jelly_start: wp.array(dtype=wp.int32),
         jelly_shape: wp.array(dtype=wp.vec3i),
         jelly_types: wp.array(dtype=wp.int32),
-        jelly_rest: wp.array2d(dtype=scalar),
-        jelly_ks: wp.array2d(dtype=scalar),
-        jelly_kd: wp.array2d(dtype=scalar),
-        jelly_world: wp.array(dtype=wp.int32),
-        coord_k: wp.array(dtype=wp.int32),
-        particle_inv_mass: wp.array(dtype=scalar),
-        gravity: vec3,
+        jelly_rest: wp.array2d(dtype=Float),
+        jelly_ks: wp.array2d(dtype=Float),
+        jelly_kd: wp.array2d(dtype=Float),
         world_stage_count: wp.array(dtype=wp.int32),
         world_symplectic: wp.array(dtype=wp.int32),
-        world_stage_c: wp.array2d(dtype=scalar),
-        world_stage_b: wp.array2d(dtype=scalar),
-        q_n: wp.array(dtype=vec3),
-        qd_n: wp.array(dtype=vec3),
-        q: wp.array(dtype=vec3),
-        qd: wp.array(dtype=vec3),
-        scratch: wp.array(dtype=vec3),
-        f_out: wp.array(dtype=vec3),
-        acc_q_out: wp.array(dtype=vec3),
-        acc_qd_out: wp.array(dtype=vec3),
-        q_next_out: wp.array(dtype=vec3),
-        qd_next_out: wp.array(dtype=vec3),
-        q_out: wp.array(dtype=vec3),
-        qd_out: wp.array(dtype=vec3),
-    ): ...
-
-    @wp.kernel(module="unique")
-    def integrate_lattice_rows_stage(
-        stage: int,
-        h: scalar,
-        # Model:
-        jelly_start: wp.array(dtype=wp.int32),
-        jelly_shape: wp.array(dtype=wp.vec3i),
-        jelly_types: wp.array(dtype=wp.int32),
-        jelly_rest: wp.array2d(dtype=scalar),
-        jelly_ks: wp.array2d(dtype=scalar),
-        jelly_kd: wp.array2d(dtype=scalar),
-        jelly_world: wp.array(dtype=wp.int32),
-        particle_coord_k: wp.array(dtype=wp.int32),
-        particle_inv_mass: wp.array(dtype=scalar),
-        gravity: vec3,
-        world_stage_count: wp.array(dtype=wp.int32),
-        world_symplectic: wp.array(dtype=wp.int32),
-        world_stage_c: wp.array2d(dtype=scalar),
-        world_stage_b: wp.array2d(dtype=scalar),
+        world_stage_c: wp.array2d(dtype=Float),
+        world_stage_b: wp.array2d(dtype=Float),
+        # Model, planes (read when with_contact != 0):
+        plane_first: wp.array(dtype=wp.int32),
+        plane_point: wp.array(dtype=vec3),
+        plane_normal: wp.array(dtype=vec3),
+        plane_hole_center: wp.array(dtype=vec3),
+        plane_hole_radius: wp.array(dtype=Float),
+        plane_restitution: wp.array(dtype=Float),
+        plane_friction: wp.array(dtype=Float),
+        eps: Float,
+        eps_v: Float,
+        rest_steps: Float,
+        world_contact_beta: wp.array(dtype=Float),
+        # The jellies' common stencil coefficients (read by uniform gathers only):
+        stencil_coef: CoefVec,
         # State in (y_n) and stage state (y_s):
         q_n: wp.array(dtype=vec3),
         qd_n: wp.array(dtype=vec3),
         q_s: wp.array(dtype=vec3),
         qd_s: wp.array(dtype=vec3),
-        # Scratch (two vec3 per particle):
-        scratch: wp.array(dtype=vec3),
-        f_scratch: wp.array(dtype=vec3),
         # Out: accumulators, next stage state, and the step's result
         acc_q_out: wp.array(dtype=vec3),
         acc_qd_out: wp.array(dtype=vec3),
@@ -1005,22 +834,27 @@ return 1.0f / wp::sqrt(x);
         q_out: wp.array(dtype=vec3),
         qd_out: wp.array(dtype=vec3),
     ):
-        # The CPU fused stage: one thread per jelly computes its forces (row loops) and then
-        # its particles' stage update, both vectorised. Jellies own disjoint particle ranges.
-        j = wp.tid()
-        lattice_rows_stage_native(
-            j,
+        # Forces, gravity and the stage update in one pass. A thread reads neighbours only from
+        # the stage state y_s and writes only its own particle into other buffers, so no thread
+        # depends on another's output within the launch.
+        i = wp.tid()
+        # The particle whose jelly, world and mass are read: itself, or 0 for all in a single jelly.
+        p = i
+        j = int(0)
+        if wp.static(single):
+            p = 0
+        else:
+            j = integration.int_contiguous(particle_jelly, i)
+        f = gather(i, j, jelly_start, jelly_shape, jelly_types, jelly_rest, jelly_ks, jelly_kd, q_s, qd_s, stencil_coef)
+        w = integration.int_contiguous(particle_world, p)
+        inv_mass = integration.scalar_contiguous(particle_inv_mass, p)
+        kind, x, v = integration.stage_values_direct(
+            i,
             stage,
             h,
-            jelly_start,
-            jelly_shape,
-            jelly_types,
-            jelly_rest,
-            jelly_ks,
-            jelly_kd,
-            jelly_world,
-            particle_coord_k,
-            particle_inv_mass,
+            f,
+            inv_mass,
+            w,
             gravity,
             world_stage_count,
             world_symplectic,
@@ -1028,77 +862,320 @@ return 1.0f / wp::sqrt(x);
             world_stage_b,
             q_n,
             qd_n,
-            q_s,
             qd_s,
-            scratch,
-            f_scratch,
             acc_q_out,
             acc_qd_out,
-            q_next_out,
-            qd_next_out,
-            q_out,
-            qd_out,
         )
+        if kind == 0:
+            return
+        # Contact acts on the stage's values before they are stored, so each particle is
+        # written once (storing first and reading back for contact would cost a store and a load).
+        if with_contact != 0 and inv_mass != type(h)(0.0):
+            if kind == 1:
+                # Plane contact on the step's result, as collide_planes does after the step.
+                x, v = contact.contact_planes_direct(
+                    x,
+                    v,
+                    qd_n,
+                    i,
+                    w,
+                    plane_first,
+                    plane_point,
+                    plane_normal,
+                    plane_hole_center,
+                    plane_hole_radius,
+                    plane_restitution,
+                    plane_friction,
+                    eps,
+                    eps_v,
+                    rest_steps,
+                    h * integration.scalar_contiguous(world_contact_beta, w),
+                    0,
+                )
+            else:
+                # The next stage state's resting contacts, as integrators.filter_stage_contacts
+                # does between stages (velocities only; h = 0: no position gain). Two calls rather
+                # than one on selected inputs, which is slower on CUDA (docs/PERFORMANCE.md).
+                x, v = contact.contact_planes_direct(
+                    x,
+                    v,
+                    qd_n,
+                    i,
+                    w,
+                    plane_first,
+                    plane_point,
+                    plane_normal,
+                    plane_hole_center,
+                    plane_hole_radius,
+                    plane_restitution,
+                    plane_friction,
+                    eps,
+                    eps_v,
+                    rest_steps,
+                    type(h)(0.0),
+                    1,
+                )
+        if kind == 1:
+            integration.store_contiguous(q_out, i, x)
+            integration.store_contiguous(qd_out, i, v)
+        else:
+            integration.store_contiguous(q_next_out, i, x)
+            integration.store_contiguous(qd_next_out, i, v)
 
-    @wp.kernel(module="unique")
-    def reduce_lattice_springs(
-        # Model:
-        particle_jelly: wp.array(dtype=wp.int32),
-        jelly_start: wp.array(dtype=wp.int32),
-        jelly_shape: wp.array(dtype=wp.vec3i),
-        jelly_types: wp.array(dtype=wp.int32),
-        jelly_rest: wp.array2d(dtype=scalar),
-        jelly_ks: wp.array2d(dtype=scalar),
-        # State in:
-        q: wp.array(dtype=vec3),
-        # Out, per jelly (zeroed by the caller):
-        spring_energy_out: wp.array(dtype=scalar),
-    ):
-        # Each particle sums 1/2 ks (l - r)^2 over its forward (half-stencil) neighbours, so each
-        # spring is counted once, from its lexicographically smaller end.
-        i = wp.tid()
-        j = particle_jelly[i]
-        shape = jelly_shape[j]
-        lc = lattice_coord(i - jelly_start[j], shape)
-        types = jelly_types[j]
-        x = q[i]
-        e = scalar(0.0)
-        for di in range(-1, 2):
-            for dj in range(-1, 2):
-                for dk in range(-1, 2):
-                    forward = di > 0 or (di == 0 and (dj > 0 or (dj == 0 and dk > 0)))
-                    if forward:
-                        ty = wp.min(wp.abs(di) + wp.abs(dj) + wp.abs(dk) - 1, 1)
-                        if ((types >> ty) & 1) != 0 and inside(lc[0] + di, lc[1] + dj, lc[2] + dk, shape):
-                            p = i + (di * shape[1] + dj) * shape[2] + dk
-                            stretch = wp.length(x - q[p]) - jelly_rest[j, (di + 1) * 9 + (dj + 1) * 3 + dk + 1]
-                            e += jelly_ks[j, ty] * stretch * stretch
-        if ((types >> 2) & 1) != 0:
-            for axis in range(3):
+    return _for_precision(integrate_lattice_stage, scalar)
+
+
+def make_single_stage(scalar, shape, types):
+    """The fused stage for a model of one jelly of one particle mass with padded states
+    (``LatticeData.single``, ``Model.particle_array``): the jelly's lattice shape, spring-type mask,
+    first particle (0) and coefficients compiled in or passed as a kernel argument, unconditional
+    neighbour loads, no per-particle jelly, world or mass read (docs/PERFORMANCE.md). Built once
+    per (scalar, shape, types) and compiled on first launch (Warp caches the build on disk)."""
+    shape = tuple(int(n) for n in shape)
+    gather = make_gather_native(scalar, padded=True, uniform=True, shape=shape, types=int(types), start=0)
+    return make_integrate_lattice_stage(scalar, gather, single=True)
+
+
+def make_masked_stage(scalar):
+    """The fused stage of masked lattices (mesh jellies, core/masked_lattice.py): the stage kernel
+    around the masked gather, built once per precision."""
+    return make_integrate_lattice_stage(scalar, make_masked_gather(scalar))
+
+
+@both_precisions
+@wp.kernel
+def eval_lattice_rows(
+    # Model:
+    jelly_start: wp.array(dtype=wp.int32),
+    jelly_shape: wp.array(dtype=wp.vec3i),
+    jelly_types: wp.array(dtype=wp.int32),
+    jelly_rest: wp.array2d(dtype=Float),
+    jelly_ks: wp.array2d(dtype=Float),
+    jelly_kd: wp.array2d(dtype=Float),
+    particle_coord_k: wp.array(dtype=wp.int32),
+    # State in:
+    q: wp.array(dtype=vec3),
+    qd: wp.array(dtype=vec3),
+    # Scratch (one vec3 per particle) and out (every element written):
+    scratch: wp.array(dtype=vec3),
+    f_out: wp.array(dtype=vec3),
+):
+    # One thread per jelly; jellies own disjoint particle ranges, so threads never collide.
+    j = wp.tid()
+    lattice_rows_native(
+        j, jelly_start, jelly_shape, jelly_types, jelly_rest, jelly_ks, jelly_kd, particle_coord_k, q, qd, scratch,
+        f_out,
+    )
+
+
+@both_precisions
+@wp.kernel
+def integrate_lattice_rows_stage(
+    stage: int,
+    h: Float,
+    # Model:
+    jelly_start: wp.array(dtype=wp.int32),
+    jelly_shape: wp.array(dtype=wp.vec3i),
+    jelly_types: wp.array(dtype=wp.int32),
+    jelly_rest: wp.array2d(dtype=Float),
+    jelly_ks: wp.array2d(dtype=Float),
+    jelly_kd: wp.array2d(dtype=Float),
+    jelly_world: wp.array(dtype=wp.int32),
+    particle_coord_k: wp.array(dtype=wp.int32),
+    particle_inv_mass: wp.array(dtype=Float),
+    gravity: vec3,
+    world_stage_count: wp.array(dtype=wp.int32),
+    world_symplectic: wp.array(dtype=wp.int32),
+    world_stage_c: wp.array2d(dtype=Float),
+    world_stage_b: wp.array2d(dtype=Float),
+    # State in (y_n) and stage state (y_s):
+    q_n: wp.array(dtype=vec3),
+    qd_n: wp.array(dtype=vec3),
+    q_s: wp.array(dtype=vec3),
+    qd_s: wp.array(dtype=vec3),
+    # Scratch (two vec3 per particle):
+    scratch: wp.array(dtype=vec3),
+    f_scratch: wp.array(dtype=vec3),
+    # Out: accumulators, next stage state, and the step's result
+    acc_q_out: wp.array(dtype=vec3),
+    acc_qd_out: wp.array(dtype=vec3),
+    q_next_out: wp.array(dtype=vec3),
+    qd_next_out: wp.array(dtype=vec3),
+    q_out: wp.array(dtype=vec3),
+    qd_out: wp.array(dtype=vec3),
+):
+    # The CPU fused stage: one thread per jelly computes its forces (row loops) and then
+    # its particles' stage update, both vectorised. Jellies own disjoint particle ranges.
+    j = wp.tid()
+    lattice_rows_stage_native(
+        j,
+        stage,
+        h,
+        jelly_start,
+        jelly_shape,
+        jelly_types,
+        jelly_rest,
+        jelly_ks,
+        jelly_kd,
+        jelly_world,
+        particle_coord_k,
+        particle_inv_mass,
+        gravity,
+        world_stage_count,
+        world_symplectic,
+        world_stage_c,
+        world_stage_b,
+        q_n,
+        qd_n,
+        q_s,
+        qd_s,
+        scratch,
+        f_scratch,
+        acc_q_out,
+        acc_qd_out,
+        q_next_out,
+        qd_next_out,
+        q_out,
+        qd_out,
+    )
+
+
+@both_precisions
+@wp.kernel
+def reduce_lattice_springs(
+    # Model:
+    particle_jelly: wp.array(dtype=wp.int32),
+    jelly_start: wp.array(dtype=wp.int32),
+    jelly_shape: wp.array(dtype=wp.vec3i),
+    jelly_types: wp.array(dtype=wp.int32),
+    jelly_rest: wp.array2d(dtype=Float),
+    jelly_ks: wp.array2d(dtype=Float),
+    # State in:
+    q: wp.array(dtype=vec3),
+    # Out, per jelly (zeroed by the caller):
+    spring_energy_out: wp.array(dtype=Float),
+):
+    # Each particle sums 1/2 ks (l - r)^2 over its forward (half-stencil) neighbours, so each
+    # spring is counted once, from its lexicographically smaller end.
+    i = wp.tid()
+    j = particle_jelly[i]
+    shape = jelly_shape[j]
+    lc = lattice_coord(i - jelly_start[j], shape)
+    types = jelly_types[j]
+    x = q[i]
+    e = type(spring_energy_out).dtype(0.0)
+    for di in range(-1, 2):
+        for dj in range(-1, 2):
+            for dk in range(-1, 2):
+                forward = di > 0 or (di == 0 and (dj > 0 or (dj == 0 and dk > 0)))
+                if forward:
+                    ty = wp.min(wp.abs(di) + wp.abs(dj) + wp.abs(dk) - 1, 1)
+                    if ((types >> ty) & 1) != 0 and inside(lc[0] + di, lc[1] + dj, lc[2] + dk, shape):
+                        p = i + (di * shape[1] + dj) * shape[2] + dk
+                        stretch = wp.length(x - q[p]) - jelly_rest[j, (di + 1) * 9 + (dj + 1) * 3 + dk + 1]
+                        e += jelly_ks[j, ty] * stretch * stretch
+    if ((types >> 2) & 1) != 0:
+        for axis in range(3):
+            o = wp.vec3i(0, 0, 0)
+            o[axis] = 2
+            if inside(lc[0] + o[0], lc[1] + o[1], lc[2] + o[2], shape):
+                p = i + (o[0] * shape[1] + o[1]) * shape[2] + o[2]
+                stretch = wp.length(x - q[p]) - jelly_rest[j, 27 + axis]
+                e += jelly_ks[j, 2] * stretch * stretch
+    e = type(e)(0.5) * e
+    if wp.isfinite(e):
+        wp.atomic_add(spring_energy_out, j, e)
+
+
+# -- Masked lattices (mesh jellies): the lattice stencil over the points that exist -------------------
+
+
+@wp.func
+def masked_neighbour(i: int, ok: bool, cell: int, offset: int, grid_start: int, grid: wp.array(dtype=wp.int32)):
+    """The particle at lattice index cell + offset, or i itself (zero force) when the offset is
+    off the lattice (``ok`` false) or the point is not in the jelly (grid entry -1)."""
+    p = grid[grid_start + wp.where(ok, cell + offset, cell)]
+    return wp.where(p < 0, i, p)
+
+
+@both_precisions
+@wp.kernel
+def eval_masked_springs(
+    # Model:
+    particle_jelly: wp.array(dtype=wp.int32),
+    particle_cell: wp.array(dtype=wp.int32),
+    jelly_shape: wp.array(dtype=wp.vec3i),
+    jelly_grid_start: wp.array(dtype=wp.int32),
+    grid: wp.array(dtype=wp.int32),
+    jelly_types: wp.array(dtype=wp.int32),
+    jelly_rest: wp.array2d(dtype=Float),
+    jelly_ks: wp.array2d(dtype=Float),
+    jelly_kd: wp.array2d(dtype=Float),
+    # State in:
+    q: wp.array(dtype=vec3),
+    qd: wp.array(dtype=vec3),
+    # Out (every element written):
+    f_out: wp.array(dtype=vec3),
+):
+    # One thread per particle gathers the stencil springs to its present neighbours (as the
+    # lattice path's gather_lattice_force, with the neighbour looked up in the jelly's grid of
+    # particle indices), each with springs.spring_force: no atomics, a fixed order, so deterministic.
+    i = wp.tid()
+    j = particle_jelly[i]
+    shape = jelly_shape[j]
+    cell = particle_cell[i]
+    gs = jelly_grid_start[j]
+    c = cell % shape[2]
+    t = cell // shape[2]
+    b = t % shape[1]
+    a = t // shape[1]
+    row = shape[1] * shape[2]
+    types = jelly_types[j]
+    x = q[i]
+    v = qd[i]
+    f = type(x)(type(jelly_rest).dtype(0.0))
+    for di in range(-1, 2):
+        for dj in range(-1, 2):
+            for dk in range(-1, 2):
+                m = wp.abs(di) + wp.abs(dj) + wp.abs(dk)
+                if m > 0:
+                    ty = wp.min(m - 1, 1)  # one nonzero component: structural, else shear
+                    ok = ((types >> ty) & 1) != 0
+                    ok = ok and a + di >= 0 and a + di < shape[0] and b + dj >= 0 and b + dj < shape[1]
+                    ok = ok and c + dk >= 0 and c + dk < shape[2]
+                    p = masked_neighbour(i, ok, cell, di * row + dj * shape[2] + dk, gs, grid)
+                    rest = jelly_rest[j, (di + 1) * 9 + (dj + 1) * 3 + dk + 1]
+                    f += springs.spring_force(x, q[p], v, qd[p], rest, jelly_ks[j, ty], jelly_kd[j, ty])
+    if ((types >> 2) & 1) != 0:
+        for axis in range(3):
+            for side in range(2):
                 o = wp.vec3i(0, 0, 0)
-                o[axis] = 2
-                if inside(lc[0] + o[0], lc[1] + o[1], lc[2] + o[2], shape):
-                    p = i + (o[0] * shape[1] + o[1]) * shape[2] + o[2]
-                    stretch = wp.length(x - q[p]) - jelly_rest[j, 27 + axis]
-                    e += jelly_ks[j, 2] * stretch * stretch
-        e = scalar(0.5) * e
-        if wp.isfinite(e):
-            wp.atomic_add(spring_energy_out, j, e)
+                o[axis] = 4 * side - 2
+                ok = a + o[0] >= 0 and a + o[0] < shape[0] and b + o[1] >= 0 and b + o[1] < shape[1]
+                ok = ok and c + o[2] >= 0 and c + o[2] < shape[2]
+                p = masked_neighbour(i, ok, cell, o[0] * row + o[1] * shape[2] + o[2], gs, grid)
+                rest = jelly_rest[j, 27 + axis]
+                f += springs.spring_force(x, q[p], v, qd[p], rest, jelly_ks[j, 2], jelly_kd[j, 2])
+    f_out[i] = f
 
+
+def build(scalar):
+    """Temporary shim for files not yet converted: the module-level objects under their old names."""
     return {
         "inv_sqrt": inv_sqrt,
         "stencil_spring_force": stencil_spring_force,
         "lattice_coord": lattice_coord,
         "gather_lattice_force": gather_lattice_force,
         "eval_lattice_springs": eval_lattice_springs,
-        "make_eval_lattice_springs": make_eval_lattice_springs,
-        "integrate_lattice_stage": integrate_lattice_stage,
-        "single_stage": single_stage,
-        "masked_stage": masked_stage,
-        "gather_native": gather_native,
-        "make_gather_native": make_gather_native,
-        "make_integrate_lattice_stage": make_integrate_lattice_stage,
+        "integrate_lattice_stage": make_integrate_lattice_stage(scalar, make_gather_native(scalar)),
+        "single_stage": functools.partial(make_single_stage, scalar),
+        "masked_stage": functools.partial(make_masked_stage, scalar),
+        "gather_native": make_gather_native(scalar),
+        "make_gather_native": functools.partial(make_gather_native, scalar),
+        "make_integrate_lattice_stage": functools.partial(make_integrate_lattice_stage, scalar),
         "eval_lattice_rows": eval_lattice_rows,
         "integrate_lattice_rows_stage": integrate_lattice_rows_stage,
         "reduce_lattice_springs": reduce_lattice_springs,
+        "masked_neighbour": masked_neighbour,
+        "eval_masked_springs": eval_masked_springs,
     }

@@ -5,9 +5,12 @@ import re
 import numpy as np
 import pytest
 import warp as wp
+from softsim_warp.kernels.precision import Float, both_precisions, vec3
 
-from softsim_warp import eval_forces
+from softsim_warp import ModelBuilder, eval_forces, make_integrator
 from softsim_warp.core import lattice
+from softsim_warp.core.forces import ForceTerm, ForceTermError, attach
+from softsim_warp.core.integrators import ExplicitIntegrator
 from tests.helpers import jelly_builder
 
 
@@ -96,3 +99,87 @@ def test_add_jelly_rejects_misspelt_springs(springs, needle):
 
     with pytest.raises(ValueError, match=re.escape(needle)):
         ModelBuilder().add_jelly((3, 3, 3), 0.2, 0.01, springs)
+
+
+# -- Force terms beyond the springs (core/forces.py): they reach every path or the path refuses -------
+
+@both_precisions
+@wp.kernel
+def add_linear_drag(c: Float, qd: wp.array(dtype=vec3), f_out: wp.array(dtype=vec3)):
+    i = wp.tid()
+    f_out[i] = f_out[i] - c * qd[i]
+
+
+class LinearDrag(ForceTerm):
+    """A toy force term: f = -c v on every particle."""
+
+    name = "linear drag"
+
+    def __init__(self, c):
+        self.c = c
+
+    def add(self, model, q, qd, f_out):
+        wp.launch(add_linear_drag, model.particle_count, inputs=[model.scalar(self.c), qd], outputs=[f_out],
+                  device=model.device)
+
+
+def dragged_pair(device, c, deterministic=False, ks=40.0, mass=0.1, stretch=0.05, velocity=(0.3, -0.2, 0.1)):
+    """Two particles of mass m joined by a spring, stretched by ``stretch``, moving together at
+    ``velocity``, with linear drag c on both and no gravity."""
+    b = ModelBuilder(gravity=(0.0, 0.0, 0.0))
+    b.add_particles([[-0.5 * (1.0 + stretch), 0, 0], [0.5 * (1.0 + stretch), 0, 0]], [velocity, velocity], mass)
+    b.add_spring(0, 1, ks, 0.0, rest=1.0)
+    model = b.finalize(device, "float64", force_terms=(LinearDrag(c),))
+    if deterministic:
+        attach(model)
+    return model
+
+
+@pytest.mark.parametrize("deterministic", [False, True])
+def test_force_term_reaches_the_spring_list(device, deterministic):
+    """With drag c the centre of mass slows as v0 exp(-c t / m), and the stretch s is a damped
+    oscillator s'' = -(2 ks / m) s - (c / m) s': s = A exp(-g t)(cos(w t) + g / w sin(w t)),
+    g = c / 2m, w = sqrt(2 ks / m - g^2). RK4 at h w = 0.01 follows both to 1e-9."""
+    ks, m, A, c = 40.0, 0.1, 0.05, 0.05
+    v0 = np.array([0.3, -0.2, 0.1])
+    model = dragged_pair(device, c, deterministic, ks, m, A, tuple(v0))
+    assert model.lattice is None and model.force_terms[0].name == "linear drag"
+    g = c / (2 * m)
+    w = np.sqrt(2 * ks / m - g * g)
+    h, steps = 0.01 / w, 300
+    integ = make_integrator("rk4", model)
+    a, b = model.state(), model.state()
+    for _ in range(steps):
+        integ.step(a, b, h)
+        a, b = b, a
+    t = h * steps
+    q, v = a.particle_q.numpy(), a.particle_qd.numpy()
+    np.testing.assert_allclose(v.mean(axis=0), v0 * np.exp(-c * t / m), rtol=0, atol=1e-9)
+    x0 = np.zeros(3)
+    np.testing.assert_allclose(q.mean(axis=0), x0 + v0 * m / c * (1 - np.exp(-c * t / m)), rtol=0, atol=1e-9)
+    stretch = q[1, 0] - q[0, 0] - 1.0
+    assert stretch == pytest.approx(A * np.exp(-g * t) * (np.cos(w * t) + g / w * np.sin(w * t)), abs=1e-9)
+
+
+def test_paths_without_force_terms_refuse_them_in_one_line(device):
+    # The lattice path compiles the spring force into its kernels: asked for, it refuses; "auto" takes
+    # the spring list instead, which evaluates the term.
+    builder = jelly_builder((3, 3, 3), 0.2)
+    with pytest.raises(ForceTermError) as refused:
+        builder.finalize(device, force_path="lattice", force_terms=(LinearDrag(0.1),))
+    assert "\n" not in str(refused.value) and "linear drag" in str(refused.value)
+    assert "lattice path" in str(refused.value)
+    model = builder.finalize(device, force_terms=(LinearDrag(0.1),))
+    assert model.lattice is None and getattr(model, "masked", None) is None
+    # The implicit integrator needs each force's Jacobian, which a ForceTerm does not carry.
+    with pytest.raises(ForceTermError) as refused:
+        make_integrator("implicit", model)
+    assert "\n" not in str(refused.value) and "implicit path" in str(refused.value)
+    # The fused stages exist on the lattice paths only, which the model did not take.
+    with pytest.raises(ValueError) as refused:
+        ExplicitIntegrator(model, "rk4", fused=True)
+    assert "\n" not in str(refused.value) and "force terms" in str(refused.value)
+    # A model without force terms is unchanged: the lattice path, and the implicit integrator.
+    plain = builder.finalize(device)
+    assert plain.lattice is not None and plain.force_terms == ()
+    make_integrator("implicit", plain)

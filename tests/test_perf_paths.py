@@ -14,7 +14,8 @@ import pytest
 import warp as wp
 from softsim_warp.kernels import get_kernels
 
-from softsim_warp.core.integrators import EXPLICIT, ExplicitIntegrator
+from softsim_warp.core.integrators import ExplicitIntegrator
+from softsim_warp.core.methods import EXPLICIT_NAMES as EXPLICIT
 from softsim_warp.core.forces import eval_forces
 from softsim_warp.core.lattice import spring_counts
 from softsim_warp.core.model import ModelBuilder

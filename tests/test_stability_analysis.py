@@ -190,7 +190,7 @@ def test_two_body_eigenvalues_are_reduced_mass_frequency():
 
 def test_two_body_undamped_max_dt():
     K, C, M, w, _ = two_body()
-    dt = {m: sa.max_stable_dt(m, K, C, M) for m in sa.METHODS}
+    dt = {m: sa.max_stable_dt(m, K, C, M) for m in sa.NAMES}
     assert dt["symplectic"] == pytest.approx(2.0 / w, rel=1e-3)
     assert dt["rk4"] == pytest.approx(2.0 * math.sqrt(2.0) / w, rel=1e-6)
     # |1 + i h w| > 1 and |1 + i h w - (h w)^2 / 2| > 1 for every h > 0: no stable step at all.

@@ -9,12 +9,12 @@ import warp as wp
 
 from softsim_warp.commands import stability
 from softsim_warp.core import stability_analysis as sa
+from softsim_warp.core.methods import EXPLICIT_NAMES as EXPLICIT
 from softsim_warp.core.model import ModelBuilder
 from softsim_warp.core.stability_model import predict_jelly_dt, predict_model_dt
 from softsim_warp.io.scene import load_scene
 
 NAMES = ("structural", "shear", "bending")
-EXPLICIT = ("euler", "symplectic", "midpoint", "rk4")
 
 
 def _jelly(shape, size, mass, ks, kd, pinned=()):

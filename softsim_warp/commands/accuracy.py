@@ -37,6 +37,7 @@ import numpy as np
 
 from ..core.contact import forget_contact_history
 from ..core.errors import CommandLineError
+from ..core.methods import COLORS, IMPLICIT, NAMES, REFERENCE
 from ..core.model import build_model
 from ..core.stepper import make_integrator
 from ..io.mesh_scene import add_asset_inputs
@@ -44,11 +45,11 @@ from ..io.metrics import explosion_reason
 from ..io.outputs import JSON_SUFFIXES, Outputs, save_report
 from ..io.resources import MAX_RUN_DAYS, check_fits, scene_counts, step_seconds_floor
 from ..io.simulate import Simulator
-from .common import (ALL_INTEGRATORS, ProgressLog, check_positive, load_for_cli, parse_methods, parse_positive_list,
+from .common import (ProgressLog, check_positive, load_for_cli, parse_methods, parse_positive_list,
                      resolve_device, warm_up_notice)
 
 COMMAND = "accuracy"
-REFERENCE_METHOD = "rk4"
+REFERENCE_METHOD = REFERENCE.name
 REFERENCE_PRECISION = "float64"
 # Default reference step relative to the smallest step measured (see the module docstring).
 REFERENCE_DIVISOR = 8
@@ -153,7 +154,7 @@ def run_trajectory(scene, integrator, dt, *, device=None, precision=None, fps=No
     h = 1.0 / (fps * n)
     precision = precision or scene.sim["precision"]
     model = build_model(scene, device=device, precision=precision)
-    integ = make_integrator(integrator, model, scene.data.get("implicit"))
+    integ = make_integrator(integrator, model, scene.data.get(IMPLICIT.name))
     graph = bool(use_graph)
     sim = Simulator(model, integ, h, fps, frames, use_graph=graph,
                     max_speed=max_speed if max_speed is not None else scene.sim.get("max_speed"), on_warm_up=on_warm_up)
@@ -278,7 +279,7 @@ def pairwise_orders(dts, errors):
 # The whole measurement
 
 
-def measure(scene, integrators=ALL_INTEGRATORS, dts=None, *, device=None, precision=None, duration=None,
+def measure(scene, integrators=NAMES, dts=None, *, device=None, precision=None, duration=None,
             reference_dt=None, fps=None, use_graph=True, log=None, progress=None, on_warm_up=None) -> dict:
     """Run every integrator at every step against the reference; return the report as a dict.
 
@@ -471,10 +472,6 @@ def _fmt(x, spec=".3g"):
     return format(x, spec)
 
 
-COLORS = {"euler": "tab:red", "symplectic": "tab:orange", "midpoint": "tab:green", "rk4": "tab:blue",
-          "implicit": "tab:purple"}
-
-
 def plot_report(report: dict, path, title=None):
     """Work-precision (error vs wall time) and convergence (error vs dt) side by side in one figure.
 
@@ -557,7 +554,7 @@ def plot_report(report: dict, path, title=None):
 def add_parser(subparsers, add_common):
     p = subparsers.add_parser("accuracy", help="error against a float64 rk4 reference and wall time, per integrator and dt")
     p.add_argument("scene", help="scene file (.toml) or built-in scene name")
-    p.add_argument("--integrators", default=",".join(ALL_INTEGRATORS),
+    p.add_argument("--integrators", default=",".join(NAMES),
                    help="comma-separated methods (default: all; implicit is skipped if unavailable)")
     p.add_argument("--dts", help="comma-separated steps [s] (default: the scene's dt x 2, 1, 1/2, 1/4, 1/8)")
     p.add_argument("--duration", type=float, help="simulated seconds (default: the scene's)")

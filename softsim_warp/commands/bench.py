@@ -32,12 +32,13 @@ import numpy as np
 
 from ..core.errors import CommandLineError
 from ..core.integrators import ExplicitIntegrator
+from ..core.methods import EXPLICIT_NAMES, IMPLICIT, METHODS, NAMES
 from ..core.mesh_terrain import steps_on_host
 from ..core.model import ModelBuilder, build_model
 from ..core.stepper import make_integrator
 from ..io.mesh_scene import add_asset_inputs
 from ..io.outputs import Outputs, save_report
-from ..io.resources import check_bench_size
+from ..io.resources import check_bench_size, heaviest
 from ..io.scene import load_scene
 from . import bench_contact
 from .bench_newton import NewtonJelly, implicit_peer, newton_version
@@ -45,8 +46,9 @@ from .common import ProgressLog, resolve_device
 from .timing import TimedSteps
 
 COMMAND = "bench"
-DEFAULT_INTEGRATORS = ("euler", "symplectic", "midpoint", "rk4")
-STAGES = {"euler": 1, "symplectic": 1, "midpoint": 2, "rk4": 4}
+DEFAULT_INTEGRATORS = EXPLICIT_NAMES
+# Force evaluations per step of the methods that have a fixed number (the explicit ones).
+STAGES = {m.name: m.stages for m in METHODS if m.stages is not None}
 BATCH_MAX_PARTICLES = 1_000_000
 # Flags (flag -> argparse dest) of one benchmark only, refused where they would be ignored: those of
 # bench_contact that only ``--contact`` uses, and those of the implicit integrator's run against
@@ -412,7 +414,7 @@ def _check_flags(args):
         if not (math.isfinite(value) and value > 0):
             raise CommandLineError(flag, "must be a finite number > 0", value)
         methods = [m.strip() for m in str(args.integrators).split(",")]
-        if args.peer != "newton" or "implicit" not in methods or args.scene is not None or args.contact:
+        if args.peer != "newton" or IMPLICIT.name not in methods or args.scene is not None or args.contact:
             why = "sets the implicit integrator's run against Newton's VBD: give --peer newton and implicit in --integrators"
             raise CommandLineError(flag, why + " (and neither --scene nor --contact)", value)
     if args.contact:
@@ -478,7 +480,7 @@ def run(args) -> int:
     sizes = _parse_list(args.sizes, "--sizes", convert=int)
     if any(n < 2 for n in sizes):
         raise CommandLineError("--sizes", "each size must be at least 2", args.sizes)
-    methods = _parse_list(args.integrators, "--integrators", allowed=DEFAULT_INTEGRATORS + ("implicit",))
+    methods = _parse_list(args.integrators, "--integrators", allowed=NAMES)
     paths = _parse_list(args.paths, "--paths", allowed=("auto", "lattice", "springs"))
     for flag, value, low in (("--steps", args.steps, 1), ("--repeats", args.repeats, 1), ("--copies", args.copies, 1)):
         if value < low:
@@ -520,10 +522,9 @@ def run(args) -> int:
         ]
     else:
         # Each size must fit before anything is built (the largest method's buffers, all copies).
-        heaviest = "implicit" if "implicit" in methods else ("rk4" if "rk4" in methods else methods[0])
         for n in sizes:
             count = max(args.copies, 8 if args.variants else 1)
-            check_bench_size(n, count, device, heaviest, *(("--copies", args.copies) if args.copies >= count
+            check_bench_size(n, count, device, heaviest(methods), *(("--copies", args.copies) if args.copies >= count
                                                            else ("--variants", "8 copies")))
         groups = [
             (
@@ -586,7 +587,7 @@ def run(args) -> int:
         bar.close()
 
     implicit_rows = []
-    if args.peer and "implicit" in methods and not args.scene:
+    if args.peer and IMPLICIT.name in methods and not args.scene:
         # Newton's implicit solver (VBD) against ours on a stiff spinning jelly in free flight, with
         # the error against a float64 reference (bench_newton.implicit_peer).
         for n in sizes:

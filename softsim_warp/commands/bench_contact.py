@@ -30,10 +30,11 @@ import time
 import numpy as np
 
 from ..core.errors import CommandLineError
+from ..core.methods import EXPLICIT_NAMES, SYMPLECTIC
 from ..core.model import ModelBuilder
 from ..core.stepper import make_integrator
 from ..io.outputs import Outputs, save_report
-from ..io.resources import check_counts, lattice_spring_count
+from ..io.resources import check_counts, heaviest, lattice_spring_count
 from .bench_newton import NewtonJelly, newton_version
 from .timing import TimedSteps
 
@@ -154,11 +155,10 @@ class _Newton(TimedSteps):
 def check_pile_sizes(counts, size, methods, device, value):
     """Refuse a pile that would not fit, before any is built: every particle of a pile takes part
     in contact (--jellies names it; a single jelly too large names --contact-size)."""
-    heaviest = "implicit" if "implicit" in methods else ("rk4" if "rk4" in methods else "symplectic")
     springs = lattice_spring_count((size, size, size))
-    check_counts(size**3, springs, device, heaviest, "--contact-size", size, contact_particles=size**3)
+    check_counts(size**3, springs, device, heaviest(methods), "--contact-size", size, contact_particles=size**3)
     for count in counts:
-        check_counts(count * size**3, count * springs, device, heaviest, "--jellies", value,
+        check_counts(count * size**3, count * springs, device, heaviest(methods), "--jellies", value,
                      contact_particles=count * size**3)
 
 
@@ -176,8 +176,8 @@ def run_contact(args, device, spec, versions, device_name) -> int:
     if args.contact_size < 2:
         raise CommandLineError("--contact-size", "must be at least 2", args.contact_size)
     methods = [t.strip() for t in str(args.integrators).split(",") if t.strip()]
-    if args.integrators == "euler,symplectic,midpoint,rk4":  # bench's default: one method is enough here
-        methods = ["symplectic"]
+    if args.integrators == ",".join(EXPLICIT_NAMES):  # bench's default: one method is enough here
+        methods = [SYMPLECTIC.name]
     outputs = Outputs()
     outputs.add("--out", args.out, (".json",))
     if args.peer:
@@ -198,7 +198,7 @@ def run_contact(args, device, spec, versions, device_name) -> int:
             for contact in (False, True):
                 cases[("ours", contact)] = _Ours(model, method, spec.dt, args.steps, use_graph, contact)
                 cases[("ours", contact)].build_s = build_s
-            if args.peer and method == "symplectic":
+            if args.peer and method == SYMPLECTIC.name:  # Newton's SemiImplicitIntegrator is symplectic Euler
                 for contact in (False, True):
                     cases[("newton", contact)] = _Newton(model, spec, args.steps, use_graph, contact)
             first = {key: case.prepare() for key, case in cases.items()}

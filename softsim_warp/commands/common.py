@@ -13,12 +13,12 @@ import sys
 import threading
 
 from ..core.errors import CommandLineError, SceneError, UserError
+from ..core.methods import NAMES, method
 from ..io import scene as scene_mod
 from ..io.warp_init import init_warp
 from . import process
 
 EXIT_EXPLODED = 3
-ALL_INTEGRATORS = ("euler", "symplectic", "midpoint", "rk4", "implicit")
 
 
 def add_common(p: argparse.ArgumentParser):
@@ -188,7 +188,7 @@ def check_deterministic(integrator: str, device):
     On the CPU every run is deterministic anyway; on CUDA the combination is refused rather than
     promised and not kept.
     """
-    if device.is_cuda and integrator == "implicit":
+    if device.is_cuda and not method(integrator).explicit:
         raise CommandLineError(
             "--deterministic",
             "not available with the implicit integrator on CUDA (its solver sums with atomics); "
@@ -281,8 +281,8 @@ def float_list(text):
 def parse_methods(text, flag="--integrators"):
     names = [n.strip() for n in text.split(",") if n.strip()]
     for n in names:
-        if n not in ALL_INTEGRATORS:
-            raise CommandLineError(flag, f"unknown integrator; choose from {', '.join(ALL_INTEGRATORS)}", n)
+        if n not in NAMES:
+            raise CommandLineError(flag, f"unknown integrator; choose from {', '.join(NAMES)}", n)
     if not names:
         raise CommandLineError(flag, "needs at least one integrator", text)
     return names

@@ -32,6 +32,7 @@ import numpy as np
 
 from ..core.errors import CommandLineError, SceneError, UserError
 from ..core.integrators import ExplicitIntegrator
+from ..core.methods import EULER, IMPLICIT, MIDPOINT, NAMES, RK4, method
 from ..core.stepper import make_integrator
 from ..io import scene as scene_mod
 from ..io import stable_step
@@ -47,7 +48,7 @@ from ..io.worlds import make_builder, world_speed_bound
 from . import common
 
 COMMAND = "compare"
-DEFAULT_INTEGRATORS = ("euler", "implicit", "midpoint", "rk4")  # the report's 2x2
+DEFAULT_INTEGRATORS = tuple(m.name for m in (EULER, IMPLICIT, MIDPOINT, RK4))  # the report's 2x2
 
 
 # ---------------------------------------------------------------------------------------------
@@ -250,8 +251,8 @@ def _plan_variants(args) -> Plan:
     if args.integrators is not None:
         integrators = [s.strip() for s in args.integrators.split(",")]
         for name in integrators:
-            if name not in scene_mod.INTEGRATORS:
-                raise CommandLineError("--integrators", f"unknown integrator; choose from {', '.join(scene_mod.INTEGRATORS)}",
+            if name not in NAMES:
+                raise CommandLineError("--integrators", f"unknown integrator; choose from {', '.join(NAMES)}",
                                        name)
         if len(set(integrators)) != len(integrators):
             raise CommandLineError("--integrators", "lists an integrator twice", args.integrators)
@@ -404,11 +405,11 @@ class _Group:
                  on_warm_up=None):
         self.variants = variants
         self.model = builder_fn([v.data for v in variants]).finalize(device, precision)
-        if all(v.integrator != "implicit" for v in variants):
+        if all(method(v.integrator).explicit for v in variants):
             integrator = ExplicitIntegrator(self.model, [v.integrator for v in variants])
         else:
             assert len(variants) == 1
-            integrator = make_integrator("implicit", self.model, variants[0].data.get("implicit"))
+            integrator = make_integrator(variants[0].integrator, self.model, variants[0].data.get(IMPLICIT.name))
         self.integrator = integrator
         self.sim = Simulator(self.model, integrator, dt, fps, frames, use_graph=use_graph, max_speed=max_speed,
                              end_time=end_time, on_warm_up=on_warm_up)
@@ -469,8 +470,8 @@ def run_comparison(plan: Plan, device, out, metrics_path=None, plot_path=None, c
     # The stage's model holds every copy, in variant order; the groups that compute them are the
     # explicit batch (all explicit variants, one world each) and one model per implicit variant.
     display = _make_builder([v.data for v in variants]).finalize("cpu", precision)
-    explicit = [v for v in variants if v.integrator != "implicit"]
-    implicit = [v for v in variants if v.integrator == "implicit"]
+    explicit = [v for v in variants if method(v.integrator).explicit]
+    implicit = [v for v in variants if not method(v.integrator).explicit]
     groups = []
     max_speed = plan.sim.get("max_speed")
     if explicit:

@@ -11,6 +11,7 @@ import signal
 import sys
 from pathlib import Path
 
+from ..core.methods import IMPLICIT
 from ..core.model import build_model
 from ..core.stepper import make_integrator
 from ..io.mesh_scene import add_asset_inputs
@@ -96,7 +97,7 @@ def _run_locked(args, signals, scene, out, metrics_path, preview_path) -> int:
 
     with signals.stoppable():  # a large model takes a while to build; nothing is written yet
         model = build_model(scene, device=device, deterministic=args.deterministic)
-        integrator = make_integrator(sim["integrator"], model, scene.data.get("implicit"))
+        integrator = make_integrator(sim["integrator"], model, scene.data.get(IMPLICIT.name))
         simulator = Simulator(model, integrator, sim["dt"], sim["fps"], frames,
                               use_graph=None if not args.no_graph else False, max_speed=sim.get("max_speed"),
                               profile=args.profile, end_time=scene.end_time(), on_warm_up=common.warm_up_notice(args))

@@ -46,6 +46,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..core.errors import CommandLineError
+from ..core.methods import COLORS, IMPLICIT, NAMES
 from ..core.model import NUMPY_SCALARS, build_model
 from ..core.stability_model import free_jelly, free_jelly_model as lattice_model, predict_model_dt
 from ..core.stepper import make_integrator
@@ -53,7 +54,7 @@ from ..io.mesh_scene import add_asset_inputs
 from ..io.outputs import JSON_SUFFIXES, Outputs, save_report
 from ..io.resources import check_fits
 from ..io.simulate import Simulator
-from .common import (ALL_INTEGRATORS, ProgressLog, check_positive, load_for_cli, parse_methods, parse_positive_list,
+from .common import (ProgressLog, check_positive, load_for_cli, parse_methods, parse_positive_list,
                      resolve_device, warm_up_notice)
 
 COMMAND = "stability"
@@ -250,7 +251,7 @@ def _guess(pred, fallback):
     return pred if (math.isfinite(pred) and pred > 0) else fallback
 
 
-def analyse(scene, integrators=ALL_INTEGRATORS, *, ks_values=DEFAULT_KS, device=None, precision=None, steps=DEFAULT_STEPS,
+def analyse(scene, integrators=NAMES, *, ks_values=DEFAULT_KS, device=None, precision=None, steps=DEFAULT_STEPS,
             duration=None, rtol=DEFAULT_RTOL, scene_runs=True, max_dt=None, use_graph=True, lattice_max=None,
             jelly_index=0, log=None, progress=None, on_warm_up=None) -> dict:
     """Measured and predicted stability limits of every integrator; returns the JSON-ready report.
@@ -283,7 +284,7 @@ def analyse(scene, integrators=ALL_INTEGRATORS, *, ks_values=DEFAULT_KS, device=
     max_dt = max_dt or 1.0 / fps
     duration = duration or min(scene.run_seconds(), 1.0)
     jelly = scene.jellies[jelly_index]
-    options = scene.data.get("implicit")
+    options = scene.data.get(IMPLICIT.name)
     fallback = scene.sim["dt"]
     rows, skipped = [], {}
     available = []
@@ -426,10 +427,6 @@ def format_table(report: dict) -> str:
     return "\n".join(lines)
 
 
-COLORS = {"euler": "tab:red", "symplectic": "tab:orange", "midpoint": "tab:green", "rk4": "tab:blue",
-          "implicit": "tab:purple"}
-
-
 def plot_report(report: dict, path):
     """Left: predicted vs measured limits per integrator; right (when the report has a ks map): stable dt over ks."""
     import matplotlib  # noqa: PLC0415
@@ -524,7 +521,7 @@ def _plot_ks_map(ax_m, report, methods, max_dt):
 def add_parser(subparsers, add_common):
     p = subparsers.add_parser("stability", help="largest stable dt per integrator: measured by bisection and predicted")
     p.add_argument("scene", help="scene file (.toml) or built-in scene name")
-    p.add_argument("--integrators", default=",".join(ALL_INTEGRATORS),
+    p.add_argument("--integrators", default=",".join(NAMES),
                    help="comma-separated methods (default: all; implicit is skipped if unavailable)")
     p.add_argument("--ks", help=f"comma-separated stiffnesses of the map [N/m] (default {','.join(f'{k:g}' for k in DEFAULT_KS)}; "
                                 "'none' for no map)")

@@ -13,6 +13,7 @@ import sys
 import time
 
 from ..core.errors import CommandLineError, SceneError
+from ..core.methods import IMPLICIT
 from ..io import scene as scene_mod
 from ..io import stable_step
 from ..io import sweep as engine
@@ -157,7 +158,7 @@ def stable_dt_task(spec: dict) -> list[dict]:
             scene = scene_mod.Scene(v["data"], source=spec.get("source", "<sweep>"))
             method = scene.sim["integrator"]
             precision = scene.sim["precision"]
-            options = scene.data.get("implicit")
+            options = scene.data.get(IMPLICIT.name)
             max_dt = 1.0 / scene.sim["fps"]
             duration = min(scene.run_seconds(), 1.0)
             fallback = scene.sim["dt"]

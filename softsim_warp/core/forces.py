@@ -14,6 +14,19 @@ A model takes one of three force paths, chosen when it is finalised and never pe
 
 Determinism is this property of the force path; the per-frame metrics have their own fixed-order
 reduction (``io/metrics.py``). The implicit integrator's solver reductions are not covered.
+
+Force terms beyond the springs. The springs are the force of every path: one definition,
+``kernels/springs.spring_force``, that the lattice gathers, row loops and native stages call or are
+checked against (tests/test_kernels_lattice.py). Any other internal force is a :class:`ForceTerm`
+that the model declares when it is built (``ModelBuilder.finalize(force_terms=...)``), and the rule
+is: a declared term reaches every path that evaluates forces, or that path refuses the model in one
+line. :data:`PATHS_TAKING_FORCE_TERMS` lists the paths that evaluate them (the spring list, atomic
+and deterministic: each term's ``add`` launches after the springs); every other path in
+:data:`FORCE_PATHS` compiles the spring force into its kernels and calls
+:func:`check_force_terms` where it is chosen (``finalize`` for the lattice and masked paths,
+``configure_fused`` for the fused stages, the implicit integrator's constructor), which raises
+:class:`ForceTermError`. ``finalize(force_path="auto")`` therefore takes the spring list for a model
+with force terms. Adding a term to another path means implementing it there and listing the path.
 """
 
 from __future__ import annotations
@@ -23,6 +36,60 @@ import warp as wp
 
 from .lattice_model import eval_lattice_forces
 from .masked_lattice import eval_masked_forces
+
+
+class ForceTerm:
+    """An internal force beyond the springs, declared by the model (``Model.force_terms``).
+
+    ``name`` is what a refusal names; :meth:`add` adds the term's force on every particle at the
+    state (q, qd) to ``f_out``, with Warp launches only (no host synchronisation, so a step stays
+    capturable as a graph), after the springs have been written.
+    """
+
+    name = "force term"
+
+    def add(self, model, q: wp.array, qd: wp.array, f_out: wp.array) -> None:
+        raise NotImplementedError
+
+
+class ForceTermError(ValueError):
+    """A force path that cannot evaluate a model's force terms refuses it (one line)."""
+
+
+# Every path that evaluates forces, and those of them that evaluate declared force terms. "lattice"
+# is both of its kernels (the CUDA gather and the CPU row loops); "fused stage" every fused explicit
+# stage (gather, shape-compiled, masked and rows, core/fused.py).
+FORCE_PATHS = ("spring list", "lattice", "masked lattice", "fused stage", "implicit")
+PATHS_TAKING_FORCE_TERMS = ("spring list",)
+
+
+def check_force_terms(model, path: str, terms=None) -> None:
+    """Raise :class:`ForceTermError` (one line) when ``path`` cannot evaluate the force terms of
+    ``model`` (or ``terms``, before the model exists)."""
+    if path not in FORCE_PATHS:
+        raise ValueError(f"unknown force path {path!r}; choose from {', '.join(FORCE_PATHS)}")
+    terms = tuple(model.force_terms if terms is None else terms)
+    if terms and path not in PATHS_TAKING_FORCE_TERMS:
+        names = ", ".join(repr(term.name) for term in terms)
+        raise ForceTermError(
+            f"the {path} path evaluates only the springs, not the force term {names}; "
+            f"the {' and '.join(PATHS_TAKING_FORCE_TERMS)} path does (force_path='springs')"
+        )
+
+
+def force_path_for_terms(force_path: str, terms) -> str:
+    """The force path ``ModelBuilder.finalize`` takes for ``force_path`` given the model's force terms:
+    "auto" becomes "springs" when there are terms; "lattice" with terms is refused."""
+    if not terms:
+        return force_path
+    if force_path == "lattice":
+        check_force_terms(None, "lattice", terms)
+    return "springs"
+
+
+def _add_force_terms(model, q: wp.array, qd: wp.array, f_out: wp.array) -> None:
+    for term in model.force_terms:
+        term.add(model, q, qd, f_out)
 
 
 def incident_springs_csr(pairs: np.ndarray, particle_count: int) -> tuple[np.ndarray, np.ndarray]:
@@ -101,25 +168,29 @@ def _eval_spring_forces_gathered(model, q: wp.array, qd: wp.array, f_out: wp.arr
 
 
 def eval_forces(model, q: wp.array, qd: wp.array, f_out: wp.array):
-    """Internal forces (springs and dampers) of the state (q, qd) into ``f_out``; gravity is added as an acceleration."""
+    """Internal forces of the state (q, qd) into ``f_out``: springs and dampers, and the model's force
+    terms on the spring list (see the module docstring); gravity is added as an acceleration."""
     if getattr(model, "masked", None) is not None:
         # Masked lattice (mesh jellies, core/masked_lattice.py): the stencil gathered per particle.
+        check_force_terms(model, "masked lattice")
         eval_masked_forces(model, q, qd, f_out)
         return
     if model.lattice is not None:
         # Regular lattice: springs implicit in the lattice, each particle's force gathered (no atomics).
+        check_force_terms(model, "lattice")
         eval_lattice_forces(model, q, qd, f_out)
         return
     if model.deterministic:
         # Spring list, atomic-free: per-spring forces, then a fixed-order gather per particle.
         _eval_spring_forces_gathered(model, q, qd, f_out)
-        return
-    f_out.zero_()
-    if model.spring_count:
-        wp.launch(
-            model.kernels.eval_springs,
-            dim=model.spring_count,
-            inputs=_spring_inputs(model, q, qd),
-            outputs=[f_out],
-            device=model.device,
-        )
+    else:
+        f_out.zero_()
+        if model.spring_count:
+            wp.launch(
+                model.kernels.eval_springs,
+                dim=model.spring_count,
+                inputs=_spring_inputs(model, q, qd),
+                outputs=[f_out],
+                device=model.device,
+            )
+    _add_force_terms(model, q, qd, f_out)

@@ -7,12 +7,12 @@ set, :func:`step_fused` from ``step``. The kernel follows the lattice kernel the
   and writes the particle's stage update; on a world's last stage it also applies plane contact
   (and between stages the resting-contact filter), so a symplectic or Euler step over planes is a
   single launch. A model of one jelly of one particle mass with shared coefficients, from
-  ``SINGLE_FROM`` particles on, steps with ``single_stage`` instead: the same kernel compiled for
-  the jelly's shape and spring types, reading no per-particle jelly, world or mass and no bounds
-  (its states are padded, ``Model.particle_array``); 1.21x symplectic, 1.20x rk4 at 100^3 on an
-  H100 (docs/PERFORMANCE.md).
+  ``SINGLE_FROM`` particles on, steps with the shape-compiled stage (``make_single_stage``)
+  instead: the same kernel compiled for the jelly's shape and spring types, reading no
+  per-particle jelly, world or mass and no bounds (its states are padded,
+  ``Model.particle_array``); docs/PERFORMANCE.md has the gain.
 * masked (mesh jellies, ``model.masked``, core/masked_lattice.py): the same stage kernel around the
-  masked gather (``masked_stage``, kernels/lattice.py), each neighbour read through the jelly's
+  masked gather (``make_masked_stage``, kernels/lattice.py), each neighbour read through the jelly's
   index grid, coefficients from the per-jelly tables.
 * rows (CPU): ``integrate_lattice_rows_stage`` computes a jelly's forces with the vectorised row
   loops and then its particles' stage update; contact follows as its own kernel.
@@ -30,11 +30,12 @@ from __future__ import annotations
 import warp as wp
 
 from .contact import apply_contacts, filter_stage_contacts, moves, plane_arrays
+from .forces import check_force_terms
 from .lattice_model import LatticeData
 
-# Particles from which a one-jelly model steps with the shape-compiled stage (``single_stage``).
-# Below, a few blocks per SM leave the latency to the loads each thread has in flight: the
-# shared-coefficient build this stage grew from measured 0.95-0.96x at 40^3 on an H200 (docs/PERFORMANCE.md).
+# Particles from which a one-jelly model steps with the shape-compiled stage (``make_single_stage``).
+# Below, a few blocks per SM leave the latency to the loads each thread has in flight, and the
+# shape-compiled stage does not pay (docs/PERFORMANCE.md).
 SINGLE_FROM = 1 << 18
 
 
@@ -50,6 +51,8 @@ def configure_fused(integrator, fused=None, fuse_contact=None, single=None):
         fused = lat is not None or masked is not None
     if fused and lat is None and masked is None:
         raise ValueError(f"fused stages need the lattice path ({model.lattice_reason})")
+    if fused:
+        check_force_terms(model, "fused stage")
     integrator.fused = bool(fused)
     if fused and lat is None:
         masked.make_stage_tables()
@@ -112,11 +115,11 @@ def step_fused(integrator, state_in, state_out, dt):
         LatticeData.check_contiguous(*gathered, state_out.particle_q, state_out.particle_qd)
         if lat is None:
             # Masked lattice: neighbours through the index grid, every load valid (no padding needed).
-            ml = model.masked
-            tables, coef = ml.stage_tables, ml.stencil_coef
+            masked_tables = model.masked
+            tables, coef = masked_tables.stage_tables, masked_tables.stencil_coef
             stage_kernel = model.kernels.masked_stage()
         elif integrator.single and lat.padded(*gathered):
-            # Compiled for the jelly's shape and spring types (kernels/lattice.py single_stage).
+            # Compiled for the jelly's shape and spring types (kernels/lattice.py make_single_stage).
             stage_kernel = model.kernels.single_stage(lat.layout.shape[0], lat.layout.types[0])
         else:
             stage_kernel = model.kernels.integrate_lattice_stage

@@ -88,9 +88,10 @@ import warp.optim.linear
 import warp.sparse
 
 from .contact import apply_contacts
-from .forces import eval_forces
+from .forces import check_force_terms, eval_forces
 from .integrators import Integrator
 from .mesh_terrain import mesh_touch_arrays
+from .methods import IMPLICIT
 from ..kernels import implicit as ki
 from .model import Model, State
 from .pins import drive
@@ -151,7 +152,7 @@ class ImplicitIntegrator(Integrator):
             updated to this step) instead of 0; off only to measure what it saves.
     """
 
-    name = "implicit"
+    name = IMPLICIT.name
 
     def __init__(
         self,
@@ -165,6 +166,8 @@ class ImplicitIntegrator(Integrator):
         warm_start: bool = True,
     ):
         super().__init__(model)
+        # Its Newton solve needs every force's Jacobian; core/forces.ForceTerm carries none.
+        check_force_terms(model, "implicit")
         if getattr(model, "terrain_motion", None) is not None or getattr(model, "mesh_animation", None) is not None:
             # Its contact solve prescribes a touching particle's normal velocity as 0 and damps its
             # tangential one towards 0, the terrain's own velocity being unknown to it.

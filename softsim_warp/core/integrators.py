@@ -14,30 +14,11 @@ import warp as wp
 from .contact import apply_contacts, filter_stage_contacts, move_terrain
 from .forces import eval_forces
 from .fused import configure_fused, stage_buffers, step_fused
+from .methods import DEFAULT, EXPLICIT_NAMES, MAX_STAGES
+from .methods import method as method_of  # ``method`` is ExplicitIntegrator's argument
 from .model import NUMPY_SCALARS, Model, State
 from .pins import drive
 from .profile import NO_PROFILE
-
-# Butcher tableaux of the explicit methods, as (c, b): stage s is evaluated at
-# y_n + h c_s k_{s-1}, and y_{n+1} = y_n + h sum_s b_s k_s. All of them have a_{s,j} = 0 except the
-# subdiagonal, which is why c alone describes the stages.
-TABLEAUX = {
-    "euler": ((0.0,), (1.0,)),
-    "midpoint": ((0.0, 0.5), (0.0, 1.0)),
-    "rk4": ((0.0, 0.5, 0.5, 1.0), (1.0 / 6.0, 1.0 / 3.0, 1.0 / 3.0, 1.0 / 6.0)),
-    # Symplectic Euler is a partitioned method with one force evaluation; the stage kernel
-    # special-cases it (v first, then x with the new v), so its tableau is only a placeholder.
-    "symplectic": ((0.0,), (1.0,)),
-}
-EXPLICIT = tuple(TABLEAUX)
-ORDER = {"euler": 1, "symplectic": 1, "midpoint": 2, "rk4": 4, "implicit": 1}
-# Position gain of a constant acceleration a over one step, x_{n+1} = ... + beta h^2 a, that the post-step
-# contact response adds to positions for the contact force it applies: 1 when x is updated with v_{n+1},
-# 0 for explicit Euler (x_{n+1} = x_n + h v_n). Midpoint and RK4 would need sum_s b_s c_s = 1/2, but their
-# stage states already hold the contact force of particles resting on terrain (filter_stage_contacts),
-# so their positions carry it and the response adds nothing.
-CONTACT_BETA = {"euler": 0.0, "midpoint": 0.0, "rk4": 0.0, "symplectic": 1.0, "implicit": 1.0}
-MAX_STAGES = 4
 
 
 class Integrator:
@@ -93,7 +74,7 @@ class ExplicitIntegrator(Integrator):
     def __init__(
         self,
         model: Model,
-        method="symplectic",
+        method=DEFAULT.name,
         fused=None,
         fuse_contact=None,
         single=None,
@@ -103,8 +84,8 @@ class ExplicitIntegrator(Integrator):
         if len(methods) != model.world_count:
             raise ValueError(f"need one method per world ({model.world_count}), got {len(methods)}")
         for name in methods:
-            if name not in TABLEAUX:
-                raise ValueError(f"unknown explicit integrator {name!r}; choose from {', '.join(TABLEAUX)}")
+            if not method_of(name).explicit:
+                raise ValueError(f"{name} is not an explicit integrator; choose from {', '.join(EXPLICIT_NAMES)}")
         self.methods = methods
         self.name = methods[0] if len(set(methods)) == 1 else "mixed"
         np_scalar = NUMPY_SCALARS[model.precision]
@@ -113,11 +94,11 @@ class ExplicitIntegrator(Integrator):
         counts = np.zeros(model.world_count, dtype=np.int32)
         symplectic = np.zeros(model.world_count, dtype=np.int32)
         for w, name in enumerate(methods):
-            cw, bw = TABLEAUX[name]
+            cw, bw = method_of(name).tableau
             counts[w] = len(cw)
             c[w, : len(cw)] = cw
             b[w, : len(bw)] = bw
-            symplectic[w] = name == "symplectic"
+            symplectic[w] = method_of(name).partitioned
         self.stage_count = int(counts.max())
         device = model.device
         self.world_stage_count = wp.array(counts, dtype=wp.int32, device=device)
@@ -125,7 +106,7 @@ class ExplicitIntegrator(Integrator):
         self.world_stage_c = wp.array2d(c, dtype=model.scalar, device=device)
         self.world_stage_b = wp.array2d(b, dtype=model.scalar, device=device)
         self.world_contact_beta = wp.array(
-            np.array([CONTACT_BETA[name] for name in methods], dtype=np_scalar), dtype=model.scalar, device=device
+            np.array([method_of(name).contact_beta for name in methods], dtype=np_scalar), dtype=model.scalar, device=device
         )
         # Lattice fast path: one fused kernel per stage (forces + stage update, plane contact on the
         # last stage) where it pays; see softsim_warp/core/fused.py and docs/PERFORMANCE.md.

@@ -281,10 +281,11 @@ class LatticeData:
         uniform: whether every jelly that has a spring type has the same ks, kd and rest lengths for
             it (copies of one jelly in several worlds, the benchmark's single jelly).
         stencil_coef: those shared coefficients as one vector (``kernels.lattice.common_coefficients``),
-            passed by value to the fused stage kernels (read by ``single_stage``); zeros when not ``uniform``.
+            passed by value to the fused stage kernels (read by the shape-compiled stage,
+            ``kernels.lattice.make_single_stage``); zeros when not ``uniform``.
         single: whether the model is one jelly whose particles all have one mass (the benchmark's
             jelly, a one-jelly scene) with shared coefficients; then large models step with
-            ``kernels.single_stage``, which reads no per-particle jelly, world or mass.
+            ``kernels.lattice.make_single_stage``'s stage, which reads no per-particle jelly, world or mass.
         particle_coord_k: third lattice coordinate k of each particle, shape [particle_count],
             int32; allocated only for the CPU row kernel, which reads it.
         scratch: workspace of the row kernel, shape [particle_count], vec3; allocated with
@@ -295,7 +296,7 @@ class LatticeData:
             gather is the Warp-loop gather (``eval_lattice_springs``).
         layout: the host :class:`LatticeLayout`.
         pad: elements a state array's allocation must reach past both its ends for the padded
-            one-jelly stage (``single_stage``) to read every stencil address of every
+            one-jelly stage (``make_single_stage``) to read every stencil address of every
             particle: 2 ny nz + nz + 2 of the largest jelly, a bound on |di ny nz + dj nz + dk|
             over the stencil. ``Model.particle_array`` allocates that way.
     """

@@ -3,10 +3,10 @@
 A mesh jelly (core/voxelize.py) is a box lattice with the points outside the mesh left out, and its
 springs are the standard stencil springs between present neighbours. The regular lattice path
 (core/lattice_model.py) needs every point; the spring list handles any topology but pays atomics
-(5-10x the lattice path on CUDA, docs/PERFORMANCE.md). This path keeps the lattice's tables (one
+(several times the lattice path's cost on CUDA, docs/PERFORMANCE.md). This path keeps the lattice's tables (one
 rest length per stencil offset, one ks/kd per type and jelly) and adds, per jelly, a grid of
 particle indices over its box (-1 where no point is): one thread per particle gathers its springs
-(``eval_masked_springs``, kernels/mesh.py), with no atomics and in a fixed order.
+(``eval_masked_springs``, kernels/lattice.py), with no atomics and in a fixed order.
 
 ``finalize`` takes it, on CUDA, for a model whose jellies are all (masked or whole) standard
 lattices that the regular lattice path does not cover; on the CPU the atomic spring list (one
@@ -15,7 +15,7 @@ measured. The model keeps its spring list too (the implicit integrator's Jacobia
 read it).
 
 The explicit methods step it with the fused lattice stage (core/fused.py) around the masked gather
-(kernels/lattice.py ``masked_stage``): each jelly's index grid gets a margin of absent points
+(kernels/lattice.py ``make_masked_stage``): each jelly's index grid gets a margin of absent points
 (``MaskedLattice.make_stage_tables``), so a neighbour is a grid entry at a constant offset with no
 bounds test, and an absent one is replaced by the particle itself (zero force). ``eval_forces``
 (implicit, ``fused=False``) keeps ``eval_masked_springs``.
@@ -204,20 +204,20 @@ def attach_masked(builder, m, force_path="auto", kernel=None) -> None:
 
 def eval_masked_forces(model, q: wp.array, qd: wp.array, f_out: wp.array):
     """Spring and damper forces of (q, qd) into ``f_out`` on the masked path; every entry is written."""
-    ml = model.masked
+    masked = model.masked
     wp.launch(
         model.kernels.eval_masked_springs,
         dim=model.particle_count,
         inputs=[
             model.particle_jelly,
-            ml.particle_cell,
-            ml.jelly_shape,
-            ml.jelly_grid_start,
-            ml.grid,
-            ml.jelly_types,
-            ml.jelly_rest,
-            ml.jelly_ks,
-            ml.jelly_kd,
+            masked.particle_cell,
+            masked.jelly_shape,
+            masked.jelly_grid_start,
+            masked.grid,
+            masked.jelly_types,
+            masked.jelly_rest,
+            masked.jelly_ks,
+            masked.jelly_kd,
             q,
             qd,
         ],

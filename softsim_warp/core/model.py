@@ -15,7 +15,7 @@ import warp as wp
 from . import lattice, particle_contact
 from .errors import SceneError
 from ..kernels import get_kernels
-from .forces import attach
+from .forces import attach, force_path_for_terms
 from .lattice_model import LatticeData, LatticeSprings, detect_lattice, recorded_lattice, spring_arrays
 from .pins import PinDrive, make_motion, path_position
 from .masked_lattice import attach_masked
@@ -463,15 +463,19 @@ class ModelBuilder:
 
     # -- finalize -------------------------------------------------------------------------------
 
-    def finalize(self, device=None, precision="float32", force_path="auto") -> Model:
+    def finalize(self, device=None, precision="float32", force_path="auto", force_terms=()) -> Model:
         """Copy everything to ``device`` as a :class:`Model` in ``precision`` ("float32" or "float64").
 
         ``force_path``: "auto" takes the lattice path (no spring arrays, see ``lattice_model``)
         when every spring is a standard lattice spring, "lattice" requires it, "springs" keeps
         the general spring list.
+        ``force_terms``: internal forces beyond the springs (``core/forces.ForceTerm``); only the
+        spring list evaluates them, so "auto" then takes it and "lattice" is refused.
         """
         if force_path not in ("auto", "lattice", "springs"):
             raise ValueError(f"force_path must be auto, lattice or springs (got {force_path!r})")
+        force_terms = tuple(force_terms)
+        force_path = force_path_for_terms(force_path, force_terms)
         if precision not in SCALARS:
             raise ValueError(f"precision must be one of {', '.join(SCALARS)} (got {precision!r})")
         device = wp.get_device(device)
@@ -485,6 +489,7 @@ class ModelBuilder:
             return wp.array(values, dtype=dtype, device=device)
 
         m = Model()
+        m.force_terms = force_terms
         m.device = device
         m.precision = precision
         m.scalar = scalar
@@ -524,7 +529,7 @@ class ModelBuilder:
         # on first use only, the spring list from its records; any other is searched
         # (detect_lattice) and keeps its list as given.
         m.lattice = None
-        m.lattice_reason = "force_path=springs"
+        m.lattice_reason = "force_path=springs" if not force_terms else "force terms need the spring list (core/forces.py)"
         if force_path != "springs":
             recorded = self.lattice_records() is not None
             layout, m.lattice_reason = recorded_lattice(self) if recorded else detect_lattice(self)
@@ -719,6 +724,8 @@ class Model:
                 yield f"{roots.get(it['world'], '/World')}/{kind}_{i}", kind, it
 
     deterministic = False
+    # Internal forces beyond the springs (core/forces.ForceTerm), evaluated on the spring list only.
+    force_terms = ()
 
     _SPRING_ARRAYS = ("spring_indices", "spring_rest_length", "spring_stiffness", "spring_damping")
     _SPRING_HOST = (

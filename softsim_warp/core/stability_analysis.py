@@ -32,15 +32,8 @@ from collections.abc import Mapping
 import numpy as np
 
 from . import lattice
-
-METHODS = ("euler", "symplectic", "midpoint", "rk4", "implicit")
-
-# Taylor coefficients (ascending powers of z) of the stability polynomials of the explicit RK methods.
-_RK_POLY = {
-    "euler": np.array([1.0, 1.0]),
-    "midpoint": np.array([1.0, 1.0, 1.0 / 2.0]),
-    "rk4": np.array([1.0, 1.0, 1.0 / 2.0, 1.0 / 6.0, 1.0 / 24.0]),
-}
+from .methods import NAMES
+from .methods import method as method_of  # ``method`` is the argument naming a method in this module
 
 # Relative size below which an eigenvalue (or its real part) is taken as exactly zero. Eigenvalues
 # of a dense eigensolver are accurate to about eps * |A| in absolute terms, so the tolerance is
@@ -263,14 +256,22 @@ def stability_function(method):
             differently, so its step is not a function of ``hA``; see :func:`symplectic_step_matrix`)
             or an unknown method.
     """
-    if method == "implicit":
+    if not method_of(method).explicit:
         return lambda z: 1.0 / (1.0 - np.asarray(z, dtype=complex))
-    if method in _RK_POLY:
-        coeffs = _RK_POLY[method]
-        return lambda z: np.polynomial.polynomial.polyval(np.asarray(z, dtype=complex), coeffs)
-    if method == "symplectic":
-        raise ValueError("symplectic Euler is partitioned and has no R(z); use symplectic_step_matrix")
-    raise ValueError(f"unknown method {method!r}; expected one of {METHODS}")
+    coeffs = _polynomial(method)
+    return lambda z: np.polynomial.polynomial.polyval(np.asarray(z, dtype=complex), coeffs)
+
+
+def _polynomial(name):
+    """``R(z)``'s coefficients (ascending powers) of an explicit Runge-Kutta method, from its tableau.
+
+    Raises:
+        ValueError: for an unknown method, or a partitioned one (no ``R(z)``).
+    """
+    m = method_of(name)
+    if m.partitioned:
+        raise ValueError(f"{m.label} is partitioned and has no R(z); use symplectic_step_matrix")
+    return np.array(m.stability_polynomial)
 
 
 def _symplectic_step(Kw, Cw, h):
@@ -321,7 +322,7 @@ def step_spectral_radius(method, h, K, C, masses):
     Free (rigid) modes contribute exactly 1. A value above 1 means some mode grows every step.
 
     Args:
-        method: one of :data:`METHODS`.
+        method: one of :data:`.methods.NAMES`.
         h: time step [s].
         K: ``(3N, 3N)`` stiffness Jacobian.
         C: ``(3N, 3N)`` damping Jacobian.
@@ -332,7 +333,7 @@ def step_spectral_radius(method, h, K, C, masses):
     """
     Kr, Cr, n_free = _reduced(K, C, masses)
     base = 1.0 if n_free else 0.0
-    if method == "symplectic":
+    if method_of(method).partitioned:
         return max(base, _spectral_radius(_symplectic_step(Kr, Cr, float(h))))
     lam = np.linalg.eigvals(_first_order(Kr, Cr)) if Kr.size else np.zeros(0, complex)
     R = stability_function(method)
@@ -413,17 +414,15 @@ def max_stable_dt_from_eigenvalues(method, eigenvalues, *, zero_tol=_ZERO_TOL):
         injects energy however small the step), or any explicit method when the linearised system
         itself has a growing mode (``Re lambda > 0``).
     """
-    if method == "implicit":
+    if not method_of(method).explicit:
         # Backward Euler: |1/(1 - z)| <= 1 on the whole left half plane, for every h.
         return math.inf
-    if method not in _RK_POLY:
-        stability_function(method)  # raises with the reason (symplectic or unknown)
+    coeffs = _polynomial(method)  # raises with the reason (partitioned or unknown)
     lam, _ = _clean_eigenvalues(eigenvalues, zero_tol)
     if lam.size == 0:
         return math.inf
     if np.any(lam.real > 0.0):
         return 0.0
-    coeffs = _RK_POLY[method]
     # Identical eigenvalues (lattice symmetry) give identical exits: solve each distinct one once.
     distinct = np.unique(np.round(lam / np.max(np.abs(lam)), 12))
     best = math.inf
@@ -498,7 +497,7 @@ def max_stable_dt(method, K, C, masses, *, rtol=1e-4, growth_tol=1e-9, zero_tol=
     """Largest time step for which ``method`` does not amplify any mode of the linearised system.
 
     Args:
-        method: one of :data:`METHODS`.
+        method: one of :data:`.methods.NAMES`.
         K: ``(3N, 3N)`` stiffness Jacobian (from :func:`linearize`).
         C: ``(3N, 3N)`` damping Jacobian.
         masses: particle masses: ``(N,)``, ``(3N,)`` or a scalar.
@@ -514,16 +513,16 @@ def max_stable_dt(method, K, C, masses, *, rtol=1e-4, growth_tol=1e-9, zero_tol=
         mode is undamped (unstable for every ``h > 0``), or for any method but ``implicit`` when the
         linearisation has a growing mode. Rigid modes never limit the step.
     """
-    if method == "implicit":
+    if not method_of(method).explicit:
         return math.inf
     Kr, Cr, _ = _reduced(K, C, masses, zero_tol)
     return _max_stable_dt_reduced(method, Kr, Cr, rtol, growth_tol, zero_tol)
 
 
 def _max_stable_dt_reduced(method, Kr, Cr, rtol, growth_tol, zero_tol, lam=None):
-    if method == "implicit":
+    if not method_of(method).explicit:
         return math.inf
-    if method == "symplectic":
+    if method_of(method).partitioned:
         return _symplectic_max_dt(Kr, Cr, rtol, growth_tol, zero_tol)
     if lam is None:
         lam = np.linalg.eigvals(_first_order(Kr, Cr)) if Kr.size else np.zeros(0, complex)
@@ -578,7 +577,7 @@ def lattice_jacobians(shape, size, particle_mass, ks, kd):
     )
 
 
-def predict_lattice_dt(shape, size, particle_mass, ks, kd, methods=METHODS, *, rtol=1e-4):
+def predict_lattice_dt(shape, size, particle_mass, ks, kd, methods=NAMES, *, rtol=1e-4):
     """Largest stable time step of each integrator for a jelly lattice, linearised at rest.
 
     Args:
@@ -588,7 +587,7 @@ def predict_lattice_dt(shape, size, particle_mass, ks, kd, methods=METHODS, *, r
         ks: spring stiffness [N/m]: scalar, ``(structural, shear, bending)`` or a mapping keyed by
             type name or type number.
         kd: spring damping [N s/m], given like ``ks``.
-        methods: integrator names (see :data:`METHODS`).
+        methods: integrator names (see :data:`.methods.NAMES`).
         rtol: relative precision of the symplectic bisection.
 
     Returns:
@@ -623,12 +622,10 @@ def stability_region_boundary(method, n=400):
     Returns:
         ``(n,)`` complex points ``z = h lambda`` on the boundary, starting at ``z = 0``.
     """
-    if method == "implicit":
+    if not method_of(method).explicit:
         theta = np.linspace(0.0, 2.0 * np.pi, n, endpoint=False)
         return 1.0 - np.exp(1j * theta)
-    if method not in _RK_POLY:
-        stability_function(method)  # raises with the reason
-    coeffs = _RK_POLY[method]
+    coeffs = _polynomial(method)  # raises with the reason (partitioned or unknown)
     p = coeffs.size - 1
     # Follow the root on a finer grid than requested so consecutive roots are unambiguous.
     fine = max(n, 256 * p)

@@ -41,6 +41,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from . import stability_analysis as sa
+from .methods import NAMES, method
 from .model import Model, ModelBuilder
 
 MAX_ITERATIONS = 300
@@ -135,7 +136,7 @@ def _proportional_ratio(ks, kd) -> float | None:
     return float(ratio[0]) if np.allclose(ratio, ratio[0], rtol=1e-12, atol=0.0) else None
 
 
-def predict_model_dt(model: Model, methods=sa.METHODS, *, tol=DEFAULT_TOL, max_iterations=MAX_ITERATIONS,
+def predict_model_dt(model: Model, methods=NAMES, *, tol=DEFAULT_TOL, max_iterations=MAX_ITERATIONS,
                      seed=SEED) -> Prediction:
     """Largest stable dt of each method for ``model`` linearised at its start positions.
 
@@ -145,7 +146,7 @@ def predict_model_dt(model: Model, methods=sa.METHODS, *, tol=DEFAULT_TOL, max_i
 
     Args:
         model: the model.
-        methods: integrator names (:data:`.stability_analysis.METHODS`).
+        methods: integrator names (:data:`.methods.NAMES`).
         tol: relative change of the largest Ritz value over :data:`CHECK_EVERY` iterations below
             which (with each method's step settled to :data:`DEFAULT_DT_TOL`) the iteration stops.
         max_iterations: Lanczos iterations at most (also capped by :data:`MEMORY_BUDGET`).
@@ -159,7 +160,7 @@ def predict_model_dt(model: Model, methods=sa.METHODS, *, tol=DEFAULT_TOL, max_i
                                seed=seed)
 
 
-def predict_operator_dt(op: SpringOperator, methods=sa.METHODS, *, tol=DEFAULT_TOL, dt_tol=DEFAULT_DT_TOL,
+def predict_operator_dt(op: SpringOperator, methods=NAMES, *, tol=DEFAULT_TOL, dt_tol=DEFAULT_DT_TOL,
                         min_iterations=MIN_ITERATIONS, max_iterations=MAX_ITERATIONS, check_every=CHECK_EVERY,
                         seed=SEED) -> Prediction:
     """:func:`predict_model_dt` for the springs of a :class:`SpringOperator`.
@@ -265,7 +266,7 @@ def _estimates(T, ratio, PD, k, methods):
     lam = np.linalg.eigvals(sa._first_order(Kr, Cr)) if Kr.size else np.zeros(0, complex)
     out = [float(np.linalg.eigvalsh(T)[-1])]
     for m in methods:
-        if m == "symplectic":
+        if method(m).partitioned:
             out.append(sa._symplectic_modal_estimate(Kr, Cr) if Kr.size else math.inf)
         else:
             out.append(sa._max_stable_dt_reduced(m, Kr, Cr, 1e-4, 1e-9, sa._ZERO_TOL, lam=lam))
@@ -338,7 +339,7 @@ def jelly_operator(jelly: dict, pinned=()) -> SpringOperator:
                           np.concatenate(b._ks), np.concatenate(b._kd), inv_mass)
 
 
-def predict_jelly_dt(jelly: dict, methods=sa.METHODS, device=None, max_n=None, *, pinned=(), **lanczos) -> Prediction:
+def predict_jelly_dt(jelly: dict, methods=NAMES, device=None, max_n=None, *, pinned=(), **lanczos) -> Prediction:
     """:func:`predict_model_dt` for a validated scene jelly, free and at rest, in float64 on the host.
 
     ``max_n`` (box jellies): particles per axis at most, at the jelly's spacing. ``device`` is

@@ -22,6 +22,7 @@ import warp as wp
 from .contact import forget_contact_history
 from .implicit import ImplicitIntegrator
 from .integrators import ExplicitIntegrator, Integrator
+from .methods import method
 from .mesh_terrain import steps_on_host
 from .model import Model, State
 from .profile import NO_PROFILE, StepProfile
@@ -45,10 +46,12 @@ MAX_CACHED_GRAPHS = 8
 
 
 def make_integrator(name, model: Model, options: dict | None = None) -> Integrator:
-    """The integrator called ``name`` (``"implicit"``, an explicit method, or one explicit method per world)."""
-    if isinstance(name, str) and name == "implicit":
+    """The integrator called ``name`` (a name of :data:`.methods.NAMES`), or one explicit method per
+    world when ``name`` is a list; ``options`` are the implicit integrator's settings (the scene's
+    ``[implicit]`` table; explicit methods take none), None for defaults."""
+    if isinstance(name, str) and not method(name).explicit:
         return ImplicitIntegrator(model, **(options or {}))
-    return ExplicitIntegrator(model, name)
+    return ExplicitIntegrator(model, name)  # it checks each name
 
 
 class Stepper:

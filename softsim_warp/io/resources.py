@@ -24,6 +24,7 @@ from dataclasses import dataclass, field
 
 from ..core import lattice
 from ..core.errors import CommandLineError, SceneError
+from ..core.methods import method
 
 # Bytes per item. S: scalar size (4 for float32, 8 for float64).
 HOST_BUILD_PER_SPRING = 192  # the above plus the lattice-path detection in finalize (per-spring offsets and checks; measured ~179)
@@ -36,7 +37,6 @@ WARP_ADDRESS_RESERVE = 384 << 20  # address space Warp's initialisation maps (me
 HOST_MODEL_PER_SPRING = 44  # host copies kept in the Model: pairs, type, rest/ks/kd (float64)
 HOST_MODEL_PER_PARTICLE = 32  # q and mass (float64) kept in the Model
 USD_POINT_BYTES = 12  # one float32 point of one time sample
-STAGES = {"euler": 1, "symplectic": 1, "midpoint": 2, "rk4": 4}
 # Particles of one model at most: kernels index particles (and springs) with 32-bit integers.
 MAX_MODEL_PARTICLES = 2**31 - 1
 # Contact between jellies (core/particle_contact.py), per contact particle, in scalars of S bytes
@@ -55,14 +55,20 @@ STEP_SECONDS_PER_PARTICLE = {"cpu": 5.0e-9, "cuda": 1.0e-11}
 MAX_RUN_DAYS = 30
 
 
+def heaviest(names) -> str:
+    """The method of ``names`` whose step holds the most memory (the implicit one, else the one with
+    the most stages): what a size check before building anything must assume."""
+    return max(names, key=lambda name: (not method(name).explicit, method(name).stages or 0))
+
+
 def _device_per_particle(s: int, integrator: str) -> int:
     # Model: q, qd (vec3), mass, inv_mass (scalar), jelly, world (int32).
     model = 6 * s + 2 * s + 8
     # Two states plus the spare state of Simulator.warm_up, each q and qd.
     states = 3 * 6 * s
-    if integrator in STAGES:
+    if method(integrator).explicit:
         # f, and for multi-stage methods the stage state and the RK accumulators (4 vec3).
-        stage = 3 * s + (12 * s if STAGES[integrator] > 1 else 0)
+        stage = 3 * s + (12 * s if method(integrator).stages > 1 else 0)
     else:
         # Implicit: forces, a Newton/CG working set of about eight vec3 vectors (x, r, p, Ap, z,
         # diagonal, rhs, dv) and the diagonal 3x3 blocks of the system matrix.
@@ -73,7 +79,7 @@ def _device_per_particle(s: int, integrator: str) -> int:
 def _device_per_spring(s: int, integrator: str, deterministic: bool) -> int:
     # Model: pair (vec2i), rest length, stiffness, damping.
     per = 8 + 3 * s
-    if integrator not in STAGES:
+    if not method(integrator).explicit:
         per += 2 * 9 * s  # implicit: off-diagonal 3x3 blocks of df/dx and df/dv per spring
     if deterministic:
         per += 3 * s + 2 * 4  # per-spring force (vec3) + two CSR entries (signed spring id)

@@ -20,6 +20,7 @@ from dataclasses import dataclass, field
 from importlib import resources
 from pathlib import Path
 
+from ..core import methods
 from ..core.errors import COMMAND_LINE, SceneError
 from ..core.mesh_assets import UNITS, UP_AXES, meters_per_unit
 from ..core.model import jelly_points
@@ -27,7 +28,7 @@ from ..core.pins import FACES, INTERPOLATIONS, select_particles
 from .checks import check_scene
 from .mesh_scene import resolve_meshes
 
-INTEGRATORS = ("euler", "symplectic", "midpoint", "rk4", "implicit")
+INTEGRATORS = methods.NAMES  # the public name (softsim_warp.INTEGRATORS)
 PRECISIONS = ("float32", "float64")
 
 # Arrays and tables nested deeper than this are refused before anything recursive sees them (the
@@ -398,7 +399,7 @@ SCHEMA = Table(
         "description": Text("", doc="one line shown by `softsim scenes`"),
         "simulation": Table(
             {
-                "integrator": Choice(INTEGRATORS, "symplectic"),
+                "integrator": Choice(methods.NAMES, methods.DEFAULT.name),
                 "dt": Float(1.0e-3, lo=0, lo_open=True, auto=True,
                             doc='step size [s]; "auto": the largest the stability prediction allows (io/stable_step.py)'),
                 "duration": Float(lo=0, lo_open=True, doc="simulated time [s]"),
@@ -461,8 +462,9 @@ SCHEMA = Table(
             min_len=1,
             required=True,
         ),
-        # Settings of the implicit integrator; absent keys take ImplicitIntegrator's defaults.
-        "implicit": Table(
+        # Settings of the implicit integrator, in the table named after it (make_integrator's
+        # options); absent keys take ImplicitIntegrator's defaults.
+        methods.IMPLICIT.name: Table(
             {
                 "newton_iterations": Int(lo=1, hi=MAX_NEWTON_ITERATIONS, doc="linear solves per step (default 1)"),
                 "cg_tolerance": Float(lo=0, lo_open=True, hi=1, hi_open=True, doc="CG stops at |r| <= tol |b| (1e-4)"),
@@ -965,7 +967,7 @@ def validate(data: dict, source: str, base=None) -> dict:
             moving = [name for name in ("motion", "animated") if entry.get(name)]
             if "motion" in entry:
                 _check_motion(entry["motion"], f"{kind}.{i}.motion", ctx)
-            if moving and sim["integrator"] == "implicit":
+            if moving and not methods.method(sim["integrator"]).explicit:
                 ctx.fail(f"{kind}.{i}.{moving[0]}", "the implicit integrator does not take moving terrain; "
                          "use an explicit integrator", sim["integrator"])
     # Checks of the scene as a whole (sizes, precision range, a jelly starting inside terrain);

@@ -33,6 +33,7 @@ import math
 import os
 
 from ..core.errors import SceneError
+from ..core.methods import method as method_of  # ``method`` names a method in this module
 from ..core.stability_model import predict_jelly_dt
 
 REFUSE_FACTOR = 1.1
@@ -40,7 +41,6 @@ AUTO_FRACTION = 0.9
 # The pre-flight's Lanczos settings: each method's step to 1e-3 (relative) over 5 iterations, far
 # inside the factors above; the bound on its work is what tests/test_stable_step.py checks.
 PREFLIGHT = {"tol": 1e-3, "dt_tol": 1e-3, "min_iterations": 20, "check_every": 5}
-UNCONDITIONAL = ("implicit",)
 BLOCK = 24
 
 _CACHE: dict = {}
@@ -66,7 +66,7 @@ def _pinned(data: dict, i: int) -> list:
 def jelly_limit(data: dict, i: int, method: str) -> float:
     """Largest stable dt [s] of ``method`` predicted for jelly ``i`` of a validated scene (``inf``:
     no limit; ``0.0``: unstable at every dt, an undamped mode with euler or midpoint)."""
-    if method in UNCONDITIONAL:
+    if not method_of(method).explicit:  # unconditionally stable
         return math.inf
     jelly = data["jelly"][i]
     block = "mesh" not in jelly and max(jelly["resolution"]) > BLOCK

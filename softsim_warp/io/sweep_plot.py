@@ -19,6 +19,7 @@ import math
 
 import numpy as np
 
+from ..core.methods import COLORS
 from .outputs import save_atomic
 
 LINE_METRICS = (
@@ -30,8 +31,6 @@ LINE_METRICS = (
 )
 STABLE_METRICS = (("stable_dt", "largest stable dt, scene [s]"),
                   ("stable_dt_jelly", "largest stable dt, free jelly [s]"))
-COLORS = {"euler": "tab:red", "symplectic": "tab:orange", "midpoint": "tab:green", "rk4": "tab:blue",
-          "implicit": "tab:purple"}
 
 
 def _key_value(v):

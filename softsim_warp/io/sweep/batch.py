@@ -19,6 +19,7 @@ import types
 
 import numpy as np
 
+from ...core import methods
 from .. import scene as scene_mod
 from ..checks import TERRAIN_SDF
 from ..warp_init import init_warp
@@ -92,8 +93,8 @@ class _Batch:
         self.datas = datas
         self.model = make_builder(datas).finalize(device, sim["precision"])
         method = sim["integrator"]
-        if method == "implicit":
-            self.integrator = make_integrator("implicit", self.model, datas[0].get("implicit"))
+        if not methods.method(method).explicit:
+            self.integrator = make_integrator(method, self.model, datas[0].get(methods.IMPLICIT.name))
         else:
             self.integrator = ExplicitIntegrator(self.model, [method] * len(datas))
         first = scene_mod.Scene(datas[0])

@@ -24,6 +24,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from ...core import methods
 from ...core.errors import CommandLineError, SceneError, UserError
 from .. import scene as scene_mod
 from ..checks import TERRAIN_SDF
@@ -307,7 +308,7 @@ def plan_sweep(base: dict, source: str, axes: list[Axis], integrators=None, samp
             reference = None
             if mode == "reference":
                 ref = copy.deepcopy(data)
-                scene_mod.apply_overrides(ref, [("simulation.integrator", "rk4"), ("simulation.precision", "float64")])
+                scene_mod.apply_overrides(ref, [("simulation.integrator", methods.REFERENCE.name), ("simulation.precision", "float64")])
                 try:
                     reference = scene_mod.validate(ref, source)
                 except SceneError as e:
@@ -372,7 +373,7 @@ def group_key(v: SweepVariant) -> str:
     shapes = [list(j["resolution"]) for j in data["jelly"]]
     terrain = {kind: len(data.get(kind, [])) for kind in TERRAIN_SDF}
     key = {"simulation": sim, "shapes": shapes, "terrain": terrain, "reference": v.reference is not None}
-    if sim["integrator"] == "implicit":
+    if not methods.method(sim["integrator"]).explicit:  # an implicit variant runs alone
         key["alone"] = v.id
     return _canonical(key)
 
@@ -408,7 +409,7 @@ def make_batches(variants: list[SweepVariant], workers: int, is_cuda: bool, budg
         groups.setdefault(group_key(v), []).append(v)
     out = []
     for members in groups.values():
-        if members[0].integrator == "implicit":
+        if not methods.method(members[0].integrator).explicit:
             out += [[v] for v in members]
             continue
         size = batch_size(members, workers, is_cuda, budget, limit)
