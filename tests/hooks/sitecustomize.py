@@ -2,8 +2,9 @@
 
 A test that puts this folder first on ``PYTHONPATH`` (``tests/subprocess_hooks.py``) has Python
 import this module at start-up, in the command's process and in every process it starts (a sweep's
-Dask workers). It patches the package's functions as their modules load, so a test can reach a
-phase of a real process without any test code in the package:
+Dask workers; a ``sitecustomize`` it shadows still runs). It patches the package's functions as
+their modules load, so a test can reach a phase of a real process without any test code in the
+package:
 
 ``SOFTSIM_TEST_PAUSE="phase[:n],..."``: the process stops at each named phase, writes
 ``softsim-test: paused at <phase>`` to stderr and waits there until ``n`` signals (default 1) have
@@ -23,6 +24,7 @@ from __future__ import annotations
 import functools
 import importlib.abc
 import importlib.machinery
+import importlib.util
 import os
 import sys
 import time
@@ -186,6 +188,16 @@ def _marking(module, name):
     setattr(module, name, marked)
 
 
+def _load_shadowed():
+    """Run the ``sitecustomize`` this one shadows, if another folder on ``sys.path`` has one."""
+    here = Path(__file__).resolve().parent
+    rest = [e for e in sys.path if Path(e or os.curdir).resolve() != here]
+    spec = importlib.machinery.PathFinder.find_spec("sitecustomize", rest)
+    if spec is not None and spec.loader is not None:
+        spec.loader.exec_module(importlib.util.module_from_spec(spec))
+
+
+_load_shadowed()
 _hooks = _OnImport()
 if PAUSES:
     _hooks.add("softsim_warp.commands.cli", before=lambda: pause("import"), after=_patch_cli)
