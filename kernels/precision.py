@@ -37,7 +37,16 @@ def is_generic(t) -> bool:
 
 
 def both_precisions(kernel):
-    """Declare ``kernel``'s float32 and float64 overloads (a decorator, above ``@wp.kernel``)."""
+    """Declare ``kernel``'s float32 and float64 overloads (a decorator, above ``@wp.kernel``).
+
+    Each overload gets a key of its own (``<kernel>_float32``, ``<kernel>_float64``): Warp 1.19's CPU
+    graph capture registers a launched kernel by its key and module, so the two overloads of one
+    kernel launched in one captured graph (a float32 run and its float64 reference, measured
+    together) would otherwise replay one through the other's function: wrong values or a crash.
+    """
     for scalar in PRECISIONS:
-        wp.overload(kernel, {name: concrete(t, scalar) for name, t in kernel.adj.arg_types.items() if is_generic(t)})
+        overload = wp.overload(
+            kernel, {name: concrete(t, scalar) for name, t in kernel.adj.arg_types.items() if is_generic(t)}
+        )
+        overload.key = f"{kernel.key}_{scalar.__name__}"
     return kernel

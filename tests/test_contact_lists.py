@@ -1,4 +1,4 @@
-"""Candidate lists of contact between jellies (kernels/particle_contact.py, core/particle_contact.py).
+"""Candidate lists of contact between jellies (kernels/particle_contact/, core/particle_contact.py).
 
 A list holds the pairs within CANDIDATE_REACH d + skin at its build and is rebuilt once a particle
 has moved half the skin. Checked against what cannot agree by accident: a brute-force O(n^2) NumPy

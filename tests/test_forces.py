@@ -174,7 +174,7 @@ def test_paths_without_force_terms_refuse_them_in_one_line(device):
     # The implicit integrator needs each force's Jacobian, which a ForceTerm does not carry.
     with pytest.raises(ForceTermError) as refused:
         make_integrator("implicit", model)
-    assert "\n" not in str(refused.value) and "implicit path" in str(refused.value)
+    assert "\n" not in str(refused.value) and "implicit solve path" in str(refused.value)
     # The fused stages exist on the lattice paths only, which the model did not take.
     with pytest.raises(ValueError) as refused:
         ExplicitIntegrator(model, "rk4", fused=True)

@@ -1,4 +1,4 @@
-"""Contact between jellies and self-contact (core/particle_contact.py, kernels/particle_contact.py).
+"""Contact between jellies and self-contact (core/particle_contact.py, kernels/particle_contact/).
 
 Physics checked against what cannot agree by accident: conservation of linear momentum (every pair
 impulse is equal and opposite), the mirror symmetry of a symmetric collision, the rebound from a

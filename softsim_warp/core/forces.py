@@ -59,7 +59,7 @@ class ForceTermError(ValueError):
 # Every path that evaluates forces, and those of them that evaluate declared force terms. "lattice"
 # is both of its kernels (the CUDA gather and the CPU row loops); "fused stage" every fused explicit
 # stage (gather, shape-compiled, masked and rows, core/fused.py).
-FORCE_PATHS = ("spring list", "lattice", "masked lattice", "fused stage", "implicit")
+FORCE_PATHS = ("spring list", "lattice", "masked lattice", "fused stage", "implicit solve")
 PATHS_TAKING_FORCE_TERMS = ("spring list",)
 
 

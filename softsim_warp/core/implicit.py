@@ -167,7 +167,7 @@ class ImplicitIntegrator(Integrator):
     ):
         super().__init__(model)
         # Its Newton solve needs every force's Jacobian; core/forces.ForceTerm carries none.
-        check_force_terms(model, "implicit")
+        check_force_terms(model, "implicit solve")
         if getattr(model, "terrain_motion", None) is not None or getattr(model, "mesh_animation", None) is not None:
             # Its contact solve prescribes a touching particle's normal velocity as 0 and damps its
             # tangential one towards 0, the terrain's own velocity being unknown to it.

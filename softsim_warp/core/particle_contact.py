@@ -3,7 +3,7 @@
 :func:`attach` gives a model a :class:`ParticleContact` hook (``model.contact_hooks``) when its scene
 asks for contact between jellies or for a jelly's self-contact; a model without either gets nothing
 (no array, no launch). The hook runs after every integrator's step, after terrain contact
-(``core/contact.apply_contacts``), and launches (kernels/particle_contact.py explains each):
+(``core/contact.apply_contacts``), and launches (kernels/particle_contact/ explains each):
 
 1. ``prepare_contact_particles``: the positions of the surface particles of the jellies that take
    part, each with its contact radius, copied to a compact array (a lattice's interior particles
