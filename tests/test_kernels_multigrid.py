@@ -1,0 +1,62 @@
+"""kernels/multigrid.py's module-level funcs and kernels, each checked alone in float32 and float64.
+
+The references are built here independently: the 1-D interpolation rule (coarse nodes on the even
+fine nodes and on the last one, linear in between) and trilinear interpolation, which reproduces
+every field linear in the lattice coordinates exactly. The weights are 0, 1/2 and 1 and the fields
+small integers, so both precisions must agree with the reference exactly, not to a tolerance.
+"""
+
+import numpy as np
+import pytest
+import warp as wp
+
+from softsim_warp.kernels import multigrid as km
+from softsim_warp.kernels.precision import Float, both_precisions
+
+from tests.test_multigrid import interpolation_1d
+
+PRECISIONS = [(wp.float32, np.float32), (wp.float64, np.float64)]
+
+
+@both_precisions
+@wp.kernel(module="unique")
+def axis_weights_of(n: int, nc: int, one: Float, weights_out: wp.array2d(dtype=Float)):
+    # One thread: the 1-D interpolation matrix from the func, with a border of indices outside the
+    # axis (row and column 0 and the last ones).
+    for i in range(-1, n + 1):
+        for c in range(-1, nc + 1):
+            weights_out[i + 1, c + 1] = km.axis_weight(i, c, n, nc, one)
+
+
+@pytest.mark.parametrize("scalar, np_scalar", PRECISIONS)
+def test_axis_weight_is_the_interpolation_rule(scalar, np_scalar):
+    for n in (1, 2, 3, 4, 5, 8, 9):
+        nc = km.coarse_size(n)
+        weights = wp.zeros((n + 2, nc + 2), dtype=scalar, device="cpu")
+        wp.launch(axis_weights_of, dim=1, inputs=[n, nc, scalar(1.0)], outputs=[weights], device="cpu")
+        got = weights.numpy()
+        assert got.dtype == np_scalar
+        # Indices outside the axis weigh zero (the kernels' branch-free loads rely on it).
+        expected = np.zeros((n + 2, nc + 2), dtype=np_scalar)
+        expected[1:-1, 1:-1] = interpolation_1d(n)
+        np.testing.assert_array_equal(got, expected)
+
+
+@pytest.mark.parametrize("scalar, np_scalar", PRECISIONS)
+def test_prolongation_reproduces_linear_fields(device, scalar, np_scalar):
+    """mg_prolong (x += P e) on a coarse field linear in the lattice coordinates gives that field on
+    the fine lattice, exactly: an odd, an even and a two-node axis."""
+    shape = (7, 6, 2)
+    coarse = tuple(km.coarse_size(n) for n in shape)
+    fine_coord = np.stack(np.meshgrid(*(np.arange(n) for n in shape), indexing="ij"), -1).reshape(-1, 3)
+    # Coarse node c sits on fine node min(2 c, n - 1) (or on c itself on an axis it does not coarsen).
+    coarse_coord = np.stack(
+        np.meshgrid(*(np.minimum(2 * np.arange(nc), n - 1) if nc != n else np.arange(n) for n, nc in zip(shape, coarse)),
+                    indexing="ij"), -1).reshape(-1, 3)
+    field = np.array([[2.0, -1.0, 4.0], [1.0, 3.0, -2.0], [-4.0, 1.0, 1.0]])
+    vec = wp.types.vector(3, scalar)
+    e = wp.array((coarse_coord @ field.T).astype(np_scalar), dtype=vec, device=device)
+    x = wp.zeros(len(fine_coord), dtype=vec, device=device)
+    wp.launch(km.mg_prolong, dim=len(fine_coord), inputs=[wp.vec3i(*shape), wp.vec3i(*coarse), e], outputs=[x],
+              device=device)
+    np.testing.assert_array_equal(x.numpy(), (fine_coord @ field.T).astype(np_scalar))
