@@ -47,6 +47,7 @@ reading anything back to the host and can be captured with ``wp.capture_while``.
 import warp as wp
 
 from . import contact, mesh
+from .springs import spring_jacobian
 
 wp.set_module_options({"enable_backward": False})
 
@@ -108,27 +109,6 @@ def build(scalar):
     bowl_holds = contact_funcs["bowl_holds"]
     sphere_distance = contact_funcs["sphere_distance"]
     mesh_distance = mesh.build(scalar)["mesh_distance"]
-
-    @wp.func
-    def spring_jacobian(d: vec3, rest: scalar, ks: scalar, kd: scalar, h: scalar):
-        """(B, S) of one spring: B = h kd d^d^T + h^2 S, S = ks [d^d^T + max(0, 1 - r/|d|)(I - d^d^T)].
-
-        -S is df_a/dx_a and -kd d^d^T is df_a/dv_a. Coincident particles (|d| = 0) have no
-        direction, and the force there is defined as zero (``spring_force``); both blocks are
-        zero then, which avoids 0/0 = NaN.
-        """
-        length = wp.length(d)
-        zero = mat33(scalar(0.0))
-        if length == scalar(0.0):
-            return zero, zero
-        dhat = d / length
-        along = wp.outer(dhat, dhat)
-        # Definiteness fix: clamp the transverse factor to >= 0 (it is negative under compression).
-        transverse = wp.max(scalar(1.0) - rest / length, scalar(0.0))
-        identity = wp.identity(n=3, dtype=scalar)
-        s = ks * (along + transverse * (identity - along))
-        b = (h * kd) * along + (h * h) * s
-        return b, s
 
     @wp.func
     def add_spring_product(block: mat33, p: wp.array(dtype=vec3), a: int, b: int, y: wp.array(dtype=vec3)):

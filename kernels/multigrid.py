@@ -50,6 +50,7 @@ import warp as wp
 from .implicit import TILE
 from .lattice import REST_SLOTS
 from .precision import Float, both_precisions, mat33, vec3
+from .springs import spring_jacobian
 
 wp.set_module_options({"enable_backward": False})
 
@@ -134,25 +135,11 @@ def slot_offset(slot: int):
 # -- the jelly's lattice, from positions --------------------------------------------------------
 # One jelly's springs are implicit in the lattice (kernels/lattice.py: 26 neighbours in the
 # 3x3x3 block, structural or shear, and 6 bending at +-2 along an axis), with one rest length
-# per offset and one ks, kd per type. Each spring's block B = h kd d^d^T + h^2 ks [d^d^T +
-# max(0, 1 - r/|d|) (I - d^d^T)] (kernels/implicit.py: spring_jacobian) is alpha d^d^T + beta I,
-# so the kernels below recompute it from the linearisation point wherever they need it, one
-# thread per particle gathering over its neighbours: no spring list, no stored blocks, no
-# atomics.
-
-
-@wp.func
-def pair_coefficients(d: vec3, rest: Float, ks: Float, kd: Float, h: Float):
-    """(alpha, beta, d^) of a spring's block B = alpha d^d^T + beta I; zeros at |d| = 0 (as spring_jacobian)."""
-    length2 = wp.dot(d, d)
-    if length2 == type(rest)(0.0):
-        return type(rest)(0.0), type(rest)(0.0), wp.vector(length=3, dtype=type(rest))
-    # One square root and one division per spring (the kernels evaluate 32 to 35 per particle).
-    inv = type(rest)(1.0) / wp.sqrt(length2)
-    dhat = d * inv
-    transverse = wp.max(type(rest)(1.0) - rest * inv, type(rest)(0.0))
-    hks = h * h * ks
-    return h * kd + hks * (type(rest)(1.0) - transverse), hks * transverse, dhat
+# per offset and one ks, kd per type. Each spring's block is springs.spring_jacobian's, which the
+# kernels below recompute from the linearisation point wherever they need it, one thread per
+# particle gathering over its neighbours: no spring list, no stored blocks, no atomics. A block
+# is the same from either end of its spring (spring_jacobian of -d is that of d), so the gathered
+# operator is exactly symmetric.
 
 
 @wp.func
@@ -169,11 +156,16 @@ def smallest_normal(like: wp.float64):
 
 @wp.func
 def pair_product(qi: vec3, qj: vec3, pi: vec3, pj: vec3, rest: Float, ks: Float, kd: Float, h: Float):
-    """(B (p_i - p_j), (p_i - p_j).B (p_i - p_j)) for the spring (i, j), without branches.
+    """(B (p_i - p_j), (p_i - p_j).B (p_i - p_j)) for the spring (i, j), B its spring_jacobian block.
 
-    Same block as pair_coefficients; the smallest normal number added to |d|^2 keeps 1/|d|
-    finite at q_i = q_j, where d^ = 0 and the transverse factor is 0 (rest > 0): a zero block, as
-    spring_jacobian gives there.
+    The CG product's form of that block, the one place it is not called: B = alpha d^d^T + beta I
+    with alpha = h kd + h^2 ks (1 - t), beta = h^2 ks t and t = max(0, 1 - r/|d|), applied to
+    p_i - p_j without forming the matrix and without branches (one square root, one division;
+    the matrix form costs several times the arithmetic in the kernel run most often).
+    tests/test_kernels_multigrid.py checks it against spring_jacobian on random springs in both
+    precisions. The smallest normal number added to |d|^2 keeps 1/|d| finite at q_i = q_j (the
+    kernels' stand-in for an absent neighbour), where d^ = 0 and t = 0 (rest > 0): a zero block,
+    as spring_jacobian gives there.
     """
     d = qi - qj
     inv = type(rest)(1.0) / wp.sqrt(wp.dot(d, d) + smallest_normal(rest))
@@ -184,13 +176,6 @@ def pair_product(qi: vec3, qj: vec3, pi: vec3, pj: vec3, rest: Float, ks: Float,
     dp = pi - pj
     t = alpha * wp.dot(dhat, dp) * dhat + (hks * transverse) * dp
     return t, wp.dot(dp, t)
-
-
-@wp.func
-def pair_block(d: vec3, rest: Float, ks: Float, kd: Float, h: Float):
-    """The spring's block B as a matrix."""
-    alpha, beta, dhat = pair_coefficients(d, rest, ks, kd, h)
-    return alpha * wp.outer(dhat, dhat) + beta * wp.identity(n=3, dtype=type(rest))
 
 
 @wp.func
@@ -226,9 +211,6 @@ def mg_lattice_jacobians(
     q_lin_out[i] = qi
     diag = wp.matrix(shape=(3, 3), dtype=type(h))
     kv = wp.vector(length=3, dtype=type(h))
-    hks_to_s = type(h)(0.0)
-    if h != type(h)(0.0):
-        hks_to_s = type(h)(1.0) / (h * h)
     for di in range(-1, 2):
         for dj in range(-1, 2):
             for dk in range(-1, 2):
@@ -236,16 +218,13 @@ def mg_lattice_jacobians(
                     ty = neighbour_type(di, dj, dk)
                     if ((types >> ty) & 1) != 0 and inside(c[0] + di, c[1] + dj, c[2] + dk, shape):
                         j = node_index(c[0] + di, c[1] + dj, c[2] + dk, shape)
-                        alpha, beta, dhat = pair_coefficients(
+                        block, stiffness = spring_jacobian(
                             qi - q[j], rest[(di + 1) * 9 + (dj + 1) * 3 + dk + 1], ks[ty], kd[ty], h
                         )
-                        diag = diag + alpha * wp.outer(dhat, dhat) + beta * wp.identity(n=3, dtype=type(h))
+                        diag = diag + block
                         if kv_scale != type(h)(0.0):
-                            # S = (B - h kd d^d^T) / h^2: df_i/dx v = -S (v_i - v_j).
-                            dv = vi - qd_k[j]
-                            sa = (alpha - h * kd[ty]) * hks_to_s
-                            sb = beta * hks_to_s
-                            kv = kv - kv_scale * (sa * wp.dot(dhat, dv) * dhat + sb * dv)
+                            # df_i/dx v = -S (v_i - v_j), as eval_spring_jacobians adds it.
+                            kv = kv + (-kv_scale * stiffness) * (vi - qd_k[j])
     if ((types >> 2) & 1) != 0:
         for axis in range(3):
             for side in range(2):
@@ -253,20 +232,17 @@ def mg_lattice_jacobians(
                 o[axis] = 4 * side - 2
                 if inside(c[0] + o[0], c[1] + o[1], c[2] + o[2], shape):
                     j = node_index(c[0] + o[0], c[1] + o[1], c[2] + o[2], shape)
-                    alpha, beta, dhat = pair_coefficients(qi - q[j], rest[27 + axis], ks[2], kd[2], h)
-                    diag = diag + alpha * wp.outer(dhat, dhat) + beta * wp.identity(n=3, dtype=type(h))
+                    block, stiffness = spring_jacobian(qi - q[j], rest[27 + axis], ks[2], kd[2], h)
+                    diag = diag + block
                     if kv_scale != type(h)(0.0):
-                        dv = vi - qd_k[j]
-                        sa = (alpha - h * kd[2]) * hks_to_s
-                        sb = beta * hks_to_s
-                        kv = kv - kv_scale * (sa * wp.dot(dhat, dv) * dhat + sb * dv)
+                        kv = kv + (-kv_scale * stiffness) * (vi - qd_k[j])
     diag_block_out[i] = diag
     rhs_out[i] = kv
 
 
 # Fast math (approximate square root and reciprocal, 1 ulp or so) in the CG product only, the
 # kernel run most often (docs/IMPLICIT.md). The operator stays exactly symmetric: a spring's block
-# is computed from |d|^2, the same from either end.
+# is the same from either end.
 @both_precisions
 @wp.kernel(module="unique", module_options={"fast_math": True})
 def mg_lattice_mv(
@@ -299,9 +275,9 @@ def mg_lattice_mv(
         # is met from both ends, so half of it here. Summing these non-negative terms keeps
         # float32 accurate, where sum_i p_i.(A p)_i would cancel for smooth p.
         spring_quad = type(h)(0.0)
-        # Branch-free: an absent neighbour (outside the lattice, or of a spring type the jelly
-        # lacks) is the particle itself, whose zero distance and zero p_i - p_j give exactly
-        # zero; every load is unconditional.
+        # An absent neighbour (outside the lattice, or of a spring type the jelly lacks) is the
+        # particle itself, whose zero distance and zero p_i - p_j give exactly zero: every load is
+        # unconditional.
         row = shape[1] * shape[2]
         for di in range(-1, 2):
             for dj in range(-1, 2):
@@ -349,7 +325,8 @@ def bending_block(
     b = shifted(a, axis, 2)
     qa = q[node_index(a[0], a[1], a[2], shape)]
     qb = q[node_index(b[0], b[1], b[2], shape)]
-    return pair_block(qa - qb, rest[0, 27 + axis], ks, kd, h)
+    block, _stiffness = spring_jacobian(qa - qb, rest[0, 27 + axis], ks, kd, h)
+    return block
 
 
 @both_precisions
@@ -402,7 +379,7 @@ def mg_fine_setup_lattice(
                 nb = wp.matrix(shape=(3, 3), dtype=type(h))
                 ty = neighbour_type(o[0], o[1], o[2])
                 if ((types >> ty) & 1) != 0:
-                    nb = pair_block(qi - q[j], rest[0, slot], ks[0, ty], kd[0, ty], h)
+                    nb, _stiffness = spring_jacobian(qi - q[j], rest[0, slot], ks[0, ty], kd[0, ty], h)
                     d = d + nb
                 if has_bending and ty == 0:
                     # An axis edge (i, i + o): twice each of the two bending springs through it,
