@@ -125,3 +125,53 @@ def test_spring_jacobian_is_the_derivative_of_the_spring_force(scalar, np_scalar
         jac_v = np.stack([(force(d[k], e, k) - force(d[k], -e, k)) / 2 for e in np.eye(3)], axis=1)
         np.testing.assert_allclose(-s[k], jac_x, rtol=0, atol=max(rtol, 1e-7) * ks[k])
         np.testing.assert_allclose(b[k] - h * h * s[k], -h * jac_v, rtol=0, atol=rtol * (h * kd[k] + h * h * ks[k]))
+
+
+@pytest.mark.parametrize("scalar, np_scalar, rtol", [(wp.float32, np.float32, 1e-5), (wp.float64, np.float64, 1e-12)])
+def test_spring_jacobians_and_product_equal_the_dense_system(scalar, np_scalar, rtol):
+    """eval_spring_jacobians and spring_mv (module-level kernels) on a random spring set: the
+    diagonal sums, the df/dx v term and A p (spring part) and p.A p equal the dense matrix assembled
+    in NumPy from the stability model's blocks, to the precision's rounding."""
+    from softsim_warp.kernels import implicit as implicit_kernels  # noqa: PLC0415
+
+    rng = np.random.default_rng(3)
+    particles, springs, h, kv_scale = 30, 90, 0.01, 0.7
+    points = rng.standard_normal((particles, 3))
+    pairs = np.array([rng.choice(particles, 2, replace=False) for _ in range(springs)])
+    rest = np.linalg.norm(points[pairs[:, 0]] - points[pairs[:, 1]], axis=1) * rng.uniform(0.5, 1.5, springs)
+    ks, kd = rng.uniform(10.0, 1000.0, springs), rng.uniform(0.0, 1.0, springs)
+    velocity, p = rng.standard_normal((particles, 3)), rng.standard_normal((particles, 3))
+    stiffness, damping = SpringOperator(points, pairs, rest, ks, kd, np.ones(particles)).spring_blocks()
+    dense_b = np.zeros((3 * particles, 3 * particles))
+    dense_s = np.zeros_like(dense_b)
+    for (a, b), block_s, block_d in zip(pairs, stiffness, damping):
+        block_b = h * block_d + h * h * block_s
+        for dense, block in ((dense_b, block_b), (dense_s, block_s)):
+            for row, col, sign in ((a, a, 1), (b, b, 1), (a, b, -1), (b, a, -1)):
+                dense[3 * row:3 * row + 3, 3 * col:3 * col + 3] += sign * block
+
+    vec, mat = wp.types.vector(3, scalar), wp.types.matrix((3, 3), scalar)
+    as_vec = lambda v: wp.array(v.astype(np_scalar), dtype=vec, device="cpu")  # noqa: E731
+    as_scalar = lambda v: wp.array(v.astype(np_scalar), dtype=scalar, device="cpu")  # noqa: E731
+    indices = wp.array(pairs.astype(np.int32), dtype=wp.vec2i, device="cpu")
+    blocks = wp.zeros(springs, dtype=mat, device="cpu")
+    diag = wp.zeros(particles, dtype=mat, device="cpu")
+    rhs = wp.zeros(particles, dtype=vec, device="cpu")
+    wp.launch(implicit_kernels.eval_spring_jacobians, dim=springs,
+              inputs=[scalar(h), scalar(kv_scale), indices, as_scalar(rest), as_scalar(ks), as_scalar(kd),
+                      as_vec(points), as_vec(velocity)],
+              outputs=[blocks, diag, rhs], device="cpu")
+    y = wp.zeros(particles, dtype=vec, device="cpu")
+    sums = wp.zeros(implicit_kernels.SCALAR_SLOTS, dtype=scalar, device="cpu")
+    wp.launch(implicit_kernels.spring_mv, dim=(implicit_kernels.tile_blocks(springs), implicit_kernels.TILE),
+              block_dim=implicit_kernels.TILE, inputs=[springs, implicit_kernels.PAP, indices, blocks, as_vec(p)],
+              outputs=[y, sums], device="cpu")
+
+    size = np.abs(dense_b).max()
+    diagonal = np.stack([dense_b[3 * i:3 * i + 3, 3 * i:3 * i + 3] for i in range(particles)])
+    np.testing.assert_allclose(diag.numpy(), diagonal, rtol=0, atol=rtol * size)
+    np.testing.assert_allclose(rhs.numpy().ravel(), -kv_scale * dense_s @ velocity.ravel(), rtol=0,
+                               atol=rtol * np.abs(dense_s).max() * np.abs(velocity).max() * 10)
+    expected = dense_b @ p.ravel()
+    np.testing.assert_allclose(y.numpy().ravel(), expected, rtol=0, atol=rtol * size * np.abs(p).max() * 10)
+    np.testing.assert_allclose(sums.numpy()[implicit_kernels.PAP], p.ravel() @ expected, rtol=10 * rtol)
