@@ -144,19 +144,19 @@ def eval_spring_jacobians(
     pair = spring_indices[tid]
     a = pair[0]
     b = pair[1]
-    blk, s = spring_jacobian(
+    block, stiffness = spring_jacobian(
         particle_q[a] - particle_q[b],
         spring_rest_length[tid],
         spring_stiffness[tid],
         spring_damping[tid],
         h,
     )
-    spring_block_out[tid] = blk
-    wp.atomic_add(diag_block_out, a, blk)
-    wp.atomic_add(diag_block_out, b, blk)
+    spring_block_out[tid] = block
+    wp.atomic_add(diag_block_out, a, block)
+    wp.atomic_add(diag_block_out, b, block)
     if kv_scale != type(h)(0.0):
         # kv_scale df/dx v: df_a/dx v = -S (v_a - v_b), and b gets the opposite.
-        add_spring_product(-kv_scale * s, particle_qd_k, a, b, rhs_out)
+        add_spring_product(-kv_scale * stiffness, particle_qd_k, a, b, rhs_out)
 
 
 @wp.func
@@ -208,35 +208,37 @@ def build_system(
     ax_out: wp.array(dtype=vec3),
     scalars_out: wp.array(dtype=Float),
 ):
-    blk, lane = wp.tid()
-    i = blk * TILE + lane
+    tile_index, lane = wp.tid()
+    i = tile_index * TILE + lane
     bb = type(h)(0.0)
     if i < n:
         identity = wp.identity(n=3, dtype=type(h))
-        sf = filters[i]
+        constraint_filter = filters[i]
         if reset_filters != 0:
             # Fixed particles have dv = 0: nothing of them is solved for.
-            sf = wp.where(fixed[i] != 0, wp.matrix(shape=(3, 3), dtype=type(h)), identity)
-            filters[i] = sf
+            constraint_filter = wp.where(fixed[i] != 0, wp.matrix(shape=(3, 3), dtype=type(h)), identity)
+            filters[i] = constraint_filter
         m = particle_mass[i]
-        me = mass_eff[i]
+        mass_damped = mass_eff[i]
         d = m * identity + diag_block[i]
         diag_block[i] = d
         # A friction damper c (I - n n^T) (contact solve only) adds c to the diagonal and
         # -c v_k to b; in the free directions (I - n n^T) the filter keeps, it acts as c I.
-        b = sf * (m * (qd_n[i] - qd_k[i]) + h * (f[i] + m * gravity) + rhs[i] - (me - m) * qd_k[i])
+        b = constraint_filter * (
+            m * (qd_n[i] - qd_k[i]) + h * (f[i] + m * gravity) + rhs[i] - (mass_damped - m) * qd_k[i]
+        )
         rhs[i] = b
-        pre = wp.matrix(shape=(3, 3), dtype=type(h))
+        precond_block = wp.matrix(shape=(3, 3), dtype=type(h))
         if fixed[i] == 0:
-            pre = invert_block(d + (me - m) * identity, block_jacobi)
-        precond_out[i] = sf * pre * sf
+            precond_block = invert_block(d + (mass_damped - m) * identity, block_jacobi)
+        precond_out[i] = constraint_filter * precond_block * constraint_filter
         # Initial guess: the last step's dv minus its gravity part, plus this step's h g.
         # Springs do not resist a uniform velocity change (A (h g) = M h g), so the guess is
         # exact for free fall, and the first step needs no special case. Prescribed parts
         # of dv are 0: the iterate already satisfies the constraints.
-        x0 = sf * (warm_scale * (dv_warm[i] + h * gravity))
+        x0 = constraint_filter * (warm_scale * (dv_warm[i] + h * gravity))
         x_out[i] = x0
-        ax_out[i] = me * x0
+        ax_out[i] = mass_damped * x0
         bb = wp.dot(b, b)
     total = wp.tile_sum(wp.tile(bb))
     wp.tile_atomic_add(scalars_out, total, offset=BB)
@@ -332,7 +334,9 @@ def touch_meshes(
 ):
     """The same for triangle-mesh terrain (as collide_meshes, kernels/mesh.py)."""
     for m in range(mesh_first[w], mesh_first[w + 1]):
-        phi, nrm = mesh_distance(xf, mesh_id[m], mesh_closed[m], mesh_reach[m], mesh_tri_start[m], mesh_tris, mesh_points)
+        phi, nrm = mesh_distance(
+            xf, mesh_id[m], mesh_closed[m], mesh_reach[m], mesh_tri_start[m], mesh_tris, mesh_points
+        )
         if phi < eps:
             touching = touching + 1
             normal = nrm
@@ -389,13 +393,13 @@ def constrain_contacts(
     i = wp.tid()
     identity = wp.identity(n=3, dtype=type(h))
     v = qd_free[i]
-    sf = identity
+    constraint_filter = identity
     e = type(h)(0.0)
     approach = wp.vector(length=3, dtype=type(h))
     m = particle_mass[i]
     damper = type(h)(0.0)
     if fixed[i] != 0:
-        sf = wp.matrix(shape=(3, 3), dtype=type(h))
+        constraint_filter = wp.matrix(shape=(3, 3), dtype=type(h))
     elif differs(q_contact[i], q_free[i]) or differs(qd_contact[i], v):
         any_contact_out[0] = 1
         v_c = qd_contact[i]
@@ -442,10 +446,10 @@ def constrain_contacts(
             # which the response pushed the particle serves as the normal. Prescribing the
             # response's whole velocity instead (a reflected one included) makes a single
             # particle a velocity source for the stiff lattice: +89 J in one step of seed_bowl.
-            dvr = v_c - v
+            pushed = v_c - v
             nrm = wp.vector(length=3, dtype=type(h))
-            if wp.length_sq(dvr) > type(h)(0.0):
-                nrm = wp.normalize(dvr)
+            if wp.length_sq(pushed) > type(h)(0.0):
+                nrm = wp.normalize(pushed)
                 touching = 1
         # A position correction alone leaves the particle free.
         target = v
@@ -460,7 +464,7 @@ def constrain_contacts(
             vn = wp.dot(v, nrm)
             vt = v - vn * nrm
             vt_c = v_c - wp.dot(v_c, nrm) * nrm
-            sf = identity - wp.outer(nrm, nrm)
+            constraint_filter = identity - wp.outer(nrm, nrm)
             target = v
             if vn < type(h)(0.0):
                 # Stopped: where the step began, or, for a particle at rest (slower than
@@ -493,8 +497,8 @@ def constrain_contacts(
                 speed = wp.length(vt)
                 ratio = wp.max(wp.length(vt_c) / wp.max(speed, type(h)(1.0e-30)), type(h)(1.0e-3))
                 damper = m * (type(h)(1.0) - ratio) / ratio
-        v = sf * v + (identity - sf) * target
-    filters_out[i] = sf
+        v = constraint_filter * v + (identity - constraint_filter) * target
+    filters_out[i] = constraint_filter
     qd_out[i] = v
     q_out[i] = q_n[i] + h * v
     restitution_out[i] = e
@@ -545,8 +549,8 @@ def measure_particle_restitution(
     v = qd[i]
     vf = qd_free[i]
     # Kinetic and gravity energy the contact solve removed from the free result.
-    de = type(h)(0.5) * m * (wp.dot(vf, vf) - wp.dot(v, v)) - m * wp.dot(gravity, q_free[i] - x)
-    wp.atomic_add(body_out, b, BODY_BUDGET, de)
+    energy_removed = type(h)(0.5) * m * (wp.dot(vf, vf) - wp.dot(v, v)) - m * wp.dot(gravity, q_free[i] - x)
+    wp.atomic_add(body_out, b, BODY_BUDGET, energy_removed)
     wp.atomic_add(body_out, b, BODY_KINETIC, type(h)(0.5) * m * wp.dot(vf, vf))
     r = x - q[body_reference[b]]
     add_vec(body_out, b, BODY_MOMENTUM, m * v)
@@ -563,9 +567,9 @@ def measure_particle_restitution(
         # m (v - v_n) = h (f(x, v) + m g) leaves unexplained; its normal part, times e.
         nrm = wp.normalize(a)
         impulse = m * (v - qd_n[i]) - h * (f[i] + m * gravity)
-        rj = (restitution[i] * wp.max(wp.dot(impulse, nrm), type(h)(0.0))) * nrm
-        add_vec(body_out, b, BODY_IMPULSE, rj)
-        add_vec(body_out, b, BODY_TORQUE, wp.cross(r, rj))
+        particle_impulse = (restitution[i] * wp.max(wp.dot(impulse, nrm), type(h)(0.0))) * nrm
+        add_vec(body_out, b, BODY_IMPULSE, particle_impulse)
+        add_vec(body_out, b, BODY_TORQUE, wp.cross(r, particle_impulse))
 
 
 @both_precisions
@@ -589,8 +593,8 @@ def measure_spring_restitution(
     rest = spring_rest_length[tid]
     stretch_free = wp.length(q_free[a] - q_free[b]) - rest
     stretch = wp.length(q[a] - q[b]) - rest
-    de = type(rest)(0.5) * spring_stiffness[tid] * (stretch_free * stretch_free - stretch * stretch)
-    wp.atomic_add(body_out, particle_body[a], BODY_BUDGET, de)
+    energy_removed = type(rest)(0.5) * spring_stiffness[tid] * (stretch_free * stretch_free - stretch * stretch)
+    wp.atomic_add(body_out, particle_body[a], BODY_BUDGET, energy_removed)
 
 
 @both_precisions
@@ -623,31 +627,35 @@ def apply_restitution(
     if fixed[i] != 0:
         return
     b = particle_body[i]
-    jr = get_vec(body, b, BODY_IMPULSE)
-    if wp.length_sq(jr) == body_mass.dtype(0.0):
+    restitution_impulse = get_vec(body, b, BODY_IMPULSE)
+    if wp.length_sq(restitution_impulse) == body_mass.dtype(0.0):
         return
     mass = body_mass[b]
     if mass == type(mass)(0.0):
         return
     identity = wp.identity(n=3, dtype=type(mass))
     c = get_vec(body, b, BODY_MOMENT) / mass  # centre of mass, relative to the reference
-    sq = get_vec(body, b, BODY_SECOND)
-    off = get_vec(body, b, BODY_SECOND + 3)
-    second = type(identity)(sq[0], off[0], off[1], off[0], sq[1], off[2], off[1], off[2], sq[2])
+    second_diagonal = get_vec(body, b, BODY_SECOND)
+    second_off_diagonal = get_vec(body, b, BODY_SECOND + 3)
+    second = type(identity)(
+        second_diagonal[0], second_off_diagonal[0], second_off_diagonal[1],
+        second_off_diagonal[0], second_diagonal[1], second_off_diagonal[2],
+        second_off_diagonal[1], second_off_diagonal[2], second_diagonal[2],
+    )
     second = second - mass * wp.outer(c, c)  # about the centre of mass
     inertia = wp.trace(second) * identity - second
     momentum = get_vec(body, b, BODY_MOMENTUM)
     angular = get_vec(body, b, BODY_ANGULAR) - wp.cross(c, momentum)
-    torque = get_vec(body, b, BODY_TORQUE) - wp.cross(c, jr)
+    torque = get_vec(body, b, BODY_TORQUE) - wp.cross(c, restitution_impulse)
     # Poisson's restitution for the body as a rigid whole: the impulses e_i J_i at the contact
     # points change its velocity by dV = sum / M and its angular velocity by I^-1 torque. A rigid
     # field strains no spring. (A body with a singular inertia, a single particle or a line of
     # them, gets the linear part only.)
-    dv = jr / mass
-    dw = type(jr)(type(mass)(0.0))
+    dv = restitution_impulse / mass
+    dw = type(restitution_impulse)(type(mass)(0.0))
     inv_inertia = type(identity)(type(mass)(0.0))
-    tr = wp.trace(inertia)
-    if wp.determinant(inertia) > type(mass)(1.0e-9) * tr * tr * tr:
+    inertia_trace = wp.trace(inertia)
+    if wp.determinant(inertia) > type(mass)(1.0e-9) * inertia_trace * inertia_trace * inertia_trace:
         inv_inertia = wp.inverse(inertia)
         dw = inv_inertia * torque
     # Poisson's law is a rigid-body law: it applies to the part of the impact the body took
@@ -709,11 +717,11 @@ def constrain_last_system(
     ax_out: wp.array(dtype=vec3),
     scalars_out: wp.array(dtype=Float),
 ):
-    blk, lane = wp.tid()
-    i = blk * TILE + lane
+    tile_index, lane = wp.tid()
+    i = tile_index * TILE + lane
     bb = scalars_out.dtype(0.0)
     if i < n:
-        sf = filters[i]
+        constraint_filter = filters[i]
         dv = x[i]
         v_free = qd_free[i]
         v_k = v_free - dv
@@ -722,12 +730,13 @@ def constrain_last_system(
         x0 = dv + (qd_iter[i] - v_free)
         x[i] = x0
         damper = mass_eff[i] - particle_mass[i]
-        pre = wp.matrix(shape=(3, 3), dtype=scalars_out.dtype)
+        precond_block = wp.matrix(shape=(3, 3), dtype=scalars_out.dtype)
         if fixed[i] == 0:
-            pre = invert_block(diag_block[i] + damper * wp.identity(n=3, dtype=scalars_out.dtype), block_jacobi)
-        precond[i] = sf * pre * sf
+            identity = wp.identity(n=3, dtype=scalars_out.dtype)
+            precond_block = invert_block(diag_block[i] + damper * identity, block_jacobi)
+        precond[i] = constraint_filter * precond_block * constraint_filter
         ax_out[i] = mass_eff[i] * x0
-        b = sf * (rhs[i] - damper * v_k)
+        b = constraint_filter * (rhs[i] - damper * v_k)
         rhs[i] = b
         bb = wp.dot(b, b)
     total = wp.tile_sum(wp.tile(bb))
@@ -748,8 +757,8 @@ def spring_mv(
     y_out: wp.array(dtype=vec3),
     scalars_out: wp.array(dtype=Float),
 ):
-    blk, lane = wp.tid()
-    tid = blk * TILE + lane
+    tile_index, lane = wp.tid()
+    tid = tile_index * TILE + lane
     quad = scalars_out.dtype(0.0)
     if tid < count:
         pair = spring_indices[tid]
@@ -774,8 +783,8 @@ def init_residual(
     p_out: wp.array(dtype=vec3),
     scalars_out: wp.array(dtype=Float),
 ):
-    blk, lane = wp.tid()
-    i = blk * TILE + lane
+    tile_index, lane = wp.tid()
+    i = tile_index * TILE + lane
     rz = scalars_out.dtype(0.0)
     rr = scalars_out.dtype(0.0)
     if i < n:
@@ -836,8 +845,8 @@ def cg_direction(
     ap_out: wp.array(dtype=vec3),
     scalars: wp.array(dtype=Float),
 ):
-    blk, lane = wp.tid()
-    i = blk * TILE + lane
+    tile_index, lane = wp.tid()
+    i = tile_index * TILE + lane
     if i < n:
         # z and p are filtered, so p stays filtered.
         pi = z[i] + scalars[BETA] * p[i]
@@ -855,8 +864,8 @@ def dot_accumulate(
     b: wp.array(dtype=vec3),
     scalars_out: wp.array(dtype=Float),
 ):
-    blk, lane = wp.tid()
-    i = blk * TILE + lane
+    tile_index, lane = wp.tid()
+    i = tile_index * TILE + lane
     v = scalars_out.dtype(0.0)
     if i < n:
         v = wp.dot(a[i], b[i])
@@ -878,8 +887,8 @@ def cg_update(
     z_out: wp.array(dtype=vec3),
     scalars: wp.array(dtype=Float),
 ):
-    blk, lane = wp.tid()
-    i = blk * TILE + lane
+    tile_index, lane = wp.tid()
+    i = tile_index * TILE + lane
     rz = scalars.dtype(0.0)
     rr = scalars.dtype(0.0)
     if i < n:

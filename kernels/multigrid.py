@@ -78,7 +78,8 @@ rest_vec = wp.types.vector(REST_SLOTS, Float)
 
 @wp.func
 def axis_weight(i: int, c: int, n: int, nc: int, one: Float):
-    """P's 1-D factor: weight of coarse node c in fine node i (axis of n fine, nc coarse nodes), in the precision of ``one``."""
+    """P's 1-D factor: weight of coarse node c in fine node i (axis of n fine, nc coarse nodes),
+    in the precision of ``one``."""
     if i < 0 or i >= n or c < 0 or c >= nc:
         return type(one)(0.0)
     if nc == n:
@@ -215,11 +216,11 @@ def mg_lattice_jacobians(
         for dj in range(-1, 2):
             for dk in range(-1, 2):
                 if di != 0 or dj != 0 or dk != 0:
-                    ty = neighbour_type(di, dj, dk)
-                    if ((types >> ty) & 1) != 0 and inside(c[0] + di, c[1] + dj, c[2] + dk, shape):
+                    spring_type = neighbour_type(di, dj, dk)
+                    if ((types >> spring_type) & 1) != 0 and inside(c[0] + di, c[1] + dj, c[2] + dk, shape):
                         j = node_index(c[0] + di, c[1] + dj, c[2] + dk, shape)
                         block, stiffness = spring_jacobian(
-                            qi - q[j], rest[(di + 1) * 9 + (dj + 1) * 3 + dk + 1], ks[ty], kd[ty], h
+                            qi - q[j], rest[(di + 1) * 9 + (dj + 1) * 3 + dk + 1], ks[spring_type], kd[spring_type], h
                         )
                         diag = diag + block
                         if kv_scale != type(h)(0.0):
@@ -262,8 +263,8 @@ def mg_lattice_mv(
     y_out: wp.array(dtype=vec3),
     scalars_out: wp.array(dtype=Float),
 ):
-    blk, lane = wp.tid()
-    i = blk * TILE + lane
+    tile_index, lane = wp.tid()
+    i = tile_index * TILE + lane
     quad = type(h)(0.0)
     if i < n:
         c = node_coord(i, shape)
@@ -283,11 +284,12 @@ def mg_lattice_mv(
             for dj in range(-1, 2):
                 for dk in range(-1, 2):
                     if di != 0 or dj != 0 or dk != 0:
-                        ty = neighbour_type(di, dj, dk)
-                        ok = ((types >> ty) & 1) != 0 and inside(c[0] + di, c[1] + dj, c[2] + dk, shape)
+                        spring_type = neighbour_type(di, dj, dk)
+                        ok = ((types >> spring_type) & 1) != 0 and inside(c[0] + di, c[1] + dj, c[2] + dk, shape)
                         j = wp.where(ok, i + di * row + dj * shape[2] + dk, i)
                         t, e = pair_product(
-                            qi, q[j], pi, p[j], rest[(di + 1) * 9 + (dj + 1) * 3 + dk + 1], ks[ty], kd[ty], h
+                            qi, q[j], pi, p[j], rest[(di + 1) * 9 + (dj + 1) * 3 + dk + 1],
+                            ks[spring_type], kd[spring_type], h,
                         )
                         acc = acc + t
                         spring_quad = spring_quad + e
@@ -351,7 +353,7 @@ def mg_fine_setup_lattice(
     c = node_coord(i, shape)
     identity = wp.identity(n=3, dtype=type(h))
     qi = q[i]
-    sf = filters[i]
+    filter_i = filters[i]
     has_bending = ((types >> 2) & 1) != 0
     ks_b = ks[0, 2]
     kd_b = kd[0, 2]
@@ -369,19 +371,21 @@ def mg_fine_setup_lattice(
             extra = extra + b_lo + b_hi + type(h)(4.0) * b_c
     # Off-diagonal blocks and the row sum without its constrained part, formed without
     # cancellation: S M S + sum_j S B_ij (S_i - S_j) (+ s (I - S) below).
-    rowsum = sf * (mass_eff[i] * identity) * sf
+    rowsum = filter_i * (mass_eff[i] * identity) * filter_i
     for slot in range(STENCIL):
         if slot != CENTER:
             o = slot_offset(slot)
-            blk = wp.matrix(shape=(3, 3), dtype=type(h))
+            block = wp.matrix(shape=(3, 3), dtype=type(h))
             if inside(c[0] + o[0], c[1] + o[1], c[2] + o[2], shape):
                 j = node_index(c[0] + o[0], c[1] + o[1], c[2] + o[2], shape)
-                nb = wp.matrix(shape=(3, 3), dtype=type(h))
-                ty = neighbour_type(o[0], o[1], o[2])
-                if ((types >> ty) & 1) != 0:
-                    nb, _stiffness = spring_jacobian(qi - q[j], rest[0, slot], ks[0, ty], kd[0, ty], h)
-                    d = d + nb
-                if has_bending and ty == 0:
+                neighbour_block = wp.matrix(shape=(3, 3), dtype=type(h))
+                spring_type = neighbour_type(o[0], o[1], o[2])
+                if ((types >> spring_type) & 1) != 0:
+                    neighbour_block, _stiffness = spring_jacobian(
+                        qi - q[j], rest[0, slot], ks[0, spring_type], kd[0, spring_type], h
+                    )
+                    d = d + neighbour_block
+                if has_bending and spring_type == 0:
                     # An axis edge (i, i + o): twice each of the two bending springs through it,
                     # the one centred on i and the one beyond i + o or i.
                     axis = 0
@@ -392,21 +396,21 @@ def mg_fine_setup_lattice(
                     far = c
                     if o[axis] < 0:
                         far = shifted(c, axis, -2)
-                    nb = nb + type(h)(2.0) * (
+                    neighbour_block = neighbour_block + type(h)(2.0) * (
                         bending_block(shifted(c, axis, -1), axis, shape, rest, ks_b, kd_b, h, q)
                         + bending_block(far, axis, shape, rest, ks_b, kd_b, h, q)
                     )
-                sj = filters[j]
-                blk = -(sf * nb * sj)
-                rowsum = rowsum + sf * nb * (sf - sj)
-            a_out[slot, i] = blk
+                filter_j = filters[j]
+                block = -(filter_i * neighbour_block * filter_j)
+                rowsum = rowsum + filter_i * neighbour_block * (filter_i - filter_j)
+            a_out[slot, i] = block
     # Constrained directions: an identity row scaled like the rest of the row.
     s = (d[0, 0] + d[1, 1] + d[2, 2]) / type(h)(3.0)
     if s <= type(h)(0.0):
         s = type(h)(1.0)
-    free = identity - sf
-    dinv_out[i] = sf * wp.inverse(sf * d * sf + s * free) * sf
-    a_out[CENTER, i] = sf * (d + extra) * sf + s * free
+    free = identity - filter_i
+    dinv_out[i] = filter_i * wp.inverse(filter_i * d * filter_i + s * free) * filter_i
+    a_out[CENTER, i] = filter_i * (d + extra) * filter_i + s * free
     rowsum_out[i] = rowsum + s * free
 
 
@@ -484,7 +488,7 @@ def mg_galerkin(
         a_out[slot, node] = sym
         dinv_out[node] = wp.inverse(sym)
         # Row sums restrict exactly (the rows of P sum to 1): sum_J (P^T A P)_IJ = sum_i P_iI rowsum_i.
-        rs = rowsum_fine.dtype(0.0)
+        row_sum = rowsum_fine.dtype(0.0)
         for ix in range(fi[0], fi[0] + 3):
             wx = axis_weight(ix, ci[0], shape[0], coarse_shape[0], one)
             if wx == zero:
@@ -497,8 +501,8 @@ def mg_galerkin(
                     w = wxy * axis_weight(iz, ci[2], shape[2], coarse_shape[2], one)
                     if w == zero:
                         continue
-                    rs = rs + w * rowsum_fine[node_index(ix, iy, iz, shape)]
-        rowsum_out[node] = rs
+                    row_sum = row_sum + w * rowsum_fine[node_index(ix, iy, iz, shape)]
+        rowsum_out[node] = row_sum
     else:
         a_out[slot, node] = acc
         a_out[STENCIL - 1 - slot, node_index(cj[0], cj[1], cj[2], coarse_shape)] = wp.transpose(acc)
@@ -644,12 +648,21 @@ def mg_restrict(
     one = type(omega)(1.0)
     # Constant loops (unrolled) over the 3 x 3 x 3 candidates, branch-free: a candidate outside
     # the level has weight 0 and loads a clamped address.
-    wx = r.dtype(axis_weight(f[0], c[0], shape[0], coarse_shape[0], one), axis_weight(f[0] + 1, c[0], shape[0], coarse_shape[0], one),
-              axis_weight(f[0] + 2, c[0], shape[0], coarse_shape[0], one))
-    wy = r.dtype(axis_weight(f[1], c[1], shape[1], coarse_shape[1], one), axis_weight(f[1] + 1, c[1], shape[1], coarse_shape[1], one),
-              axis_weight(f[1] + 2, c[1], shape[1], coarse_shape[1], one))
-    wz = r.dtype(axis_weight(f[2], c[2], shape[2], coarse_shape[2], one), axis_weight(f[2] + 1, c[2], shape[2], coarse_shape[2], one),
-              axis_weight(f[2] + 2, c[2], shape[2], coarse_shape[2], one))
+    wx = r.dtype(
+        axis_weight(f[0], c[0], shape[0], coarse_shape[0], one),
+        axis_weight(f[0] + 1, c[0], shape[0], coarse_shape[0], one),
+        axis_weight(f[0] + 2, c[0], shape[0], coarse_shape[0], one),
+    )
+    wy = r.dtype(
+        axis_weight(f[1], c[1], shape[1], coarse_shape[1], one),
+        axis_weight(f[1] + 1, c[1], shape[1], coarse_shape[1], one),
+        axis_weight(f[1] + 2, c[1], shape[1], coarse_shape[1], one),
+    )
+    wz = r.dtype(
+        axis_weight(f[2], c[2], shape[2], coarse_shape[2], one),
+        axis_weight(f[2] + 1, c[2], shape[2], coarse_shape[2], one),
+        axis_weight(f[2] + 2, c[2], shape[2], coarse_shape[2], one),
+    )
     acc = wp.vector(length=3, dtype=type(omega))
     for ax in range(3):
         ix = wp.clamp(f[0] + ax, 0, shape[0] - 1)
@@ -708,8 +721,8 @@ def mg_fine_post(
     z_out: wp.array(dtype=vec3),
     scalars_out: wp.array(dtype=Float),
 ):
-    blk, lane = wp.tid()
-    i = blk * TILE + lane
+    tile_index, lane = wp.tid()
+    i = tile_index * TILE + lane
     rz = type(omega)(0.0)
     if i < n:
         ri = r[i]
@@ -735,8 +748,8 @@ def mg_fine_additive(
     z_out: wp.array(dtype=vec3),
     scalars_out: wp.array(dtype=Float),
 ):
-    blk, lane = wp.tid()
-    i = blk * TILE + lane
+    tile_index, lane = wp.tid()
+    i = tile_index * TILE + lane
     rz = type(omega)(0.0)
     if i < n:
         acc = interpolate(node_coord(i, shape), shape, coarse_shape, e)
@@ -784,18 +797,18 @@ def mg_coarse_factor(
     # matrix's translations keep exactly the row sums' (mass) energy, however stiff the level.
     for node in range(nodes):
         c = node_coord(node, shape)
-        rs = rowsum[node]
+        row_sum = rowsum[node]
         for p in range(3):
             for q in range(3):
-                chol_out[3 * node + p, 3 * node + q] = chol_out[3 * node + p, 3 * node + q] + wp.float64(rs[p, q])
+                chol_out[3 * node + p, 3 * node + q] = chol_out[3 * node + p, 3 * node + q] + wp.float64(row_sum[p, q])
         for slot in range(STENCIL):
             o = slot_offset(slot)
             if slot != CENTER and inside(c[0] + o[0], c[1] + o[1], c[2] + o[2], shape):
                 other = node_index(c[0] + o[0], c[1] + o[1], c[2] + o[2], shape)
-                blk = a[slot, node]
+                block = a[slot, node]
                 for p in range(3):
                     for q in range(3):
-                        v = wp.float64(blk[p, q])
+                        v = wp.float64(block[p, q])
                         chol_out[3 * node + p, 3 * other + q] = v
                         chol_out[3 * node + p, 3 * node + q] = chol_out[3 * node + p, 3 * node + q] - v
     for k in range(m):

@@ -54,9 +54,8 @@ def test_prolongation_reproduces_linear_fields(device, scalar, np_scalar):
     coarse = tuple(km.coarse_size(n) for n in shape)
     fine_coord = np.stack(np.meshgrid(*(np.arange(n) for n in shape), indexing="ij"), -1).reshape(-1, 3)
     # Coarse node c sits on fine node min(2 c, n - 1) (or on c itself on an axis it does not coarsen).
-    coarse_coord = np.stack(
-        np.meshgrid(*(np.minimum(2 * np.arange(nc), n - 1) if nc != n else np.arange(n) for n, nc in zip(shape, coarse)),
-                    indexing="ij"), -1).reshape(-1, 3)
+    positions = [np.minimum(2 * np.arange(nc), n - 1) if nc != n else np.arange(n) for n, nc in zip(shape, coarse)]
+    coarse_coord = np.stack(np.meshgrid(*positions, indexing="ij"), -1).reshape(-1, 3)
     field = np.array([[2.0, -1.0, 4.0], [1.0, 3.0, -2.0], [-4.0, 1.0, 1.0]])
     vec = wp.types.vector(3, scalar)
     e = wp.array((coarse_coord @ field.T).astype(np_scalar), dtype=vec, device=device)
