@@ -543,7 +543,7 @@ def mg_stencil_op(
     r = b[node] - rowsum[node] * xi
     # Constant loops (unrolled) and branch-free: a neighbour outside the level stands as the node
     # itself, whose x_J - x_I = 0 adds exactly nothing, so every load is unconditional and the
-    # compiler can issue them together (the slot loop with guarded loads was latency-bound).
+    # compiler can issue them together (guarded loads in a slot loop are issued one at a time).
     row = shape[1] * shape[2]
     for ox in range(3):
         for oy in range(3):
