@@ -150,7 +150,7 @@ def smallest_normal(like: wp.float32):
 
 
 @wp.func
-def smallest_normal(like: wp.float64):
+def smallest_normal(like: wp.float64):  # noqa: F811 (the float64 overload of the same Warp function)
     """The smallest normal float64."""
     return wp.float64(2.2250738585072014e-308)
 

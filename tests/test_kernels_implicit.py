@@ -13,10 +13,11 @@ damper's direction) is a difference of order one.
 import numpy as np
 import pytest
 import warp as wp
+from softsim_warp.kernels import implicit as implicit_kernels
+from softsim_warp.kernels.precision import Float, both_precisions, mat33, vec3
+from softsim_warp.kernels.springs import spring_force, spring_jacobian
 
 from softsim_warp.core.stability_model import SpringOperator
-from softsim_warp.kernels.precision import Float, both_precisions, mat33, vec3
-from softsim_warp.kernels.springs import spring_jacobian, spring_force
 
 SPRINGS = 400
 
@@ -132,8 +133,6 @@ def test_spring_jacobians_and_product_equal_the_dense_system(scalar, np_scalar, 
     """eval_spring_jacobians and spring_mv (module-level kernels) on a random spring set: the
     diagonal sums, the df/dx v term and A p (spring part) and p.A p equal the dense matrix assembled
     in NumPy from the stability model's blocks, to the precision's rounding."""
-    from softsim_warp.kernels import implicit as implicit_kernels  # noqa: PLC0415
-
     rng = np.random.default_rng(3)
     particles, springs, h, kv_scale = 30, 90, 0.01, 0.7
     points = rng.standard_normal((particles, 3))
@@ -151,8 +150,8 @@ def test_spring_jacobians_and_product_equal_the_dense_system(scalar, np_scalar, 
                 dense[3 * row:3 * row + 3, 3 * col:3 * col + 3] += sign * block
 
     vec, mat = wp.types.vector(3, scalar), wp.types.matrix((3, 3), scalar)
-    as_vec = lambda v: wp.array(v.astype(np_scalar), dtype=vec, device="cpu")  # noqa: E731
-    as_scalar = lambda v: wp.array(v.astype(np_scalar), dtype=scalar, device="cpu")  # noqa: E731
+    as_vec = lambda v: wp.array(v.astype(np_scalar), dtype=vec, device="cpu")
+    as_scalar = lambda v: wp.array(v.astype(np_scalar), dtype=scalar, device="cpu")
     indices = wp.array(pairs.astype(np.int32), dtype=wp.vec2i, device="cpu")
     blocks = wp.zeros(springs, dtype=mat, device="cpu")
     diag = wp.zeros(particles, dtype=mat, device="cpu")

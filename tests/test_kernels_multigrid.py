@@ -12,7 +12,6 @@ small integers, so both precisions must agree with the reference exactly, not to
 import numpy as np
 import pytest
 import warp as wp
-
 from softsim_warp.kernels import multigrid as km
 from softsim_warp.kernels.precision import Float, both_precisions, vec3
 from softsim_warp.kernels.springs import spring_jacobian
