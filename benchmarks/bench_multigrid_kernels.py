@@ -52,7 +52,6 @@ def main(argv=None) -> int:
     args = p.parse_args(argv)
     wp.init()
     device = wp.get_device(args.device)
-    k = km.build(wp.float32)
     mat33 = wp.types.matrix((3, 3), wp.float32)
     vec3 = wp.types.vector(3, wp.float32)
     rng = np.random.default_rng(0)
@@ -71,14 +70,14 @@ def main(argv=None) -> int:
         b, x = arr(count, 3, dtype=vec3), arr(count, 3, dtype=vec3)
         y_one = wp.zeros(count, dtype=vec3, device=device)
         y_lanes = wp.zeros(count, dtype=vec3, device=device)
-        args_op = [1, 0.5, shape, a, rowsum, dinv, b, x]
+        args_op = [1, wp.float32(0.5), shape, a, rowsum, dinv, b, x]
         one = _per_launch_us(
-            lambda: wp.launch(k["mg_stencil_op"], dim=count, inputs=args_op, outputs=[y_one], device=device),
+            lambda: wp.launch(km.mg_stencil_op, dim=count, inputs=args_op, outputs=[y_one], device=device),
             device, args.launches, args.repeats,
         )
         block = _per_launch_us(
             lambda: wp.launch(
-                k["mg_stencil_op_lanes"], dim=(count, lanes), block_dim=lanes, inputs=[lanes, *args_op, shape, x],
+                km.mg_stencil_op_lanes, dim=(count, lanes), block_dim=lanes, inputs=[lanes, *args_op, shape, x],
                 outputs=[y_lanes], device=device,
             ),
             device, args.launches, args.repeats,
@@ -101,8 +100,8 @@ def main(argv=None) -> int:
     scalars = wp.zeros(8, dtype=wp.float32, device=device)  # the product adds p.Ap into slot 0
     product = _per_launch_us(
         lambda: wp.launch(
-            k["mg_lattice_mv"], dim=(ki.tile_blocks(nf), ki.TILE), block_dim=ki.TILE,
-            inputs=[nf, 0, 0.01, wp.vec3i(args.fine, args.fine, args.fine), 7, *tables, q, mass, pv],
+            km.mg_lattice_mv, dim=(ki.tile_blocks(nf), ki.TILE), block_dim=ki.TILE,
+            inputs=[nf, 0, wp.float32(0.01), wp.vec3i(args.fine, args.fine, args.fine), 7, *tables, q, mass, pv],
             outputs=[y, scalars], device=device,
         ),
         device, args.launches, args.repeats,

@@ -154,3 +154,31 @@ def build(scalar):
         "eval_spring_forces": eval_spring_forces,
         "gather_spring_forces": gather_spring_forces,
     }
+
+
+# -- the spring's Jacobian: the blocks of the implicit solve (kernels/implicit.py, kernels/multigrid.py)
+
+
+@wp.func
+def spring_jacobian(d: vec3, rest: Float, ks: Float, kd: Float, h: Float):
+    """(B, S) of one spring: B = h kd d^d^T + h^2 S, S = ks [d^d^T + max(0, 1 - r/|d|)(I - d^d^T)].
+
+    With d = x_a - x_b, -S is df_a/dx_a of ``spring_force`` and -kd d^d^T is df_a/dv_a; the
+    damper's dependence on x through d^ is left out (it is not symmetric, and CG needs a symmetric
+    matrix: kernels/implicit.py). Under compression (|d| < r) the transverse factor 1 - r/|d| is
+    negative, which makes S indefinite; it is clamped to >= 0, so every B is positive
+    semi-definite. Coincident particles (|d| = 0) have no direction and zero force; both blocks are
+    zero there, which avoids 0/0 = NaN. core/stability_model.py computes the same S and kd d^d^T in
+    NumPy (tests/test_kernels_implicit.py compares them).
+    """
+    length = wp.length(d)
+    zero = wp.matrix(shape=(3, 3), dtype=type(rest))
+    if length == type(rest)(0.0):
+        return zero, zero
+    dhat = d / length
+    along = wp.outer(dhat, dhat)
+    transverse = wp.max(type(rest)(1.0) - rest / length, type(rest)(0.0))
+    identity = wp.identity(n=3, dtype=type(rest))
+    s = ks * (along + transverse * (identity - along))
+    b = (h * kd) * along + (h * h) * s
+    return b, s

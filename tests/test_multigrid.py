@@ -224,7 +224,7 @@ def test_stencil_product_in_lanes_equals_one_thread(device, mode):
     blocks = lambda *dims: wp.array(rng.standard_normal((*dims, 3, 3)), dtype=mat33, device=device)  # noqa: E731
     vecs = lambda m: wp.array(rng.standard_normal((m, 3)), dtype=wp.vec3d, device=device)  # noqa: E731
     a, rowsum, dinv, b, x, e = blocks(27, count), blocks(count), blocks(count), vecs(count), vecs(count), vecs(coarse_count)
-    args = [min(mode, 1), 0.5, wp.vec3i(*shape), a, rowsum, dinv, b]
+    args = [min(mode, 1), wp.float64(0.5), wp.vec3i(*shape), a, rowsum, dinv, b]
     x_ref = wp.clone(x)
     if mode == 2:
         wp.launch(k.mg_prolong, dim=count, inputs=[wp.vec3i(*shape), wp.vec3i(*coarse), e], outputs=[x_ref],

@@ -38,26 +38,21 @@ from ..kernels.lattice import REST_SLOTS
 DEFAULT_OMEGA = 0.8
 DEFAULT_COARSE_OMEGA = 0.5
 # Sweeps before and after the coarse correction on the first coarse level, and on the levels below
-# it, where they cost little (H100, 100^3, docs/IMPLICIT.md): 1 and 1 took 19.4 CG iterations and
-# 10.56 ms a step, 1 and 2 16.4 and 10.00 ms, 1 and 3 14.9 and 10.05 ms; the iterations then grow
-# 1.40x from 10^3 to 100^3 instead of 1.50x. (At 40^3 the second sweep costs more than it saves:
-# 2.43 against 2.16 ms a step.)
+# it, where they cost little: a second deep sweep saves more CG iterations than it costs on large
+# jellies (docs/IMPLICIT.md has the measured iterations and step times).
 DEFAULT_SWEEPS = 1
 DEFAULT_DEEP_SWEEPS = 2
-# Free solves per hierarchy build (LatticeMultigrid.setup; docs/IMPLICIT.md): on the spinning 100^3
-# jelly on an H100, builds every 4 and every 8 solves took 9.90 and 9.60 ms a step with 16.4 and
-# 17.1 CG iterations (10^3: 1.31 and 1.22 ms; 40^3: 2.28 and 2.18 ms).
+# Free solves per hierarchy build (LatticeMultigrid.setup): a kept hierarchy is still a fixed SPD
+# preconditioner, and rebuilding less often costs fewer builds than the CG iterations it adds
+# (docs/IMPLICIT.md).
 DEFAULT_SETUP_EVERY = 8
-# Particles from which the default ("auto") preconditioner is multigrid: on the CPU block-Jacobi is
-# faster up to about 11^3 (free flight, earlier code: 4.9 against 7.0 ms a step at 10^3, 6.6 against
-# 6.4 at 11^3, 8.7 against 7.6 at 12^3, 14.6 against 11.1 at 14^3; now 17.0 against 21.0 at 10^3
-# and 163 against 82 at 20^3 on a slower day; docs/IMPLICIT.md); on an H100 up to 20^3 (0.67
-# against 1.22 ms a step at 10^3, 1.59 against 1.55 at 20^3, 8.68 against 2.18 at 40^3).
+# Particles from which the default ("auto") preconditioner is multigrid: below these sizes
+# block-Jacobi's cheaper iterations win, on the CPU and on CUDA (docs/IMPLICIT.md).
 AUTO_MIN_PARTICLES = 12**3
 AUTO_MIN_PARTICLES_CUDA = 20**3
 # Coarse levels of at most this many nodes take their stencil products with LANES threads per node
-# on CUDA (kernels/multigrid.py: mg_stencil_op_lanes; H100, per launch, benchmarks/
-# bench_multigrid_kernels.py: 14^3 5.8 against 7.9 us, 8^3 3.7 against 7.7; 26^3 20.0 against 8.2).
+# on CUDA (kernels/multigrid.py: mg_stencil_op_lanes), where one thread per node is bound by the
+# latency of its 26 block loads (docs/IMPLICIT.md; benchmarks/bench_multigrid_kernels.py).
 LANES_MAX_NODES = 14**3
 LANES = 32
 
@@ -141,7 +136,7 @@ class LatticeMultigrid:
         self.setup_every = int(setup_every)
         # The spring blocks recomputed from positions by one thread per particle (CUDA), or stored
         # per spring and summed with atomics (the CPU, where Warp runs the threads one after
-        # another and the recomputation took twice as long: docs/IMPLICIT.md).
+        # another and recomputing each block from both ends costs more: docs/IMPLICIT.md).
         self.gather = model.device.is_cuda if gather is None else bool(gather)
         self.lanes = model.device.is_cuda if lanes is None else bool(lanes)
         self.lane_width = LANES if model.device.is_cuda else 1

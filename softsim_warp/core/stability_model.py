@@ -7,7 +7,7 @@ to a few hundred particles, yet the limit depends on the jelly's size: the stiff
 boundary. This module predicts the limit of the model itself, at any size:
 
 1. The spring Jacobians at the start positions, ``S = -dK`` and ``D = -C``, are those of the
-   implicit integrator's per-spring blocks (kernels/implicit.py ``spring_jacobian``), applied to a
+   implicit integrator's per-spring blocks (kernels/springs.py ``spring_jacobian``), applied to a
    vector straight from the spring list in NumPy (:class:`SpringOperator`, one pass over the
    springs for both); nothing is assembled and no Warp kernel runs, so a scene's dt can be checked
    before anything compiles (``io/stable_step.py``).
@@ -67,7 +67,7 @@ class Prediction:
 class SpringOperator:
     """Products with the mass-weighted stiffness and damping Jacobians of a spring list, in NumPy.
 
-    The blocks are those of the implicit integrator (kernels/implicit.py ``spring_jacobian``):
+    The blocks are those of the implicit integrator (kernels/springs.py ``spring_jacobian``):
     ``S = ks [d^d^T + max(0, 1 - r/|d|)(I - d^d^T)]`` and ``D = kd d^d^T`` per spring, entering at
     ``(a, a)``, ``(b, b)`` with ``+`` and at ``(a, b)``, ``(b, a)`` with ``-``. Nothing is assembled
     and no Warp kernel runs: a scene's dt is checked before any kernel compiles. Vectors are flat
@@ -96,6 +96,15 @@ class SpringOperator:
         self.ks, self.kd = ks, kd
         self.has_across = bool(np.any(self.s_across))
         self.products = 0  # spring-list passes, the work bound the tests check
+
+    def spring_blocks(self) -> tuple[np.ndarray, np.ndarray]:
+        """Each spring's ``(S, D)`` as ``(springs, 3, 3)`` arrays, from the factors :meth:`apply` uses
+        (``S = s_along d^d^T + s_across I``, ``D = kd d^d^T``): the blocks that
+        tests/test_kernels_implicit.py compares with ``spring_jacobian``."""
+        along = np.einsum("is,js->sij", self.u, self.u)
+        identity = np.eye(3)[None]
+        stiffness = self.s_along[:, None, None] * along + self.s_across[:, None, None] * identity
+        return stiffness, self.d_along[:, None, None] * along
 
     def _scatter(self, f):
         """``y_a += f``, ``y_b -= f`` per spring, mass-weighted: ``f`` and the result component-major."""
