@@ -35,7 +35,6 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..core.contact import forget_contact_history
 from ..core.errors import CommandLineError
 from ..core.model import build_model
 from ..core.stepper import make_integrator
@@ -215,7 +214,7 @@ def _restart(sim, model):
     wp.copy(sim.states[0].particle_q, model.particle_q)
     wp.copy(sim.states[0].particle_qd, model.particle_qd)
     sim.current = 0
-    forget_contact_history(model)
+    sim.integrator.run.forget_contact_history()
 
 
 # ---------------------------------------------------------------------------------------------
