@@ -83,6 +83,7 @@ def world_speed_bound(model, start, end, world):
         planes=terrain["planes"],
         bowls=terrain["bowls"],
         spheres=terrain["spheres"],
+        meshes=[],  # (a batch's meshes are left out of the bound, as they were before the Model was declared)
         terrain_anchor_points=terrain_anchors(terrain["bowls"], terrain["spheres"]),
         particle_qd=types.SimpleNamespace(numpy=lambda: qd),
         particle_count=end - start,
