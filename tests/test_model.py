@@ -127,8 +127,9 @@ def test_the_lazy_spring_list_is_made_once_through_the_cache():
     b = ModelBuilder()
     b.add_jelly((3, 3, 3), 0.2, 0.01, SPRINGS)
     model = b.finalize("cpu")
-    assert model.lattice is not None and "spring_indices" not in model._derived
+    assert model.lattice is not None and not model.has_derived("spring_indices")
     first = model.spring_indices
+    assert model.has_derived("spring_indices")
     assert model.spring_indices is first and first.shape[0] == model.spring_count
     assert model.spring_indices_host.shape == (model.spring_count, 2)
 

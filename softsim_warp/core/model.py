@@ -883,6 +883,10 @@ class Model:
             self._derived[key] = make()
         return self._derived[key]
 
+    def has_derived(self, key: str) -> bool:
+        """Whether the derived data ``key`` (a lazy spring array's name, or a :meth:`derived` key) has been made."""
+        return key in self._derived
+
     # -- the spring list, lazy on the lattice path ----------------------------------------------
 
     def _set_spring_host(self, pairs, rest, ks, kd, types):
