@@ -414,6 +414,9 @@ def eval_lattice_forces(model, q: wp.array, qd: wp.array, f_out: wp.array, scrat
     (``scratch``: the row kernel's workspace, ``forces.ForceWork.lattice_scratch``)."""
     lat = model.lattice
     if lat.kernel == "rows":
+        if scratch is None:
+            raise ValueError("the lattice row kernel needs its scratch: choose the kernel (set_kernel) before making "
+                             "the integrator")
         wp.launch(
             model.kernels.eval_lattice_rows,
             dim=lat.jelly_count,
