@@ -839,11 +839,6 @@ class Model:
     mesh_motion: wp.array
     """Each mesh's index among the moving terrain (-1: static), shape [M], int32; None without meshes."""
 
-    _LAZY_SPRINGS = (
-        "spring_indices_host", "spring_rest_host", "spring_stiffness_host", "spring_damping_host", "spring_type_host",
-        "spring_indices", "spring_rest_length", "spring_stiffness", "spring_damping",
-    )
-
     def __init__(self):
         object.__setattr__(self, "_frozen", False)
         # The lazily made spring list (see the class docstring); the freeze leaves it writable.
