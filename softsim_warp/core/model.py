@@ -86,7 +86,7 @@ class ModelBuilder:
         self.contact_epsilon = 0.01
         self.contact_velocity_epsilon = 0.01
         self.restitution_threshold_steps = 1.0
-        # Contact between jellies (core/particle_contact.attach): on/off, pair distance [m] (None:
+        # Contact between jellies (core/particle_contact.py, made by finalize): on/off, pair distance [m] (None:
         # from the lattice spacing), Coulomb friction and restitution between particles, Jacobi
         # iterations per step.
         self.jelly_contact = False
