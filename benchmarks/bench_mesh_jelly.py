@@ -38,7 +38,6 @@ from pathlib import Path
 
 import numpy as np
 
-from softsim_warp.core.masked_lattice import attach_masked
 from softsim_warp.core.model import ModelBuilder, populate
 from softsim_warp.core.integrators import ExplicitIntegrator
 from softsim_warp.core.terrain import sphere_mesh
@@ -89,12 +88,12 @@ class Case:
         builder = ModelBuilder(scn.sim["gravity"])
         builder.device = device
         populate(builder, scn.data)
-        self.model = builder.finalize(device, scn.sim["precision"], force_path=force_path)
-        if gather:  # the masked path on any device (finalize takes it on CUDA only)
-            attach_masked(builder, self.model, kernel="gather")
+        # gather: the masked path on any device (finalize takes it on CUDA only).
+        self.model = builder.finalize(device, scn.sim["precision"], force_path=force_path,
+                                      masked_kernel="gather" if gather else None)
         m = self.model
         self.particles = m.particle_count
-        self.path = "lattice" if m.lattice is not None else "masked" if getattr(m, "masked", None) else "springs"
+        self.path = "lattice" if m.lattice is not None else "masked" if m.masked is not None else "springs"
         # options: the fused stage's (fused, single; core/fused.py configure_fused); none: the defaults.
         self.integ = ExplicitIntegrator(self.model, integrator, **options)
         if self.integ.fused:

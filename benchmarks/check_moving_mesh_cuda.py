@@ -79,7 +79,7 @@ def follow(device, tmp):
         for k in range(900):
             st.advance(1)
             if k % 9 == 0:
-                worst = max(worst, float(np.abs(model.mesh_points.numpy() - MA.animated_plate_world((k + 1) * 1e-3)).max()))
+                worst = max(worst, float(np.abs(st.integrator.run.meshes.mesh_points.numpy() - MA.animated_plate_world((k + 1) * 1e-3)).max()))
         wall = time.perf_counter() - t0
         v = st.state.particle_qd.numpy()
         bottom = np.argsort(st.state.particle_q.numpy()[:, 1])[:9]

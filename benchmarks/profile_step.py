@@ -134,20 +134,16 @@ def _passes(args, device, model, counts, repeats=7) -> int:
     from softsim_warp.commands.bench import JellySpec  # noqa: PLC0415
     from softsim_warp.commands.bench_contact import _Ours  # noqa: PLC0415
 
-    hook = model.particle_contact
-    hook.rec_iter = [wp.zeros_like(hook.rec_warm) for _ in range(2)]  # the passes' buffers for any count
     dt = JellySpec().dt
 
     def case(contact, passes=0):
-        # Each case steps its own states from the pile's start, as softsim bench --contact's do.
+        # Each case steps its own states from the pile's start, as softsim bench --contact's do,
+        # with its own integrator and so its own contact lists (its run state).
         timed = _Ours(model, "symplectic", dt, args.steps, True, contact)
-        step = timed.step_fn
-
-        def run(count):
-            hook.iterations = passes
-            step(count)
-
-        timed.step_fn = run
+        hook = timed.integrator.run.particle_contact
+        hook.rec_iter = [wp.zeros_like(hook.rec_warm) for _ in range(2)]  # the passes' buffers for any count
+        hook.iterations = passes
+        timed.contact = hook
         builds = hook.builds_done()
         timed.prepare()
         timed.builds = hook.builds_done() - builds
@@ -158,9 +154,9 @@ def _passes(args, device, model, counts, repeats=7) -> int:
         cases[f"contact, {k} velocity passes"] = case(True, k)
     for _ in range(repeats):
         for timed in cases.values():
-            builds = hook.builds_done()
+            builds = timed.contact.builds_done()
             timed.time_once()
-            timed.builds += hook.builds_done() - builds
+            timed.builds += timed.contact.builds_done() - builds
     base = cases["no contact"].ms_per_step()
     rows = [(name, t.ms_per_step(), t.ms_per_step() / base, t.builds) for name, t in cases.items()]
     # Steps each case ran: two first steps, the graph's replay in prepare, then the timed replays.

@@ -6,7 +6,7 @@
     contact response leaves it alone. ``add_jelly`` takes one mass per particle as well as one for
     all, so a jelly whose four top corners have mass 0 hangs from them.
 
-(b) A custom force. ``model.contact_hooks`` is a list of callables
+(b) A custom force. ``model.contact_hooks`` (given to ``ModelBuilder.finalize(contact_hooks=...)``) holds callables
     ``hook(model, state_in, state_out, h, world_contact_beta)`` that every integrator calls at the end
     of each step, after terrain contact (``softsim_warp.core.contact.apply_contacts``). A hook that
     only launches kernels is captured into ``Stepper``'s graphs with the rest of the step. Here a
@@ -82,7 +82,7 @@ class WindDrag:
         )
 
 
-def build(resolution, total_mass, ks, device):
+def build(resolution, total_mass, ks, device, contact_hooks=()):
     """A cube jelly whose four top corners have mass 0; returns the model and the pinned indices."""
     n = resolution
     shape = (n, n, n)
@@ -95,7 +95,7 @@ def build(resolution, total_mass, ks, device):
     springs = {name: {"ks": ks, "kd": kd} for name in ("structural", "shear", "bending")}
     builder = ss.ModelBuilder(gravity=(0.0, -9.8, 0.0))
     builder.add_jelly(shape, SIZE, mass, springs, center=CENTER)
-    return builder.finalize(device=device), pinned
+    return builder.finalize(device=device, contact_hooks=contact_hooks), pinned
 
 
 def simulate(args, wind):
@@ -103,9 +103,8 @@ def simulate(args, wind):
 
     Returns the model, the pinned indices and the initial and final positions [m].
     """
-    model, pinned = build(args.resolution, args.mass, args.ks, args.device)
-    if wind is not None:
-        model.contact_hooks = [WindDrag(wind, args.drag)]
+    hooks = [WindDrag(wind, args.drag)] if wind is not None else []
+    model, pinned = build(args.resolution, args.mass, args.ks, args.device, hooks)
     integrator = ss.make_integrator(args.integrator, model)
     dt = 1.0 / (args.fps * args.steps_per_frame)
     stepper = ss.Stepper(model, integrator, dt)

@@ -148,7 +148,7 @@ def test_batch_equals_loop_built():
     builder = make_builder(datas)
     model = builder.finalize("cpu", "float32")
     assert model.world_count == 6 and model.lattice is not None
-    assert "spring_indices_host" not in model.__dict__  # not made until read
+    assert not model.has_derived("spring_indices_host")  # not made until read
     assert_particles_match(model, datas)
     assert_springs_match(model, expected_springs(datas, model))
     # The jellies' starts, and one ks per world as varied.
@@ -229,7 +229,7 @@ def test_finalize_uses_the_records_not_the_search(monkeypatch):
         s0, s1 = model.state(), model.state()
         integrator.step(s0, s1, 1e-3)
         assert np.all(np.isfinite(s1.particle_q.numpy()))
-        assert "spring_indices_host" not in model.__dict__ and "spring_indices" not in model.__dict__
+        assert not model.has_derived("spring_indices_host") and not model.has_derived("spring_indices")
 
 
 def test_spring_list_made_on_demand_equals_the_lists():

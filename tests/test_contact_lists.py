@@ -38,11 +38,11 @@ def _pile(self_contact=False, worlds=1, precision="float32", iterations=None):
     return builder.finalize("cpu", precision)
 
 
-def _step_hook(model, state, q):
-    """One hook call on positions ``q`` (the step's result) and zero velocities; returns the state."""
+def _step_hook(hook, model, state, q):
+    """One call of ``hook`` (a run's ParticleContactState) on positions ``q`` (the step's result) and
+    zero velocities; returns the state."""
     state.particle_q.assign(q.astype(np.float32))
     state.particle_qd.zero_()
-    hook = model.particle_contact
     hook(model, state, state, model.scalar(1e-4), wp.ones(4, dtype=model.scalar, device="cpu"))
     return state
 
@@ -86,12 +86,12 @@ def test_candidate_lists_match_brute_force(self_contact):
     """After a build, each list is exactly the brute-force set of allowed partners within
     CANDIDATE_REACH d + skin, in ascending order (so the sums do not depend on the grid)."""
     model = _pile(self_contact)
-    hook = model.particle_contact
+    hook = model.run_state().particle_contact
     rng = np.random.default_rng(1)
     # Jitter by up to 0.4 spacings: pairs across the reach, and with self-contact, pairs of one
     # jelly far apart in the rest shape that come close.
     q = model.particle_q_host + rng.uniform(-0.4, 0.4, model.particle_q_host.shape) * SPACING
-    _step_hook(model, model.state(), q)
+    _step_hook(hook, model, model.state(), q)
     assert hook.builds_done() == 1
     x = q[hook.contact_index.numpy()].astype(np.float32).astype(np.float64)
     expected = _brute_force(hook, x, hook.skin_host)
@@ -109,23 +109,24 @@ def test_lists_kept_give_the_contacts_of_a_fresh_build():
     within CANDIDATE_REACH d now is in them, and the contacts (partners, normals, gaps) are bitwise
     those of a hook that builds its lists on the moved positions."""
     model = _pile()
-    hook = model.particle_contact
+    hook = model.run_state().particle_contact
     rng = np.random.default_rng(2)
     q0 = model.particle_q_host + rng.uniform(-0.2, 0.2, model.particle_q_host.shape) * SPACING
-    _step_hook(model, model.state(), q0)
+    _step_hook(hook, model, model.state(), q0)
     # Each particle moves by 0.99 of the rebuild distance in a random direction.
     step = rng.normal(size=q0.shape)
     step *= 0.99 * float(hook.rebuild_distance) / np.linalg.norm(step, axis=1, keepdims=True)
     q1 = q0 + step
-    _step_hook(model, model.state(), q1)
+    _step_hook(hook, model, model.state(), q1)
     assert hook.builds_done() == 1
     x1 = q1[hook.contact_index.numpy()].astype(np.float32).astype(np.float64)
     within_reach = _brute_force(hook, x1, 0.0)
     assert all(e <= set(lst) for e, lst in zip(within_reach, _lists(hook)))
     fresh = _pile()
-    _step_hook(fresh, fresh.state(), q1)
-    assert fresh.particle_contact.builds_done() == 1
-    assert _contacts(hook) == _contacts(fresh.particle_contact)
+    fresh_hook = fresh.run_state().particle_contact
+    _step_hook(fresh_hook, fresh, fresh.state(), q1)
+    assert fresh_hook.builds_done() == 1
+    assert _contacts(hook) == _contacts(fresh_hook)
     assert hook.contacts.numpy().sum() > 0
 
 
@@ -133,25 +134,25 @@ def test_rebuild_when_a_particle_moves_half_the_skin():
     """One particle moved by more than the rebuild distance (just under skin / 2) rebuilds the lists;
     moves below it do not."""
     model = _pile()
-    hook = model.particle_contact
+    hook = model.run_state().particle_contact
     assert hook.rebuild_distance < 0.5 * hook.skin_host < 1.05 * hook.rebuild_distance
     q = model.particle_q_host.copy()
-    _step_hook(model, model.state(), q)
+    _step_hook(hook, model, model.state(), q)
     p = int(hook.contact_index.numpy()[5])
     for moved, builds in ((0.9, 1), (0.98, 1), (1.02, 2)):
         q1 = q.copy()
         q1[p, 1] += moved * float(hook.rebuild_distance)
-        _step_hook(model, model.state(), q1)
+        _step_hook(hook, model, model.state(), q1)
         assert hook.builds_done() == builds, moved
     # The build of the last call measures moves from there.
-    _step_hook(model, model.state(), q1)
+    _step_hook(hook, model, model.state(), q1)
     assert hook.builds_done() == 2
 
 
 def test_worlds_get_no_candidates_of_each_other():
     model = _pile(worlds=2)
-    hook = model.particle_contact
-    _step_hook(model, model.state(), model.particle_q_host)
+    hook = model.run_state().particle_contact
+    _step_hook(hook, model, model.state(), model.particle_q_host)
     world = hook.contact_world.numpy()
     assert all(world[j] == world[i] for i, lst in enumerate(_lists(hook)) for j in lst)
     assert sum(len(lst) for lst in _lists(hook)) > 0
@@ -159,7 +160,7 @@ def test_worlds_get_no_candidates_of_each_other():
 
 def _squeezed_pile(steps, precision="float32", iterations=None):
     """``steps`` symplectic steps of the pile squeezed along x (particles with several contacts);
-    returns the positions, the velocities and the model."""
+    returns the positions, the velocities, the model and the integrator's contact state."""
     from softsim_warp.core.stepper import make_integrator
 
     model = _pile(precision=precision, iterations=iterations)
@@ -170,17 +171,18 @@ def _squeezed_pile(steps, precision="float32", iterations=None):
     integrator = make_integrator("symplectic", model)
     for k in range(steps):
         integrator.step(state[k % 2], state[1 - k % 2], 1e-4)
-    return state[steps % 2].particle_q.numpy(), state[steps % 2].particle_qd.numpy(), model
+    return (state[steps % 2].particle_q.numpy(), state[steps % 2].particle_qd.numpy(), model,
+            integrator.run.particle_contact)
 
 
 def test_full_candidate_lists_step_bitwise_the_same(monkeypatch):
     """With candidate lists of 2 (the grid walk takes over), ten steps of a squeezed pile are bitwise
     those with the full lists."""
-    q_full, v_full, model = _squeezed_pile(10)
-    most = model.particle_contact.candidate_count.numpy().max()
+    q_full, v_full, _, hook = _squeezed_pile(10)
+    most = hook.candidate_count.numpy().max()
     monkeypatch.setattr(particle_contact, "MAX_CANDIDATES", 2)
-    q_short, v_short, short = _squeezed_pile(10)
-    assert most > 2 and (short.particle_contact.candidate_count.numpy() == 3).any()  # they do overflow
+    q_short, v_short, _, short = _squeezed_pile(10)
+    assert most > 2 and (short.candidate_count.numpy() == 3).any()  # they do overflow
     assert np.array_equal(q_full, q_short) and np.array_equal(v_full, v_short)
 
 
@@ -188,8 +190,7 @@ def test_accumulated_impulses_are_equal_and_opposite():
     """After ten steps of the squeezed pile (four passes, warm started from the step before), every
     pair that both lists hold has stored impulses that are exact negatives of each other, and its
     partners' normals too: each particle computes the pair's impulse from the pair's values alone."""
-    _, _, model = _squeezed_pile(10, iterations=4)
-    hook = model.particle_contact
+    _, _, _, hook = _squeezed_pile(10, iterations=4)
     half = int(hook.phase.numpy()[0])
     slots = particle_contact.MAX_CONTACTS
     count = hook.contacts.numpy()
@@ -215,8 +216,8 @@ def test_overflowed_contact_lists_conserve_momentum(monkeypatch):
     with three passes (in a first pass without a warm start the two kinds of impulse agree): the
     contacts push the jellies apart, and the total momentum is the gravity's to rounding."""
     monkeypatch.setattr(particle_contact, "MAX_CONTACTS", 1)
-    q, v, model = _squeezed_pile(10, "float64", iterations=3)
-    counts = model.particle_contact.contacts.numpy()
+    q, v, model, hook = _squeezed_pile(10, "float64", iterations=3)
+    counts = hook.contacts.numpy()
     assert (counts > 1).any() and (counts == 1).any()  # overflowed lists beside full ones
     mass = 1.0 / model.particle_inv_mass.numpy()
     expected = mass.sum() * np.array([0.0, -9.81 * 10 * 1e-4, 0.0])
@@ -231,7 +232,7 @@ def test_face_order_groups_each_face():
     particles on one boundary face first (each face's together, in lattice order), then those on
     two (each edge's together), then the corners; so a warp's threads share a face."""
     model = _pile()
-    hook = model.particle_contact
+    hook = model.run_state().particle_contact
     index = hook.contact_index.numpy()
     per_jelly = SIZE**3 - (SIZE - 2) ** 3
     assert hook.count == 8 * per_jelly
@@ -266,7 +267,7 @@ def test_capacity_is_a_user_error(monkeypatch):
     limit is refused by build_model with a one-line scene error."""
     from softsim_warp.core.errors import SceneError
 
-    hook = ss.build_model(ss.load_scene("collide", ["jelly.0.resolution=3", "jelly.1.resolution=3"])).particle_contact
+    hook = ss.build_model(ss.load_scene("collide", ["jelly.0.resolution=3", "jelly.1.resolution=3"])).run_state().particle_contact
     slots = hook.contact_impulse.shape[0]
     assert all(a.shape[0] <= slots for a in (hook.contact_normal, hook.contact_lists, hook.candidates))
     limit = particle_contact.MAX_CONTACT_PARTICLES
@@ -288,14 +289,13 @@ def test_strided_state_is_refused():
     state_in, state_out = model.state(), model.state()
     state_out.particle_q = wide[::2]
     with pytest.raises(ValueError, match="jelly contact kernels need contiguous"):
-        model.particle_contact(model, state_in, state_out, 1.0e-3, wp.ones(1, dtype=model.scalar))
+        model.run_state().particle_contact(model, state_in, state_out, 1.0e-3, wp.ones(1, dtype=model.scalar))
 
 
 def test_warm_up_and_restart_leave_no_contact_history():
     """The impulses a step keeps for the next one's warm start are forgotten by a new stepper, after
     the warm-up step and on a restart: a run after either is bitwise the run without it (the pile
     touches from its first step, so a kept impulse would start the first step warm, and does)."""
-    from softsim_warp.core.contact import forget_contact_history
     from softsim_warp.core.stepper import Stepper, make_integrator
 
     def stepper(model, warm_up=False):
@@ -308,12 +308,12 @@ def test_warm_up_and_restart_leave_no_contact_history():
         s.advance(5)
         return s.state.particle_q.numpy(), s.state.particle_qd.numpy()
 
-    def restart(s, model, forget):
+    def restart(s, model, forget):  # the stepper's own run state forgets, the model holds none
         wp.copy(s.states[0].particle_q, model.particle_q)
         wp.copy(s.states[0].particle_qd, model.particle_qd)
         s.current = 0
         if forget:
-            forget_contact_history(model)
+            s.integrator.run.forget_contact_history()
 
     q, v = result(stepper(_pile()))
     model = _pile()
@@ -345,7 +345,7 @@ def test_a_pair_with_an_overflowed_list_does_not_accumulate(monkeypatch, iterati
     builder.jelly_contact_thickness = 0.05
     builder.jelly_contact_iterations = iterations
     model = builder.finalize("cpu", "float64")
-    hook = model.particle_contact
+    hook = model.run_state().particle_contact
     mass = np.array([0.01, 0.02, 0.01])
 
     def step(q, v):

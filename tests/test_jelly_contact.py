@@ -50,18 +50,21 @@ def _jelly_slices(model):
 def test_one_jelly_allocates_nothing():
     """A scene of one jelly without self_contact has no hook and no arrays (jelly_drop's speed does not move)."""
     model = ss.build_model(ss.load_scene("jelly_drop"), device="cpu")
-    assert getattr(model, "contact_hooks", ()) == ()
-    assert "particle_contact" not in model.__dict__
+    assert model.contact_hooks == () and model.particle_contact is None
+    run = model.run_state()
+    assert run.particle_contact is None and run.contact_hooks == []
 
 
 def test_auto_on_with_two_jellies_and_switches():
     model = ss.build_model(ss.load_scene("collide", SMALL_COLLIDE), device="cpu")
     hook = model.particle_contact
-    assert model.contact_hooks == [hook] and hook.between_jellies == 1
+    assert model.contact_hooks == () and hook.between_jellies == 1
+    run = model.run_state()
+    assert run.contact_hooks == [run.particle_contact] and run.particle_contact.tables is hook
     # Surface particles only: 2 * (5^3 - 3^3).
     assert hook.count == 2 * (125 - 27)
     off = ss.build_model(ss.load_scene("collide", SMALL_COLLIDE + ["simulation.jelly_contact=false"]), device="cpu")
-    assert "particle_contact" not in off.__dict__
+    assert off.particle_contact is None
     # One jelly with self-contact: the hook exists, contact between jellies does not.
     one = ss.build_model(ss.load_scene("jelly_drop", ["jelly.0.self_contact=true", "jelly.0.resolution=4"]), device="cpu")
     assert one.particle_contact.between_jellies == 0 and one.particle_contact.count == 64 - 8
@@ -515,7 +518,7 @@ def test_bench_contact_cli(tmp_path, capsys):
     # Neighbouring jellies start 0.85 spacings apart: inside the pair distance of one spacing.
     spec = JellySpec()
     model = bench_contact.build_pile(8, 3, spec, "cpu")
-    hook = model.particle_contact
+    hook = model.run_state().particle_contact
     hook(model, model.state(), model.state(), model.scalar(spec.dt), wp.ones(1, dtype=model.scalar, device="cpu"))
     assert hook.contacts.numpy().sum() > 0
     assert main(["bench", "--contact", "--jellies", "1"]) == 2

@@ -313,16 +313,17 @@ def test_preview_shows_mesh_jelly_and_mesh_terrain(tmp_path):
     assert orange.mean() > 0.005 and grey.mean() > 0.1
 
 
-def _builder_model(scene, device, precision="float64"):
-    from softsim_warp.core.masked_lattice import attach_masked
+def _builder_model(scene, device, precision="float64", masked=True):
+    """The scene's model on the masked path on any device (finalize alone takes it on CUDA only),
+    or, ``masked=False``, on the spring list."""
     from softsim_warp.core.model import ModelBuilder, populate
 
     b = ModelBuilder(scene.sim["gravity"])
     b.device = device
     populate(b, scene.data)
-    model = b.finalize(device, precision)
-    attach_masked(b, model, kernel="gather")  # the masked path on any device (finalize: CUDA only)
-    return model
+    if not masked:
+        return b.finalize(device, precision, force_path="springs")
+    return b.finalize(device, precision, masked_kernel="gather")
 
 
 @pytest.mark.parametrize("precision", ["float32", "float64"])
@@ -354,8 +355,9 @@ def test_masked_lattice_forces_equal_the_spring_list(tmp_path, device, ball, pre
     f.fill_(model.vec3(float("inf"), float("inf"), float("inf")))  # poisoned: every entry must be written
     eval_forces(model, qa, qda, f)
     masked = f.numpy().astype(np.float64)
-    model.masked = None
-    eval_forces(model, qa, qda, f)
+    springs = _builder_model(scene_from_dict(data), device, precision, masked=False)
+    assert springs.masked is None
+    eval_forces(springs, qa, qda, f)
     ref = f.numpy().astype(np.float64)
     eps = np.finfo(np.float32 if precision == "float32" else np.float64).eps
     # Each particle sums up to 32 spring forces of magnitude up to ks |dx| + kd |dv|.
@@ -369,9 +371,7 @@ def test_masked_lattice_trajectory_matches_the_spring_list(device, ball):
     scene = _mesh_scene(ball, resolution=6, size=0.5, velocity=[0.0, -1.0, 0.5], angular_velocity=[3.0, 0.0, 1.0])
     out = []
     for masked in (True, False):
-        model = _builder_model(scene, device)
-        if not masked:
-            model.masked = None
+        model = _builder_model(scene, device, masked=masked)
         from softsim_warp.core.stepper import make_integrator
 
         integ = make_integrator("rk4", model)
@@ -418,9 +418,7 @@ def _fused_masked_run(scene, method, precision, steps, path):
     forced on the CPU), "springs" (the spring list, unfused, contact as its own kernels)."""
     from softsim_warp.core.integrators import ExplicitIntegrator
 
-    model = _builder_model(scene, "cpu", precision)
-    if path == "springs":
-        model.masked = None
+    model = _builder_model(scene, "cpu", precision, masked=path != "springs")
     integ = ExplicitIntegrator(model, method)
     assert integ.fused == (path == "fused")
     s0, s1 = model.state(), model.state()

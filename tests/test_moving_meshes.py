@@ -106,7 +106,7 @@ def test_keyframed_mesh_is_where_its_keys_put_it(tmp_path, precision):
     sc = jelly_scene({"mesh": [{"path": quad, "motion": motion}]}, precision=precision, center=(0.0, 0.3, 0.0))
     model, st = stepper(sc)
     rest = model.meshes[0]["asset"].points
-    tm = model.terrain_motion
+    tm = st.integrator.run.terrain  # the poses the contact used, the run's own
     times = np.array([k[0] for k in KEYS])
     offsets = np.array([k[1] for k in KEYS])
     worst = 0.0
@@ -120,7 +120,8 @@ def test_keyframed_mesh_is_where_its_keys_put_it(tmp_path, precision):
         worst = max(worst, float(np.abs(used - expected).max()))
     assert worst < 1e-6, worst
     # The mesh's own vertices never move: it is queried in its frame (no refit, graph-captured).
-    np.testing.assert_array_equal(model.mesh_points.numpy(), rest.astype(model.mesh_points.numpy().dtype))
+    points = st.integrator.run.meshes.mesh_points
+    np.testing.assert_array_equal(points.numpy(), rest.astype(points.numpy().dtype))
     assert st.use_graph and model.mesh_animation is None
 
 
@@ -132,15 +133,16 @@ def test_animated_usd_mesh_follows_its_samples(plate, precision):
     across the samples, between them and after the last (held)."""
     sc = jelly_scene({"mesh": [{"path": plate, "animated": True}]}, precision=precision, dt=1e-3,
                      center=(0.0, 3.0, 0.0))
-    model, st = stepper(sc)
+    _, st = stepper(sc)
     assert not st.use_graph  # a refit is host work: no graph
     worst = 0.0
     for k in range(2200):
         st.advance(1)
         if k % 7 == 0 or k > 2190:
             expected = MA.animated_plate_world((k + 1) * 1e-3)
-            worst = max(worst, float(np.abs(model.mesh_points.numpy() - expected).max()),
-                        float(np.abs(model.mesh_bvh[0].points.numpy() - expected).max()))
+            poses = st.integrator.run.meshes  # the vertices and BVH the contact used, the run's own
+            worst = max(worst, float(np.abs(poses.mesh_points.numpy() - expected).max()),
+                        float(np.abs(poses.mesh_bvh[0].points.numpy() - expected).max()))
     assert worst < 1e-6, worst
 
 

@@ -48,7 +48,7 @@ def test_jelly_on_a_moving_plane_rides_it(method):
     momentum growing by mu times the normal impulse (v_x = mu (g t + v_y), exactly while every
     touching particle slides), and catches the plane (1 m/s) at t = 1 / (mu g) = 0.128 s."""
     sc = scene({"velocity": [1.0, 0.0, 0.0]}, method)
-    model, st = stepper(sc)
+    _, st = stepper(sc)
     dt = sc.sim["dt"]
     t_catch = 1.0 / (MU * G)
     rows = []
@@ -97,7 +97,7 @@ def test_jelly_on_a_turntable_turns_with_it():
     omega = math.radians(90.0)
     sc = scene({"spin": {"axis": [0.0, 1.0, 0.0], "degrees_per_second": 90.0, "center": [0.0, 0.0, 0.0]}},
                center=(0.3, 0.05, 0.0))
-    model, st = stepper(sc)
+    _, st = stepper(sc)
     st.advance(round(1.0 / sc.sim["dt"]))
     x = st.state.particle_q.numpy().astype(np.float64)
     v = st.state.particle_qd.numpy().astype(np.float64)
@@ -121,7 +121,7 @@ def test_keyframed_plane_is_where_its_keys_put_it(precision):
     sc = scene({"keyframes": [{"time": t, "offset": d} for t, d in KEYS],
                 "spin": {"axis": [0.0, 0.0, 1.0], "degrees_per_second": 20.0}}, center=(0.0, 0.2, 0.0))
     sc.sim["precision"] = precision
-    model, st = stepper(sc)
+    _, st = stepper(sc)
     dt = sc.sim["dt"]
     times = np.array([k[0] for k in KEYS])
     offsets = np.array([k[1] for k in KEYS])
@@ -131,8 +131,8 @@ def test_keyframed_plane_is_where_its_keys_put_it(precision):
         t = (k + 1) * dt
         expected = np.array([np.interp(t, times, offsets[:, c]) for c in range(3)])
         a = math.radians(20.0) * t
-        worst = max(worst, float(np.abs(model.plane_point.numpy()[0] - expected).max()),
-                    float(np.abs(model.plane_normal.numpy()[0] - [-math.sin(a), math.cos(a), 0.0]).max()))
+        worst = max(worst, float(np.abs(st.integrator.run.terrain.plane_point.numpy()[0] - expected).max()),
+                    float(np.abs(st.integrator.run.terrain.plane_normal.numpy()[0] - [-math.sin(a), math.cos(a), 0.0]).max()))
     assert worst < 1e-6, worst
 
 
@@ -152,7 +152,7 @@ def test_smooth_keyframed_sphere_follows_the_pin_path():
     for k in range(250):
         st.advance(1)
         expected = path_position(pin, np.array([0.5, 0.0, 0.0]), (k + 1) * 1e-3)
-        assert np.abs(model.sphere_center.numpy()[0] - expected).max() < 1e-6
+        assert np.abs(st.integrator.run.terrain.sphere_center.numpy()[0] - expected).max() < 1e-6
 
 
 def test_hole_moves_with_its_plane():
@@ -171,10 +171,10 @@ def test_hole_moves_with_its_plane():
         "plane": [{"hole": {"center": [0.0, 0.0, 0.0], "radius": 0.1}, "friction": 0.0, "restitution": 0.0,
                    "motion": {"velocity": [1.0, 0.0, 0.0]}}],
     })
-    model, st = stepper(sc)
+    _, st = stepper(sc)
     st.advance(550)
     y = st.state.particle_q.numpy()[:, 1]
-    np.testing.assert_allclose(model.plane_hole_center.numpy()[0], [0.55, 0.0, 0.0], atol=1e-5)
+    np.testing.assert_allclose(st.integrator.run.terrain.plane_hole_center.numpy()[0], [0.55, 0.0, 0.0], atol=1e-5)
     assert y[:2].max() < -0.1  # through the hole
     assert y[2:].min() > -1e-6  # on the plane
 
@@ -189,10 +189,10 @@ def test_moving_bowl_carries_what_it_holds():
         "bowl": [{"center": [0.0, 0.0, 0.0], "radius": 0.52, "cut_height": 0.0, "friction": 0.8, "restitution": 0.0,
                   "motion": {"velocity": [0.5, 0.0, 0.0]}}],
     })
-    model, st = stepper(sc)
+    _, st = stepper(sc)
     st.advance(round(1.0 / sc.sim["dt"]))
     x = st.state.particle_q.numpy()
-    center = model.bowl_center.numpy()[0]
+    center = st.integrator.run.terrain.bowl_center.numpy()[0]
     np.testing.assert_allclose(center, [0.5, 0.0, 0.0], atol=1e-5)
     assert np.linalg.norm(x - center, axis=1).max() < 0.52 + 1e-5  # inside the bowl
     assert abs(st.state.particle_qd.numpy()[:, 0].mean() - 0.5) < 0.02
@@ -316,7 +316,7 @@ def test_platform_carries_the_stack():
     assert np.abs(o[accel, 2] - o[accel, 1]).max() < 0.12  # the stack's centre (0.091)
     assert 0.8 < o[cruise, 2].min() and o[cruise, 2].max() < 1.2  # sways about 1 m/s (0.87-1.14)
     assert np.abs(o[stopped, 2]).max() < 0.2  # (0.13)
-    np.testing.assert_allclose(model.plane_point.numpy()[0], [1.5, 0.0, 0.0], atol=1e-6)
+    np.testing.assert_allclose(st.integrator.run.terrain.plane_point.numpy()[0], [1.5, 0.0, 0.0], atol=1e-6)
     heights = o[:, 9:12]
     assert np.all(heights.min(axis=0) > [0.2, 0.8, 1.4])  # stacked: none slid off (0.25, 0.84, 1.43)
     assert np.abs(o[:, 7:9] - o[:, 6:7]).max() < 0.2  # within 0.2 m of the bottom jelly in x (0.12)

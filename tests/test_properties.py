@@ -26,7 +26,6 @@ from hypothesis import strategies as st
 
 from softsim_warp import eval_forces
 from softsim_warp.io import scene
-from softsim_warp.core.forces import attach
 from softsim_warp.core.errors import SceneError
 from softsim_warp.core.model import ModelBuilder
 
@@ -258,9 +257,7 @@ def test_spring_forces_conserve_momentum(device, res, scale, offset, ks, kd, see
     b = ModelBuilder(gravity=(0.0, 0.0, 0.0))
     springs = {name: {"ks": ks[t], "kd": kd[t]} for t, name in enumerate(("structural", "shear", "bending"))}
     b.add_jelly(res, [scale * (n - 1) for n in res], 1.0, springs, center=(offset, offset, -offset))
-    model = b.finalize(device)
-    if deterministic:
-        attach(model)
+    model = b.finalize(device, deterministic=deterministic)
     n = model.particle_count
     # State: rest lattice, displaced by up to the spacing, some particles moved onto others.
     q = model.particle_q_host + rng.uniform(-scale, scale, size=(n, 3))

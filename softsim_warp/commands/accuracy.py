@@ -35,7 +35,6 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from ..core.contact import forget_contact_history
 from ..core.errors import CommandLineError
 from ..core.methods import COLORS, IMPLICIT, NAMES, REFERENCE
 from ..core.model import build_model
@@ -217,7 +216,7 @@ def _restart(sim, model):
     wp.copy(sim.states[0].particle_q, model.particle_q)
     wp.copy(sim.states[0].particle_qd, model.particle_qd)
     sim.current = 0
-    forget_contact_history(model)
+    sim.integrator.run.forget_contact_history()
 
 
 # ---------------------------------------------------------------------------------------------

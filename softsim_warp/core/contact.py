@@ -22,7 +22,7 @@ MOVING_KINDS = ("plane", "bowl", "sphere", "mesh")
 
 def terrain_items(model, kind: str) -> list:
     """The host list of a model's terrain of ``kind`` (one of :data:`MOVING_KINDS`)."""
-    return getattr(model, "meshes" if kind == "mesh" else kind + "s", [])
+    return model.meshes if kind == "mesh" else getattr(model, kind + "s")
 
 
 def terrain_at(item: dict, t: float) -> dict:
@@ -46,9 +46,8 @@ class TerrainMotion:
     """Device arrays of the moving planes, bowls, spheres and meshes of a model (``Model.terrain_motion``).
 
     Per kind an index per primitive into the moving ones (``plane_motion`` ...; -1: static), and
-    per moving primitive its geometry as given, its motion (a pin's, ``kernels/pins.py``) and what
-    ``move_terrain`` writes at every step's start. The terrain clock counts the steps taken, as the
-    pin clock does; :meth:`reset` restarts it.
+    per moving primitive its geometry as given and its motion (a pin's, ``kernels/pins.py``). What
+    ``move_terrain`` writes at every step's start is each run's own (:class:`TerrainPoses`).
     """
 
     @classmethod
@@ -95,20 +94,46 @@ class TerrainMotion:
         self.smooth = arr([int(mo["interpolation"] == "smooth") for mo in motions], wp.int32, np.int32)
         self.key_time = arr(key_t or [0.0], scalar, np_scalar)
         self.key_value = vecs(key_v or [0.0, 0.0, 0.0])
-        self.center_now = wp.zeros(self.count, dtype=vec3, device=device)
-        self.turn_now = wp.zeros(self.count, dtype=vec3, device=device)
-        self.velocity_step = wp.zeros(self.count, dtype=vec3, device=device)
-        self.point_prev = wp.zeros(self.count, dtype=vec3, device=device)
+
+    def contact_arrays(self, kind_motion, poses) -> tuple:
+        """What a ``collide_moving_*`` kernel takes after its kind's arrays (``poses``: a run's
+        :class:`TerrainPoses`)."""
+        return (kind_motion, poses.center_now, poses.turn_now, poses.velocity_step, poses.point_prev, self.spin,
+                self.rest_point)
+
+
+class TerrainPoses:
+    """The terrain where one run has it (part of :class:`~softsim_warp.core.model.RunState`).
+
+    With moving terrain: the run's own copies of the geometry that moves (``plane_point``,
+    ``plane_normal``, ``plane_hole_center``, ``bowl_center``, ``sphere_center``, at t = 0 when
+    made), which ``move_terrain`` sets at every step's start to the pose at the step's end, with
+    per moving primitive its motion's centre and turn there (``center_now``, ``turn_now``, vec3),
+    the centre's velocity over the step (``velocity_step``), its reference point at the step's
+    start (``point_prev``), and the terrain clock (steps taken, shape [1], int32). Without moving
+    terrain the geometry is the model's arrays, which nothing writes, and the rest None.
+    """
+
+    def __init__(self, model):
+        tm = model.terrain_motion
+        moving = tm is not None
+        for name in ("plane_point", "plane_normal", "plane_hole_center", "bowl_center", "sphere_center"):
+            array = getattr(model, name)
+            setattr(self, name, wp.clone(array) if moving else array)
+        self.clock = self.center_now = self.turn_now = self.velocity_step = self.point_prev = None
+        if not moving:
+            return
+        device, vec3 = model.device, model.vec3
+        self.center_now = wp.zeros(tm.count, dtype=vec3, device=device)
+        self.turn_now = wp.zeros(tm.count, dtype=vec3, device=device)
+        self.velocity_step = wp.zeros(tm.count, dtype=vec3, device=device)
+        self.point_prev = wp.zeros(tm.count, dtype=vec3, device=device)
         self.clock = wp.zeros(1, dtype=wp.int32, device=device)
 
     def reset(self):
         """Restart the terrain clock at t = 0."""
-        self.clock.zero_()
-
-    def contact_arrays(self, kind_motion) -> tuple:
-        """What a ``collide_moving_*`` kernel takes after its kind's arrays."""
-        return (kind_motion, self.center_now, self.turn_now, self.velocity_step, self.point_prev, self.spin,
-                self.rest_point)
+        if self.clock is not None:
+            self.clock.zero_()
 
 
 def terrain_speed(model, reach: float) -> float:
@@ -141,27 +166,29 @@ def terrain_speed(model, reach: float) -> float:
     return fastest
 
 
-def move_terrain(model, dt):
-    """Put the moving terrain where it is at the end of the step about to be taken (one launch,
-    which also advances the terrain clock, and for animated meshes what ``animate_meshes`` does);
-    nothing without moving terrain."""
-    animate_meshes(model, dt)
-    tm = getattr(model, "terrain_motion", None)
+def move_terrain(model, run, dt):
+    """Put the moving terrain of ``run`` (a ``RunState``) where it is at the end of the step about
+    to be taken (one launch, which also advances the terrain clock, and for animated meshes what
+    ``animate_meshes`` does); nothing without moving terrain."""
+    animate_meshes(model, run, dt)
+    tm = model.terrain_motion
     if tm is None:
         return
+    poses = run.terrain
     wp.launch(
         model.kernels.move_terrain,
         dim=1,
-        inputs=[tm.clock, model.scalar(dt), tm.kind, tm.item, tm.rest_point, tm.rest_normal, tm.rest_hole,
+        inputs=[poses.clock, model.scalar(dt), tm.kind, tm.item, tm.rest_point, tm.rest_normal, tm.rest_hole,
                 tm.velocity, tm.spin, tm.center, tm.key_first, tm.key_count, tm.smooth, tm.key_time, tm.key_value],
-        outputs=[tm.center_now, tm.turn_now, tm.velocity_step, tm.point_prev, model.plane_point, model.plane_normal,
-                 model.plane_hole_center, model.bowl_center, model.sphere_center],
+        outputs=[poses.center_now, poses.turn_now, poses.velocity_step, poses.point_prev, poses.plane_point,
+                 poses.plane_normal, poses.plane_hole_center, poses.bowl_center, poses.sphere_center],
         device=model.device,
     )
 
 
 def apply_contacts(
     model: Model,
+    run,
     state_in: State,
     state_out: State,
     dt: float,
@@ -170,7 +197,8 @@ def apply_contacts(
     solve_hooks_only=False,
     layer_touch=False,
 ):
-    """Terrain contact on ``state_out`` after a step of ``dt`` from ``state_in``; one launch per primitive type present.
+    """Terrain contact on ``state_out`` after a step of ``dt`` from ``state_in``; one launch per primitive type present,
+    against the terrain where ``run`` (the integrator's ``RunState``) has it; then ``run``'s contact hooks.
 
     ``world_contact_beta`` is, per world, the integrator's position gain for a force held constant
     over the step (x_{n+1} gains beta h^2 a): resting contact and friction shift positions by it.
@@ -183,24 +211,15 @@ def apply_contacts(
     """
     h = model.scalar(dt)
     stage = LAYER_TOUCH if layer_touch else 0
-    _launch_contacts(model, state_in, state_out.particle_q, state_out.particle_qd, h, world_contact_beta, planes, stage)
-    for hook in getattr(model, "contact_hooks", ()):
+    _launch_contacts(model, run, state_in, state_out.particle_q, state_out.particle_qd, h, world_contact_beta, planes,
+                     stage)
+    for hook in run.contact_hooks:
         if not solve_hooks_only or getattr(hook, "in_contact_solve", True):
             hook(model, state_in, state_out, h, world_contact_beta)
 
 
-def forget_contact_history(model: Model):
-    """Make the next step start from no history of the contact hooks (the warm start of jelly
-    contact): for a step that is not part of the run (the warm-up) and for a run restarted from its
-    initial state, so that it is bitwise the run without them."""
-    for hook in getattr(model, "contact_hooks", ()):
-        forget = getattr(hook, "forget_history", None)
-        if forget is not None:
-            forget()
-
-
 def filter_stage_contacts(
-    model: Model, state_in: State, q_s: wp.array, qd_s: wp.array, world_contact_beta: wp.array, planes=True
+    model: Model, run, state_in: State, q_s: wp.array, qd_s: wp.array, world_contact_beta: wp.array, planes=True
 ):
     """Contact on an intermediate Runge-Kutta stage state (q_s, qd_s) = y_n + h c_s k, velocities only.
 
@@ -215,16 +234,18 @@ def filter_stage_contacts(
     impulse enters a stage state. Contact hooks are not applied here. ``planes=False`` skips the
     planes (a fused lattice stage with contact has filtered them already).
     """
-    _launch_contacts(model, state_in, q_s, qd_s, model.scalar(0.0), world_contact_beta, planes, 1)
+    _launch_contacts(model, run, state_in, q_s, qd_s, model.scalar(0.0), world_contact_beta, planes, 1)
 
 
-def plane_arrays(model) -> tuple:
-    """The planes' arrays in the order every plane-contact kernel takes them (``collide_planes``, the fused stage)."""
+def plane_arrays(model, run) -> tuple:
+    """The planes' arrays in the order every plane-contact kernel takes them (``collide_planes``, the
+    fused stage), where ``run`` (a ``RunState``) has them."""
+    poses = run.terrain
     return (
         model.plane_first,
-        model.plane_point,
-        model.plane_normal,
-        model.plane_hole_center,
+        poses.plane_point,
+        poses.plane_normal,
+        poses.plane_hole_center,
         model.plane_hole_radius,
         model.plane_restitution,
         model.plane_friction,
@@ -233,12 +254,12 @@ def plane_arrays(model) -> tuple:
 
 def moves(model, kind: str) -> bool:
     """Whether any terrain primitive of ``kind`` ("plane", "bowl", "sphere") of ``model`` moves."""
-    return getattr(model, "terrain_motion", None) is not None and any(
+    return model.terrain_motion is not None and any(
         it.get("motion") is not None for it in terrain_items(model, kind)
     )
 
 
-def _launch_contacts(model: Model, state_in: State, q_out, qd_out, h, world_contact_beta, planes, stage):
+def _launch_contacts(model: Model, run, state_in: State, q_out, qd_out, h, world_contact_beta, planes, stage):
     # (count, kernel, the kind's arrays): every collide_* kernel takes the same arguments around them.
     # A kind with a moving primitive takes its moving variant, which reads the motion arrays too.
     kinds = (
@@ -246,7 +267,7 @@ def _launch_contacts(model: Model, state_in: State, q_out, qd_out, h, world_cont
             model.plane_count if planes else 0,
             "plane",
             model.kernels.collide_planes,
-            plane_arrays(model),
+            plane_arrays(model, run),
         ),
         (
             model.bowl_count,
@@ -254,7 +275,7 @@ def _launch_contacts(model: Model, state_in: State, q_out, qd_out, h, world_cont
             model.kernels.collide_bowls,
             (
                 model.bowl_first,
-                model.bowl_center,
+                run.terrain.bowl_center,
                 model.bowl_radius,
                 model.bowl_cut_height,
                 model.bowl_restitution,
@@ -267,26 +288,26 @@ def _launch_contacts(model: Model, state_in: State, q_out, qd_out, h, world_cont
             model.kernels.collide_spheres,
             (
                 model.sphere_first,
-                model.sphere_center,
+                run.terrain.sphere_center,
                 model.sphere_radius,
                 model.sphere_restitution,
                 model.sphere_friction,
             ),
         ),
     )
-    if getattr(model, "terrain_motion", None) is not None:
+    if model.terrain_motion is not None:
         kinds = tuple(
             (count, kind, getattr(model.kernels, f"collide_moving_{kind}s"),
-             arrays + model.terrain_motion.contact_arrays(getattr(model, f"{kind}_motion")))
+             arrays + model.terrain_motion.contact_arrays(getattr(model, f"{kind}_motion"), run.terrain))
             if count and moves(model, kind) else (count, kind, kernel, arrays)
             for count, kind, kernel, arrays in kinds
         )
-    if getattr(model, "mesh_count", 0):  # triangle-mesh terrain (core/mesh_terrain.py)
+    if model.mesh_count:  # triangle-mesh terrain (core/mesh_terrain.py)
         if mesh_moves(model):
             kinds += ((model.mesh_count, "mesh", model.kernels.collide_moving_meshes,
-                       mesh_arrays(model) + moving_mesh_arrays(model)),)
+                       mesh_arrays(model, run) + moving_mesh_arrays(model, run)),)
         else:
-            kinds += ((model.mesh_count, "mesh", model.kernels.collide_meshes, mesh_arrays(model)),)
+            kinds += ((model.mesh_count, "mesh", model.kernels.collide_meshes, mesh_arrays(model, run)),)
     for count, _kind, kernel, arrays in kinds:
         if count:
             wp.launch(

@@ -10,7 +10,8 @@ A model takes one of three force paths, chosen when it is finalised and never pe
   atomic adds, and so the float sum, varies from run to run on CUDA.
 * spring list, deterministic (``softsim run --deterministic``): one thread per spring writes its
   force, then one thread per particle sums its incident springs in ascending spring order from a
-  CSR list (:func:`attach`), bitwise-identical from run to run on CUDA as on the CPU.
+  CSR list (``ModelBuilder.finalize(deterministic=True)``, :func:`incident_springs_csr`),
+  bitwise-identical from run to run on CUDA as on the CPU.
 
 Determinism is this property of the force path; the per-frame metrics have their own fixed-order
 reduction (``io/metrics.py``). The implicit integrator's solver reductions are not covered.
@@ -119,27 +120,25 @@ def incident_springs_csr(pairs: np.ndarray, particle_count: int) -> tuple[np.nda
     return offsets.astype(np.int32), code[order].astype(np.int32)
 
 
-def attach(model) -> None:
-    """Switch ``model`` to deterministic force evaluation (call before making an integrator).
+class ForceWork:
+    """The scratch a force evaluation writes (part of a ``RunState``; ``eval_forces``'s ``work``).
 
-    A model on the lattice path needs nothing more (its kernels use no atomics). A model on the
-    spring list gets, in addition:
-        deterministic: True.
-        spring_csr_offsets: start of each particle's incident-spring list, shape [particle_count + 1], int32.
-        spring_csr_springs: signed incident spring ids (see :func:`incident_springs_csr`), shape [2 spring_count], int32.
-        spring_force_work: workspace, each spring's force on its first particle [N], shape [spring_count], vec3.
+    Attributes:
+        spring_force: deterministic spring list: each spring's force on its first particle [N],
+            shape [spring_count], vec3; None on the other paths.
+        lattice_scratch: the CPU row kernel's workspace (``kernels/lattice.py``), shape
+            [particle_count], vec3; None unless the lattice path runs the row kernel
+            (``LatticeData.kernel`` when this is made).
     """
-    model.deterministic = True
-    if model.lattice is not None:
-        # The lattice kernels are atomic-free already: the CUDA gather writes each particle's force
-        # once, summed in a fixed stencil order; the CPU row kernel runs each jelly serially.
-        return
-    offsets, entries = incident_springs_csr(model.spring_indices_host, model.particle_count)
-    dev = model.device
-    model.spring_csr_offsets = wp.array(offsets, dtype=wp.int32, device=dev)
-    model.spring_csr_springs = wp.array(entries, dtype=wp.int32, device=dev)
-    model.spring_force_work = wp.zeros(model.spring_count, dtype=model.vec3, device=dev)
-    model.deterministic = True
+
+    def __init__(self, model):
+        lat = model.lattice
+        self.spring_force = None
+        if model.deterministic and lat is None and model.masked is None:
+            self.spring_force = wp.zeros(model.spring_count, dtype=model.vec3, device=model.device)
+        self.lattice_scratch = None
+        if lat is not None and lat.kernel == "rows":
+            self.lattice_scratch = wp.empty(model.particle_count, dtype=lat.layout_vec3, device=model.device)
 
 
 def _spring_inputs(model, q: wp.array, qd: wp.array) -> list:
@@ -147,7 +146,7 @@ def _spring_inputs(model, q: wp.array, qd: wp.array) -> list:
     return [model.spring_indices, model.spring_rest_length, model.spring_stiffness, model.spring_damping, q, qd]
 
 
-def _eval_spring_forces_gathered(model, q: wp.array, qd: wp.array, f_out: wp.array):
+def _eval_spring_forces_gathered(model, q: wp.array, qd: wp.array, f_out: wp.array, work: ForceWork):
     """Spring and damper forces of (q, qd) into ``f_out`` without atomics; every entry is written."""
     k = model.kernels
     if model.spring_count:
@@ -155,22 +154,28 @@ def _eval_spring_forces_gathered(model, q: wp.array, qd: wp.array, f_out: wp.arr
             k.eval_spring_forces,
             dim=model.spring_count,
             inputs=_spring_inputs(model, q, qd),
-            outputs=[model.spring_force_work],
+            outputs=[work.spring_force],
             device=model.device,
         )
     wp.launch(
         k.gather_spring_forces,
         dim=model.particle_count,
-        inputs=[model.spring_csr_offsets, model.spring_csr_springs, model.spring_force_work],
+        inputs=[model.spring_csr_offsets, model.spring_csr_springs, work.spring_force],
         outputs=[f_out],
         device=model.device,
     )
 
 
-def eval_forces(model, q: wp.array, qd: wp.array, f_out: wp.array):
+def eval_forces(model, q: wp.array, qd: wp.array, f_out: wp.array, work: ForceWork | None = None):
     """Internal forces of the state (q, qd) into ``f_out``: springs and dampers, and the model's force
-    terms on the spring list (see the module docstring); gravity is added as an acceleration."""
-    if getattr(model, "masked", None) is not None:
+    terms on the spring list (see the module docstring); gravity is added as an acceleration.
+
+    ``work``: the scratch the force path writes, an integrator's ``run.forces``; None makes one for
+    this call (allocating, so not inside a graph capture: tests and one-off evaluations).
+    """
+    if work is None:
+        work = ForceWork(model)
+    if model.masked is not None:
         # Masked lattice (mesh jellies, core/masked_lattice.py): the stencil gathered per particle.
         check_force_terms(model, "masked lattice")
         eval_masked_forces(model, q, qd, f_out)
@@ -178,11 +183,11 @@ def eval_forces(model, q: wp.array, qd: wp.array, f_out: wp.array):
     if model.lattice is not None:
         # Regular lattice: springs implicit in the lattice, each particle's force gathered (no atomics).
         check_force_terms(model, "lattice")
-        eval_lattice_forces(model, q, qd, f_out)
+        eval_lattice_forces(model, q, qd, f_out, work.lattice_scratch)
         return
     if model.deterministic:
         # Spring list, atomic-free: per-spring forces, then a fixed-order gather per particle.
-        _eval_spring_forces_gathered(model, q, qd, f_out)
+        _eval_spring_forces_gathered(model, q, qd, f_out, work)
     else:
         f_out.zero_()
         if model.spring_count:

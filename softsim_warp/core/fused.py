@@ -46,7 +46,7 @@ def configure_fused(integrator, fused=None, fuse_contact=None, single=None):
     particles on)."""
     model = integrator.model
     lat = model.lattice
-    masked = getattr(model, "masked", None)
+    masked = model.masked
     if fused is None:
         fused = lat is not None or masked is not None
     if fused and lat is None and masked is None:
@@ -147,7 +147,7 @@ def step_fused(integrator, state_in, state_out, dt):
                         state_in.particle_qd,
                         q,
                         qd,
-                        lat.scratch,
+                        integrator.run.forces.lattice_scratch,
                         integrator.f,
                     ],
                     outputs=outputs,
@@ -170,7 +170,7 @@ def step_fused(integrator, state_in, state_out, dt):
                         integrator.world_symplectic,
                         integrator.world_stage_c,
                         integrator.world_stage_b,
-                        *plane_arrays(model),
+                        *plane_arrays(model, integrator.run),
                         model.contact_epsilon,
                         model.contact_velocity_epsilon,
                         model.restitution_threshold_steps,
@@ -188,7 +188,8 @@ def step_fused(integrator, state_in, state_out, dt):
         if stage < integrator.stage_count - 1:
             with integrator.profile.part("contact"):
                 filter_stage_contacts(
-                    model, state_in, q, qd, integrator.world_contact_beta, planes=not integrator.fuse_contact
+                    model, integrator.run, state_in, q, qd, integrator.world_contact_beta, planes=not integrator.fuse_contact
                 )
     with integrator.profile.part("contact"):
-        apply_contacts(model, state_in, state_out, dt, integrator.world_contact_beta, planes=not integrator.fuse_contact)
+        apply_contacts(model, integrator.run, state_in, state_out, dt, integrator.world_contact_beta,
+                       planes=not integrator.fuse_contact)

@@ -91,7 +91,6 @@ from .contact import apply_contacts
 from .forces import check_force_terms, eval_forces
 from .integrators import Integrator
 from .mesh_terrain import mesh_touch_arrays
-from .methods import IMPLICIT
 from ..kernels import implicit as ki
 from .model import Model, State
 from .pins import drive
@@ -152,7 +151,7 @@ class ImplicitIntegrator(Integrator):
             updated to this step) instead of 0; off only to measure what it saves.
     """
 
-    name = IMPLICIT.name
+    name = "implicit"
 
     def __init__(
         self,
@@ -168,7 +167,7 @@ class ImplicitIntegrator(Integrator):
         super().__init__(model)
         # Its Newton solve needs every force's Jacobian; core/forces.ForceTerm carries none.
         check_force_terms(model, "implicit solve")
-        if getattr(model, "terrain_motion", None) is not None or getattr(model, "mesh_animation", None) is not None:
+        if model.terrain_motion is not None or model.mesh_animation is not None:
             # Its contact solve prescribes a touching particle's normal velocity as 0 and damps its
             # tangential one towards 0, the terrain's own velocity being unknown to it.
             raise ValueError("the implicit integrator does not take moving terrain; use an explicit one")
@@ -227,8 +226,8 @@ class ImplicitIntegrator(Integrator):
         fixed = (model.particle_inv_mass.numpy() == 0).astype(np.int32)
         self.fixed = wp.array(fixed, dtype=wp.int32, device=device)
         self.filters = wp.zeros(n, dtype=self.mat33, device=device)
-        hooks = [h for h in getattr(model, "contact_hooks", ()) if getattr(h, "in_contact_solve", True)]
-        terrain = model.plane_count or model.bowl_count or model.sphere_count or getattr(model, "mesh_count", 0) or hooks
+        hooks = [h for h in self.run.contact_hooks if getattr(h, "in_contact_solve", True)]
+        terrain = model.plane_count or model.bowl_count or model.sphere_count or model.mesh_count or hooks
         self.contact_solve = bool(terrain) and solver != "warp_cg"
         if self.contact_solve:
             # The step's result before the contact response, and the iterate of the last solve.
@@ -589,7 +588,7 @@ class ImplicitIntegrator(Integrator):
             (state_in.particle_q, state_in.particle_qd) if at_start else (state_out.particle_q, state_out.particle_qd)
         )
         with self.profile.part("forces_jacobians"):
-            eval_forces(model, q, qd, self.f)
+            eval_forces(model, q, qd, self.f, self.run.forces)
             self.diag_block.zero_()
             self.rhs.zero_()
             if model.spring_count and self.multigrid is not None:
@@ -646,7 +645,7 @@ class ImplicitIntegrator(Integrator):
 
     def step(self, state_in: State, state_out: State, dt: float):
         self.check_states(state_in, state_out)
-        drive(self.model, state_in, dt)
+        drive(self.model, self.run, state_in, dt)
         model = self.model
         h = model.scalar(dt)
         baraff_witkin = self.linearization == "baraff_witkin"
@@ -665,7 +664,7 @@ class ImplicitIntegrator(Integrator):
                 self._contact_solve(h, state_in, state_out, dt)
         self._record_step()
         with self.profile.part("contact"):
-            apply_contacts(model, state_in, state_out, dt, self.world_contact_beta)
+            apply_contacts(model, self.run, state_in, state_out, dt, self.world_contact_beta)
 
     def _contact_solve(self, h, state_in: State, state_out: State, dt: float):
         """Newton iterations again, with the contact response's velocities as constraints."""
@@ -673,7 +672,7 @@ class ImplicitIntegrator(Integrator):
         wp.copy(self.q_free, state_out.particle_q)
         wp.copy(self.qd_free, state_out.particle_qd)
         with self.profile.part("contact"):
-            apply_contacts(model, state_in, state_out, dt, self.world_contact_beta, solve_hooks_only=True,
+            apply_contacts(model, self.run, state_in, state_out, dt, self.world_contact_beta, solve_hooks_only=True,
                            layer_touch=True)
         self.any_contact.zero_()
         wp.launch(
@@ -685,18 +684,18 @@ class ImplicitIntegrator(Integrator):
                 model.particle_mass,
                 self.fixed,
                 model.plane_first,
-                model.plane_point,
-                model.plane_normal,
-                model.plane_hole_center,
+                self.run.terrain.plane_point,
+                self.run.terrain.plane_normal,
+                self.run.terrain.plane_hole_center,
                 model.plane_hole_radius,
                 model.bowl_first,
-                model.bowl_center,
+                self.run.terrain.bowl_center,
                 model.bowl_radius,
                 model.bowl_cut_height,
                 model.sphere_first,
-                model.sphere_center,
+                self.run.terrain.sphere_center,
                 model.sphere_radius,
-                *mesh_touch_arrays(model),
+                *mesh_touch_arrays(model, self.run),
                 model.contact_epsilon,
                 model.contact_velocity_epsilon,
                 state_in.particle_q,
@@ -775,7 +774,7 @@ class ImplicitIntegrator(Integrator):
         model = self.model
         device = model.device
         k = model.kernels
-        eval_forces(model, state_out.particle_q, state_out.particle_qd, self.f)
+        eval_forces(model, state_out.particle_q, state_out.particle_qd, self.f, self.run.forces)
         self.body_data.zero_()
         self.energy_gained.zero_()
         wp.launch(

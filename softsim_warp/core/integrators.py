@@ -22,7 +22,16 @@ from .profile import NO_PROFILE
 
 
 class Integrator:
-    """Base class: ``step(state_in, state_out, dt)`` advances one step, contact included."""
+    """Base class: ``step(state_in, state_out, dt)`` advances one step, contact included.
+
+    Each integrator owns its run state (``self.run``, a :class:`~softsim_warp.core.model.RunState`
+    made here): the pin, terrain and animation clocks, the current terrain poses, the jelly contact
+    lists and impulses, the force scratch. The model is only read, so integrators of one model step
+    independently. The run state is not a ``step`` argument (Newton's ``step(state_in, state_out,
+    control, contacts, dt)``) because a captured graph binds the buffers it recorded: a run state
+    given per call could not change under a graph, and tying it to the integrator, as Newton's
+    solvers own their scratch, says so. ``run.reset()`` puts it back at t = 0.
+    """
 
     name = "base"
     # Times the parts of each step when a stepper profiles it (core/profile.py); a no-op otherwise.
@@ -30,11 +39,12 @@ class Integrator:
 
     def __init__(self, model: Model):
         self.model = model
+        self.run = model.run_state()
 
     def step(self, state_in: State, state_out: State, dt: float):
         """Advance ``state_in`` by ``dt`` into ``state_out``. Implementations start with
-        ``pins.drive(model, state_in, dt)`` (driven pins) and ``contact.move_terrain(model, dt)``
-        (moving terrain) and end with ``apply_contacts``."""
+        ``pins.drive(model, self.run, state_in, dt)`` (driven pins) and
+        ``contact.move_terrain(model, self.run, dt)`` (moving terrain) and end with ``apply_contacts``."""
         raise NotImplementedError
 
     def stats(self) -> dict:
@@ -127,8 +137,8 @@ class ExplicitIntegrator(Integrator):
 
     def step(self, state_in: State, state_out: State, dt: float):
         self.check_states(state_in, state_out)
-        drive(self.model, state_in, dt)
-        move_terrain(self.model, dt)
+        drive(self.model, self.run, state_in, dt)
+        move_terrain(self.model, self.run, dt)
         if self.fused:
             step_fused(self, state_in, state_out, dt)
             return
@@ -138,7 +148,7 @@ class ExplicitIntegrator(Integrator):
         q, qd = state_in.particle_q, state_in.particle_qd
         for stage in range(self.stage_count):
             with profile.part("stages"):
-                eval_forces(model, q, qd, self.f)
+                eval_forces(model, q, qd, self.f, self.run.forces)
                 wp.launch(
                     model.kernels.integrate_stage,
                     dim=model.particle_count,
@@ -164,9 +174,9 @@ class ExplicitIntegrator(Integrator):
             q, qd = self.q_s, self.qd_s
             if stage < self.stage_count - 1:
                 with profile.part("contact"):
-                    filter_stage_contacts(model, state_in, q, qd, self.world_contact_beta)
+                    filter_stage_contacts(model, self.run, state_in, q, qd, self.world_contact_beta)
         with profile.part("contact"):
-            apply_contacts(model, state_in, state_out, dt, self.world_contact_beta)
+            apply_contacts(model, self.run, state_in, state_out, dt, self.world_contact_beta)
 
     def profile_notes(self) -> list[str]:
         if self.fused and self.fuse_contact:

@@ -288,8 +288,6 @@ class LatticeData:
             ``kernels.lattice.make_single_stage``'s stage, which reads no per-particle jelly, world or mass.
         particle_coord_k: third lattice coordinate k of each particle, shape [particle_count],
             int32; allocated only for the CPU row kernel, which reads it.
-        scratch: workspace of the row kernel, shape [particle_count], vec3; allocated with
-            ``particle_coord_k``.
         kernel: "rows" (CPU: one vectorised native loop per jelly) or "gather" (one thread per
             particle; the fused stages gather with straight-line native code; the CUDA default);
             chosen by device, overridable for tests and benchmarks. The plain force kernel of the
@@ -334,14 +332,14 @@ class LatticeData:
         self.pad = max((int(2 * ny * nz + nz + 2) for _, ny, nz in layout.shape), default=0)
         self.layout_vec3 = wp.types.vector(3, scalar)
         self.particle_coord_k = None
-        self.scratch = None
         self.kernel = None
         self.set_kernel(kernel or ("rows" if device.is_cpu else "gather"))
 
     def set_kernel(self, kernel: str):
         """Choose the force kernel: "rows" (native CPU loop) or "gather" (thread per particle).
 
-        Choose before making integrators: they size their buffers for the kernel in use.
+        Choose before making integrators: they size their buffers for the kernel in use (the row
+        kernel's scratch is each integrator's, ``forces.ForceWork``).
         """
         if kernel not in ("rows", "gather"):
             raise ValueError(f"lattice kernel must be 'rows' or 'gather' (got {kernel!r})")
@@ -354,7 +352,6 @@ class LatticeData:
                 self.layout.shape[:, 2], counts
             )
             self.particle_coord_k = wp.array(coord_k, dtype=wp.int32, device=self.device)
-            self.scratch = wp.empty(self._particle_count, dtype=self.layout_vec3, device=self.device)
         self.kernel = kernel
 
     @property
@@ -409,14 +406,18 @@ class LatticeData:
             self.jelly_kd,
             self.jelly_world,
         ]
-        arrays += [a for a in (self.particle_coord_k, self.scratch) if a is not None]
+        arrays += [a for a in (self.particle_coord_k,) if a is not None]
         return sum(a.capacity for a in arrays)
 
 
-def eval_lattice_forces(model, q: wp.array, qd: wp.array, f_out: wp.array):
-    """Spring forces of a lattice model into ``f_out`` (every element written), with its chosen kernel."""
+def eval_lattice_forces(model, q: wp.array, qd: wp.array, f_out: wp.array, scratch: wp.array | None):
+    """Spring forces of a lattice model into ``f_out`` (every element written), with its chosen kernel
+    (``scratch``: the row kernel's workspace, ``forces.ForceWork.lattice_scratch``)."""
     lat = model.lattice
     if lat.kernel == "rows":
+        if scratch is None:
+            raise ValueError("the lattice row kernel needs its scratch: choose the kernel (set_kernel) before making "
+                             "the integrator")
         wp.launch(
             model.kernels.eval_lattice_rows,
             dim=lat.jelly_count,
@@ -425,7 +426,7 @@ def eval_lattice_forces(model, q: wp.array, qd: wp.array, f_out: wp.array):
                 lat.particle_coord_k,
                 q,
                 qd,
-                lat.scratch,
+                scratch,
             ],
             outputs=[f_out],
             device=model.device,

@@ -183,23 +183,22 @@ class MaskedLattice:
         return [self.stage_index, self.stage_dims, self.jelly_types, self.jelly_rest, self.jelly_ks, self.jelly_kd]
 
 
-def attach_masked(builder, m, force_path="auto", kernel=None) -> None:
-    """Give model ``m`` the masked path when it applies (see the module docstring): ``m.masked``
-    (a :class:`MaskedLattice`, or None) and ``m.masked_reason``.
+def masked_lattice(builder, m, force_path="auto", kernel=None) -> tuple[MaskedLattice | None, str]:
+    """The masked path of model ``m`` (being finalized from ``builder``) when it applies (see the
+    module docstring): ``(MaskedLattice or None, why)``, ``Model.masked`` and ``Model.masked_reason``.
 
     ``kernel``: "gather" takes it on any device (tests, benchmarks); None: on CUDA only.
     """
-    m.masked = None
-    m.masked_reason = "the lattice path applies" if m.lattice is not None else "force_path=springs"
-    if m.lattice is not None or force_path != "auto":
-        return
-    tables, m.masked_reason = detect_masked(builder)
+    if m.lattice is not None:
+        return None, "the lattice path applies"
+    if force_path != "auto":
+        return None, "force_path=springs"
+    tables, reason = detect_masked(builder)
     if tables is None:
-        return
+        return None, reason
     if kernel != "gather" and not m.device.is_cuda:
-        m.masked_reason = "masked lattice: on CUDA only (the CPU keeps the spring list)"
-        return
-    m.masked = MaskedLattice(tables, m.device, m.scalar, np.float32 if m.precision == "float32" else np.float64)
+        return None, "masked lattice: on CUDA only (the CPU keeps the spring list)"
+    return MaskedLattice(tables, m.device, m.scalar, np.float32 if m.precision == "float32" else np.float64), reason
 
 
 def eval_masked_forces(model, q: wp.array, qd: wp.array, f_out: wp.array):

@@ -22,7 +22,8 @@ from .terrain import face_normals
 
 
 def attach_meshes(m, meshes: list, arr, first):
-    """Put the builder's ``meshes`` (dicts of :meth:`ModelBuilder.add_mesh`) on model ``m``, sorted by world.
+    """Put the builder's ``meshes`` (dicts of :meth:`ModelBuilder.add_mesh`) on model ``m``, sorted by
+    world (``ModelBuilder.finalize``, before the model is frozen; ``Model`` declares the fields).
 
     Model attributes:
         meshes: host list of dicts (``asset`` in world space, coefficients, world), sorted by world.
@@ -37,10 +38,9 @@ def attach_meshes(m, meshes: list, arr, first):
         mesh_points: every mesh's vertices in the model's precision [m], shape [sum of vertices], vec3.
         mesh_restitution, mesh_friction: coefficients [1], shape [mesh_count], scalar.
         mesh_motion: each mesh's index among the moving terrain (its rigid ``motion``; -1: none),
-            shape [mesh_count], int32 (``contact.TerrainMotion`` fills it in).
-        mesh_animated: 1 for a mesh that follows its asset's time samples, shape [mesh_count], int32.
-        mesh_point_velocity: each vertex's velocity over the last step [m/s] (animated meshes; one
-            zero entry without them), vec3.
+            shape [mesh_count], int32 (``contact.TerrainMotion`` fills it in); None without meshes.
+        mesh_animated: 1 for a mesh that follows its asset's time samples, shape [mesh_count], int32;
+            None without meshes.
         mesh_animation: the animated meshes' samples on the device (:class:`MeshAnimation`), or None.
     """
     meshes = sorted(meshes, key=lambda it: it["world"])
@@ -58,6 +58,8 @@ def attach_meshes(m, meshes: list, arr, first):
         m.mesh_points = wp.zeros(0, dtype=m.vec3, device=m.device)
         m.mesh_restitution = wp.zeros(0, dtype=m.scalar, device=m.device)
         m.mesh_friction = wp.zeros(0, dtype=m.scalar, device=m.device)
+        m.mesh_motion = None
+        m.mesh_animated = None
         m.mesh_animation = None
         return
     m.mesh_bvh = []
@@ -88,8 +90,6 @@ def attach_meshes(m, meshes: list, arr, first):
     m.mesh_motion = arr(np.full(len(meshes), -1), wp.int32, np.int32)
     m.mesh_animated = arr(np.array([int(it.get("samples") is not None) for it in meshes]), wp.int32, np.int32)
     animated = [k for k, it in enumerate(meshes) if it.get("samples") is not None]
-    m.mesh_point_velocity = wp.zeros(sum(p.shape[0] for p in points) if animated else 1, dtype=m.vec3,
-                                     device=m.device)
     starts = np.cumsum([0] + [p.shape[0] for p in points[:-1]])
     m.mesh_animation = MeshAnimation(m, animated, starts) if animated else None
 
@@ -101,8 +101,11 @@ class MeshAnimation:
     step's start ``deform_mesh`` puts its vertices where they are at the step's end (linear between
     samples) and its BVH is refit. ``wp.Mesh.refit`` is a host call (on the CPU Warp's graph does
     not record it; on CUDA it is not part of a capture either), so a model with an animated mesh
-    steps without a captured graph (``Stepper``). The clock counts the steps taken, as the pin
-    clock does; :meth:`reset` restarts it.
+    steps without a captured graph (``Stepper``). What moves (the vertices, the BVHs, the clock)
+    is each run's own (:class:`MeshPoses`).
+
+    ``meshes``: per animated mesh ``(mesh index, first sample time, sample count, first vertex in
+    mesh_points, samples [S, V] vec3)``; ``time``: every animated mesh's sample times [s], scalar.
     """
 
     def __init__(self, m, animated, starts):
@@ -114,33 +117,72 @@ class MeshAnimation:
                                 wp.array(np.asarray(samples, dtype=np_scalar), dtype=m.vec3, device=m.device)))
             times.extend(t)
         self.time = wp.array(np.asarray(times, dtype=np_scalar), dtype=scalar, device=m.device)
-        self.clock = wp.zeros(1, dtype=wp.int32, device=m.device)
+
+
+class MeshPoses:
+    """The terrain meshes where one run has them (part of :class:`~softsim_warp.core.model.RunState`).
+
+    With an animated mesh: the run's own copy of every vertex (``mesh_points``), its own BVH of
+    each animated mesh (``mesh_bvh``, ``mesh_id``; a static mesh's are the model's), each vertex's
+    velocity over the last step and the animation clock. Otherwise the model's arrays, which
+    nothing writes, and ``clock`` None.
+
+    Attributes:
+        mesh_bvh: host list of the ``wp.Mesh`` objects, one per mesh.
+        mesh_id: their ids, shape [mesh_count], uint64.
+        mesh_points: every mesh's vertices [m], shape [sum of vertices], vec3.
+        mesh_point_velocity: each vertex's velocity over the last step [m/s] (animated meshes; one
+            zero entry without them), vec3; None without meshes.
+        clock: steps taken by the animation, shape [1], int32, or None.
+    """
+
+    def __init__(self, model):
+        an = model.mesh_animation
+        self.clock = None
+        self.mesh_bvh, self.mesh_id, self.mesh_points = model.mesh_bvh, model.mesh_id, model.mesh_points
+        self.mesh_point_velocity = wp.zeros(1, dtype=model.vec3, device=model.device) if model.mesh_count else None
+        if an is None:
+            return
+        device = model.device
+        self.clock = wp.zeros(1, dtype=wp.int32, device=device)
+        self.mesh_points = wp.clone(model.mesh_points)
+        self.mesh_point_velocity = wp.zeros(model.mesh_points.shape[0], dtype=model.vec3, device=device)
+        self.mesh_bvh = list(model.mesh_bvh)
+        for k, _first, _count, _start, _samples in an.meshes:
+            bvh = model.mesh_bvh[k]
+            self.mesh_bvh[k] = wp.Mesh(points=wp.clone(bvh.points), indices=bvh.indices,
+                                       support_winding_number=bool(model.meshes[k]["asset"].closed))
+        self.mesh_id = wp.array(np.array([b.id for b in self.mesh_bvh], dtype=np.uint64), dtype=wp.uint64,
+                                device=device)
 
     def reset(self):
         """Restart the animation clock at t = 0."""
-        self.clock.zero_()
+        if self.clock is not None:
+            self.clock.zero_()
 
 
-def animate_meshes(model, dt):
-    """Put the animated meshes where their samples have them at the end of the step about to be
-    taken, refit their BVHs and advance their clock; nothing without animated meshes."""
-    an = getattr(model, "mesh_animation", None)
+def animate_meshes(model, run, dt):
+    """Put the animated meshes of ``run`` (a ``RunState``) where their samples have them at the end
+    of the step about to be taken, refit their BVHs and advance their clock; nothing without
+    animated meshes."""
+    an = model.mesh_animation
     if an is None:
         return
+    poses = run.meshes
     h = model.scalar(dt)
     for k, first, count, start, samples in an.meshes:
-        bvh = model.mesh_bvh[k]
+        bvh = poses.mesh_bvh[k]
         wp.launch(model.kernels.deform_mesh, dim=samples.shape[1],
-                  inputs=[an.clock, h, first, count, an.time, samples, start],
-                  outputs=[model.mesh_points, bvh.points, model.mesh_point_velocity], device=model.device)
+                  inputs=[poses.clock, h, first, count, an.time, samples, start],
+                  outputs=[poses.mesh_points, bvh.points, poses.mesh_point_velocity], device=model.device)
         bvh.refit()
-    wp.launch(model.kernels.advance_pin_clock, dim=1, inputs=[an.clock], device=model.device)
+    wp.launch(model.kernels.advance_pin_clock, dim=1, inputs=[poses.clock], device=model.device)
 
 
 def steps_on_host(model) -> bool:
     """Whether a step of ``model`` has host work (an animated mesh's refit), so no graph may
     capture it."""
-    return getattr(model, "mesh_animation", None) is not None
+    return model.mesh_animation is not None
 
 
 def sample_points(times, samples, t: float) -> np.ndarray:
@@ -160,49 +202,52 @@ def _np(m):
     return np.float32 if m.precision == "float32" else np.float64
 
 
-def moving_mesh_arrays(model) -> tuple:
+def moving_mesh_arrays(model, run) -> tuple:
     """What ``collide_moving_meshes`` takes after :func:`mesh_arrays`: each mesh's motion index and
-    animation flag, the vertices' velocities, and the rigid motions' arrays (``contact.TerrainMotion``;
-    a zero entry each when no terrain moves rigidly)."""
-    tm = getattr(model, "terrain_motion", None)
+    animation flag, the vertices' velocities, and the rigid motions' arrays (``contact.TerrainMotion``
+    and ``run``'s poses; a zero entry each when no terrain moves rigidly)."""
+    tm = model.terrain_motion
     if tm is None:
         z = wp.zeros(1, dtype=model.vec3, device=model.device)
         rigid = (z, z, z, z, z)
     else:
-        rigid = (tm.center, tm.center_now, tm.turn_now, tm.velocity_step, tm.spin)
-    return (model.mesh_motion, model.mesh_animated, model.mesh_point_velocity, *rigid)
+        poses = run.terrain
+        rigid = (tm.center, poses.center_now, poses.turn_now, poses.velocity_step, tm.spin)
+    return (model.mesh_motion, model.mesh_animated, run.meshes.mesh_point_velocity, *rigid)
 
 
 def mesh_moves(model) -> bool:
     """Whether a terrain mesh of ``model`` moves (a rigid motion or its asset's animation)."""
-    return any(it.get("motion") is not None or it.get("samples") is not None for it in getattr(model, "meshes", ()))
+    return any(it.get("motion") is not None or it.get("samples") is not None for it in model.meshes)
 
 
-def mesh_arrays(model) -> tuple:
-    """The meshes' arrays in the order ``collide_meshes`` takes them."""
+def mesh_arrays(model, run) -> tuple:
+    """The meshes' arrays in the order ``collide_meshes`` takes them (``run``'s current vertices and BVHs)."""
+    poses = run.meshes
     return (
         model.mesh_first,
-        model.mesh_id,
+        poses.mesh_id,
         model.mesh_closed,
         model.mesh_reach,
         model.mesh_tri_start,
         model.mesh_tris,
-        model.mesh_points,
+        poses.mesh_points,
         model.mesh_restitution,
         model.mesh_friction,
     )
 
 
-def mesh_touch_arrays(model) -> tuple:
+def mesh_touch_arrays(model, run) -> tuple:
     """The meshes' arrays that the implicit integrator's touch test takes (``constrain_contacts``)."""
+    poses = run.meshes
     return (
         model.mesh_first,
-        model.mesh_id,
+        poses.mesh_id,
         model.mesh_closed,
         model.mesh_reach,
         model.mesh_tri_start,
         model.mesh_tris,
-        model.mesh_points,
+        poses.mesh_points,
     )
 
 

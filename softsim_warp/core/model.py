@@ -15,14 +15,15 @@ import warp as wp
 from . import lattice, particle_contact
 from .errors import SceneError
 from ..kernels import get_kernels
-from .forces import attach, force_path_for_terms
+from .forces import ForceWork, force_path_for_terms, incident_springs_csr
 from .lattice_model import LatticeData, LatticeSprings, detect_lattice, recorded_lattice, spring_arrays
 from .pins import PinDrive, make_motion, path_position
-from .masked_lattice import attach_masked
+from .masked_lattice import masked_lattice
 from .mesh_assets import load_mesh, load_mesh_samples, mesh_options, transform_matrix
-from .mesh_terrain import attach_meshes, mesh_anchors, mesh_output, mesh_paths, sample_points
+from .mesh_terrain import MeshPoses, attach_meshes, mesh_anchors, mesh_output, mesh_paths, sample_points
+from .particle_contact import ParticleContact, ParticleContactState
 from .terrain import bowl_mesh, sphere_mesh
-from .contact import TerrainMotion, terrain_at
+from .contact import TerrainMotion, TerrainPoses, terrain_at
 from .voxelize import add_mesh_jelly
 
 SCALARS = {"float32": wp.float32, "float64": wp.float64}
@@ -85,7 +86,7 @@ class ModelBuilder:
         self.contact_epsilon = 0.01
         self.contact_velocity_epsilon = 0.01
         self.restitution_threshold_steps = 1.0
-        # Contact between jellies (core/particle_contact.attach): on/off, pair distance [m] (None:
+        # Contact between jellies (core/particle_contact.py, made by finalize): on/off, pair distance [m] (None:
         # from the lattice spacing), Coulomb friction and restitution between particles, Jacobi
         # iterations per step.
         self.jelly_contact = False
@@ -463,14 +464,24 @@ class ModelBuilder:
 
     # -- finalize -------------------------------------------------------------------------------
 
-    def finalize(self, device=None, precision="float32", force_path="auto", force_terms=()) -> Model:
-        """Copy everything to ``device`` as a :class:`Model` in ``precision`` ("float32" or "float64").
+    def finalize(self, device=None, precision="float32", force_path="auto", deterministic=False, masked_kernel=None,
+                 contact_hooks=(), force_terms=()) -> Model:
+        """Copy everything to ``device`` as a :class:`Model` in ``precision`` ("float32" or "float64"),
+        with every optional part made here (the lattice or masked tables, meshes, moving terrain,
+        pins, contact between jellies, the deterministic CSR), and freeze it.
 
-        ``force_path``: "auto" takes the lattice path (no spring arrays, see ``lattice_model``)
-        when every spring is a standard lattice spring, "lattice" requires it, "springs" keeps
-        the general spring list.
-        ``force_terms``: internal forces beyond the springs (``core/forces.ForceTerm``); only the
-        spring list evaluates them, so "auto" then takes it and "lattice" is refused.
+        Args:
+            force_path: "auto" takes the lattice path (no spring arrays, see ``lattice_model``)
+                when every spring is a standard lattice spring, "lattice" requires it, "springs"
+                keeps the general spring list.
+            deterministic: atomic-free force evaluation (``core/forces.py``): a model on the spring
+                list gets the incident-spring CSR (``spring_csr_offsets``, ``spring_csr_springs``).
+            masked_kernel: "gather" takes the masked-lattice path for mesh jellies on any device
+                (tests, benchmarks); None: on CUDA only (``core/masked_lattice.py``).
+            contact_hooks: callables run after terrain contact at every step's end
+                (``Model.contact_hooks``).
+            force_terms: internal forces beyond the springs (``core/forces.ForceTerm``); only the
+                spring list evaluates them, so "auto" then takes it and "lattice" is refused.
         """
         if force_path not in ("auto", "lattice", "springs"):
             raise ValueError(f"force_path must be auto, lattice or springs (got {force_path!r})")
@@ -540,11 +551,21 @@ class ModelBuilder:
         if self._lists is None:
             m._spring_blocks = list(self._spring_blocks)
         else:
+            m._spring_blocks = None
             m._set_spring_host(*(np.concatenate(values) if values else None for values in self._lists))
         if m.lattice is None:
             m._make_spring_arrays()
-        attach_masked(self, m, force_path)  # mesh jellies: the lattice stencil over present points
+        # Mesh jellies: the lattice stencil over present points.
+        m.masked, m.masked_reason = masked_lattice(self, m, force_path, masked_kernel)
         # --- end lattice fast path
+        # Deterministic forces: the lattice kernels use no atomics; the spring list gathers each
+        # particle's springs in a fixed order from a CSR list.
+        m.deterministic = bool(deterministic)
+        m.spring_csr_offsets = m.spring_csr_springs = None
+        if m.deterministic and m.lattice is None:
+            offsets, entries = incident_springs_csr(m.spring_indices_host, m.particle_count)
+            m.spring_csr_offsets = arr(offsets, wp.int32)
+            m.spring_csr_springs = arr(entries, wp.int32)
 
         m.gravity = vec3(*[scalar(g) for g in self.gravity])
         m.gravity_host = self.gravity.copy()
@@ -604,81 +625,330 @@ class ModelBuilder:
         m.sphere_restitution = arr(cols(spheres, "restitution", (ns,)), scalar, np_scalar)
         m.sphere_friction = arr(cols(spheres, "friction", (ns,)), scalar, np_scalar)
         # Contact between jellies and self-contact: nothing at all unless the scene has it.
-        particle_contact.attach(
-            m,
-            self.jelly_contact,
-            self.jelly_contact_thickness,
-            self.jelly_contact_friction,
-            self.jelly_contact_restitution,
-            self.jelly_contact_iterations,
-        )
+        m.particle_contact = None
+        if particle_contact.wanted(self.jelly_contact, m.jellies):
+            m.particle_contact = ParticleContact(
+                m,
+                self.jelly_contact,
+                self.jelly_contact_thickness,
+                self.jelly_contact_friction,
+                self.jelly_contact_restitution,
+                self.jelly_contact_iterations,
+            )
+        m.contact_hooks = tuple(contact_hooks)
         attach_meshes(m, self.meshes, arr, first)
-        m.terrain_motion = TerrainMotion.of(m, device, scalar, vec3)  # None when no terrain moves
+        # None when no terrain moves; else it gives each kind its index among the moving terrain.
+        m.terrain_motion = TerrainMotion.of(m, device, scalar, vec3)
+        if m.terrain_motion is None:
+            m.plane_motion = m.bowl_motion = m.sphere_motion = None
+        m._freeze()
         return m
 
 
 class Model:
     """Everything about a scene that does not change while it runs, on one device.
 
-    Attributes (device arrays unless marked host):
-        particle_q: initial positions [m], shape [particle_count], vec3.
-        particle_qd: initial velocities [m/s], shape [particle_count], vec3.
-        particle_mass: mass [kg], shape [particle_count], scalar.
-        particle_inv_mass: 1/mass [1/kg] (0 for a fixed particle), shape [particle_count], scalar.
-        particle_jelly: jelly index, shape [particle_count], int32.
-        pins: the driven pins' arrays (:class:`~softsim_warp.core.pins.PinDrive`), or None; held pins
-            need none (their particles have mass 0 and start at rest).
-        pinned_count: particles held or driven by pins.
-        particle_world: world (copy in a comparison) index, shape [particle_count], int32.
-        spring_indices: particle pair (a, b), shape [spring_count], vec2i.
-        spring_rest_length: rest length [m], shape [spring_count], scalar.
-        spring_stiffness: ks [N/m], shape [spring_count], scalar.
-        spring_damping: kd [N s/m], shape [spring_count], scalar.
-            On the lattice path the four spring arrays are made on first access only.
-        spring_indices_host, spring_type_host, spring_rest_host, spring_stiffness_host,
-            spring_damping_host: the same list on the host (float64), and each spring's type; for a
-            model of jellies recorded whole (``ModelBuilder.add_jelly``) made on first access only.
-        lattice: :class:`~softsim_warp.core.lattice_model.LatticeData` (per-jelly tables of the
-            lattice force path) or None when the general spring list is used.
-        lattice_reason: host string, why the lattice path does or does not apply.
-        gravity: acceleration [m/s^2], vec3 value.
-        plane_*: per plane point [m], unit normal, hole centre [m] and radius [m] (0 = none),
-            restitution and friction coefficient, shape [plane_count]; planes, bowls and spheres
-            are sorted by world.
-        plane_first, bowl_first, sphere_first: index of each world's first primitive of the kind,
-            shape [world_count + 1], int32; world w has first[w] .. first[w + 1] - 1 (the host
-            lists ``planes``, ``bowls``, ``spheres`` hold each primitive's world).
-        bowl_center: sphere centre of each bowl [m], shape [bowl_count], vec3.
-        bowl_radius: sphere radius [m], shape [bowl_count], scalar.
-        bowl_cut_height: the bowl exists where y < cut height [m] (1e30: whole sphere), shape [bowl_count], scalar.
-        bowl_restitution, bowl_friction: coefficients [1], shape [bowl_count], scalar.
-        sphere_center: centre of each solid sphere [m], shape [sphere_count], vec3.
-        sphere_radius: radius [m], shape [sphere_count], scalar.
-        sphere_restitution, sphere_friction: coefficients [1], shape [sphere_count], scalar.
-        bowls, spheres: host lists of dicts with the same values (float64).
-        terrain_motion: the moving planes, bowls, spheres and meshes (:class:`~softsim_warp.core.contact.TerrainMotion`),
-            or None when no terrain moves; with it, ``plane_motion``, ``bowl_motion``, ``sphere_motion``, ``mesh_motion``
-            (int32 per primitive: its index among the moving ones, -1 when it stays put), and the
-            geometry arrays above hold each moving primitive's pose at the end of the last step
-            begun (at t = 0 before the first); the host lists keep the geometry as given, with its
-            ``motion`` (None when it stays put).
-        contact_epsilon: the layer within which a surface is tested for a particle [m]; it touches
-            once its step brings it within kernels.contact.TOUCH_FRACTION of it, or through it.
-        contact_velocity_epsilon: approach speed below which a touching particle rests [m/s].
-        restitution_threshold_steps: an approach slower than this many steps of a particle's own
-            pressing impulse (h |f.n| / m) is a contact, not an impact [1]; see resolve_contact.
-        jellies: host list of :class:`JellyInfo`.
-        particle_contact: the :class:`~softsim_warp.core.particle_contact.ParticleContact` hook of a
-            model with contact between jellies or self-contact (absent otherwise); it is also in
-            ``contact_hooks``, the callables ``core/contact.apply_contacts`` runs after terrain.
-        deterministic: forces without atomics when True; the CSR arrays it needs are documented
-            in ``softsim_warp.core.forces.attach``.
+    Every field is declared below with its unit and shape (device arrays unless marked host) and is
+    present on every model: an optional part that a scene lacks (a lattice, meshes, pins, moving
+    terrain, contact between jellies, the deterministic force path's CSR) is None, never absent.
+    :meth:`ModelBuilder.finalize` makes the model and then freezes it: setting or deleting an
+    attribute afterwards raises ``AttributeError``. The arrays' contents are not guarded, but
+    nothing in the library writes them: what a run writes (the clocks of pins, moving terrain and
+    animated meshes, the current terrain poses, contact lists and impulses, force scratch) is a
+    :class:`RunState` that each integrator makes for itself (:meth:`run_state`), so any number of
+    integrators step one model independently.
+
+    Derived data may be made lazily, through the one cache that the freeze leaves writable
+    (``_derived``, filled by :meth:`derived`): the spring list on the lattice path (its host and
+    device arrays, made on first access by an implicit integrator, ``--springs`` or metrics) and
+    host summaries such as a batch's per-world speed-bound inputs. Nothing made there changes once made.
     """
+
+    # -- device and precision -------------------------------------------------------------------
+    device: wp.context.Device
+    """The Warp device every array lives on."""
+    precision: str
+    """"float32" or "float64"."""
+    scalar: type
+    """The Warp scalar type of the precision (``wp.float32`` or ``wp.float64``)."""
+    vec3: type
+    """The Warp 3-vector type of the precision."""
+    kernels: object
+    """The kernels built for the precision (``kernels.get_kernels``)."""
+    world_count: int
+    """Worlds (independent copies in a comparison or batch); particles of different worlds never interact."""
+    jellies: list
+    """Host list of :class:`JellyInfo`, one per jelly."""
+
+    # -- particles ------------------------------------------------------------------------------
+    particle_count: int
+    """Number of particles N."""
+    particle_q: wp.array
+    """Initial positions [m], shape [N], vec3."""
+    particle_qd: wp.array
+    """Initial velocities [m/s], shape [N], vec3."""
+    particle_mass: wp.array
+    """Mass [kg] (0 for a pinned particle), shape [N], scalar."""
+    particle_inv_mass: wp.array
+    """1/mass [1/kg] (0 for a pinned particle), shape [N], scalar."""
+    particle_jelly: wp.array
+    """Jelly index of each particle, shape [N], int32."""
+    particle_world: wp.array
+    """World index of each particle, shape [N], int32."""
+    particle_q_host: np.ndarray
+    """Host copy of the initial positions [m], shape [N, 3], float64."""
+    particle_mass_host: np.ndarray
+    """Host copy of the masses [kg], shape [N], float64."""
+    pins: object
+    """The driven pins' arrays (:class:`~softsim_warp.core.pins.PinDrive`), or None; held pins
+    need none (their particles have mass 0 and start at rest)."""
+    pinned_count: int
+    """Particles held or driven by pins."""
+    gravity: object
+    """Acceleration of gravity [m/s^2], vec3 value."""
+    gravity_host: np.ndarray
+    """The same on the host, shape [3], float64."""
+
+    # -- springs --------------------------------------------------------------------------------
+    spring_count: int
+    """Number of springs S (on the lattice path too, where no list is stored until read)."""
+    lattice: object
+    """Per-jelly tables of the lattice force path (:class:`~softsim_warp.core.lattice_model.LatticeData`),
+    or None when the model keeps a spring list."""
+    lattice_reason: str
+    """Host string: why the lattice path does or does not apply."""
+    masked: object
+    """Tables of the masked-lattice force path (mesh jellies, :class:`~softsim_warp.core.masked_lattice.MaskedLattice`),
+    or None."""
+    masked_reason: str
+    """Host string: why the masked path does or does not apply."""
+    force_terms: tuple
+    """Internal forces beyond the springs (:class:`~softsim_warp.core.forces.ForceTerm`), evaluated on
+    the spring list only; () for none."""
+    deterministic: bool
+    """Forces without atomics (``softsim run --deterministic``; ``finalize(deterministic=True)``)."""
+    spring_csr_offsets: wp.array
+    """Deterministic spring list: start of each particle's incident springs, shape [N + 1], int32;
+    None on the lattice paths or without ``deterministic``."""
+    spring_csr_springs: wp.array
+    """Deterministic spring list: signed incident spring ids (``forces.incident_springs_csr``),
+    shape [2 S], int32; None with ``spring_csr_offsets``."""
+
+    # -- contact parameters ---------------------------------------------------------------------
+    contact_epsilon: object
+    """The layer within which a surface is tested for a particle [m], scalar value; it touches once
+    its step brings it within kernels.contact.TOUCH_FRACTION of it, or through it."""
+    contact_velocity_epsilon: object
+    """Approach speed below which a touching particle rests [m/s], scalar value."""
+    restitution_threshold_steps: object
+    """An approach slower than this many steps of a particle's own pressing impulse (h |f.n| / m)
+    is a contact, not an impact [1], scalar value; see resolve_contact."""
+    particle_contact: object
+    """Tables of contact between jellies and self-contact
+    (:class:`~softsim_warp.core.particle_contact.ParticleContact`), or None without either; its
+    lists and impulses are each integrator's (:class:`RunState`)."""
+    contact_hooks: tuple
+    """Callables ``hook(model, state_in, state_out, h, world_contact_beta)`` run after terrain
+    contact at every step's end, after jelly contact (``finalize(contact_hooks=...)``; a custom
+    force, examples/example_pinned_and_custom_force.py); empty by default."""
+
+    # -- terrain: planes, bowls, spheres (sorted by world) -------------------------------------
+    planes: list
+    """Host list of the planes' dicts as given (``ModelBuilder.add_plane``, float64, with ``motion``), sorted by world."""
+    plane_count: int
+    """Number of planes."""
+    plane_first: wp.array
+    """Index of each world's first plane, shape [world_count + 1], int32 (world w: first[w] .. first[w + 1] - 1)."""
+    plane_point: wp.array
+    """A point of each plane at t = 0 [m], shape [plane_count], vec3."""
+    plane_normal: wp.array
+    """Unit normal of each plane at t = 0, shape [plane_count], vec3."""
+    plane_hole_center: wp.array
+    """Centre of each plane's hole at t = 0 [m], shape [plane_count], vec3."""
+    plane_hole_radius: wp.array
+    """Radius of each plane's hole [m] (0: none), shape [plane_count], scalar."""
+    plane_restitution: wp.array
+    """Restitution [1], shape [plane_count], scalar."""
+    plane_friction: wp.array
+    """Coulomb friction coefficient [1], shape [plane_count], scalar."""
+    bowls: list
+    """Host list of the bowls' dicts as given, sorted by world."""
+    bowl_count: int
+    """Number of bowls."""
+    bowl_first: wp.array
+    """Index of each world's first bowl, shape [world_count + 1], int32."""
+    bowl_center: wp.array
+    """Sphere centre of each bowl at t = 0 [m], shape [bowl_count], vec3."""
+    bowl_radius: wp.array
+    """Sphere radius [m], shape [bowl_count], scalar."""
+    bowl_cut_height: wp.array
+    """The bowl exists where y < cut height [m] (1e30: the whole sphere), shape [bowl_count], scalar."""
+    bowl_restitution: wp.array
+    """Restitution [1], shape [bowl_count], scalar."""
+    bowl_friction: wp.array
+    """Coulomb friction coefficient [1], shape [bowl_count], scalar."""
+    spheres: list
+    """Host list of the solid spheres' dicts as given, sorted by world."""
+    sphere_count: int
+    """Number of solid spheres."""
+    sphere_first: wp.array
+    """Index of each world's first sphere, shape [world_count + 1], int32."""
+    sphere_center: wp.array
+    """Centre of each sphere at t = 0 [m], shape [sphere_count], vec3."""
+    sphere_radius: wp.array
+    """Radius [m], shape [sphere_count], scalar."""
+    sphere_restitution: wp.array
+    """Restitution [1], shape [sphere_count], scalar."""
+    sphere_friction: wp.array
+    """Coulomb friction coefficient [1], shape [sphere_count], scalar."""
+
+    # -- terrain: triangle meshes (core/mesh_terrain.py) ----------------------------------------
+    meshes: list
+    """Host list of the meshes' dicts (``asset`` in world space, coefficients, world, ``motion``,
+    ``samples``), sorted by world."""
+    mesh_count: int
+    """Number of terrain meshes M."""
+    mesh_first: wp.array
+    """Index of each world's first mesh, shape [world_count + 1], int32."""
+    mesh_bvh: list
+    """Host list of the ``wp.Mesh`` objects at t = 0 (kept alive for their ids)."""
+    mesh_id: wp.array
+    """``wp.Mesh`` ids, shape [M], uint64."""
+    mesh_closed: wp.array
+    """1 for a closed mesh (inside by winding number), 0 for an open sheet, shape [M], int32."""
+    mesh_reach: wp.array
+    """How far behind its surface a mesh still pushes particles out [m], shape [M], scalar."""
+    mesh_tri_start: wp.array
+    """Each mesh's first triangle in ``mesh_tris``, shape [M], int32."""
+    mesh_tris: wp.array
+    """Vertex indices into ``mesh_points`` of every triangle, shape [sum of triangles], vec3i."""
+    mesh_points: wp.array
+    """Every mesh's vertices at t = 0 [m], shape [sum of vertices], vec3."""
+    mesh_restitution: wp.array
+    """Restitution [1], shape [M], scalar."""
+    mesh_friction: wp.array
+    """Coulomb friction coefficient [1], shape [M], scalar."""
+    mesh_animated: wp.array
+    """1 for a mesh that follows its asset's time samples, shape [M], int32; None without meshes."""
+    mesh_animation: object
+    """The animated meshes' time samples (:class:`~softsim_warp.core.mesh_terrain.MeshAnimation`), or None."""
+
+    # -- moving terrain (core/contact.py) -------------------------------------------------------
+    terrain_motion: object
+    """The motions of the moving planes, bowls, spheres and meshes
+    (:class:`~softsim_warp.core.contact.TerrainMotion`), or None when no terrain moves."""
+    plane_motion: wp.array
+    """Each plane's index among the moving terrain (-1: it stays put), shape [plane_count], int32;
+    None without moving terrain (``bowl_motion``, ``sphere_motion`` alike)."""
+    bowl_motion: wp.array
+    """Each bowl's index among the moving terrain (-1: static), shape [bowl_count], int32, or None."""
+    sphere_motion: wp.array
+    """Each sphere's index among the moving terrain (-1: static), shape [sphere_count], int32, or None."""
+    mesh_motion: wp.array
+    """Each mesh's index among the moving terrain (-1: static), shape [M], int32; None without meshes."""
+
+    def __init__(self):
+        object.__setattr__(self, "_frozen", False)
+        # The lazily made spring list (see the class docstring); the freeze leaves it writable.
+        object.__setattr__(self, "_derived", {})
+
+    @classmethod
+    def fields(cls) -> tuple:
+        """The names of the declared fields, in declaration order."""
+        return tuple(name for name in cls.__annotations__ if not name.startswith("_"))
+
+    def _freeze(self):
+        """Check that every declared field is set (None for an absent part) and forbid changes."""
+        missing = [name for name in self.fields() if name not in self.__dict__]
+        if missing:
+            raise RuntimeError(f"Model fields not set by finalize: {', '.join(missing)}")
+        undeclared = sorted(set(self.__dict__) - set(self.fields()) - {"_frozen", "_derived", "_spring_blocks"})
+        if undeclared:
+            raise RuntimeError(f"Model attributes not declared: {', '.join(undeclared)}")
+        object.__setattr__(self, "_frozen", True)
+
+    def __setattr__(self, name, value):
+        if self._frozen:
+            raise AttributeError(
+                f"a finalized Model is frozen: cannot set {name!r} (give ModelBuilder.finalize what the model needs; "
+                "what a run changes belongs to the integrator's RunState)")
+        object.__setattr__(self, name, value)
+
+    def __delattr__(self, name):
+        if self._frozen:
+            raise AttributeError(f"a finalized Model is frozen: cannot delete {name!r}")
+        object.__delattr__(self, name)
+
+    def derived(self, key: str, make):
+        """Data derived from the model, made by ``make()`` on first use and kept (the freeze allows
+        this cache): what is kept must be a function of the model alone, never run state."""
+        if key not in self._derived:
+            self._derived[key] = make()
+        return self._derived[key]
+
+    def has_derived(self, key: str) -> bool:
+        """Whether the derived data ``key`` (a lazy spring array's name, or a :meth:`derived` key) has been made."""
+        return key in self._derived
+
+    # -- the spring list, lazy on the lattice path ----------------------------------------------
+
+    def _set_spring_host(self, pairs, rest, ks, kd, types):
+        """The host spring list (None: empty)."""
+        d = self._derived
+        d["spring_indices_host"] = pairs if pairs is not None else np.zeros((0, 2), dtype=np.int32)
+        d["spring_rest_host"] = rest if rest is not None else np.zeros(0)
+        d["spring_stiffness_host"] = ks if ks is not None else np.zeros(0)
+        d["spring_damping_host"] = kd if kd is not None else np.zeros(0)
+        d["spring_type_host"] = types if types is not None else np.zeros(0, dtype=np.int32)
+
+    def _spring_host(self, name):
+        if name not in self._derived:
+            self._set_spring_host(*spring_arrays(self.__dict__["_spring_blocks"]))
+        return self._derived[name]
+
+    def _make_spring_arrays(self):
+        """Copy the spring list to the device (at finalize, or lazily on the lattice path)."""
+        np_scalar = NUMPY_SCALARS[self.precision]
+        d = self._derived
+        d["spring_indices"] = wp.array(np.asarray(self.spring_indices_host, np.int32), dtype=wp.vec2i,
+                                       device=self.device)
+        for name, host in (
+            ("spring_rest_length", self.spring_rest_host),
+            ("spring_stiffness", self.spring_stiffness_host),
+            ("spring_damping", self.spring_damping_host),
+        ):
+            d[name] = wp.array(np.asarray(host, np_scalar), dtype=self.scalar, device=self.device)
+
+    def _spring_device(self, name):
+        if name not in self._derived:
+            self._make_spring_arrays()
+        return self._derived[name]
+
+    spring_indices_host = property(lambda self: self._spring_host("spring_indices_host"),
+                                   doc="Particle pair (a, b) of each spring, host, shape [S, 2], int32.")
+    spring_rest_host = property(lambda self: self._spring_host("spring_rest_host"),
+                                doc="Rest length of each spring [m], host, shape [S], float64.")
+    spring_stiffness_host = property(lambda self: self._spring_host("spring_stiffness_host"),
+                                     doc="ks of each spring [N/m], host, shape [S], float64.")
+    spring_damping_host = property(lambda self: self._spring_host("spring_damping_host"),
+                                   doc="kd of each spring [N s/m], host, shape [S], float64.")
+    spring_type_host = property(lambda self: self._spring_host("spring_type_host"),
+                                doc="Type of each spring (lattice.STRUCTURAL, SHEAR, BENDING), host, shape [S], int32.")
+    spring_indices = property(lambda self: self._spring_device("spring_indices"),
+                              doc="Particle pair (a, b) of each spring, shape [S], vec2i.")
+    spring_rest_length = property(lambda self: self._spring_device("spring_rest_length"),
+                                  doc="Rest length [m], shape [S], scalar.")
+    spring_stiffness = property(lambda self: self._spring_device("spring_stiffness"),
+                                doc="ks [N/m], shape [S], scalar.")
+    spring_damping = property(lambda self: self._spring_device("spring_damping"),
+                              doc="kd [N s/m], shape [S], scalar.")
+
+    # -- terrain on the host (output, metrics) --------------------------------------------------
 
     @property
     def terrain_anchor_points(self) -> list:
         """Host points spanning the bowls and spheres [m] (for the explosion speed bound)."""
-        return terrain_anchors(self.bowls, self.spheres) + mesh_anchors(getattr(self, "meshes", []))
+        return terrain_anchors(self.bowls, self.spheres) + mesh_anchors(self.meshes)
 
     def terrain_meshes(self, roots=None) -> list:
         """Static meshes of the bowls (their cap below the cut) and spheres, for the USD stage.
@@ -698,12 +968,12 @@ class Model:
             else:
                 mesh = sphere_mesh(it["center"], it["radius"])
             out.append((path, *mesh))
-        return out + mesh_output(getattr(self, "meshes", []), roots)
+        return out + mesh_output(self.meshes, roots)
 
     def terrain_motions(self, roots=None) -> list:
         """``(prim_path, motion)`` of each moving bowl, sphere and mesh among :meth:`terrain_meshes`
         (their meshes are written as given; the motion's rigid map carries them)."""
-        meshes = getattr(self, "meshes", [])
+        meshes = self.meshes
         return [(path, it["motion"]) for path, _kind, it in self._round_terrain(roots) if it.get("motion") is not None] + [
             (path, it["motion"]) for path, it in zip(mesh_paths(meshes, roots or {}), meshes)
             if it.get("motion") is not None]
@@ -711,7 +981,7 @@ class Model:
     def terrain_animations(self, roots=None) -> list:
         """``(prim_path, times [S] s, points [S, V, 3] m)`` of each animated mesh among
         :meth:`terrain_meshes` (its points in its own frame; a rigid motion carries them too)."""
-        meshes = getattr(self, "meshes", [])
+        meshes = self.meshes
         return [(path, *it["samples"]) for path, it in zip(mesh_paths(meshes, roots or {}), meshes)
                 if it.get("samples") is not None]
 
@@ -723,50 +993,7 @@ class Model:
                 i = index[it["world"]] = index.get(it["world"], -1) + 1
                 yield f"{roots.get(it['world'], '/World')}/{kind}_{i}", kind, it
 
-    deterministic = False
-    # Internal forces beyond the springs (core/forces.ForceTerm), evaluated on the spring list only.
-    force_terms = ()
-
-    _SPRING_ARRAYS = ("spring_indices", "spring_rest_length", "spring_stiffness", "spring_damping")
-    _SPRING_HOST = (
-        "spring_indices_host",
-        "spring_rest_host",
-        "spring_stiffness_host",
-        "spring_damping_host",
-        "spring_type_host",
-    )
-
-    def _set_spring_host(self, pairs, rest, ks, kd, types):
-        """The host spring list (None: empty)."""
-        self.spring_indices_host = pairs if pairs is not None else np.zeros((0, 2), dtype=np.int32)
-        self.spring_rest_host = rest if rest is not None else np.zeros(0)
-        self.spring_stiffness_host = ks if ks is not None else np.zeros(0)
-        self.spring_damping_host = kd if kd is not None else np.zeros(0)
-        self.spring_type_host = types if types is not None else np.zeros(0, dtype=np.int32)
-
-    def _make_spring_arrays(self):
-        """Copy the spring list to the device (at finalize, or lazily on the lattice path)."""
-        np_scalar = NUMPY_SCALARS[self.precision]
-        self.spring_indices = wp.array(
-            np.asarray(self.spring_indices_host, np.int32), dtype=wp.vec2i, device=self.device
-        )
-        for name, host in (
-            ("spring_rest_length", self.spring_rest_host),
-            ("spring_stiffness", self.spring_stiffness_host),
-            ("spring_damping", self.spring_damping_host),
-        ):
-            setattr(self, name, wp.array(np.asarray(host, np_scalar), dtype=self.scalar, device=self.device))
-
-    def __getattr__(self, name):
-        # Only called for missing attributes: the spring arrays a lattice model has not made yet,
-        # and the host spring list of a model built from recorded lattices (spring_arrays).
-        if name in Model._SPRING_HOST and "_spring_blocks" in self.__dict__:
-            self._set_spring_host(*spring_arrays(self.__dict__.pop("_spring_blocks")))
-            return self.__dict__[name]
-        if name in Model._SPRING_ARRAYS and ("spring_indices_host" in self.__dict__ or "_spring_blocks" in self.__dict__):
-            self._make_spring_arrays()
-            return self.__dict__[name]
-        raise AttributeError(name)
+    # -- states and run state -------------------------------------------------------------------
 
     def particle_array(self, values: wp.array | None = None) -> wp.array:
         """A per-particle vec3 array (zeros, or a copy of ``values``) for states and stage buffers.
@@ -791,6 +1018,10 @@ class Model:
         s.particle_q = self.particle_array(self.particle_q)
         s.particle_qd = self.particle_array(self.particle_qd)
         return s
+
+    def run_state(self) -> RunState:
+        """A new :class:`RunState` at t = 0 for one integrator of this model."""
+        return RunState(self)
 
 
 def _terrain_motion(motion, reference):
@@ -831,20 +1062,73 @@ class State:
         wp.copy(self.particle_qd, other.particle_qd)
 
 
+class RunState:
+    """What a run writes besides the particles' positions and velocities, for one integrator.
+
+    ``Integrator.__init__`` makes one (``model.run_state()``) and owns it, so two integrators of one
+    model (two :class:`~softsim_warp.core.stepper.Stepper`) never share a clock, a terrain pose or a
+    contact impulse, and the :class:`Model` stays as ``finalize`` made it. The step keeps its
+    signature ``integrator.step(state_in, state_out, dt)`` instead of taking this object as an
+    argument: a captured graph binds the buffers it was captured with, so a run state passed per
+    call could not be swapped under a graph anyway, and the integrator already owns its other
+    scratch (stage buffers, the implicit solver's vectors), as Newton's solvers own theirs.
+
+    Attributes:
+        pin_clock: steps taken by the driven pins (``t = clock dt``), shape [1], int32; None
+            without driven pins.
+        terrain: the terrain's current poses (:class:`~softsim_warp.core.contact.TerrainPoses`):
+            the moving terrain's own geometry arrays and clock, or the model's arrays when nothing moves.
+        meshes: the terrain meshes' current vertices and BVHs
+            (:class:`~softsim_warp.core.mesh_terrain.MeshPoses`): an animated mesh's own, the
+            model's otherwise.
+        particle_contact: the candidate lists and impulses of contact between jellies
+            (:class:`~softsim_warp.core.particle_contact.ParticleContactState`), or None.
+        forces: the force evaluation's scratch (:class:`~softsim_warp.core.forces.ForceWork`).
+        contact_hooks: the hooks a step runs after terrain contact: ``particle_contact`` (when
+            present), then ``model.contact_hooks``. A list the owner may change (a benchmark
+            turns jelly contact off); a graph already captured keeps the hooks it recorded.
+    """
+
+    def __init__(self, model: Model):
+        self.pin_clock = wp.zeros(1, dtype=wp.int32, device=model.device) if model.pins is not None else None
+        self.terrain = TerrainPoses(model)
+        self.meshes = MeshPoses(model)
+        self.particle_contact = (ParticleContactState(model.particle_contact, model)
+                                 if model.particle_contact is not None else None)
+        self.forces = ForceWork(model)
+        self.contact_hooks = ([self.particle_contact] if self.particle_contact is not None else []) + list(
+            model.contact_hooks)
+
+    def reset(self):
+        """Back to t = 0: the clocks of pins, moving terrain and animated meshes restart, and no
+        contact impulse of an earlier step warm-starts the next one."""
+        if self.pin_clock is not None:
+            self.pin_clock.zero_()
+        self.terrain.reset()
+        self.meshes.reset()
+        self.forget_contact_history()
+
+    def forget_contact_history(self):
+        """Make the next step start from no history of the contact hooks (the warm start of jelly
+        contact): for a run restarted from its initial state, so that it is bitwise the run
+        without the steps before."""
+        for hook in self.contact_hooks:
+            forget = getattr(hook, "forget_history", None)
+            if forget is not None:
+                forget()
+
+
 def build_model(scene, device=None, precision=None, worlds=None, deterministic=False, force_path="auto") -> Model:
     """Build a :class:`Model` from a validated :class:`~softsim_warp.io.scene.Scene`.
 
-    ``deterministic`` selects atomic-free force evaluation (``softsim_warp.core.forces.attach``);
+    ``deterministic`` selects atomic-free force evaluation (see ``ModelBuilder.finalize``);
     ``force_path``: see ``ModelBuilder.finalize``.
     """
     builder = ModelBuilder(scene.sim["gravity"])
     builder.device = device
     populate(builder, scene.data)
-    model = builder.finalize(device, precision or scene.sim["precision"], force_path=force_path)
-    if deterministic:
-
-        attach(model)
-    return model
+    return builder.finalize(device, precision or scene.sim["precision"], force_path=force_path,
+                            deterministic=deterministic)
 
 
 def populate(builder: ModelBuilder, data: dict, world=0):

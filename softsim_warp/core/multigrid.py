@@ -64,9 +64,9 @@ def auto_min_particles(device) -> int:
 
 def multigrid_support(model) -> tuple[bool, str]:
     """Whether the multigrid preconditioner applies to ``model``, and why not when it does not."""
-    lat = getattr(model, "lattice", None)
+    lat = model.lattice
     if lat is None:
-        return False, f"not a lattice model ({getattr(model, 'lattice_reason', 'spring list')})"
+        return False, f"not a lattice model ({model.lattice_reason})"
     if lat.jelly_count != 1:
         return False, f"{lat.jelly_count} jellies (multigrid handles one jelly)"
     shape = lat.layout.shape[0]

@@ -1,9 +1,11 @@
 """Contact between jellies and self-contact: which particles take part, the candidate lists, the launches.
 
-:func:`attach` gives a model a :class:`ParticleContact` hook (``model.contact_hooks``) when its scene
-asks for contact between jellies or for a jelly's self-contact; a model without either gets nothing
-(no array, no launch). The hook runs after every integrator's step, after terrain contact
-(``core/contact.apply_contacts``), and launches (kernels/particle_contact/ explains each):
+``ModelBuilder.finalize`` gives a model a :class:`ParticleContact` (``model.particle_contact``, its
+fixed tables) when its scene asks for contact between jellies or for a jelly's self-contact; a model
+without either gets nothing (no array, no launch). Each integrator's ``RunState`` holds a
+:class:`ParticleContactState` (the candidate lists, contacts and impulses, which a step writes),
+the hook that runs after every step, after terrain contact (``core/contact.apply_contacts``), and
+launches (kernels/particle_contact/ explains each):
 
 1. ``prepare_contact_particles``: the positions of the surface particles of the jellies that take
    part, each with its contact radius, copied to a compact array (a lattice's interior particles
@@ -164,7 +166,9 @@ def jelly_radius(info, thickness=None) -> float:
 
 
 class ParticleContact:
-    """The contact hook of a model: compact arrays of the contact particles and their candidate lists.
+    """The fixed tables of contact between jellies of a model (``Model.particle_contact``): the
+    contact particles, their radii, neighbours and coefficients; what a step writes is each run's
+    :class:`ParticleContactState`.
 
     Attributes:
         count: contact particles (surface particles of the jellies taking part).
@@ -182,21 +186,9 @@ class ParticleContact:
         skin: the candidate lists' skin [m]: a list holds the pairs within CANDIDATE_REACH d + skin
             at its build, and it is rebuilt once a particle has moved ``rebuild_distance`` (just
             under skin / 2) since.
-        candidates, candidate_count: each particle's candidates, shape [MAX_CANDIDATES, count]
-            (slot-major, ascending), and their number (MAX_CANDIDATES + 1: more than the list
-            holds, the grid walk takes over), int32.
-        builds: how many times the lists were built, shape [1], int32 (:meth:`builds_done`).
-        contact_counts, contact_lists, contact_impulse: contacts per particle, shape [2 count], their
-            partners (ascending) and the pairs' impulses on the particle, shape [2 MAX_CONTACTS,
-            count], in two halves: the last step's (``phase``, flipped at the start of each step) and
-            the one before, which the warm start reads. :attr:`contacts` and :attr:`contact_list`
-            are the last step's halves.
+        cw: each contact particle's inverse mass [1/kg], shape [count], scalar.
+        iterations: Jacobi iterations of the velocity response per step.
     """
-
-    # Not part of the implicit integrator's contact solve, which prescribes each touched particle's
-    # own normal velocity (right for fixed terrain, but it would stop both jellies of a pair and
-    # lose their momentum); the pair projection after the step conserves it.
-    in_contact_solve = False
 
     def __init__(
         self, model, between_jellies: bool, thickness, friction: float, restitution: float, iterations=None
@@ -271,7 +263,6 @@ class ParticleContact:
         def arr(values, dtype, np_dtype):
             return wp.array(np.asarray(values, dtype=np_dtype), dtype=dtype, device=device)
 
-        n = self.count
         self.contact_index = arr(np_index, wp.int32, np.int32)
         self.contact_jelly = arr(cat(jelly, (0,)), wp.int32, np.int32)
         self.contact_world = arr(cat(world, (0,)), wp.int32, np.int32)
@@ -281,18 +272,56 @@ class ParticleContact:
         # Slot-major, [9, count]: a warp reads each slot of its particles in one coalesced load.
         neighbors_host = cat(neighbors, (0, 9)).astype(np.int32).reshape(-1, 9)
         self.contact_axis_neighbors = wp.array(np.ascontiguousarray(neighbors_host.T), dtype=wp.int32, device=device)
+        self.jelly_self_contact = arr(np.asarray(self_flags, dtype=np.int32).reshape(-1), wp.int32, np.int32)
+        # The inverse masses (fixed when the model is built).
+        self.cw = arr(model.particle_inv_mass.numpy()[np_index], scalar, np_scalar)
+        self.iterations = int(iterations)
+        self.bucket_bits = bits
+        self.np_scalar = np_scalar
+
+
+class ParticleContactState:
+    """The candidate lists, contacts and impulses of contact between jellies for one run (part of
+    ``RunState``), and the hook that a step runs after terrain contact.
+
+    Attributes other than the ones below are read from the model's fixed tables
+    (:class:`ParticleContact`: ``count``, ``contact_index``, ...), so a test or benchmark reads one
+    object.
+
+    Attributes:
+        tables: the model's :class:`ParticleContact`.
+        normal: boundary-face normals of the contact particles, slot-major, shape [3, count], vec3.
+        cq: compact positions after the step with the contact radius, shape [count], vec4.
+        candidates, candidate_count: each particle's candidates, shape [MAX_CANDIDATES, count]
+            (slot-major, ascending), and their number (MAX_CANDIDATES + 1: more than the list
+            holds, the grid walk takes over), int32.
+        x_build, rebuild: the lists' build positions [m] and the flag that asks for a rebuild.
+        builds: how many times the lists were built, shape [1], int32 (:meth:`builds_done`).
+        contact_counts, contact_lists, contact_impulse: contacts per particle, shape [2 count], their
+            partners (ascending) and the pairs' impulses on the particle, shape [2 MAX_CONTACTS,
+            count], in two halves: the last step's (``phase``, flipped at the start of each step) and
+            the one before, which the warm start reads. :attr:`contacts` and :attr:`contact_list`
+            are the last step's halves.
+    """
+
+    # Not part of the implicit integrator's contact solve, which prescribes each touched particle's
+    # own normal velocity (right for fixed terrain, but it would stop both jellies of a pair and
+    # lose their momentum); the pair projection after the step conserves it.
+    in_contact_solve = False
+
+    def __init__(self, tables: ParticleContact, model):
+        self.tables = tables
+        device, scalar, vec3 = model.device, model.scalar, model.vec3
+        n, bits, np_scalar = tables.count, tables.bucket_bits, tables.np_scalar
         # Boundary-face normals, slot-major: a particle's faces in its first slots
         # (prepare_contact_particles writes only those), the slots after them zero from here.
         self.normal = wp.zeros((3, n), dtype=vec3, device=device)
-        self.jelly_self_contact = arr(np.asarray(self_flags, dtype=np.int32).reshape(-1), wp.int32, np.int32)
         # A compact copy of the positions after the step, each with its particle's contact radius
         # in a vec4 (a partner's position and radius in one aligned load; the passes read it, never
-        # what they write), and the inverse masses (fixed when the model is built). The velocities
-        # after and before the step are read where they are (state_out, state_in, through
-        # contact_index): only for the particles in contact.
+        # what they write). The velocities after and before the step are read where they are
+        # (state_out, state_in, through contact_index): only for the particles in contact.
         vec4 = wp.types.vector(4, scalar)
         self.cq = wp.zeros(n, dtype=vec4, device=device)
-        self.cw = arr(model.particle_inv_mass.numpy()[np_index], scalar, np_scalar)
         # Candidate lists (slot-major), their build positions, the flag that asks for a rebuild
         # (raised: the first step builds) and the count of builds.
         self.x_build = wp.zeros(n, dtype=vec3, device=device)
@@ -320,13 +349,18 @@ class ParticleContact:
         self.contact_normal = wp.zeros((MAX_CONTACTS, n), dtype=vec3, device=device)
         self.contact_gap = wp.zeros((MAX_CONTACTS, n), dtype=scalar, device=device)
         # The approach speed only with a restitution, the one reader (store_contact writes it only then).
-        u0_shape = (MAX_CONTACTS, n) if float(self.restitution) != 0.0 else (1, 1)
+        u0_shape = (MAX_CONTACTS, n) if float(tables.restitution) != 0.0 else (1, 1)
         self.contact_u0 = wp.zeros(u0_shape, dtype=scalar, device=device)
-        self.iterations = int(iterations)
         self.rec_iter = [wp.zeros(2 * n, dtype=vec4, device=device) for _ in range(min(self.iterations - 1, 2))]
         for rec in [self.cq, self.rec_warm, *self.rec_iter]:
             if rec.ptr % (4 * np.dtype(np_scalar).itemsize) != 0:
                 raise RuntimeError("jelly contact: a vec4 array is not aligned to its entries")
+
+    def __getattr__(self, name):
+        # Only called for names this object lacks: the model's fixed tables.
+        if name == "tables":
+            raise AttributeError(name)
+        return getattr(self.tables, name)
 
     def forget_history(self):
         """No pair starts the next step warm: the contact counts of the step before are zero."""
@@ -499,28 +533,3 @@ def check_capacity(count: int, particles: int):
             f"in a model of at most {MAX_PARTICLES:,} particles; turn them off or use coarser jellies",
             [count, particles],
         )
-
-
-def attach(
-    model,
-    between_jellies: bool,
-    thickness=None,
-    friction=DEFAULT_FRICTION,
-    restitution=DEFAULT_RESTITUTION,
-    iterations=DEFAULT_ITERATIONS,
-):
-    """Give ``model`` the particle-contact hook when it needs one; returns the hook or None.
-
-    Args:
-        between_jellies: particles of different jellies (of one world) touch.
-        thickness: pair distance [m] for every pair; None derives it from each jelly's lattice
-            spacing (:func:`jelly_radius`).
-        friction, restitution: Coulomb coefficient and restitution between particles.
-        iterations: Jacobi iterations of the velocity response per step.
-    """
-    if not wanted(between_jellies, model.jellies):
-        return None
-    hook = ParticleContact(model, between_jellies, thickness, friction, restitution, iterations)
-    model.particle_contact = hook
-    model.contact_hooks = list(getattr(model, "contact_hooks", ())) + [hook]
-    return hook

@@ -6,8 +6,9 @@ leaves it alone, yet its springs pull on the rest of the jelly with its position
 of ``kernels/pins.py`` (a velocity, a spin about a centre, keyframed offsets). Every integrator
 calls :func:`drive` at the start of its step; it launches nothing for a model without driven pins.
 
-The pin clock counts the steps taken (``t = steps * dt``); :meth:`PinDrive.reset` restarts it, and
-``Stepper.warm_up`` resets it after its warm-up step.
+The pin clock counts the steps taken (``t = steps * dt``); it is each integrator's own
+(``RunState.pin_clock``), and ``Stepper.warm_up`` restarts it after its warm-up step
+(``RunState.reset``).
 """
 
 from __future__ import annotations
@@ -43,7 +44,8 @@ def select_particles(shape, points, face=None, box=None, indices=None) -> np.nda
 
 
 class PinDrive:
-    """Device arrays of the driven pins of a model (``Model.pins``)."""
+    """Device arrays of the driven pins of a model (``Model.pins``): which particles, their start
+    positions and each pin's path; the clock is a run's (``RunState.pin_clock``)."""
 
     def __init__(self, pins: list, q0: np.ndarray, device, scalar, vec3):
         particles, pin_of, start = [], [], []
@@ -73,17 +75,12 @@ class PinDrive:
         self.smooth = arr([int(p["interpolation"] == "smooth") for p in pins], wp.int32, np.int32)
         self.key_time = arr(key_t or [0.0], scalar, np_scalar)
         self.key_value = arr(np.reshape(key_v or [[0.0, 0.0, 0.0]], (-1, 3)), vec3, np_scalar)
-        self.clock = wp.zeros(1, dtype=wp.int32, device=device)
-
-    def reset(self):
-        """Restart the pin clock at t = 0."""
-        self.clock.zero_()
 
 
-def drive(model, state, dt):
+def drive(model, run, state, dt):
     """Put the driven pins of ``model`` on their paths at the step's start in ``state`` and give them
-    the velocity that lands them on the path at its end; then advance the pin clock. A no-op (no
-    launch) without driven pins."""
+    the velocity that lands them on the path at its end; then advance the pin clock of ``run`` (the
+    integrator's ``RunState``). A no-op (no launch) without driven pins."""
     pins = model.pins
     if pins is None:
         return
@@ -91,12 +88,12 @@ def drive(model, state, dt):
     wp.launch(
         model.kernels.drive_pins,
         dim=pins.count,
-        inputs=[pins.clock, h, pins.particle, pins.pin, pins.start, pins.velocity, pins.spin, pins.center,
+        inputs=[run.pin_clock, h, pins.particle, pins.pin, pins.start, pins.velocity, pins.spin, pins.center,
                 pins.key_first, pins.key_count, pins.smooth, pins.key_time, pins.key_value],
         outputs=[state.particle_q, state.particle_qd],
         device=model.device,
     )
-    wp.launch(model.kernels.advance_pin_clock, dim=1, inputs=[pins.clock], device=model.device)
+    wp.launch(model.kernels.advance_pin_clock, dim=1, inputs=[run.pin_clock], device=model.device)
 
 
 def make_motion(velocity=(0.0, 0.0, 0.0), spin=(0.0, 0.0, 0.0), center=None, key_times=(), key_offsets=(),

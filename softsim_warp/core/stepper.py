@@ -19,7 +19,6 @@ import time
 
 import warp as wp
 
-from .contact import forget_contact_history
 from .implicit import ImplicitIntegrator
 from .integrators import ExplicitIntegrator, Integrator
 from .methods import method
@@ -74,9 +73,13 @@ class Stepper:
     read (``state.particle_q.numpy()``) or written; a captured graph reads whichever of the two
     state buffers is current, so writes to ``state`` take effect on the next call (jelly contact keeps
     its pairs' last impulses to start the next step from; after writing a new start into ``state``,
-    :func:`~softsim_warp.core.contact.forget_contact_history` drops them). Before the first
-    capture, :meth:`warm_up` takes one step into a spare state, so every kernel is compiled and
-    loaded outside the capture (the implicit integrator's conditional graph nodes need that).
+    ``integrator.run.forget_contact_history()`` drops them). Before the first capture,
+    :meth:`warm_up` takes one step into a spare state, so every kernel is compiled and loaded
+    outside the capture (the implicit integrator's conditional graph nodes need that), and then
+    puts the integrator's run state back at t = 0 (``integrator.run.reset()``).
+
+    The model is only read: what a run writes is the integrator's (``integrator.run``), so two
+    steppers of one model, each with its own integrator, run independently.
     """
 
     def __init__(self, model: Model, integrator: Integrator, dt: float, use_graph=None, profile=False,
@@ -95,7 +98,8 @@ class Stepper:
         integrator.profile = NO_PROFILE if self.profile is None else self.profile
         self.states = [model.state(), model.state()]
         self.current = 0
-        forget_contact_history(model)  # a run from the initial state: no contact impulses of another
+        # A run from the initial state: no contact impulses of another run of this integrator.
+        integrator.run.forget_contact_history()
         self._graphs = {}
         self.warmed_up = False
         self.on_warm_up = on_warm_up
@@ -111,13 +115,9 @@ class Stepper:
 
     def _warm_up_step(self):
         self.integrator.step(self.state, self.model.state(), self.dt)
-        if self.model.pins is not None:  # the warm-up step is not part of the run: pins restart at t = 0
-            self.model.pins.reset()
-        if getattr(self.model, "terrain_motion", None) is not None:  # and so does moving terrain
-            self.model.terrain_motion.reset()
-        if getattr(self.model, "mesh_animation", None) is not None:  # and animated meshes
-            self.model.mesh_animation.reset()
-        forget_contact_history(self.model)  # nor do its contact impulses start the first step
+        # The warm-up step is not part of the run: the pins', moving terrain's and animated meshes'
+        # clocks restart at t = 0, and its contact impulses do not start the first step.
+        self.integrator.run.reset()
         wp.synchronize_device(self.model.device)
         reset_stats = getattr(self.integrator, "reset_stats", None)  # the warm-up step is not part of the run
         if reset_stats is not None:

@@ -19,6 +19,7 @@ import numpy as np
 import warp as wp
 
 from ..core.contact import terrain_speed
+from ..core.mesh_terrain import mesh_touch_arrays
 from ..core.model import Model, State
 from ..kernels.metrics import NO_SURFACE
 
@@ -202,8 +203,10 @@ class PenetrationProbe:
     when it lies on one side). Distances are in the model's precision.
     """
 
-    def __init__(self, model: Model):
+    def __init__(self, model: Model, run):
         self.model = model
+        # The terrain where the integrator's run state (``integrator.run``) has it now.
+        self.run = run
         dev = model.device
         worlds = model.world_count
         self.depth = wp.zeros(worlds, dtype=model.scalar, device=dev)
@@ -218,9 +221,9 @@ class PenetrationProbe:
         self.shell_hi = wp.empty_like(self._shell_hi_init)
         world_of = np.array([j.world for j in model.jellies] or [0], dtype=np.int32)
         self.jelly_world = wp.array(world_of, dtype=wp.int32, device=dev)
-        motion = getattr(model, "terrain_motion", None)
+        motion = model.terrain_motion
         if motion is not None:
-            self._motion = (model.bowl_motion, motion.turn_now, motion.rest_point)
+            self._motion = (model.bowl_motion, run.terrain.turn_now, motion.rest_point)
         else:
             self._motion = (wp.array(np.full(model.bowl_count, -1, np.int32), dtype=wp.int32, device=dev),
                             wp.zeros(0, dtype=model.vec3, device=dev), wp.zeros(0, dtype=model.vec3, device=dev))
@@ -228,6 +231,7 @@ class PenetrationProbe:
     def launch(self, state: State):
         """Reduce ``state``'s penetration per world into ``depth`` (launches only)."""
         m = self.model
+        t = self.run.terrain
         k = m.kernels
         self.depth.zero_()
         if m.bowl_count:
@@ -237,10 +241,10 @@ class PenetrationProbe:
             k.measure_penetration,
             dim=m.particle_count,
             inputs=[m.particle_world, m.particle_jelly,
-                    m.plane_first, m.plane_point, m.plane_normal, m.plane_hole_center, m.plane_hole_radius,
-                    m.sphere_first, m.sphere_center, m.sphere_radius,
-                    m.mesh_first, m.mesh_id, m.mesh_closed, m.mesh_reach, m.mesh_tri_start, m.mesh_tris, m.mesh_points,
-                    m.bowl_first, m.bowl_center, m.bowl_radius, m.bowl_cut_height, *self._motion, self.bowl_slots,
+                    m.plane_first, t.plane_point, t.plane_normal, t.plane_hole_center, m.plane_hole_radius,
+                    m.sphere_first, t.sphere_center, m.sphere_radius,
+                    *mesh_touch_arrays(m, self.run),
+                    m.bowl_first, t.bowl_center, m.bowl_radius, m.bowl_cut_height, *self._motion, self.bowl_slots,
                     state.particle_q],
             outputs=[self.depth, self.shell_lo, self.shell_hi],
             device=m.device,
@@ -293,7 +297,7 @@ def speed_bound(model: Model) -> float:
     """
     pts = [model.particle_q_host]
     pts += [np.atleast_2d(p["point"]) for p in model.planes]
-    pts += [np.atleast_2d(np.asarray(p)) for p in getattr(model, "terrain_anchor_points", [])]
+    pts += [np.atleast_2d(np.asarray(p)) for p in model.terrain_anchor_points]
     allp = np.concatenate(pts)
     diag = float(np.linalg.norm(allp.max(axis=0) - allp.min(axis=0)))
     v0 = float(np.linalg.norm(model.particle_qd.numpy(), axis=1).max()) if model.particle_count else 0.0

@@ -218,7 +218,7 @@ class PenetrationCheck:
     # -- colliders ------------------------------------------------------------------------------
 
     def _terrain(self, kind):
-        return [(it, int(it.get("world", -1))) for it in getattr(self.model, kind, [])]
+        return [(it, int(it.get("world", -1))) for it in getattr(self.model, kind)]
 
     def _in_world(self, world):
         return np.ones(self.count, dtype=bool) if world < 0 else self.worlds[: self.count] == world

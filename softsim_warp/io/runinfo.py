@@ -27,7 +27,7 @@ def energy_floor(model, metrics) -> float:
     c0 = np.asarray(metrics[0].com, dtype=np.float64)
     moved = max(float(np.linalg.norm(np.asarray(m.com, dtype=np.float64) - c0)) for m in metrics)
     reach = (float(np.abs(q0).max()) if q0.size else 0.0) + moved
-    ks = float(np.sum(np.abs(getattr(model, "spring_stiffness_host", np.zeros(0)))))
+    ks = float(np.sum(np.abs(model.spring_stiffness_host)))
     floor = eps * held + 0.5 * (eps * reach) ** 2 * ks
     return floor if math.isfinite(floor) else math.inf
 

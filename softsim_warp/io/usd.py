@@ -191,10 +191,9 @@ class UsdWriter:
         self._metadata = dict(metadata or {})
         self._metadata.setdefault("softsim:status", "running")
         # The physics settings beside the caller's (integrator, dt): what a reader needs to rerun it.
-        self._metadata.setdefault("softsim:gravity", Gf.Vec3d(*[float(g) for g in getattr(model, "gravity_host", (0.0, -9.8, 0.0))]))
+        self._metadata.setdefault("softsim:gravity", Gf.Vec3d(*[float(g) for g in model.gravity_host]))
         self._metadata.setdefault("softsim:fps", self.fps)
-        if hasattr(model, "precision"):
-            self._metadata.setdefault("softsim:precision", str(model.precision))
+        self._metadata.setdefault("softsim:precision", str(model.precision))
         layer.customLayerData = self._metadata
 
         groups = groups or {}
@@ -250,11 +249,9 @@ class UsdWriter:
                     c.CreateDisplayColorPrimvar().Set(Vt.Vec3fArray([Gf.Vec3f(*SPRING_COLORS[tname])]))
                     curves[tname] = (c, model.spring_indices_host[sel].ravel(), Vt.FloatArray([0.1 * width]))
             self.jelly_prims.append((info, pts, widths, mesh, surface, curves))
-        rest = getattr(model, "particle_q_host", None)
-        if rest is not None:
-            # The initial pose as every attribute's default value: a reader that asks for no time
-            # (and validators that count normals against the default points) sees a whole mesh.
-            self._write_jellies(np.ascontiguousarray(rest, dtype=np.float32), None, Usd.TimeCode.Default())
+        # The initial pose as every attribute's default value: a reader that asks for no time
+        # (and validators that count normals against the default points) sees a whole mesh.
+        self._write_jellies(np.ascontiguousarray(model.particle_q_host, dtype=np.float32), None, Usd.TimeCode.Default())
 
         plane_index = {}  # numbered within each world, so every copy of a comparison has Plane_0
         for p in model.planes:
@@ -265,14 +262,14 @@ class UsdWriter:
                 self._animate(mesh, p["motion"])
         # Bowls and spheres; ``self.roots`` puts each world's terrain under its group.
         # (a mesh terrain adds its normals and its asset's primvars as a fifth and sixth item).
-        for prim_path, points, counts, indices, *extra in getattr(model, "terrain_meshes", lambda roots: [])(self.roots):
+        for prim_path, points, counts, indices, *extra in model.terrain_meshes(self.roots):
             self.add_static_mesh(prim_path, points, counts, indices, normals=extra[0] if extra else None,
                                  primvars=extra[1] if len(extra) > 1 else ())
-        for prim_path, motion in getattr(model, "terrain_motions", lambda roots: [])(self.roots):
+        for prim_path, motion in model.terrain_motions(self.roots):
             self._animate(UsdGeom.Mesh.Get(stage, prim_path), motion)
         # Animated meshes: their points (and extent and flat normals) sampled at every frame.
         self.animated_meshes = []
-        for prim_path, times, samples in getattr(model, "terrain_animations", lambda roots: [])(self.roots):
+        for prim_path, times, samples in model.terrain_animations(self.roots):
             mesh = UsdGeom.Mesh.Get(stage, prim_path)
             counts = np.asarray(mesh.GetFaceVertexCountsAttr().Get(), dtype=np.int64)
             indices = np.asarray(mesh.GetFaceVertexIndicesAttr().Get(), dtype=np.int64)

@@ -53,8 +53,7 @@ def world_speed_bound(model, start, end, world):
 
     # Made once for all worlds of a batch: each world's particle box (its least and largest
     # coordinates), its fastest particle's initial velocity as the device holds it, and its terrain.
-    shared = model.__dict__.get("_world_bound_inputs")
-    if shared is None:
+    def inputs():
         ranges = world_ranges(model)
         starts = np.array([a for a, _ in ranges])
         q, qd = model.particle_q_host, model.particle_qd.numpy()
@@ -70,9 +69,9 @@ def world_speed_bound(model, start, end, world):
         for kind in ("planes", "bowls", "spheres"):
             for item in getattr(model, kind):
                 by_world.setdefault(item["world"], {"planes": [], "bowls": [], "spheres": []})[kind].append(item)
-        shared = model.__dict__["_world_bound_inputs"] = (dict(zip(starts.tolist(), zip(lo, hi, fastest))), qd,
-                                                         by_world)
-    boxes, velocities, by_world = shared
+        return dict(zip(starts.tolist(), zip(lo, hi, fastest))), qd, by_world
+
+    boxes, velocities, by_world = model.derived("world_bound_inputs", inputs)
     lo, hi, fastest = boxes[start]
     terrain = by_world.get(world, {"planes": [], "bowls": [], "spheres": []})
     qd = velocities[fastest : fastest + 1]
@@ -84,6 +83,7 @@ def world_speed_bound(model, start, end, world):
         planes=terrain["planes"],
         bowls=terrain["bowls"],
         spheres=terrain["spheres"],
+        meshes=[],  # (a batch's meshes are left out of the bound, as they were before the Model was declared)
         terrain_anchor_points=terrain_anchors(terrain["bowls"], terrain["spheres"]),
         particle_qd=types.SimpleNamespace(numpy=lambda: qd),
         particle_count=end - start,

@@ -112,7 +112,7 @@ class _Batch:
         self.worlds = _Worlds(bounds, sim["precision"], frames)
         # Penetration is measured into terrain only: without any, nothing is launched for it.
         has_terrain = any(d.get(kind) for d in datas for kind in TERRAIN_SDF)
-        self.penetration = PenetrationProbe(self.model) if penetration and has_terrain else None
+        self.penetration = PenetrationProbe(self.model, self.integrator.run) if penetration and has_terrain else None
         self.done_steps = 0
         self.step_seconds = 0.0
         self.stop = None  # asked between chunks of a long frame (stop_check): the sweep was stopped
