@@ -9,7 +9,7 @@ from softsim_warp.kernels.precision import Float, both_precisions, vec3
 
 from softsim_warp import ModelBuilder, eval_forces, make_integrator
 from softsim_warp.core import lattice
-from softsim_warp.core.forces import ForceTerm, ForceTermError, attach
+from softsim_warp.core.forces import ForceTerm, ForceTermError
 from softsim_warp.core.integrators import ExplicitIntegrator
 from tests.helpers import jelly_builder
 
@@ -129,10 +129,7 @@ def dragged_pair(device, c, deterministic=False, ks=40.0, mass=0.1, stretch=0.05
     b = ModelBuilder(gravity=(0.0, 0.0, 0.0))
     b.add_particles([[-0.5 * (1.0 + stretch), 0, 0], [0.5 * (1.0 + stretch), 0, 0]], [velocity, velocity], mass)
     b.add_spring(0, 1, ks, 0.0, rest=1.0)
-    model = b.finalize(device, "float64", force_terms=(LinearDrag(c),))
-    if deterministic:
-        attach(model)
-    return model
+    return b.finalize(device, "float64", deterministic=deterministic, force_terms=(LinearDrag(c),))
 
 
 @pytest.mark.parametrize("deterministic", [False, True])

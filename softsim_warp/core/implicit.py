@@ -91,6 +91,7 @@ from .contact import apply_contacts
 from .forces import check_force_terms, eval_forces
 from .integrators import Integrator
 from .mesh_terrain import mesh_touch_arrays
+from .methods import IMPLICIT
 from ..kernels import implicit as ki
 from .model import Model, State
 from .pins import drive
@@ -151,7 +152,7 @@ class ImplicitIntegrator(Integrator):
             updated to this step) instead of 0; off only to measure what it saves.
     """
 
-    name = "implicit"
+    name = IMPLICIT.name
 
     def __init__(
         self,
