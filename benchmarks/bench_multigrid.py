@@ -34,7 +34,7 @@ from bench_implicit import _time_steps, stiff_jelly  # noqa: E402
 
 from softsim_warp.core.implicit import ImplicitIntegrator  # noqa: E402
 from softsim_warp.core.multigrid import LatticeMultigrid  # noqa: E402
-from softsim_warp.kernels import implicit as ki  # noqa: E402
+from softsim_warp.kernels import implicit as implicit_kernels  # noqa: E402
 
 
 def _time_call(fn, device, repeats: int) -> float:
@@ -52,29 +52,28 @@ def _cg_iteration_parts(integ):
     """One CG iteration's launches without the preconditioner (as in ImplicitIntegrator._pcg_loop)."""
     model = integ.model
     device = model.device
-    k = model.kernels
     n = model.particle_count
-    blocks = (n + ki.TILE - 1) // ki.TILE
+    blocks = (n + implicit_kernels.TILE - 1) // implicit_kernels.TILE
     mg = integ.multigrid
     precond = integ.precond if mg is None else integ.no_precond
     lattice_product = mg is not None and mg.gather
 
     def run():
         wp.launch(
-            k.cg_direction, dim=(blocks, ki.TILE), block_dim=ki.TILE,
+            implicit_kernels.cg_direction, dim=(blocks, implicit_kernels.TILE), block_dim=implicit_kernels.TILE,
             inputs=[n, int(not lattice_product), integ.mass_eff, integ.z], outputs=[integ.p, integ.ap, integ.scalars],
             device=device,
         )
         if lattice_product:
-            mg.product(integ.p, integ.ap, integ.scalars, ki.PAP)
+            mg.product(integ.p, integ.ap, integ.scalars, implicit_kernels.PAP)
         else:
             integ._spring_mv(integ.p)
         wp.launch(
-            k.cg_update, dim=(blocks, ki.TILE), block_dim=ki.TILE,
+            implicit_kernels.cg_update, dim=(blocks, implicit_kernels.TILE), block_dim=implicit_kernels.TILE,
             inputs=[n, int(mg is None), integ.filters, precond, integ.p, integ.ap],
             outputs=[integ.x, integ.r, integ.z, integ.scalars], device=device,
         )
-        wp.launch(k.cg_end_iteration, dim=1, inputs=[integ.cg_max_iterations], outputs=[integ.scalars, integ.ints],
+        wp.launch(implicit_kernels.cg_end_iteration, dim=1, inputs=[integ.cg_max_iterations], outputs=[integ.scalars, integ.ints],
                   device=device)
 
     return run
@@ -97,7 +96,7 @@ def measure(size: int, preconditioner: str, device, steps: int, dt: float, ks: f
         # (free flight: no contact constraints, which would rebuild every solve).
         parts["setup_ms"] = 1e3 * _time_call(mg.build, device, repeats)
         parts["vcycle_ms"] = 1e3 * _time_call(
-            lambda: mg.apply(integ.r, integ.z, integ.scalars, ki.RZ_NEW), device, repeats
+            lambda: mg.apply(integ.r, integ.z, integ.scalars, implicit_kernels.RZ_NEW), device, repeats
         )
     else:
         parts["setup_ms"] = 0.0

@@ -27,8 +27,8 @@ sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 
 from softsim_warp.commands.timing import TimedSteps  # noqa: E402
 from softsim_warp.core import multigrid  # noqa: E402
-from softsim_warp.kernels import implicit as ki  # noqa: E402
-from softsim_warp.kernels import multigrid as km  # noqa: E402
+from softsim_warp.kernels import implicit as implicit_kernels  # noqa: E402
+from softsim_warp.kernels import multigrid as multigrid_kernels  # noqa: E402
 
 
 def _per_launch_us(launch, device, launches: int, repeats: int) -> float:
@@ -72,12 +72,12 @@ def main(argv=None) -> int:
         y_lanes = wp.zeros(count, dtype=vec3, device=device)
         args_op = [1, wp.float32(0.5), shape, a, rowsum, dinv, b, x]
         one = _per_launch_us(
-            lambda: wp.launch(km.mg_stencil_op, dim=count, inputs=args_op, outputs=[y_one], device=device),
+            lambda: wp.launch(multigrid_kernels.mg_stencil_op, dim=count, inputs=args_op, outputs=[y_one], device=device),
             device, args.launches, args.repeats,
         )
         block = _per_launch_us(
             lambda: wp.launch(
-                km.mg_stencil_op_lanes, dim=(count, lanes), block_dim=lanes, inputs=[lanes, *args_op, shape, x],
+                multigrid_kernels.mg_stencil_op_lanes, dim=(count, lanes), block_dim=lanes, inputs=[lanes, *args_op, shape, x],
                 outputs=[y_lanes], device=device,
             ),
             device, args.launches, args.repeats,
@@ -90,17 +90,17 @@ def main(argv=None) -> int:
     grid = np.stack(np.meshgrid(*[np.arange(args.fine)] * 3, indexing="ij"), -1).reshape(-1, 3) * spacing
     q = wp.array((grid + 0.01 * spacing * rng.standard_normal(grid.shape)).astype(np.float32), dtype=vec3, device=device)
     pv = wp.array(rng.standard_normal((nf, 3)).astype(np.float32), dtype=vec3, device=device)
-    rest = np.zeros(km.REST_SLOTS, dtype=np.float32)
+    rest = np.zeros(multigrid_kernels.REST_SLOTS, dtype=np.float32)
     for slot in range(27):
         rest[slot] = spacing * np.linalg.norm([slot // 9 - 1, (slot // 3) % 3 - 1, slot % 3 - 1])
     rest[27:30] = 2.0 * spacing
-    tables = [wp.types.vector(km.REST_SLOTS, wp.float32)(*rest.tolist()), vec3(1e5, 1e5, 1e5), vec3(0.5, 0.5, 0.25)]
+    tables = [wp.types.vector(multigrid_kernels.REST_SLOTS, wp.float32)(*rest.tolist()), vec3(1e5, 1e5, 1e5), vec3(0.5, 0.5, 0.25)]
     mass = wp.full(nf, 1.0 / nf, dtype=wp.float32, device=device)
     y = wp.zeros(nf, dtype=vec3, device=device)
     scalars = wp.zeros(8, dtype=wp.float32, device=device)  # the product adds p.Ap into slot 0
     product = _per_launch_us(
         lambda: wp.launch(
-            km.mg_lattice_mv, dim=(ki.tile_blocks(nf), ki.TILE), block_dim=ki.TILE,
+            multigrid_kernels.mg_lattice_mv, dim=(implicit_kernels.tile_blocks(nf), implicit_kernels.TILE), block_dim=implicit_kernels.TILE,
             inputs=[nf, 0, wp.float32(0.01), wp.vec3i(args.fine, args.fine, args.fine), 7, *tables, q, mass, pv],
             outputs=[y, scalars], device=device,
         ),

@@ -1,27 +1,24 @@
-"""Warp kernels of softsim-warp, installed as ``softsim_warp.kernels``.
+"""Warp kernels of softsim-warp, installed as ``softsim_warp.kernels``: one module per physics topic.
 
-Each topic module builds its kernels for one scalar type (``wp.float32`` or ``wp.float64``) from a
-single source, so every kernel exists in both precisions. :func:`get_kernels` returns the set for a
-precision, built once and cached.
+Every kernel and ``wp.func`` is defined once, at module level, for both precisions
+(:mod:`.precision`); call sites import the topic module and name the kernel they launch
+(``wp.launch(contact.collide_planes, ...)``), so "go to definition" finds it and a test can launch
+it alone. The topics:
+
+* :mod:`.springs`: the spring force, energy and Jacobian, and the spring-list kernels.
+* :mod:`.integration`: the explicit stage update (``stage_values``) and ``integrate_stage``.
+* :mod:`.lattice`: springs implicit in a lattice: the per-particle gather, the fused stages, the
+  CPU row kernels and the masked lattice of mesh jellies.
+* :mod:`.contact`: terrain contact (restitution, friction, moving terrain) with planes, bowls and
+  spheres.
+* :mod:`.mesh`: mesh terrain (distance, contact, animated meshes) and voxelisation of mesh jellies.
+* :mod:`.particle_contact`: contact between jellies and self-contact.
+* :mod:`.pins`: held and driven particles, and the rigid motions moving terrain shares.
+* :mod:`.implicit`: the implicit Euler solve (Jacobians, CG, contact constraints).
+* :mod:`.multigrid`: the implicit solve's multigrid preconditioner.
+* :mod:`.metrics`: per-frame reductions (energy, centre of mass, speed, penetration, errors).
 """
-
-from __future__ import annotations
-
-import functools
-import types
 
 import warp as wp
 
-from . import contact, implicit, integration, lattice, mesh, metrics, multigrid, particle_contact, pins, springs
-
 wp.set_module_options({"enable_backward": False})
-
-
-@functools.lru_cache(maxsize=None)
-def get_kernels(scalar) -> types.SimpleNamespace:
-    """All kernels and functions for ``scalar`` (``wp.float32`` or ``wp.float64``), as one namespace."""
-    ns = types.SimpleNamespace(scalar=scalar, vec3=wp.types.vector(3, scalar))
-    for topic in (springs, integration, contact, metrics, implicit, lattice, pins, mesh, multigrid, particle_contact):
-        for name, obj in topic.build(scalar).items():
-            setattr(ns, name, obj)
-    return ns

@@ -816,27 +816,3 @@ def collide_moving_spheres(
                                   sphere_friction[s], eps, eps_v, rest_steps, beta_h, stage)
         q_out[i] = x
         qd_out[i] = v
-
-
-def build(scalar):
-    """The names the unconverted kernel files and ``model.kernels`` still look up (temporary)."""
-    return {
-        "resolve_contact": resolve_contact,
-        "plane_distance": plane_distance,
-        "contact_planes": contact_planes,
-        "contact_planes_direct": contact_planes_direct,
-        "collide_planes": collide_planes,
-        "bowl_distance": bowl_distance,
-        "bowl_holds": bowl_holds,
-        "sphere_distance": sphere_distance,
-        "contact_bowls": contact_bowls,
-        "contact_spheres": contact_spheres,
-        "collide_bowls": collide_bowls,
-        "collide_spheres": collide_spheres,
-        "move_terrain": move_terrain,
-        "surface_velocity": surface_velocity,
-        "resolve_moving": resolve_moving,
-        "collide_moving_planes": collide_moving_planes,
-        "collide_moving_bowls": collide_moving_bowls,
-        "collide_moving_spheres": collide_moving_spheres,
-    }

@@ -1051,34 +1051,3 @@ def assemble_bsr_offdiagonal(
     m = spring_block[tid]
     wp.atomic_sub(values_out, index_ab[tid], m)
     wp.atomic_sub(values_out, index_ba[tid], m)
-
-
-def build(scalar):
-    """The kernels by their former names, for call sites not yet moved to module-level imports."""
-    return {
-        "spring_jacobian": spring_jacobian,
-        "eval_spring_jacobians": eval_spring_jacobians,
-        "build_system": build_system,
-        "constrain_contacts": constrain_contacts,
-        "touch_meshes": touch_meshes,
-        "constrain_last_system": constrain_last_system,
-        "measure_particle_restitution": measure_particle_restitution,
-        "measure_spring_restitution": measure_spring_restitution,
-        "check_energy_budget": check_energy_budget,
-        "apply_restitution": apply_restitution,
-        "spring_mv": spring_mv,
-        "init_residual": init_residual,
-        "cg_begin": cg_begin,
-        "set_step_scale": set_step_scale,
-        "cg_direction": cg_direction,
-        "dot_accumulate": dot_accumulate,
-        "cg_update": cg_update,
-        "cg_end_iteration": cg_end_iteration,
-        "record_solve": record_solve,
-        "record_residual": record_residual,
-        "record_step": record_step,
-        "apply_velocity_update": apply_velocity_update,
-        "precondition": precondition,
-        "assemble_bsr_diagonal": assemble_bsr_diagonal,
-        "assemble_bsr_offdiagonal": assemble_bsr_offdiagonal,
-    }

@@ -230,21 +230,3 @@ def integrate_stage(
     elif kind == 2:
         q_next_out[i] = x
         qd_next_out[i] = v
-
-
-def build(scalar):
-    """Temporary shim for files not yet converted: the module-level objects under their old names."""
-    return {
-        "acceleration": acceleration,
-        "stage_values": stage_values,
-        "stage_values_direct": stage_values_direct,
-        "int_contiguous": int_contiguous,
-        "entry_contiguous": entry_contiguous,
-        "scalar_contiguous": scalar_contiguous,
-        "int_indexed": int_indexed,
-        "load_indexed": load_indexed,
-        "scalar_indexed": scalar_indexed,
-        "load_contiguous": load_contiguous,
-        "store_contiguous": store_contiguous,
-        "integrate_stage": integrate_stage,
-    }

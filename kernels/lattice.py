@@ -1157,25 +1157,3 @@ def eval_masked_springs(
                 rest = jelly_rest[j, 27 + axis]
                 f += springs.spring_force(x, q[p], v, qd[p], rest, jelly_ks[j, 2], jelly_kd[j, 2])
     f_out[i] = f
-
-
-def build(scalar):
-    """Temporary shim for files not yet converted: the module-level objects under their old names."""
-    return {
-        "inv_sqrt": inv_sqrt,
-        "stencil_spring_force": stencil_spring_force,
-        "lattice_coord": lattice_coord,
-        "gather_lattice_force": gather_lattice_force,
-        "eval_lattice_springs": eval_lattice_springs,
-        "integrate_lattice_stage": make_integrate_lattice_stage(scalar, make_gather_native(scalar)),
-        "single_stage": functools.partial(make_single_stage, scalar),
-        "masked_stage": functools.partial(make_masked_stage, scalar),
-        "gather_native": make_gather_native(scalar),
-        "make_gather_native": functools.partial(make_gather_native, scalar),
-        "make_integrate_lattice_stage": functools.partial(make_integrate_lattice_stage, scalar),
-        "eval_lattice_rows": eval_lattice_rows,
-        "integrate_lattice_rows_stage": integrate_lattice_rows_stage,
-        "reduce_lattice_springs": reduce_lattice_springs,
-        "masked_neighbour": masked_neighbour,
-        "eval_masked_springs": eval_masked_springs,
-    }

@@ -341,17 +341,3 @@ def collide_moving_meshes(
                                       eps, eps_v, rest_steps, beta_h, stage)
         q_out[i] = x
         qd_out[i] = v
-
-
-def build(scalar):
-    """Temporary shim for files not yet converted: the module-level objects under their old names.
-    (The masked-lattice kernels live in kernels/lattice.py.)"""
-    return {
-        "closest_on_triangle": closest_on_triangle,
-        "mesh_distance": mesh_distance,
-        "mesh_face_distance": mesh_face_distance,
-        "collide_meshes": collide_meshes,
-        "deform_mesh": deform_mesh,
-        "collide_moving_meshes": collide_moving_meshes,
-        "mark_inside_mesh": mark_inside_mesh,
-    }

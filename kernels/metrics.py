@@ -322,19 +322,3 @@ def measure_position_error(
         d = wp.vec3d(wp.float64(x[0]), wp.float64(x[1]), wp.float64(x[2])) - reference_q[i]
         total += wp.dot(d, d)
     error_out[w] = wp.sqrt(total / wp.float64(wp.max(b - a, 1)))
-
-
-def build(scalar):
-    """Temporary shim for files not yet converted: the module-level kernels under their old names."""
-    del scalar
-    return {
-        "measure_penetration": measure_penetration,
-        "combine_shell_depths": combine_shell_depths,
-        "measure_position_error": measure_position_error,
-        "reduce_particles": reduce_particles,
-        "reduce_springs": reduce_springs,
-        "reduce_particle_chunks": reduce_particle_chunks,
-        "reduce_spring_chunks": reduce_spring_chunks,
-        "combine_particle_chunks": combine_particle_chunks,
-        "combine_spring_chunks": combine_spring_chunks,
-    }

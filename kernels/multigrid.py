@@ -872,24 +872,3 @@ def mg_coarse_solve(
         x = total[0]
         zero = b.dtype(0.0)[0]
         x_out[node] = x_out.dtype(type(zero)(x[0]), type(zero)(x[1]), type(zero)(x[2]))
-
-
-def build(scalar):
-    """The kernels by their former names, for call sites not yet moved to module-level imports."""
-    return {
-        "mg_lattice_jacobians": mg_lattice_jacobians,
-        "mg_lattice_mv": mg_lattice_mv,
-        "mg_fine_setup_lattice": mg_fine_setup_lattice,
-        "mg_galerkin": mg_galerkin,
-        "mg_stencil_op": mg_stencil_op,
-        "mg_stencil_op_lanes": mg_stencil_op_lanes,
-        "mg_restrict": mg_restrict,
-        "mg_prolong": mg_prolong,
-        "mg_fine_pre": mg_fine_pre,
-        "mg_fine_post": mg_fine_post,
-        "mg_fine_additive": mg_fine_additive,
-        "mg_setup_due": mg_setup_due,
-        "mg_coarse_factor": mg_coarse_factor,
-        "mg_coarse_inverse": mg_coarse_inverse,
-        "mg_coarse_solve": mg_coarse_solve,
-    }

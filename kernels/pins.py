@@ -139,14 +139,3 @@ def drive_pins(
 @wp.kernel
 def advance_pin_clock(clock: wp.array(dtype=wp.int32)):
     clock[0] = clock[0] + 1
-
-
-def build(scalar):
-    """The names the unconverted kernel files and ``model.kernels`` still look up (temporary)."""
-    return {
-        "rotate": rotate,
-        "rigid_pose": rigid_pose,
-        "pin_position": pin_position,
-        "drive_pins": drive_pins,
-        "advance_pin_clock": advance_pin_clock,
-    }

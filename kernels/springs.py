@@ -142,20 +142,6 @@ def gather_spring_forces(
         else:
             f = f - spring_f[-e - 1]
     particle_f_out[i] = f
-
-
-def build(scalar):
-    """Temporary shim for files not yet converted: the module-level objects under their old names."""
-    return {
-        "spring_force": spring_force,
-        "spring_of": spring_of,
-        "spring_energy": spring_energy,
-        "eval_springs": eval_springs,
-        "eval_spring_forces": eval_spring_forces,
-        "gather_spring_forces": gather_spring_forces,
-    }
-
-
 # -- the spring's Jacobian: the blocks of the implicit solve (kernels/implicit.py, kernels/multigrid.py)
 
 

@@ -80,9 +80,8 @@ def test_sphere_and_bowl_distances_match_the_contact_kernels():
     """The NumPy signed distances are the kernels' (kernels/contact.py), sign and cut included."""
     import warp as wp  # noqa: PLC0415
 
-    from softsim_warp.kernels import get_kernels  # noqa: PLC0415
+    from softsim_warp.kernels import contact as contact_kernels  # noqa: PLC0415
 
-    k = get_kernels(wp.float64)
     rng = np.random.default_rng(5)
     pts = rng.uniform(-2, 2, size=(200, 3))
     center, radius, cut = np.array([0.1, -0.2, 0.3]), 1.3, 0.25
@@ -97,8 +96,8 @@ def test_sphere_and_bowl_distances_match_the_contact_kernels():
         bowl: wp.array(dtype=wp.float64),
     ):
         i = wp.tid()
-        phi_s, n_s = k.sphere_distance(x[i], c, r)
-        phi_b, n_b = k.bowl_distance(x[i], c, r, cut)
+        phi_s, n_s = contact_kernels.sphere_distance(x[i], c, r)
+        phi_b, n_b = contact_kernels.bowl_distance(x[i], c, r, cut)
         sphere[i] = phi_s
         bowl[i] = phi_b
 

@@ -10,7 +10,7 @@ import json
 import numpy as np
 import pytest
 import warp as wp
-from softsim_warp.kernels import implicit as ki
+from softsim_warp.kernels import implicit as implicit_kernels
 
 from softsim_warp.commands.cli import main as cli_main
 from softsim_warp.core.implicit import ImplicitIntegrator
@@ -433,7 +433,7 @@ def test_float64_agrees_with_float32():
         for _ in range(steps):
             integ.step(s0, s1, h)
             s0, s1 = s1, s0
-            bnorm.append(np.sqrt(float(integ.scalars.numpy()[ki.BB])))
+            bnorm.append(np.sqrt(float(integ.scalars.numpy()[implicit_kernels.BB])))
         out[precision] = (s0.particle_q.numpy().astype(np.float64), max(bnorm), model)
     x32, b32, model = out["float32"]
     x64 = out["float64"][0]

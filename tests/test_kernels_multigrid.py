@@ -12,7 +12,7 @@ small integers, so both precisions must agree with the reference exactly, not to
 import numpy as np
 import pytest
 import warp as wp
-from softsim_warp.kernels import multigrid as km
+from softsim_warp.kernels import multigrid as multigrid_kernels
 from softsim_warp.kernels.precision import Float, both_precisions, vec3
 from softsim_warp.kernels.springs import spring_jacobian
 
@@ -28,13 +28,13 @@ def axis_weights_of(n: int, nc: int, one: Float, weights_out: wp.array2d(dtype=F
     # axis (row and column 0 and the last ones).
     for i in range(-1, n + 1):
         for c in range(-1, nc + 1):
-            weights_out[i + 1, c + 1] = km.axis_weight(i, c, n, nc, one)
+            weights_out[i + 1, c + 1] = multigrid_kernels.axis_weight(i, c, n, nc, one)
 
 
 @pytest.mark.parametrize("scalar, np_scalar", PRECISIONS)
 def test_axis_weight_is_the_interpolation_rule(scalar, np_scalar):
     for n in (1, 2, 3, 4, 5, 8, 9):
-        nc = km.coarse_size(n)
+        nc = multigrid_kernels.coarse_size(n)
         weights = wp.zeros((n + 2, nc + 2), dtype=scalar, device="cpu")
         wp.launch(axis_weights_of, dim=1, inputs=[n, nc, scalar(1.0)], outputs=[weights], device="cpu")
         got = weights.numpy()
@@ -50,7 +50,7 @@ def test_prolongation_reproduces_linear_fields(device, scalar, np_scalar):
     """mg_prolong (x += P e) on a coarse field linear in the lattice coordinates gives that field on
     the fine lattice, exactly: an odd, an even and a two-node axis."""
     shape = (7, 6, 2)
-    coarse = tuple(km.coarse_size(n) for n in shape)
+    coarse = tuple(multigrid_kernels.coarse_size(n) for n in shape)
     fine_coord = np.stack(np.meshgrid(*(np.arange(n) for n in shape), indexing="ij"), -1).reshape(-1, 3)
     # Coarse node c sits on fine node min(2 c, n - 1) (or on c itself on an axis it does not coarsen).
     positions = [np.minimum(2 * np.arange(nc), n - 1) if nc != n else np.arange(n) for n, nc in zip(shape, coarse)]
@@ -59,7 +59,7 @@ def test_prolongation_reproduces_linear_fields(device, scalar, np_scalar):
     vec = wp.types.vector(3, scalar)
     e = wp.array((coarse_coord @ field.T).astype(np_scalar), dtype=vec, device=device)
     x = wp.zeros(len(fine_coord), dtype=vec, device=device)
-    wp.launch(km.mg_prolong, dim=len(fine_coord), inputs=[wp.vec3i(*shape), wp.vec3i(*coarse), e], outputs=[x],
+    wp.launch(multigrid_kernels.mg_prolong, dim=len(fine_coord), inputs=[wp.vec3i(*shape), wp.vec3i(*coarse), e], outputs=[x],
               device=device)
     np.testing.assert_array_equal(x.numpy(), (fine_coord @ field.T).astype(np_scalar))
 
@@ -80,7 +80,7 @@ def pair_products_of(
     jacobian_product_out: wp.array(dtype=vec3),
 ):
     k = wp.tid()
-    t, e = km.pair_product(qi[k], qj[k], pi[k], pj[k], rest[k], ks[k], kd[k], h)
+    t, e = multigrid_kernels.pair_product(qi[k], qj[k], pi[k], pj[k], rest[k], ks[k], kd[k], h)
     product_out[k] = t
     quad_out[k] = e
     block, _stiffness = spring_jacobian(qi[k] - qj[k], rest[k], ks[k], kd[k], h)

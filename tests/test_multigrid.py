@@ -26,8 +26,9 @@ from softsim_warp.core.multigrid import (
     level_shapes,
     multigrid_support,
 )
-from softsim_warp.kernels import implicit as ki
+from softsim_warp.kernels import implicit as implicit_kernels
 from softsim_warp.kernels.multigrid import coarse_size
+from softsim_warp.kernels import multigrid as multigrid_kernels
 
 # The benchmark's stiff jelly (benchmarks/bench_implicit.py): a 0.5 m cube of 1 kg, every spring
 # at ks = 1e5, spinning in free flight; h^2 ks / m = 1e4 at 10^3 particles and dt = 0.01.
@@ -214,8 +215,6 @@ def test_stencil_product_in_lanes_equals_one_thread(device, mode):
     the residual and the sweep of a NumPy reference to float64 rounding, on a random 27-block
     stencil of a 5 x 4 x 3 level (every boundary case: a neighbour outside the level adds nothing);
     mode 2, the sweep from x + P e, gives mg_prolong followed by mg_stencil_op's sweep."""
-    model = stiff_jelly(3, device=device)
-    k = model.kernels
     shape = (5, 4, 3)
     coarse = tuple(coarse_size(v) for v in shape)
     count, coarse_count = int(np.prod(shape)), int(np.prod(coarse))
@@ -227,14 +226,14 @@ def test_stencil_product_in_lanes_equals_one_thread(device, mode):
     args = [min(mode, 1), wp.float64(0.5), wp.vec3i(*shape), a, rowsum, dinv, b]
     x_ref = wp.clone(x)
     if mode == 2:
-        wp.launch(k.mg_prolong, dim=count, inputs=[wp.vec3i(*shape), wp.vec3i(*coarse), e], outputs=[x_ref],
+        wp.launch(multigrid_kernels.mg_prolong, dim=count, inputs=[wp.vec3i(*shape), wp.vec3i(*coarse), e], outputs=[x_ref],
                   device=device)
     one = wp.zeros(count, dtype=wp.vec3d, device=device)
-    wp.launch(k.mg_stencil_op, dim=count, inputs=[*args, x_ref], outputs=[one], device=device)
+    wp.launch(multigrid_kernels.mg_stencil_op, dim=count, inputs=[*args, x_ref], outputs=[one], device=device)
     lanes = multigrid.LANES if device.is_cuda else 1
     out = wp.zeros(count, dtype=wp.vec3d, device=device)
     args[0] = mode
-    wp.launch(k.mg_stencil_op_lanes, dim=(count, lanes), block_dim=lanes,
+    wp.launch(multigrid_kernels.mg_stencil_op_lanes, dim=(count, lanes), block_dim=lanes,
               inputs=[lanes, *args, x, wp.vec3i(*coarse), e], outputs=[out], device=device)
     # The reference in NumPy: r = b - R x_I - sum_J A_IJ (x_J - x_I).
     a_h, x_h = a.numpy(), x_ref.numpy()
@@ -268,7 +267,6 @@ def test_lattice_gather_equals_the_stored_jacobians(device):
     q = mg.q_lin.numpy() * (1.0 + 0.05 * rng.standard_normal((n, 3)))
     qd = rng.standard_normal((n, 3))
     p = rng.standard_normal((n, 3))
-    k = model.kernels
     arr = lambda a: wp.array(a, dtype=model.vec3, device=device)  # noqa: E731
     q_w, qd_w, p_w = arr(q), arr(qd), arr(p)
     mat33 = wp.types.matrix((3, 3), model.scalar)
@@ -277,7 +275,7 @@ def test_lattice_gather_equals_the_stored_jacobians(device):
     rhs_ref = wp.zeros(n, dtype=model.vec3, device=device)
     h, kv = model.scalar(DT), model.scalar(DT * DT)
     wp.launch(
-        k.eval_spring_jacobians, dim=count,
+        implicit_kernels.eval_spring_jacobians, dim=count,
         inputs=[h, kv, model.spring_indices, model.spring_rest_length, model.spring_stiffness, model.spring_damping,
                 q_w, qd_w],
         outputs=[blocks, diag_ref, rhs_ref], device=device,
@@ -293,7 +291,7 @@ def test_lattice_gather_equals_the_stored_jacobians(device):
     y_ref = arr(mass[:, None] * p)
     s_ref = wp.zeros(1, dtype=model.scalar, device=device)
     wp.launch(
-        k.spring_mv, dim=(ki.tile_blocks(count), ki.TILE), block_dim=ki.TILE,
+        implicit_kernels.spring_mv, dim=(implicit_kernels.tile_blocks(count), implicit_kernels.TILE), block_dim=implicit_kernels.TILE,
         inputs=[count, 0, model.spring_indices, blocks, p_w], outputs=[y_ref, s_ref], device=device,
     )
     y = wp.empty(n, dtype=model.vec3, device=device)

@@ -12,7 +12,7 @@ import types
 import numpy as np
 import pytest
 import warp as wp
-from softsim_warp.kernels import get_kernels
+from softsim_warp.kernels.lattice import make_single_stage
 
 from softsim_warp.core.integrators import ExplicitIntegrator
 from softsim_warp.core.methods import EXPLICIT_NAMES as EXPLICIT
@@ -599,10 +599,10 @@ def test_one_jelly_stage_equals_generic_stage(device, method, shear):
         b = _dropping(_builder(degrees=0.0, second=False))
         b._mass[0][5] = mass
         assert not b.finalize(device, force_path="lattice").lattice.single
-    kernels = get_kernels(wp.float32)
-    assert kernels.single_stage((5, 4, 7), 7) is kernels.single_stage(np.array([5, 4, 7]), np.int32(7))
-    assert kernels.single_stage((5, 4, 7), 7) is not kernels.single_stage((5, 4, 8), 7)
-    assert kernels.single_stage((5, 4, 7), 7) is not kernels.single_stage((5, 4, 7), 5)
+    stage = make_single_stage(wp.float32, (5, 4, 7), 7)
+    assert stage is make_single_stage(wp.float32, np.array([5, 4, 7]), np.int32(7))
+    assert stage is not make_single_stage(wp.float32, (5, 4, 8), 7)
+    assert stage is not make_single_stage(wp.float32, (5, 4, 7), 5)
 
 
 def test_common_coefficients():

@@ -111,22 +111,3 @@ __all__ = [
     "warm_impulse",
     "within_cone",
 ]
-
-
-def build(scalar):
-    """The names this topic gave the ``model.kernels`` namespace, until every call site names its
-    kernel (the generic kernels pick their overload from the arrays they are launched with)."""
-    del scalar
-    return {
-        "pair_allowed": pair_allowed,
-        "pair_contact": pair_contact,
-        "facing_normal": facing_normal,
-        "pair_normal": pair_normal,
-        "accumulated_impulse": accumulated_impulse,
-        "prepare_contact_particles": prepare_contact_particles,
-        "insert_contact_grid": insert_contact_grid,
-        "build_contact_candidates": build_contact_candidates,
-        "find_particle_contacts": find_particle_contacts,
-        "resolve_contact_velocities": resolve_contact_velocities,
-        "resolve_contact_last_pass": resolve_contact_last_pass,
-    }

@@ -15,6 +15,8 @@ import warp as wp
 from ..kernels.contact import LAYER_TOUCH
 from .mesh_terrain import animate_meshes, mesh_arrays, mesh_moves, moving_mesh_arrays
 from .pins import motion_transform, path_position
+from ..kernels import contact as contact_kernels
+from ..kernels import mesh as mesh_kernels
 
 # The kinds of terrain that move (``kernels/contact.py`` ``move_terrain``'s motion_kind).
 MOVING_KINDS = ("plane", "bowl", "sphere", "mesh")
@@ -176,7 +178,7 @@ def move_terrain(model, run, dt):
         return
     poses = run.terrain
     wp.launch(
-        model.kernels.move_terrain,
+        contact_kernels.move_terrain,
         dim=1,
         inputs=[poses.clock, model.scalar(dt), tm.kind, tm.item, tm.rest_point, tm.rest_normal, tm.rest_hole,
                 tm.velocity, tm.spin, tm.center, tm.key_first, tm.key_count, tm.smooth, tm.key_time, tm.key_value],
@@ -266,13 +268,13 @@ def _launch_contacts(model: Model, run, state_in: State, q_out, qd_out, h, world
         (
             model.plane_count if planes else 0,
             "plane",
-            model.kernels.collide_planes,
+            contact_kernels.collide_planes,
             plane_arrays(model, run),
         ),
         (
             model.bowl_count,
             "bowl",
-            model.kernels.collide_bowls,
+            contact_kernels.collide_bowls,
             (
                 model.bowl_first,
                 run.terrain.bowl_center,
@@ -285,7 +287,7 @@ def _launch_contacts(model: Model, run, state_in: State, q_out, qd_out, h, world
         (
             model.sphere_count,
             "sphere",
-            model.kernels.collide_spheres,
+            contact_kernels.collide_spheres,
             (
                 model.sphere_first,
                 run.terrain.sphere_center,
@@ -297,17 +299,17 @@ def _launch_contacts(model: Model, run, state_in: State, q_out, qd_out, h, world
     )
     if model.terrain_motion is not None:
         kinds = tuple(
-            (count, kind, getattr(model.kernels, f"collide_moving_{kind}s"),
+            (count, kind, getattr(contact_kernels, f"collide_moving_{kind}s"),
              arrays + model.terrain_motion.contact_arrays(getattr(model, f"{kind}_motion"), run.terrain))
             if count and moves(model, kind) else (count, kind, kernel, arrays)
             for count, kind, kernel, arrays in kinds
         )
     if model.mesh_count:  # triangle-mesh terrain (core/mesh_terrain.py)
         if mesh_moves(model):
-            kinds += ((model.mesh_count, "mesh", model.kernels.collide_moving_meshes,
+            kinds += ((model.mesh_count, "mesh", mesh_kernels.collide_moving_meshes,
                        mesh_arrays(model, run) + moving_mesh_arrays(model, run)),)
         else:
-            kinds += ((model.mesh_count, "mesh", model.kernels.collide_meshes, mesh_arrays(model, run)),)
+            kinds += ((model.mesh_count, "mesh", mesh_kernels.collide_meshes, mesh_arrays(model, run)),)
     for count, _kind, kernel, arrays in kinds:
         if count:
             wp.launch(

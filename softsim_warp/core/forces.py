@@ -37,6 +37,7 @@ import warp as wp
 
 from .lattice_model import eval_lattice_forces
 from .masked_lattice import eval_masked_forces
+from ..kernels import springs as springs_kernels
 
 
 class ForceTerm:
@@ -148,17 +149,16 @@ def _spring_inputs(model, q: wp.array, qd: wp.array) -> list:
 
 def _eval_spring_forces_gathered(model, q: wp.array, qd: wp.array, f_out: wp.array, work: ForceWork):
     """Spring and damper forces of (q, qd) into ``f_out`` without atomics; every entry is written."""
-    k = model.kernels
     if model.spring_count:
         wp.launch(
-            k.eval_spring_forces,
+            springs_kernels.eval_spring_forces,
             dim=model.spring_count,
             inputs=_spring_inputs(model, q, qd),
             outputs=[work.spring_force],
             device=model.device,
         )
     wp.launch(
-        k.gather_spring_forces,
+        springs_kernels.gather_spring_forces,
         dim=model.particle_count,
         inputs=[model.spring_csr_offsets, model.spring_csr_springs, work.spring_force],
         outputs=[f_out],
@@ -192,7 +192,7 @@ def eval_forces(model, q: wp.array, qd: wp.array, f_out: wp.array, work: ForceWo
         f_out.zero_()
         if model.spring_count:
             wp.launch(
-                model.kernels.eval_springs,
+                springs_kernels.eval_springs,
                 dim=model.spring_count,
                 inputs=_spring_inputs(model, q, qd),
                 outputs=[f_out],

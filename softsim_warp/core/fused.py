@@ -32,6 +32,7 @@ import warp as wp
 from .contact import apply_contacts, filter_stage_contacts, moves, plane_arrays
 from .forces import check_force_terms
 from .lattice_model import LatticeData
+from ..kernels import lattice as lattice_kernels
 
 # Particles from which a one-jelly model steps with the shape-compiled stage (``make_single_stage``).
 # Below, a few blocks per SM leave the latency to the loads each thread has in flight, and the
@@ -117,19 +118,19 @@ def step_fused(integrator, state_in, state_out, dt):
             # Masked lattice: neighbours through the index grid, every load valid (no padding needed).
             masked_tables = model.masked
             tables, coef = masked_tables.stage_tables, masked_tables.stencil_coef
-            stage_kernel = model.kernels.masked_stage()
+            stage_kernel = lattice_kernels.make_masked_stage(model.scalar)
         elif integrator.single and lat.padded(*gathered):
             # Compiled for the jelly's shape and spring types (kernels/lattice.py make_single_stage).
-            stage_kernel = model.kernels.single_stage(lat.layout.shape[0], lat.layout.types[0])
+            stage_kernel = lattice_kernels.make_single_stage(model.scalar, lat.layout.shape[0], lat.layout.types[0])
         else:
-            stage_kernel = model.kernels.integrate_lattice_stage
+            stage_kernel = lattice_kernels.make_integrate_lattice_stage(model.scalar, lattice_kernels.make_gather_native(model.scalar))
     for stage in range(integrator.stage_count):
         q_next, qd_next = bufs[stage % 2]
         outputs = [integrator.acc_q, integrator.acc_qd, q_next, qd_next, state_out.particle_q, state_out.particle_qd]
         with integrator.profile.part("stages"):
             if rows:
                 wp.launch(
-                    model.kernels.integrate_lattice_rows_stage,
+                    lattice_kernels.integrate_lattice_rows_stage,
                     dim=lat.jelly_count,
                     inputs=[
                         stage,

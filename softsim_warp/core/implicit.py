@@ -92,7 +92,7 @@ from .forces import check_force_terms, eval_forces
 from .integrators import Integrator
 from .mesh_terrain import mesh_touch_arrays
 from .methods import IMPLICIT
-from ..kernels import implicit as ki
+from ..kernels import implicit as implicit_kernels
 from .model import Model, State
 from .pins import drive
 from .multigrid import LatticeMultigrid, auto_min_particles, multigrid_support
@@ -217,12 +217,12 @@ class ImplicitIntegrator(Integrator):
         # Multigrid on CUDA recomputes the spring blocks from positions (core/multigrid.py) and stores none.
         gather = self.preconditioner == "multigrid" and device.is_cuda
         self.spring_block = wp.zeros(0 if gather else s, dtype=self.mat33, device=device)
-        self.scalars = wp.zeros(ki.SCALAR_SLOTS, dtype=scalar, device=device)
+        self.scalars = wp.zeros(implicit_kernels.SCALAR_SLOTS, dtype=scalar, device=device)
         self.ints = wp.zeros(2, dtype=wp.int32, device=device)
-        self.stats_array = wp.zeros(ki.STAT_SLOTS, dtype=wp.int32, device=device)
+        self.stats_array = wp.zeros(implicit_kernels.STAT_SLOTS, dtype=wp.int32, device=device)
         # Largest and summed final relative residual of this module's CG solves (record_residual).
         self.residual_stats = wp.zeros(2, dtype=model.scalar, device=device)
-        self._condition = self.ints[ki.COND : ki.COND + 1]
+        self._condition = self.ints[implicit_kernels.COND : implicit_kernels.COND + 1]
         # Fixed particles (inverse mass 0) and each particle's constraint filter (see kernels/implicit.py).
         fixed = (model.particle_inv_mass.numpy() == 0).astype(np.int32)
         self.fixed = wp.array(fixed, dtype=wp.int32, device=device)
@@ -246,7 +246,7 @@ class ImplicitIntegrator(Integrator):
             _, first = np.unique(body, return_index=True)  # each body's first particle
             self.body_reference = wp.array(first.astype(np.int32), dtype=wp.int32, device=device)
             self.body_mass = wp.array(body_mass, dtype=scalar, device=device)
-            self.body_data = wp.zeros((body_count, ki.BODY_SLOTS), dtype=scalar, device=device)
+            self.body_data = wp.zeros((body_count, implicit_kernels.BODY_SLOTS), dtype=scalar, device=device)
             self.contact_restitution = wp.zeros(n, dtype=scalar, device=device)
             self.contact_approach = vectors()
             self.energy_gained = wp.zeros(1, dtype=wp.int32, device=device)
@@ -263,7 +263,7 @@ class ImplicitIntegrator(Integrator):
         # On CUDA outside a capture, the PCG loop is captured once and replayed; that needs
         # conditional graph nodes (CUDA 12.4+), otherwise capture_while reads the condition back.
         self._graph_ok = device.is_cuda and wp.is_conditional_graph_supported()
-        self._host_stats = np.zeros(ki.STAT_SLOTS, dtype=np.int64)
+        self._host_stats = np.zeros(implicit_kernels.STAT_SLOTS, dtype=np.int64)
         if solver in ("bsr", "warp_cg"):
             self._setup_bsr()
         # Multigrid: the V-cycle replaces z = P r in the CG loop; init_residual gets a zero block
@@ -321,12 +321,11 @@ class ImplicitIntegrator(Integrator):
         self.bsr_diag_index = wp.array(locate(diag, diag), dtype=wp.int32, device=device)
         self.bsr_index_ab = wp.array(locate(pairs[:, 0], pairs[:, 1]), dtype=wp.int32, device=device)
         self.bsr_index_ba = wp.array(locate(pairs[:, 1], pairs[:, 0]), dtype=wp.int32, device=device)
-        kernels = model.kernels
         scalar = model.scalar
 
         def apply_preconditioner(x, y, z, alpha, beta):
             wp.launch(
-                kernels.precondition,
+                implicit_kernels.precondition,
                 dim=n,
                 inputs=[self.precond, x, y, scalar(alpha), scalar(beta)],
                 outputs=[z],
@@ -357,10 +356,9 @@ class ImplicitIntegrator(Integrator):
     def _assemble_bsr(self):
         model = self.model
         device = model.device
-        k = model.kernels
         self.bsr.values.zero_()
         wp.launch(
-            k.assemble_bsr_diagonal,
+            implicit_kernels.assemble_bsr_diagonal,
             dim=model.particle_count,
             inputs=[self.fixed, model.particle_mass, self.mass_eff, self.diag_block, self.bsr_diag_index],
             outputs=[self.bsr.values],
@@ -368,7 +366,7 @@ class ImplicitIntegrator(Integrator):
         )
         if model.spring_count:
             wp.launch(
-                k.assemble_bsr_offdiagonal,
+                implicit_kernels.assemble_bsr_offdiagonal,
                 dim=model.spring_count,
                 inputs=[model.spring_indices, self.fixed, self.spring_block, self.bsr_index_ab, self.bsr_index_ba],
                 outputs=[self.bsr.values],
@@ -378,18 +376,17 @@ class ImplicitIntegrator(Integrator):
     def _solve_warp_cg(self):
         model = self.model
         device = model.device
-        k = model.kernels
         if device.is_cuda or device.is_capturing:
             # Device-side convergence checks (a conditional graph node on CUDA).
             iters, r2, tol2 = self._bsr_solver(0)()
-            wp.launch(k.record_solve, dim=1, inputs=[iters, r2, tol2], outputs=[self.stats_array], device=device)
+            wp.launch(implicit_kernels.record_solve, dim=1, inputs=[iters, r2, tol2], outputs=[self.stats_array], device=device)
         else:
             # On the CPU, reading the residual is a plain memory read; checking every iteration
             # stops the loop as soon as it converges.
             iters, err, atol = self._bsr_solver(1)()
-            self._host_stats[ki.STEP_ITERS] += iters
-            self._host_stats[ki.SOLVES] += 1
-            self._host_stats[ki.UNCONVERGED] += int(err > atol)
+            self._host_stats[implicit_kernels.STEP_ITERS] += iters
+            self._host_stats[implicit_kernels.SOLVES] += 1
+            self._host_stats[implicit_kernels.UNCONVERGED] += int(err > atol)
 
     # -- this module's PCG loop (matrix-free or on the assembled matrix) ------------------------
 
@@ -403,9 +400,9 @@ class ImplicitIntegrator(Integrator):
         s = model.spring_count
         if s:
             wp.launch(
-                model.kernels.spring_mv,
-                dim=(ki.tile_blocks(s), ki.TILE),
-                block_dim=ki.TILE,
+                implicit_kernels.spring_mv,
+                dim=(implicit_kernels.tile_blocks(s), implicit_kernels.TILE),
+                block_dim=implicit_kernels.TILE,
                 inputs=[s, -1, model.spring_indices, self.spring_block, vec],
                 outputs=[self.ap, self.scalars],
                 device=model.device,
@@ -415,9 +412,8 @@ class ImplicitIntegrator(Integrator):
         """Solve from the initial guess in ``x``; ``ap`` must hold M x (0 in constrained rows)."""
         model = self.model
         device = model.device
-        k = model.kernels
         n = model.particle_count
-        pblocks = ki.tile_blocks(n)
+        pblocks = implicit_kernels.tile_blocks(n)
         matrix_free = self.solver == "matrix_free"
 
         profile = self.profile
@@ -428,7 +424,7 @@ class ImplicitIntegrator(Integrator):
         lattice_product = mg is not None and mg.gather
         if lattice_product:
             def spring_mv(vec):
-                mg.product(vec, self.ap, self.scalars, ki.PAP)
+                mg.product(vec, self.ap, self.scalars, implicit_kernels.PAP)
 
         # r = b - A x0, z = P r, tolerance and condition.
         with profile.part("cg_spring_product"):
@@ -437,18 +433,18 @@ class ImplicitIntegrator(Integrator):
             else:
                 wp.sparse.bsr_mv(self.bsr, self.x, self.ap, alpha=1.0, beta=0.0)
         wp.launch(
-            k.init_residual,
-            dim=(pblocks, ki.TILE),
-            block_dim=ki.TILE,
+            implicit_kernels.init_residual,
+            dim=(pblocks, implicit_kernels.TILE),
+            block_dim=implicit_kernels.TILE,
             inputs=[n, self.filters, self.rhs, precond, self.ap],
             outputs=[self.r, self.z, self.p, self.scalars],
             device=device,
         )
         if mg is not None:
             with profile.part("multigrid_vcycle"):
-                mg.apply(self.r, self.z, self.scalars, ki.RZ_NEW)
+                mg.apply(self.r, self.z, self.scalars, implicit_kernels.RZ_NEW)
         wp.launch(
-            k.cg_begin,
+            implicit_kernels.cg_begin,
             dim=1,
             inputs=[model.scalar(self.cg_tolerance), self.cg_max_iterations, self.step_bb],
             outputs=[self.scalars, self.ints],
@@ -457,9 +453,9 @@ class ImplicitIntegrator(Integrator):
 
         def iteration():
             wp.launch(
-                k.cg_direction,
-                dim=(pblocks, ki.TILE),
-                block_dim=ki.TILE,
+                implicit_kernels.cg_direction,
+                dim=(pblocks, implicit_kernels.TILE),
+                block_dim=implicit_kernels.TILE,
                 inputs=[n, int(matrix_free and not lattice_product), self.mass_eff, self.z],
                 outputs=[self.p, self.ap, self.scalars],
                 device=device,
@@ -472,26 +468,26 @@ class ImplicitIntegrator(Integrator):
                     wp.sparse.bsr_mv(self.bsr, self.p, self.ap, alpha=1.0, beta=0.0)
                 if not lattice_product:
                     wp.launch(
-                        k.dot_accumulate,
-                        dim=(pblocks, ki.TILE),
-                        block_dim=ki.TILE,
-                        inputs=[n, ki.PAP, self.p, self.ap],
+                        implicit_kernels.dot_accumulate,
+                        dim=(pblocks, implicit_kernels.TILE),
+                        block_dim=implicit_kernels.TILE,
+                        inputs=[n, implicit_kernels.PAP, self.p, self.ap],
                         outputs=[self.scalars],
                         device=device,
                     )
             wp.launch(
-                k.cg_update,
-                dim=(pblocks, ki.TILE),
-                block_dim=ki.TILE,
+                implicit_kernels.cg_update,
+                dim=(pblocks, implicit_kernels.TILE),
+                block_dim=implicit_kernels.TILE,
                 inputs=[n, int(mg is None), self.filters, precond, self.p, self.ap],
                 outputs=[self.x, self.r, self.z, self.scalars],
                 device=device,
             )
             if mg is not None:
                 with profile.part("multigrid_vcycle"):
-                    mg.apply(self.r, self.z, self.scalars, ki.RZ_NEW)
+                    mg.apply(self.r, self.z, self.scalars, implicit_kernels.RZ_NEW)
             wp.launch(
-                k.cg_end_iteration,
+                implicit_kernels.cg_end_iteration,
                 dim=1,
                 inputs=[self.cg_max_iterations],
                 outputs=[self.scalars, self.ints],
@@ -500,23 +496,23 @@ class ImplicitIntegrator(Integrator):
 
         wp.capture_while(self._condition, iteration)
         wp.launch(
-            k.record_solve,
+            implicit_kernels.record_solve,
             dim=1,
             inputs=[
-                self.ints[ki.ITER : ki.ITER + 1],
-                self.scalars[ki.RR : ki.RR + 1],
-                self.scalars[ki.TOL2 : ki.TOL2 + 1],
+                self.ints[implicit_kernels.ITER : implicit_kernels.ITER + 1],
+                self.scalars[implicit_kernels.RR : implicit_kernels.RR + 1],
+                self.scalars[implicit_kernels.TOL2 : implicit_kernels.TOL2 + 1],
             ],
             outputs=[self.stats_array],
             device=device,
         )
         wp.launch(
-            k.record_residual,
+            implicit_kernels.record_residual,
             dim=1,
             inputs=[
                 model.scalar(self.cg_tolerance),
-                self.scalars[ki.RR : ki.RR + 1],
-                self.scalars[ki.TOL2 : ki.TOL2 + 1],
+                self.scalars[implicit_kernels.RR : implicit_kernels.RR + 1],
+                self.scalars[implicit_kernels.TOL2 : implicit_kernels.TOL2 + 1],
             ],
             outputs=[self.residual_stats],
             device=device,
@@ -561,7 +557,7 @@ class ImplicitIntegrator(Integrator):
         model = self.model
         with self.profile.part("velocity_update"):
             wp.launch(
-                model.kernels.apply_velocity_update,
+                implicit_kernels.apply_velocity_update,
                 dim=model.particle_count,
                 inputs=[
                     h,
@@ -581,7 +577,6 @@ class ImplicitIntegrator(Integrator):
         """Linearise, build and solve one system; write v = v_k + dv and x = x_n + h v to state_out."""
         model = self.model
         device = model.device
-        k = model.kernels
         scalar = model.scalar
         n = model.particle_count
         # Linearisation point: (x_n, v_n) for Baraff-Witkin's solve, else the iterate (x_n + h v_k, v_k).
@@ -597,7 +592,7 @@ class ImplicitIntegrator(Integrator):
                 self.multigrid.jacobians(h, h * h if at_start else scalar(0.0), q, qd, self.diag_block, self.rhs)
             elif model.spring_count:
                 wp.launch(
-                    k.eval_spring_jacobians,
+                    implicit_kernels.eval_spring_jacobians,
                     dim=model.spring_count,
                     inputs=[
                         h,
@@ -615,9 +610,9 @@ class ImplicitIntegrator(Integrator):
         with self.profile.part("system_assembly"):
             self.scalars.zero_()
             wp.launch(
-                k.build_system,
-                dim=(ki.tile_blocks(n), ki.TILE),
-                block_dim=ki.TILE,
+                implicit_kernels.build_system,
+                dim=(implicit_kernels.tile_blocks(n), implicit_kernels.TILE),
+                block_dim=implicit_kernels.TILE,
                 inputs=[
                     n,
                     h,
@@ -640,7 +635,7 @@ class ImplicitIntegrator(Integrator):
                 device=device,
             )
             if first:
-                wp.launch(k.set_step_scale, dim=1, inputs=[self.scalars], outputs=[self.step_bb], device=device)
+                wp.launch(implicit_kernels.set_step_scale, dim=1, inputs=[self.scalars], outputs=[self.step_bb], device=device)
         self._solve(constrained=not reset_filters)
         self._update(h, state_in, qd, state_out, first)
 
@@ -677,7 +672,7 @@ class ImplicitIntegrator(Integrator):
                            layer_touch=True)
         self.any_contact.zero_()
         wp.launch(
-            model.kernels.constrain_contacts,
+            implicit_kernels.constrain_contacts,
             dim=model.particle_count,
             inputs=[
                 h,
@@ -727,9 +722,9 @@ class ImplicitIntegrator(Integrator):
             with self.profile.part("system_assembly"):
                 self.scalars.zero_()
                 wp.launch(
-                    model.kernels.constrain_last_system,
-                    dim=(ki.tile_blocks(n), ki.TILE),
-                    block_dim=ki.TILE,
+                    implicit_kernels.constrain_last_system,
+                    dim=(implicit_kernels.tile_blocks(n), implicit_kernels.TILE),
+                    block_dim=implicit_kernels.TILE,
                     inputs=[
                         n,
                         int(self.preconditioner != "diagonal"),
@@ -774,12 +769,11 @@ class ImplicitIntegrator(Integrator):
         """
         model = self.model
         device = model.device
-        k = model.kernels
         eval_forces(model, state_out.particle_q, state_out.particle_qd, self.f, self.run.forces)
         self.body_data.zero_()
         self.energy_gained.zero_()
         wp.launch(
-            k.measure_particle_restitution,
+            implicit_kernels.measure_particle_restitution,
             dim=model.particle_count,
             inputs=[
                 h,
@@ -802,7 +796,7 @@ class ImplicitIntegrator(Integrator):
         )
         if model.spring_count:
             wp.launch(
-                k.measure_spring_restitution,
+                implicit_kernels.measure_spring_restitution,
                 dim=model.spring_count,
                 inputs=[
                     self.particle_body,
@@ -816,7 +810,7 @@ class ImplicitIntegrator(Integrator):
                 device=device,
             )
         wp.launch(
-            k.check_energy_budget,
+            implicit_kernels.check_energy_budget,
             dim=self.body_data.shape[0],
             inputs=[model.scalar(self.cg_tolerance), self.body_data],
             outputs=[self.energy_gained],
@@ -835,7 +829,7 @@ class ImplicitIntegrator(Integrator):
         """
         model = self.model
         wp.launch(
-            model.kernels.apply_restitution,
+            implicit_kernels.apply_restitution,
             dim=model.particle_count,
             inputs=[
                 self.particle_body,
@@ -853,12 +847,12 @@ class ImplicitIntegrator(Integrator):
         model = self.model
         device = model.device
         if self.solver == "warp_cg" and not (device.is_cuda or device.is_capturing):
-            self._host_stats[ki.TOTAL_ITERS] += self._host_stats[ki.STEP_ITERS]
-            self._host_stats[ki.MAX_ITERS] = max(self._host_stats[ki.MAX_ITERS], self._host_stats[ki.STEP_ITERS])
-            self._host_stats[ki.STEPS] += 1
-            self._host_stats[ki.STEP_ITERS] = 0
+            self._host_stats[implicit_kernels.TOTAL_ITERS] += self._host_stats[implicit_kernels.STEP_ITERS]
+            self._host_stats[implicit_kernels.MAX_ITERS] = max(self._host_stats[implicit_kernels.MAX_ITERS], self._host_stats[implicit_kernels.STEP_ITERS])
+            self._host_stats[implicit_kernels.STEPS] += 1
+            self._host_stats[implicit_kernels.STEP_ITERS] = 0
         else:
-            wp.launch(model.kernels.record_step, dim=1, inputs=[], outputs=[self.stats_array], device=device)
+            wp.launch(implicit_kernels.record_step, dim=1, inputs=[], outputs=[self.stats_array], device=device)
 
     # -- statistics -----------------------------------------------------------------------------
 
@@ -872,7 +866,7 @@ class ImplicitIntegrator(Integrator):
         """CG iterations per step (summed over all solves of a step), for the metrics summary."""
         a = self.stats_array.numpy().astype(np.int64) + self._host_stats
         res = self.residual_stats.numpy().astype(np.float64)
-        steps = int(a[ki.STEPS])
+        steps = int(a[implicit_kernels.STEPS])
         return {
             "newton_iterations": self.newton_iterations,
             "linearization": self.linearization,
@@ -883,13 +877,13 @@ class ImplicitIntegrator(Integrator):
             **(self.multigrid.stats() if self.multigrid is not None else {}),
             "cg_solver": self.solver,
             "cg_steps": steps,
-            "cg_iterations_mean": float(a[ki.TOTAL_ITERS]) / steps if steps else 0.0,
-            "cg_iterations_max": int(a[ki.MAX_ITERS]),
-            "cg_solves": int(a[ki.SOLVES]),
-            "cg_unconverged_solves": int(a[ki.UNCONVERGED]),
+            "cg_iterations_mean": float(a[implicit_kernels.TOTAL_ITERS]) / steps if steps else 0.0,
+            "cg_iterations_max": int(a[implicit_kernels.MAX_ITERS]),
+            "cg_solves": int(a[implicit_kernels.SOLVES]),
+            "cg_unconverged_solves": int(a[implicit_kernels.UNCONVERGED]),
             # Final |r| / max(|b|, |b_1|) of the solves (this module's loop; not warp_cg's).
             "cg_relative_residual_max": float(res[0]),
-            "cg_relative_residual_mean": float(res[1]) / int(a[ki.SOLVES]) if a[ki.SOLVES] else 0.0,
+            "cg_relative_residual_mean": float(res[1]) / int(a[implicit_kernels.SOLVES]) if a[implicit_kernels.SOLVES] else 0.0,
         }
 
     def profile_notes(self) -> list[str]:

@@ -19,6 +19,7 @@ from .methods import method as method_of  # ``method`` is ExplicitIntegrator's a
 from .model import NUMPY_SCALARS, Model, State
 from .pins import drive
 from .profile import NO_PROFILE
+from ..kernels import integration as integration_kernels
 
 
 class Integrator:
@@ -150,7 +151,7 @@ class ExplicitIntegrator(Integrator):
             with profile.part("stages"):
                 eval_forces(model, q, qd, self.f, self.run.forces)
                 wp.launch(
-                    model.kernels.integrate_stage,
+                    integration_kernels.integrate_stage,
                     dim=model.particle_count,
                     inputs=[
                         stage,

@@ -23,6 +23,7 @@ import warp as wp
 
 from . import lattice
 from ..kernels.lattice import COEF_LENGTH, HALF_OFFSETS, REST_SLOTS, common_coefficients, rest_slot
+from ..kernels import lattice as lattice_kernels
 
 # Rest lengths of one stencil offset count as one value when they agree to this relative
 # tolerance: float64 rounding of initial distances in a rotated lattice is ~1e-16.
@@ -419,7 +420,7 @@ def eval_lattice_forces(model, q: wp.array, qd: wp.array, f_out: wp.array, scrat
             raise ValueError("the lattice row kernel needs its scratch: choose the kernel (set_kernel) before making "
                              "the integrator")
         wp.launch(
-            model.kernels.eval_lattice_rows,
+            lattice_kernels.eval_lattice_rows,
             dim=lat.jelly_count,
             inputs=[
                 *lat.stencil_tables,
@@ -434,7 +435,7 @@ def eval_lattice_forces(model, q: wp.array, qd: wp.array, f_out: wp.array, scrat
     else:
         lat.check_contiguous(q, qd)
         wp.launch(
-            model.kernels.eval_lattice_springs,
+            lattice_kernels.eval_lattice_springs,
             dim=model.particle_count,
             inputs=[
                 model.particle_jelly,

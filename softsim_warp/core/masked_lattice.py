@@ -29,6 +29,7 @@ import warp as wp
 from . import lattice
 from ..kernels.lattice import COEF_LENGTH, MASK_MARGIN, REST_SLOTS, rest_slot
 from .lattice_model import REST_TOLERANCE
+from ..kernels import lattice as lattice_kernels
 
 
 def detect_masked(builder) -> tuple[dict | None, str]:
@@ -205,7 +206,7 @@ def eval_masked_forces(model, q: wp.array, qd: wp.array, f_out: wp.array):
     """Spring and damper forces of (q, qd) into ``f_out`` on the masked path; every entry is written."""
     masked = model.masked
     wp.launch(
-        model.kernels.eval_masked_springs,
+        lattice_kernels.eval_masked_springs,
         dim=model.particle_count,
         inputs=[
             model.particle_jelly,

@@ -19,6 +19,8 @@ import numpy as np
 import warp as wp
 
 from .terrain import face_normals
+from ..kernels import mesh as mesh_kernels
+from ..kernels import pins as pins_kernels
 
 
 def attach_meshes(m, meshes: list, arr, first):
@@ -172,11 +174,11 @@ def animate_meshes(model, run, dt):
     h = model.scalar(dt)
     for k, first, count, start, samples in an.meshes:
         bvh = poses.mesh_bvh[k]
-        wp.launch(model.kernels.deform_mesh, dim=samples.shape[1],
+        wp.launch(mesh_kernels.deform_mesh, dim=samples.shape[1],
                   inputs=[poses.clock, h, first, count, an.time, samples, start],
                   outputs=[poses.mesh_points, bvh.points, poses.mesh_point_velocity], device=model.device)
         bvh.refit()
-    wp.launch(model.kernels.advance_pin_clock, dim=1, inputs=[poses.clock], device=model.device)
+    wp.launch(pins_kernels.advance_pin_clock, dim=1, inputs=[poses.clock], device=model.device)
 
 
 def steps_on_host(model) -> bool:

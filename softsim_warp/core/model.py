@@ -14,7 +14,6 @@ import warp as wp
 
 from . import lattice, particle_contact
 from .errors import SceneError
-from ..kernels import get_kernels
 from .forces import ForceWork, force_path_for_terms, incident_springs_csr
 from .lattice_model import LatticeData, LatticeSprings, detect_lattice, recorded_lattice, spring_arrays
 from .pins import PinDrive, make_motion, path_position
@@ -492,8 +491,7 @@ class ModelBuilder:
         device = wp.get_device(device)
         scalar = SCALARS[precision]
         np_scalar = NUMPY_SCALARS[precision]
-        kernels = get_kernels(scalar)
-        vec3 = kernels.vec3
+        vec3 = wp.types.vector(3, scalar)
 
         def arr(values, dtype, np_dtype=None):
             values = np.asarray(values, dtype=np_dtype) if np_dtype is not None else values
@@ -505,7 +503,6 @@ class ModelBuilder:
         m.precision = precision
         m.scalar = scalar
         m.vec3 = vec3
-        m.kernels = kernels
         m.world_count = self.world_count
         m.jellies = list(self.jellies)
         driven = [p for p in self.pins if p["driven"]]
@@ -673,8 +670,6 @@ class Model:
     """The Warp scalar type of the precision (``wp.float32`` or ``wp.float64``)."""
     vec3: type
     """The Warp 3-vector type of the precision."""
-    kernels: object
-    """The kernels built for the precision (``kernels.get_kernels``)."""
     world_count: int
     """Worlds (independent copies in a comparison or batch); particles of different worlds never interact."""
     jellies: list

@@ -26,8 +26,8 @@ import numpy as np
 import warp as wp
 
 from . import lattice
-from ..kernels import implicit as ki
-from ..kernels import multigrid as km
+from ..kernels import implicit as implicit_kernels
+from ..kernels import multigrid as multigrid_kernels
 from ..kernels.lattice import REST_SLOTS
 
 # Damping of the block-Jacobi sweeps, on the jelly's lattice and on the coarse levels. The fine
@@ -79,7 +79,7 @@ def level_shapes(shape) -> list[tuple[int, int, int]]:
     """Lattice shapes of the hierarchy, from the jelly's down to the coarsest (every axis <= 2)."""
     shapes = [tuple(int(n) for n in shape)]
     while max(shapes[-1]) > 2:
-        shapes.append(tuple(km.coarse_size(n) for n in shapes[-1]))
+        shapes.append(tuple(multigrid_kernels.coarse_size(n) for n in shapes[-1]))
     return shapes
 
 
@@ -145,18 +145,17 @@ class LatticeMultigrid:
         device = model.device
         scalar, vec3 = model.scalar, model.vec3
         mat33 = wp.types.matrix((3, 3), scalar)
-        self.kernels = model.kernels
         layout = model.lattice.layout
         self.shapes = level_shapes(layout.shape[0])
         self.fine_shape = wp.vec3i(*self.shapes[0])
         n = model.particle_count
         # Level 0: smoother inverses, the split operator's stencil, and the V-cycle's vectors.
         self.dinv0 = wp.zeros(n, dtype=mat33, device=device)
-        self.a0 = wp.zeros((km.STENCIL, n), dtype=mat33, device=device) if len(self.shapes) > 1 else None
+        self.a0 = wp.zeros((multigrid_kernels.STENCIL, n), dtype=mat33, device=device) if len(self.shapes) > 1 else None
         self.rowsum0 = wp.zeros(n, dtype=mat33, device=device)
         self.x0 = wp.zeros(n, dtype=vec3, device=device)
         # A lattice of at most 2x2x2 has no coarse level and builds no stencil (mg_fine_setup_lattice writes here).
-        self.dummy_stencil = wp.zeros((km.STENCIL, n if self.a0 is None else 1), dtype=mat33, device=device)
+        self.dummy_stencil = wp.zeros((multigrid_kernels.STENCIL, n if self.a0 is None else 1), dtype=mat33, device=device)
         self.y0 = wp.zeros(n, dtype=vec3, device=device)
         # The linearisation point of the system (written by jacobians()): the products and the
         # setup recompute the spring blocks from it.
@@ -186,7 +185,7 @@ class LatticeMultigrid:
                 {
                     "shape": wp.vec3i(*shape),
                     "count": count,
-                    "a": wp.zeros((km.STENCIL, count), dtype=mat33, device=device),
+                    "a": wp.zeros((multigrid_kernels.STENCIL, count), dtype=mat33, device=device),
                     "dinv": wp.zeros(count, dtype=mat33, device=device),
                     "rowsum": wp.zeros(count, dtype=mat33, device=device),
                     "b": wp.zeros(count, dtype=vec3, device=device),
@@ -224,7 +223,7 @@ class LatticeMultigrid:
         if not self.gather:
             wp.copy(self.q_lin, q)
             wp.launch(
-                self.kernels.eval_spring_jacobians,
+                implicit_kernels.eval_spring_jacobians,
                 dim=model.spring_count,
                 inputs=[self.h, model.scalar(kv_scale), model.spring_indices, model.spring_rest_length,
                         model.spring_stiffness, model.spring_damping, q, qd_k],
@@ -233,7 +232,7 @@ class LatticeMultigrid:
             )
             return
         wp.launch(
-            self.kernels.mg_lattice_jacobians,
+            multigrid_kernels.mg_lattice_jacobians,
             dim=model.particle_count,
             inputs=[self.h, model.scalar(kv_scale), self.fine_shape, self.types, *self.tables, q, qd_k],
             outputs=[diag_out, rhs_out, self.q_lin],
@@ -245,9 +244,9 @@ class LatticeMultigrid:
         model = self.model
         n = model.particle_count
         wp.launch(
-            self.kernels.mg_lattice_mv,
-            dim=(ki.tile_blocks(n), ki.TILE),
-            block_dim=ki.TILE,
+            multigrid_kernels.mg_lattice_mv,
+            dim=(implicit_kernels.tile_blocks(n), implicit_kernels.TILE),
+            block_dim=implicit_kernels.TILE,
             inputs=[n, slot, self.h, self.fine_shape, self.types, *self.tables, self.q_lin,
                     self.system.mass_eff, p],
             outputs=[y, scalars],
@@ -266,7 +265,7 @@ class LatticeMultigrid:
             self.build()
             return
         wp.launch(
-            self.kernels.mg_setup_due,
+            multigrid_kernels.mg_setup_due,
             dim=1,
             inputs=[self.setup_every, int(constrained)],
             outputs=[self.setup_state, self.setup_flag],
@@ -278,12 +277,11 @@ class LatticeMultigrid:
         """Build the hierarchy for the current system (its linearisation point, filters, masses)."""
         model = self.model
         device = model.device
-        k = self.kernels
         s = self.system
         fine_shape = self.fine_shape
         fine_out = [self.a0 if self.a0 is not None else self.dummy_stencil, self.rowsum0, self.dinv0]
         wp.launch(
-            k.mg_fine_setup_lattice,
+            multigrid_kernels.mg_fine_setup_lattice,
             dim=model.particle_count,
             inputs=[self.h, fine_shape, self.types, *self.table_arrays, self.q_lin, s.mass_eff, s.filters],
             outputs=fine_out,
@@ -294,8 +292,8 @@ class LatticeMultigrid:
         below_shape, below_a, below_rowsum = fine_shape, self.a0, self.rowsum0
         for lv in self.levels:
             wp.launch(
-                k.mg_galerkin,
-                dim=(km.HALF, lv["count"]),
+                multigrid_kernels.mg_galerkin,
+                dim=(multigrid_kernels.HALF, lv["count"]),
                 inputs=[below_shape, lv["shape"], below_a, below_rowsum],
                 outputs=[lv["a"], lv["rowsum"], lv["dinv"]],
                 device=device,
@@ -303,22 +301,21 @@ class LatticeMultigrid:
             below_shape, below_a, below_rowsum = lv["shape"], lv["a"], lv["rowsum"]
         last = self.levels[-1]
         wp.launch(
-            k.mg_coarse_factor, dim=1, inputs=[last["shape"], last["a"], last["rowsum"]], outputs=[self.chol],
+            multigrid_kernels.mg_coarse_factor, dim=1, inputs=[last["shape"], last["a"], last["rowsum"]], outputs=[self.chol],
             device=device,
         )
-        wp.launch(k.mg_coarse_inverse, dim=self.chol.shape[0], inputs=[self.chol], outputs=[self.coarse_inv], device=device)
+        wp.launch(multigrid_kernels.mg_coarse_inverse, dim=self.chol.shape[0], inputs=[self.chol], outputs=[self.coarse_inv], device=device)
 
     def apply(self, r: wp.array, z: wp.array, scalars: wp.array, slot: int):
         """z = V-cycle(r) for a filtered residual r; adds r.z to ``scalars[slot]``."""
         model = self.model
         device = model.device
-        k = self.kernels
         s = self.system
         n = model.particle_count
         omega = self.omega
         if not self.levels:
             # A lattice of at most 2 x 2 x 2: two block-Jacobi sweeps.
-            wp.launch(k.mg_fine_pre, dim=n, inputs=[omega, s.mass_eff, self.dinv0, r], outputs=[self.x0, self.y0],
+            wp.launch(multigrid_kernels.mg_fine_pre, dim=n, inputs=[omega, s.mass_eff, self.dinv0, r], outputs=[self.x0, self.y0],
                       device=device)
             self._spring_product(self.x0)
             self._fine_post(r, z, scalars, slot)
@@ -337,7 +334,7 @@ class LatticeMultigrid:
         last = self.levels[-1]
         width = self.lane_width if self.lanes else 1
         wp.launch(
-            k.mg_coarse_solve,
+            multigrid_kernels.mg_coarse_solve,
             dim=(last["count"], width),
             block_dim=width,
             inputs=[width, last["shape"], self.coarse_inv, last["b"]],
@@ -354,14 +351,14 @@ class LatticeMultigrid:
                 self._smooth(lv, first=1)
             else:
                 wp.launch(
-                    k.mg_prolong, dim=lv["count"], inputs=[lv["shape"], below["shape"], below["x"]],
+                    multigrid_kernels.mg_prolong, dim=lv["count"], inputs=[lv["shape"], below["shape"], below["x"]],
                     outputs=[lv["x"]], device=device,
                 )
                 self._smooth(lv, first=0)
         wp.launch(
-            k.mg_fine_additive,
-            dim=(ki.tile_blocks(n), ki.TILE),
-            block_dim=ki.TILE,
+            multigrid_kernels.mg_fine_additive,
+            dim=(implicit_kernels.tile_blocks(n), implicit_kernels.TILE),
+            block_dim=implicit_kernels.TILE,
             inputs=[n, slot, omega, fine_shape, first["shape"], s.filters, self.dinv0, r, first["x"]],
             outputs=[z, scalars],
             device=device,
@@ -376,9 +373,9 @@ class LatticeMultigrid:
             self.product(x, self.y0, self.scratch, 0)
         elif model.spring_count:
             wp.launch(
-                model.kernels.spring_mv,
-                dim=(ki.tile_blocks(model.spring_count), ki.TILE),
-                block_dim=ki.TILE,
+                implicit_kernels.spring_mv,
+                dim=(implicit_kernels.tile_blocks(model.spring_count), implicit_kernels.TILE),
+                block_dim=implicit_kernels.TILE,
                 inputs=[model.spring_count, -1, model.spring_indices, self.system.spring_block, x],
                 outputs=[self.y0, self.scratch],
                 device=model.device,
@@ -388,9 +385,9 @@ class LatticeMultigrid:
         n = self.model.particle_count
         omega = self.omega
         wp.launch(
-            self.kernels.mg_fine_post,
-            dim=(ki.tile_blocks(n), ki.TILE),
-            block_dim=ki.TILE,
+            multigrid_kernels.mg_fine_post,
+            dim=(implicit_kernels.tile_blocks(n), implicit_kernels.TILE),
+            block_dim=implicit_kernels.TILE,
             inputs=[n, slot, omega, self.system.filters, self.dinv0, r, self.x0, self.y0],
             outputs=[z, scalars],
             device=self.model.device,
@@ -399,7 +396,7 @@ class LatticeMultigrid:
     def _restrict(self, shape, r, below):
         """below["b"] = R r, and the first sweep from zero on that level into below["x"]."""
         wp.launch(
-            self.kernels.mg_restrict,
+            multigrid_kernels.mg_restrict,
             dim=below["count"],
             inputs=[shape, below["shape"], r, self.coarse_omega, below["dinv"]],
             outputs=[below["b"], below["x"]],
@@ -413,18 +410,17 @@ class LatticeMultigrid:
     def _stencil_op(self, lv, mode: int, x, y, below=None):
         """On a coarse level, x into y: mode 0 the residual, 1 a sweep, 2 (lanes only) a sweep from
         x + P e, e the correction of the level ``below``."""
-        k = self.kernels
         device = self.model.device
         args = [mode, self.coarse_omega, lv["shape"], lv["a"], lv["rowsum"], lv["dinv"], lv["b"], x]
         if self._lanes(lv):
             coarse = [below["shape"], below["x"]] if below is not None else [lv["shape"], x]
             wp.launch(
-                k.mg_stencil_op_lanes, dim=(lv["count"], self.lane_width), block_dim=self.lane_width,
+                multigrid_kernels.mg_stencil_op_lanes, dim=(lv["count"], self.lane_width), block_dim=self.lane_width,
                 inputs=[self.lane_width, *args, *coarse],
                 outputs=[y], device=device,
             )
         else:
-            wp.launch(k.mg_stencil_op, dim=lv["count"], inputs=args, outputs=[y], device=device)
+            wp.launch(multigrid_kernels.mg_stencil_op, dim=lv["count"], inputs=args, outputs=[y], device=device)
 
     def _smooth(self, lv, first: int):
         """Sweeps ``first`` .. of damped block-Jacobi on a coarse level (``sweeps`` on the first

@@ -41,6 +41,7 @@ from . import lattice
 from .errors import SceneError
 from .lattice_model import LatticeData
 from ..kernels.particle_contact import CANDIDATE_REACH
+from ..kernels import particle_contact as particle_contact_kernels
 
 # Defaults of the scene keys [simulation] jelly_contact_friction and jelly_contact_restitution.
 DEFAULT_FRICTION = 0.5
@@ -385,13 +386,12 @@ class ParticleContactState:
     def __call__(self, model, state_in, state_out, h, world_contact_beta):
         if self.count == 0:
             return
-        k = model.kernels
         device = model.device
         n = self.count
         # The kernels address the particle state from its data pointer, like the fused stages.
         LatticeData.check_contiguous(state_out.particle_q, state_out.particle_qd, who="the jelly contact kernels")
         wp.launch(
-            k.prepare_contact_particles,
+            particle_contact_kernels.prepare_contact_particles,
             dim=n,
             inputs=[
                 self.contact_index,
@@ -405,7 +405,7 @@ class ParticleContactState:
             device=device,
         )
         wp.launch(
-            k.insert_contact_grid,
+            particle_contact_kernels.insert_contact_grid,
             dim=n,
             inputs=[self.rebuild, self.builds, self.contact_world, self.inv_cell, self.shift, self.cq],
             outputs=[self.cell_bucket, self.grid_head, self.grid_next],
@@ -422,7 +422,7 @@ class ParticleContactState:
             self.skin,
         ]
         wp.launch(
-            k.build_contact_candidates,
+            particle_contact_kernels.build_contact_candidates,
             dim=n,
             inputs=[
                 self.rebuild, self.builds, self.grid_head, self.grid_next, self.inv_cell, self.shift, *pairs, self.cq
@@ -441,7 +441,7 @@ class ParticleContactState:
             *pairs,
         ]
         wp.launch(
-            k.find_particle_contacts,
+            particle_contact_kernels.find_particle_contacts,
             dim=n,
             inputs=[
                 *walk, self.restitution, self.friction, self.phase, self.cq, self.contact_index,
@@ -458,7 +458,7 @@ class ParticleContactState:
         for it in range(self.iterations - 1):
             v_out = self.rec_iter[it % 2]
             wp.launch(
-                k.resolve_contact_velocities,
+                particle_contact_kernels.resolve_contact_velocities,
                 dim=n,
                 inputs=[
                     *walk,
@@ -485,7 +485,7 @@ class ParticleContactState:
             )
             v_in = v_out
         wp.launch(
-            k.resolve_contact_last_pass,
+            particle_contact_kernels.resolve_contact_last_pass,
             dim=n,
             inputs=[
                 *walk,

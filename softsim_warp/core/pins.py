@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import numpy as np
 import warp as wp
+from ..kernels import pins as pins_kernels
 
 FACES = ("-x", "+x", "-y", "+y", "-z", "+z")
 INTERPOLATIONS = ("linear", "smooth")
@@ -86,14 +87,14 @@ def drive(model, run, state, dt):
         return
     h = model.scalar(dt)
     wp.launch(
-        model.kernels.drive_pins,
+        pins_kernels.drive_pins,
         dim=pins.count,
         inputs=[run.pin_clock, h, pins.particle, pins.pin, pins.start, pins.velocity, pins.spin, pins.center,
                 pins.key_first, pins.key_count, pins.smooth, pins.key_time, pins.key_value],
         outputs=[state.particle_q, state.particle_qd],
         device=model.device,
     )
-    wp.launch(model.kernels.advance_pin_clock, dim=1, inputs=[run.pin_clock], device=model.device)
+    wp.launch(pins_kernels.advance_pin_clock, dim=1, inputs=[run.pin_clock], device=model.device)
 
 
 def make_motion(velocity=(0.0, 0.0, 0.0), spin=(0.0, 0.0, 0.0), center=None, key_times=(), key_offsets=(),

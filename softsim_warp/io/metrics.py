@@ -22,6 +22,8 @@ from ..core.contact import terrain_speed
 from ..core.mesh_terrain import mesh_touch_arrays
 from ..core.model import Model, State
 from ..kernels.metrics import NO_SURFACE
+from ..kernels import lattice as lattice_kernels
+from ..kernels import metrics as metrics_kernels
 
 
 @dataclass
@@ -83,7 +85,7 @@ class MetricsProbe:
         for a in (self.kinetic, self.gravity_energy, self.spring_energy, self.moment, self.max_speed, self.nonfinite):
             a.zero_()
         wp.launch(
-            m.kernels.reduce_particles,
+            metrics_kernels.reduce_particles,
             dim=m.particle_count,
             inputs=[m.particle_mass, m.particle_jelly, m.gravity, state.particle_q, state.particle_qd],
             outputs=[self.kinetic, self.gravity_energy, self.moment, self.max_speed, self.nonfinite],
@@ -93,7 +95,7 @@ class MetricsProbe:
             # Lattice path: the same energy from the stencil, without making the spring arrays.
             lat = m.lattice
             wp.launch(
-                m.kernels.reduce_lattice_springs,
+                lattice_kernels.reduce_lattice_springs,
                 dim=m.particle_count,
                 inputs=[m.particle_jelly, lat.jelly_start, lat.jelly_shape, lat.jelly_types, lat.jelly_rest, lat.jelly_ks,
                         state.particle_q],
@@ -102,7 +104,7 @@ class MetricsProbe:
             )
         elif m.spring_count:
             wp.launch(
-                m.kernels.reduce_springs,
+                metrics_kernels.reduce_springs,
                 dim=m.spring_count,
                 inputs=[m.spring_indices, m.spring_rest_length, m.spring_stiffness, m.particle_jelly, state.particle_q],
                 outputs=[self.spring_energy],
@@ -232,13 +234,12 @@ class PenetrationProbe:
         """Reduce ``state``'s penetration per world into ``depth`` (launches only)."""
         m = self.model
         t = self.run.terrain
-        k = m.kernels
         self.depth.zero_()
         if m.bowl_count:
             wp.copy(self.shell_lo, self._shell_lo_init)
             wp.copy(self.shell_hi, self._shell_hi_init)
         wp.launch(
-            k.measure_penetration,
+            metrics_kernels.measure_penetration,
             dim=m.particle_count,
             inputs=[m.particle_world, m.particle_jelly,
                     m.plane_first, t.plane_point, t.plane_normal, t.plane_hole_center, m.plane_hole_radius,
@@ -251,7 +252,7 @@ class PenetrationProbe:
         )
         if m.bowl_count:
             wp.launch(
-                k.combine_shell_depths,
+                metrics_kernels.combine_shell_depths,
                 dim=self.shell_lo.shape[0],
                 inputs=[self.jelly_world, m.bowl_first, self.bowl_slots, self.shell_lo, self.shell_hi],
                 outputs=[self.depth],
@@ -280,7 +281,7 @@ class PositionErrorProbe:
         self.error = wp.zeros(len(world_ranges), dtype=wp.float64, device=model.device)
 
     def launch(self, q, q_ref):
-        wp.launch(self.model.kernels.measure_position_error, dim=self.error.shape[0],
+        wp.launch(metrics_kernels.measure_position_error, dim=self.error.shape[0],
                   inputs=[self.world_start, q, q_ref], outputs=[self.error], device=self.model.device)
 
     def read(self) -> np.ndarray:
@@ -362,18 +363,17 @@ class DeterministicMetricsProbe(MetricsProbe):
 
     def _reduce(self, state):
         m = self.model
-        k = m.kernels
         start, end, jelly_start = self._p_chunks
         if start.shape[0]:
             wp.launch(
-                k.reduce_particle_chunks,
+                metrics_kernels.reduce_particle_chunks,
                 dim=start.shape[0],
                 inputs=[start, end, m.particle_mass, m.gravity, state.particle_q, state.particle_qd],
                 outputs=self._p_partial,
                 device=m.device,
             )
         wp.launch(
-            k.combine_particle_chunks,
+            metrics_kernels.combine_particle_chunks,
             dim=jelly_start.shape[0] - 1,
             inputs=[jelly_start, *self._p_partial],
             outputs=[self.kinetic, self.gravity_energy, self.moment, self.max_speed, self.nonfinite],
@@ -382,14 +382,14 @@ class DeterministicMetricsProbe(MetricsProbe):
         start, end, jelly_start = self._s_chunks
         if start.shape[0]:
             wp.launch(
-                k.reduce_spring_chunks,
+                metrics_kernels.reduce_spring_chunks,
                 dim=start.shape[0],
                 inputs=[start, end, m.spring_indices, m.spring_rest_length, m.spring_stiffness, state.particle_q],
                 outputs=[self._s_partial],
                 device=m.device,
             )
         wp.launch(
-            k.combine_spring_chunks,
+            metrics_kernels.combine_spring_chunks,
             dim=jelly_start.shape[0] - 1,
             inputs=[jelly_start, self._s_partial],
             outputs=[self.spring_energy],
