@@ -139,7 +139,8 @@ def test_constant_force_steps_match_closed_form_and_both_accessors_agree_bitwise
     """Under a constant acceleration a every method here is exact up to rounding: v_n = v0 + a t
     (all of them), x_n = x0 + v0 t + a t^2 / 2 for midpoint and RK4 (second order suffices for a
     quadratic), x0 + v0 t + a t (t - h) / 2 for explicit Euler and x0 + v0 t + a t (t + h) / 2 for
-    symplectic Euler. The indexed and data-pointer stage updates give the same bits."""
+    symplectic Euler. The indexed and data-pointer stage updates give the same bits on the CPU; on
+    CUDA nvcc may fuse multiply-adds differently in the two kernels, so they agree to a few ulps."""
     rng = np.random.default_rng(7)
     n, h, steps = 5, 0.01, 6
     q0, v0, f = (rng.uniform(-1, 1, (n, 3)) for _ in range(3))
@@ -148,8 +149,12 @@ def test_constant_force_steps_match_closed_form_and_both_accessors_agree_bitwise
     args = (q0, v0, f, inv_mass, g, h, steps)
     q, v = run_steps(device, scalar, np_dtype, method, False, *args)
     q_direct, v_direct = run_steps(device, scalar, np_dtype, method, True, *args)
-    np.testing.assert_array_equal(q, q_direct)
-    np.testing.assert_array_equal(v, v_direct)
+    if wp.get_device(device).is_cpu:
+        np.testing.assert_array_equal(q, q_direct)
+        np.testing.assert_array_equal(v, v_direct)
+    else:
+        np.testing.assert_array_max_ulp(q, q_direct, maxulp=4)
+        np.testing.assert_array_max_ulp(v, v_direct, maxulp=4)
     a = np.where(inv_mass[:, None] == 0.0, 0.0, f * inv_mass[:, None] + g)
     t = h * steps
     shift = {"euler": -h, "symplectic": h}.get(method, 0.0)
