@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 import warp as wp
 
-from softsim_warp.commands import stability
+from softsim_warp.studies import stability
 from softsim_warp.core import stability_analysis as sa
 from softsim_warp.core.model import ModelBuilder
 from softsim_warp.core.stability_model import predict_jelly_dt, predict_model_dt
