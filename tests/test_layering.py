@@ -152,6 +152,24 @@ def test_layer_packages_exist(module):
     assert module in MODULES
 
 
+def test_benchmarks_and_docs_scripts_use_the_library_not_the_commands():
+    """benchmarks/, docs/ and examples/ scripts measure through library code (softsim_warp.studies and
+    below), not through the command modules, which only parse, call and print."""
+    scripts = [*sorted((ROOT / "benchmarks").glob("*.py")), *sorted((ROOT / "docs").glob("*.py")),
+               *sorted((ROOT / "examples").glob("*.py"))]
+    assert scripts
+    found = []
+    for path in scripts:
+        for node in ast.walk(ast.parse(path.read_text(), str(path))):
+            names = []
+            if isinstance(node, ast.Import):
+                names = [a.name for a in node.names]
+            elif isinstance(node, ast.ImportFrom) and node.module:
+                names = [node.module] + [f"{node.module}.{a.name}" for a in node.names]
+            found += [f"{path.name}: {n}" for n in names if n == "softsim_warp.commands" or n.startswith("softsim_warp.commands.")]
+    assert found == []
+
+
 def test_every_package_is_installed():
     """pyproject.toml lists every package of softsim_warp/ (one missing there is left out of an install)."""
     import tomllib  # noqa: PLC0415
