@@ -50,7 +50,7 @@ def batch_datas(worlds: int) -> list[dict]:
 
 def pile_data(jellies: int) -> dict:
     """A validated scene of ``jellies`` 10^3 jellies in a block on the ground, contact between them."""
-    from softsim_warp.commands.bench_contact import pile_positions
+    from softsim_warp.studies.bench_contact import pile_positions
     from softsim_warp.io import scene as scene_mod
 
     _, source, base = scene_mod.read_scene_data("seed_plane")

@@ -22,49 +22,25 @@ import argparse
 import json
 import statistics
 import sys
-import time
 
 from softsim_warp.core.model import build_model
-from softsim_warp.core.stepper import make_integrator
 from softsim_warp.io.scene import load_scene
+from softsim_warp.studies.bench import IntegratorCase
 
 
-class Case:
-    """One model and integrator, warmed up, that times ``steps`` steps (a captured graph on CUDA)."""
+class Case(IntegratorCase):
+    """jelly_drop at ``res``^3 on one force path, warmed up; its steps a captured graph on CUDA, launches on the CPU."""
 
     def __init__(self, device, res, integrator, deterministic, steps, dt=1e-4, force_path="springs"):
-        import warp as wp  # noqa: PLC0415
-
-        self.wp, self.device, self.steps, self.dt = wp, device, steps, dt
         scene = load_scene("jelly_drop", [f"jelly.0.resolution=[{res},{res},{res}]"])
-        self.model = build_model(scene, device=device, deterministic=deterministic, force_path=force_path)
-        self.integ = make_integrator(integrator, self.model)
-        self.states = [self.model.state(), self.model.state()]
-        t0 = time.perf_counter()
-        self._run(2)
-        wp.synchronize_device(device)
-        self.compile_seconds = time.perf_counter() - t0
-        self.graph = None
-        if wp.get_device(device).is_cuda:
-            with wp.ScopedCapture(device=device) as cap:
-                self._run(steps)
-            self.graph = cap.graph
-
-    def _run(self, n):
-        for i in range(n):
-            self.integ.step(self.states[i % 2], self.states[(i + 1) % 2], self.dt)
+        model = build_model(scene, device=device, deterministic=deterministic, force_path=force_path)
+        super().__init__(model, integrator, dt, steps, use_graph=model.device.is_cuda)
+        self.compile_seconds = self.prepare()
 
     def time(self) -> tuple[float, float]:
         """(wall seconds, this thread's CPU seconds) per step."""
-        wp = self.wp
-        wp.synchronize_device(self.device)
-        t0, c0 = time.perf_counter(), time.thread_time()
-        if self.graph is not None:
-            wp.capture_launch(self.graph)
-        else:
-            self._run(self.steps)
-        wp.synchronize_device(self.device)
-        return (time.perf_counter() - t0) / self.steps, (time.thread_time() - c0) / self.steps
+        self.time_once()
+        return self.wall[-1] / self.steps, self.thread[-1] / self.steps
 
 
 def compare(device, res, integrator, steps, repeats) -> dict:

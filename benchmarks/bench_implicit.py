@@ -30,7 +30,6 @@ import functools
 import json
 import math
 import platform
-import time
 
 import numpy as np
 import warp as wp
@@ -41,6 +40,7 @@ from softsim_warp.core.model import ModelBuilder, build_model
 from softsim_warp.io.scene import load_scene
 from softsim_warp.io.metrics import speed_bound
 from softsim_warp.core.stability_analysis import predict_lattice_dt
+from softsim_warp.studies.timing import TimedSteps
 
 SPRING_TYPES = ("structural", "shear", "bending")
 # jelly_drop's dampers; the stiffness is the benchmark's parameter.
@@ -92,37 +92,23 @@ def stable_dt(size: int, ks: float, method: str) -> float:
 def _time_steps(integ, model, dt, steps):
     """(compile seconds, seconds for ``steps`` steps, finite at the end).
 
-    On CUDA the steps are captured once as a graph (two steps, so the states swap back) and
-    replayed, as the simulator does for a frame; on the CPU they are launched one by one.
+    On CUDA the steps are captured once as a graph and replayed, as the simulator does for a
+    frame; on the CPU they are launched one by one (:class:`~softsim_warp.studies.timing.TimedSteps`).
+    The integrator's statistics count the timed steps only.
     """
-    s0, s1 = model.state(), model.state()
-    t0 = time.perf_counter()
-    integ.step(s0, s1, dt)  # compiles and loads every kernel
-    integ.step(s1, s0, dt)
-    wp.synchronize_device(model.device)
-    compile_s = time.perf_counter() - t0
+    states = [model.state(), model.state()]
+
+    def step(count):
+        for k in range(count):
+            integ.step(states[k % 2], states[1 - k % 2], dt)
+
+    timed = TimedSteps(model.device, step, steps, model.device.is_cuda)
+    compile_s = timed.prepare()
     if hasattr(integ, "reset_stats"):
         integ.reset_stats()
-    graph = None
-    if model.device.is_cuda:
-        with wp.ScopedCapture(device=model.device, force_module_load=False) as capture:
-            integ.step(s0, s1, dt)
-            integ.step(s1, s0, dt)
-        graph = capture.graph
-        if hasattr(integ, "reset_stats"):
-            integ.reset_stats()
-    wp.synchronize_device(model.device)
-    t0 = time.perf_counter()
-    if graph is not None:
-        for _ in range(steps // 2):
-            wp.capture_launch(graph)
-    else:
-        for _ in range(steps // 2):
-            integ.step(s0, s1, dt)
-            integ.step(s1, s0, dt)
-    wp.synchronize_device(model.device)
-    seconds = (time.perf_counter() - t0) * steps / (2 * (steps // 2))
-    finite = bool(np.isfinite(s0.particle_q.numpy()).all())
+    timed.time_once()
+    seconds = timed.wall[-1] * steps / timed.steps
+    finite = bool(np.isfinite(states[0].particle_q.numpy()).all())
     return compile_s, seconds, finite
 
 

@@ -39,9 +39,9 @@ from pathlib import Path
 import numpy as np
 
 from softsim_warp.core.model import ModelBuilder, populate
-from softsim_warp.core.integrators import ExplicitIntegrator
 from softsim_warp.core.terrain import sphere_mesh
 from softsim_warp.io.scene import scene_from_dict
+from softsim_warp.studies.bench import IntegratorCase
 
 SPRINGS = {"structural": {"ks": 50.0, "kd": 0.1}, "shear": {"ks": 50.0, "kd": 0.1}, "bending": {"ks": 25.0, "kd": 0.05}}
 
@@ -78,53 +78,31 @@ def scene(jelly):
     return scene_from_dict({"simulation": {"dt": 1e-4, "frames": 1}, "jelly": [j]})
 
 
-class Case:
+class Case(IntegratorCase):
     """One model and integrator, warmed up, that times ``steps`` steps (a captured graph on CUDA)."""
 
     def __init__(self, name, scn, device, integrator, steps, dt=1e-4, force_path="auto", gather=False, **options):
         import warp as wp  # noqa: PLC0415
 
-        self.name, self.wp, self.device, self.steps, self.dt = name, wp, device, steps, dt
+        self.name = name
         builder = ModelBuilder(scn.sim["gravity"])
         builder.device = device
         populate(builder, scn.data)
         # gather: the masked path on any device (finalize takes it on CUDA only).
-        self.model = builder.finalize(device, scn.sim["precision"], force_path=force_path,
-                                      masked_kernel="gather" if gather else None)
-        m = self.model
-        self.particles = m.particle_count
-        self.path = "lattice" if m.lattice is not None else "masked" if m.masked is not None else "springs"
+        model = builder.finalize(device, scn.sim["precision"], force_path=force_path,
+                                 masked_kernel="gather" if gather else None)
+        self.particles = model.particle_count
+        self.path = "lattice" if model.lattice is not None else "masked" if model.masked is not None else "springs"
         # options: the fused stage's (fused, single; core/fused.py configure_fused); none: the defaults.
-        self.integ = ExplicitIntegrator(self.model, integrator, **options)
-        if self.integ.fused:
-            self.path += " fused" + (" 1" if self.integ.single else "")
-        self.states = [self.model.state(), self.model.state()]
-        t0 = time.perf_counter()
-        self._run(2)
-        wp.synchronize_device(device)
-        self.compile_seconds = time.perf_counter() - t0
-        self.graph = None
-        if wp.get_device(device).is_cuda:
-            with wp.ScopedCapture(device=device) as cap:
-                self._run(steps)
-            self.graph = cap.graph
-
-    def _run(self, n):
-        for i in range(n):
-            self.integ.step(self.states[i % 2], self.states[(i + 1) % 2], self.dt)
+        super().__init__(model, integrator, dt, steps, use_graph=wp.get_device(device).is_cuda, options=options)
+        if self.integrator.fused:
+            self.path += " fused" + (" 1" if self.integrator.single else "")
+        self.compile_seconds = self.prepare()
 
     def time(self) -> float:
         """Seconds per step (CUDA: wall; CPU: this thread's CPU time)."""
-        wp = self.wp
-        wp.synchronize_device(self.device)
-        cpu = self.graph is None
-        t0 = time.thread_time() if cpu else time.perf_counter()
-        if cpu:
-            self._run(self.steps)
-        else:
-            wp.capture_launch(self.graph)
-        wp.synchronize_device(self.device)
-        return ((time.thread_time() if cpu else time.perf_counter()) - t0) / self.steps
+        self.time_once()
+        return (self.wall[-1] if self.use_graph else self.thread[-1]) / self.steps
 
 
 def _make_assets():

@@ -25,7 +25,7 @@ import warp as wp
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 
-from softsim_warp.commands.timing import TimedSteps  # noqa: E402
+from softsim_warp.studies.timing import TimedSteps  # noqa: E402
 from softsim_warp.core import multigrid  # noqa: E402
 from softsim_warp.kernels import implicit as implicit_kernels  # noqa: E402
 from softsim_warp.kernels import multigrid as multigrid_kernels  # noqa: E402

@@ -29,7 +29,7 @@ import math
 import sys
 import time
 
-from softsim_warp.commands import stability
+from softsim_warp.studies import stability
 from softsim_warp.core import stability_model as sm
 from softsim_warp.core.methods import EXPLICIT_NAMES as EXPLICIT
 from softsim_warp.io import stable_step

@@ -133,7 +133,7 @@ def time_batch(args) -> dict:
     """The sweep's task code on ``args.device`` in this process, and ``softsim bench`` on its model."""
     import numpy as np  # noqa: PLC0415
 
-    from softsim_warp.commands.bench import _OurCase  # noqa: PLC0415
+    from softsim_warp.studies.bench import IntegratorCase  # noqa: PLC0415
     from softsim_warp.io.sweep import batch as batch_mod  # noqa: PLC0415
     from softsim_warp.io.warp_init import init_warp  # noqa: PLC0415
 
@@ -159,7 +159,7 @@ def time_batch(args) -> dict:
         model, integrator = t["model"], t["integrator"]
     work = sum(r["particles"] * r["steps"] for r in rows)
     data = specs[0]["data"]["simulation"]
-    case = _OurCase(model, data["integrator"], data["dt"], args.bench_steps, use_graph=True)
+    case = IntegratorCase(model, data["integrator"], data["dt"], args.bench_steps, use_graph=True)
     case.integrator = integrator  # the batch's own (one method per world), as its steps used it
     case.prepare()
     for _ in range(args.repeats):

@@ -39,7 +39,7 @@ import sys
 
 import warp as wp
 
-from softsim_warp.commands.timing import TimedSteps
+from softsim_warp.studies.timing import TimedSteps
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 
@@ -61,8 +61,8 @@ def _implicit_case(args, device):
 
 
 def _contact_case(args, device):
-    from softsim_warp.commands.bench import JellySpec  # noqa: PLC0415
-    from softsim_warp.commands.bench_contact import build_pile  # noqa: PLC0415
+    from softsim_warp.studies.bench import JellySpec  # noqa: PLC0415
+    from softsim_warp.studies.bench_contact import build_pile  # noqa: PLC0415
     from softsim_warp.core.stepper import make_integrator  # noqa: PLC0415
 
     spec = JellySpec()
@@ -131,15 +131,15 @@ def _pass_counts(args) -> list[int]:
 
 def _passes(args, device, model, counts, repeats=7) -> int:
     """The whole step with each count of velocity passes, against the step without contact."""
-    from softsim_warp.commands.bench import JellySpec  # noqa: PLC0415
-    from softsim_warp.commands.bench_contact import _Ours  # noqa: PLC0415
+    from softsim_warp.studies.bench import JellySpec  # noqa: PLC0415
+    from softsim_warp.studies.bench_contact import PileCase  # noqa: PLC0415
 
     dt = JellySpec().dt
 
     def case(contact, passes=0):
         # Each case steps its own states from the pile's start, as softsim bench --contact's do,
         # with its own integrator and so its own contact lists (its run state).
-        timed = _Ours(model, "symplectic", dt, args.steps, True, contact)
+        timed = PileCase(model, "symplectic", dt, args.steps, True, contact)
         hook = timed.integrator.run.particle_contact
         hook.rec_iter = [wp.zeros_like(hook.rec_warm) for _ in range(2)]  # the passes' buffers for any count
         hook.iterations = passes

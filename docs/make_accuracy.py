@@ -95,11 +95,11 @@ def unbounded(value):
 
 def table(report):
     if "limits" in report:
-        from softsim_warp.commands.stability import format_table  # noqa: PLC0415
+        from softsim_warp.studies.stability import format_table  # noqa: PLC0415
 
         return format_table(unbounded(report))
     else:
-        from softsim_warp.commands.accuracy import format_table  # noqa: PLC0415
+        from softsim_warp.studies.accuracy import format_table  # noqa: PLC0415
     return format_table(report)
 
 

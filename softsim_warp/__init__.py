@@ -14,8 +14,8 @@ Typical use::
     positions = stepper.state.particle_q.numpy()
 
 Layers: ``softsim_warp.core`` (model, forces, contact, integrators; imports only ``kernels``),
-``softsim_warp.io`` (scenes, USD, metrics, the frame loop) and ``softsim_warp.commands`` (the CLI);
-see docs/ARCHITECTURE.md.
+``softsim_warp.io`` (scenes, USD, metrics, the frame loop), ``softsim_warp.studies`` (the measurements of
+bench, accuracy, compare, stability) and ``softsim_warp.commands`` (the CLI); see docs/ARCHITECTURE.md.
 """
 
 import os as _os

@@ -10,8 +10,8 @@ import math
 import numpy as np
 import pytest
 
-from softsim_warp.commands import accuracy
-from softsim_warp.commands import stability
+from softsim_warp.studies import accuracy
+from softsim_warp.studies import stability
 from softsim_warp.commands.cli import main
 from softsim_warp.io.scene import load_scene
 

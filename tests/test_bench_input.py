@@ -13,7 +13,7 @@ from pathlib import Path
 
 import pytest
 
-from softsim_warp.commands import bench, bench_contact
+from softsim_warp.commands import bench
 from softsim_warp.commands.cli import build_parser, main
 
 sys.path.insert(0, str(Path(__file__).parent))
@@ -101,7 +101,7 @@ def test_contact_flags_get_their_defaults_with_contact_only():
     parser = build_parser()
     args = parser.parse_args(["bench", "--contact"])
     bench._check_flags(args)
-    assert args.jellies == bench_contact.DEFAULT_JELLIES and args.contact_size == 10
+    assert args.jellies == bench.DEFAULT_JELLIES and args.contact_size == 10
     args = parser.parse_args(["bench", "--contact", "--jellies", "2,8", "--contact-size", "3"])
     bench._check_flags(args)
     assert args.jellies == "2,8" and args.contact_size == 3

@@ -8,7 +8,7 @@ import pytest
 
 pytest.importorskip("newton")
 
-from softsim_warp.commands.bench_newton import NewtonJelly, newton_steps_per_second, newton_version
+from softsim_warp.studies.bench_newton import NewtonJelly, newton_steps_per_second, newton_version
 from softsim_warp.core.lattice import lattice_points, lattice_springs
 
 G = 9.81

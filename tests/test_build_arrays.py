@@ -16,7 +16,7 @@ import pytest
 
 import softsim_warp.core.lattice_model as lattice_model
 import softsim_warp.core.model as model_mod
-from softsim_warp.commands.bench_contact import pile_positions
+from softsim_warp.studies.bench_contact import pile_positions
 from softsim_warp.core import lattice
 from softsim_warp.core.lattice_model import LatticeSprings, detect_lattice, recorded_lattice
 from softsim_warp.core.model import ModelBuilder, build_model, jelly_points, populate

@@ -12,7 +12,8 @@ import numpy as np
 import pytest
 
 from softsim_warp.commands import cli
-from softsim_warp.commands.compare import prim_token, rigid_deviation, short_keys, split_values
+from softsim_warp.io.sweep import split_values
+from softsim_warp.studies.compare import prim_token, rigid_deviation, short_keys
 
 # A small version of the 2023 scene: 4^3 particles, long enough to hit the hole's rim (t = 1.34 s)
 # and slide into the bowl, at 20 frames per second.

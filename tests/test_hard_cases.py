@@ -10,7 +10,7 @@ import math
 import numpy as np
 import pytest
 
-from softsim_warp.commands import stability
+from softsim_warp.studies import stability
 from softsim_warp.commands.cli import main
 from softsim_warp.core.stepper import make_integrator
 from softsim_warp.core.model import build_model

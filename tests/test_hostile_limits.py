@@ -236,7 +236,7 @@ def test_sweep_steps_checked_for_every_variant_and_scheduler():
 def test_stability_limits_are_measured_not_all_below_min_dt():
     """The cause of 'every limit < 1e-07': probes longer than the cap count as unstable. A run within
     the cap finds a real limit (the analysis' prediction within a factor 2)."""
-    from softsim_warp.commands import stability as st  # noqa: PLC0415
+    from softsim_warp.studies import stability as st  # noqa: PLC0415
 
     assert st.MAX_PROBE_STEPS >= st.DEFAULT_STEPS
     scene = load_scene("free_flight")

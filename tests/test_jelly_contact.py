@@ -503,8 +503,8 @@ def test_deterministic_on_every_device(device):
 def test_bench_contact_cli(tmp_path, capsys):
     """``softsim bench --contact`` on tiny piles: a row with and without contact per count, on the
     same particles, the block of jellies touching from the first step, and a bad count refused."""
-    from softsim_warp.commands import bench_contact
-    from softsim_warp.commands.bench import JellySpec
+    from softsim_warp.studies import bench_contact
+    from softsim_warp.studies.bench import JellySpec
     from softsim_warp.commands.cli import main
 
     out = tmp_path / "contact.json"

@@ -1,4 +1,4 @@
-"""The package's layers: kernels < core < io < commands, imports only downward, no cycles.
+"""The package's layers: kernels < core < io < studies < commands, imports only downward, no cycles.
 
 Every import statement counts, also one inside a function (a function-level import that dodges a
 cycle at load time is still a cycle in the design), and so does ``importlib.import_module`` of a
@@ -14,7 +14,7 @@ import pathlib
 import pytest
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
-LAYERS = {"kernels": 0, "core": 1, "io": 2, "commands": 3}
+LAYERS = {"kernels": 0, "core": 1, "io": 2, "studies": 3, "commands": 4}
 
 
 def _modules() -> dict[str, pathlib.Path]:
@@ -148,9 +148,37 @@ def test_the_checker_sees_function_level_and_dynamic_imports(tmp_path):
         del MODULES["softsim_warp.core._probe"]
 
 
-@pytest.mark.parametrize("module", ["softsim_warp.core", "softsim_warp.io", "softsim_warp.commands"])
+@pytest.mark.parametrize("module", ["softsim_warp.core", "softsim_warp.io", "softsim_warp.studies", "softsim_warp.commands"])
 def test_layer_packages_exist(module):
     assert module in MODULES
+
+
+def test_benchmarks_and_docs_scripts_use_the_library_not_the_commands():
+    """benchmarks/, docs/ and examples/ scripts measure through library code (softsim_warp.studies and
+    below), not through the command modules, which only parse, call and print."""
+    scripts = [*sorted((ROOT / "benchmarks").glob("*.py")), *sorted((ROOT / "docs").glob("*.py")),
+               *sorted((ROOT / "examples").glob("*.py"))]
+    assert scripts
+    found = []
+    for path in scripts:
+        for node in ast.walk(ast.parse(path.read_text(), str(path))):
+            names = []
+            if isinstance(node, ast.Import):
+                names = [a.name for a in node.names]
+            elif isinstance(node, ast.ImportFrom) and node.module:
+                names = [node.module] + [f"{node.module}.{a.name}" for a in node.names]
+            found += [f"{path.name}: {n}" for n in names if n == "softsim_warp.commands" or n.startswith("softsim_warp.commands.")]
+    assert found == []
+
+
+def test_every_package_is_installed():
+    """pyproject.toml lists every package of softsim_warp/ (one missing there is left out of an install)."""
+    import tomllib  # noqa: PLC0415
+
+    listed = set(tomllib.loads((ROOT / "pyproject.toml").read_text())["tool"]["setuptools"]["packages"])
+    base = ROOT / "softsim_warp"
+    found = {".".join(["softsim_warp", *init.parent.relative_to(base).parts]) for init in base.rglob("__init__.py")}
+    assert found - listed == set()
 
 
 def test_star_import_and_all():

@@ -599,7 +599,7 @@ def test_bad_preconditioner_is_a_one_line_error(tmp_path, capsys):
 
 
 def test_lattice_coloring_separates_every_spring():
-    from softsim_warp.commands.bench_newton import lattice_coloring
+    from softsim_warp.studies.bench_newton import lattice_coloring
     from softsim_warp.core.lattice import lattice_springs
 
     shape = (5, 4, 6)
@@ -616,7 +616,7 @@ def test_lattice_coloring_separates_every_spring():
 def test_implicit_peer_reports_both_solvers():
     """``softsim bench --peer newton`` with implicit: our step is within its CG tolerance of the float64 reference."""
     pytest.importorskip("newton")
-    from softsim_warp.commands.bench_newton import implicit_peer
+    from softsim_warp.studies.bench_newton import implicit_peer
 
     rows = implicit_peer(4, KS, 0.1, DT, "cpu", steps=2, error_steps=3, vbd_iterations=(10,), repeats=1)
     assert [r["solver"].split()[0] for r in rows] == ["softsim", "newton.SolverVBD"]

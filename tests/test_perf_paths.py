@@ -146,7 +146,7 @@ def test_model_states_are_padded_for_the_gather():
 
 def test_bench_memory_counts_padded_allocations():
     """The benchmark's memory column counts a padded state array's whole allocation, once."""
-    from softsim_warp.commands.bench import device_arrays_bytes
+    from softsim_warp.studies.bench import device_arrays_bytes
 
     model = _builder().finalize("cpu", force_path="lattice")
     state = model.state()
@@ -159,7 +159,7 @@ def test_bench_memory_counts_padded_allocations():
 def test_step_bytes_lists_each_array_once():
     """``bench.step_bytes`` per particle, array by array (float32: a vec3 array is 12 bytes a particle),
     for the one-jelly benchmark model on a plane: each array a launch reads or writes counted once."""
-    from softsim_warp.commands.bench import JellySpec, build_jelly_model, step_bytes
+    from softsim_warp.studies.bench import JellySpec, build_jelly_model, step_bytes
 
     model = build_jelly_model(4, JellySpec(), "cpu")
     n, v = model.particle_count, 12
@@ -197,7 +197,7 @@ def test_clock_monitor_reads_nvidia_smi(tmp_path, monkeypatch):
     out, and the power-cap (0x4) and slowdown (thermal, 0x20) samples are counted."""
     import types
 
-    from softsim_warp.commands.bench import ClockMonitor
+    from softsim_warp.studies.bench import ClockMonitor
 
     fake = tmp_path / "nvidia-smi"
     lines = [

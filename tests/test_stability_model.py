@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 import warp as wp
 
-from softsim_warp.commands import stability
+from softsim_warp.studies import stability
 from softsim_warp.core import stability_analysis as sa
 from softsim_warp.core.methods import EXPLICIT_NAMES as EXPLICIT
 from softsim_warp.core.model import ModelBuilder

@@ -11,7 +11,8 @@ import sys
 import pytest
 import warp as wp
 
-from softsim_warp.commands import cli, stability
+from softsim_warp.commands import cli
+from softsim_warp.studies import stability
 from softsim_warp.commands import compare as compare_cmd
 from softsim_warp.commands import sweep as sweep_cmd
 from softsim_warp.core import stability_model as sm

@@ -146,7 +146,7 @@ def stable_dt_task(spec: dict) -> list[dict]:
     damping as in the scene); ``jelly``: its first jelly, free and at rest, for
     ``stability.DEFAULT_STEPS`` steps. Both bisect from the linear prediction (of the whole jelly).
     """
-    from . import stability  # noqa: PLC0415
+    from ..studies import stability  # noqa: PLC0415
 
     wp = init_warp()
     device = wp.get_device(spec["device"])

@@ -1,4 +1,10 @@
-"""Timing of ``softsim bench``'s cases: a step function run as one timed unit of ``steps`` steps."""
+"""Timing of benchmark cases: a step function run as one timed unit of ``steps`` steps.
+
+``softsim bench``'s cases and the scripts in ``benchmarks/`` time their steps with this one class.
+Each timed run records the wall time, the process's CPU time and the calling thread's CPU time:
+Warp runs CPU kernels on the calling thread, so on the CPU the thread's time is the cost of the
+steps, unaffected by other processes taking turns on the cores.
+"""
 
 from __future__ import annotations
 
@@ -21,6 +27,7 @@ class TimedSteps:
         self.graph = None
         self.wall = []
         self.cpu = []
+        self.thread = []
 
     def prepare(self) -> float:
         """First step (module load or compile), graph capture, warm-up; returns the first step's seconds."""
@@ -46,11 +53,12 @@ class TimedSteps:
     def time_once(self):
         wp = self.wp
         wp.synchronize_device(self.device)
-        c0, t0 = time.process_time(), time.perf_counter()
+        c0, h0, t0 = time.process_time(), time.thread_time(), time.perf_counter()
         self.run()
         wp.synchronize_device(self.device)
         self.wall.append(time.perf_counter() - t0)
         self.cpu.append(time.process_time() - c0)
+        self.thread.append(time.thread_time() - h0)
 
     def ms_per_step(self) -> float:
         return 1e3 * float(np.median(self.wall)) / self.steps

@@ -1,7 +1,7 @@
-"""``softsim bench --contact``: the cost of contact between jellies, against Newton's particle contact.
+"""The cost of contact between jellies, against Newton's particle contact (``softsim bench --contact``).
 
 A pile of jellies (``--contact-size``^3 particles each, the ``bench`` jelly's spacing, mass and
-springs: :class:`~softsim_warp.commands.bench.JellySpec`) stands on a ground plane as a block of
+springs: :class:`~softsim_warp.studies.bench.JellySpec`) stands on a ground plane as a block of
 ``k x k x k`` cells, first the bottom layer; every other layer is shifted by half a spacing so that
 particles do not sit on each other, and neighbouring jellies are 0.85 spacings apart, inside both
 our pair distance (one spacing) and Newton's (2 x 0.45 spacings): every face of the block touches
@@ -18,7 +18,7 @@ its neighbour's from the first step. For each count in ``--jellies`` the command
 
 Timing as ``softsim bench``: one untimed step, ``--steps`` steps captured as a graph (CPU and CUDA)
 and replayed ``--repeats`` times, the median reported; the cases of one count run their repeats in
-turn. The table gives ms per step, particle-steps/s, and the cost of contact as the ratio of the
+turn (:func:`measure`). The table (:func:`format_table`) gives ms per step, particle-steps/s, and the cost of contact as the ratio of the
 step with contact to the step without, for ours and Newton's.
 """
 
@@ -29,37 +29,16 @@ import time
 
 import numpy as np
 
-from ..core.errors import CommandLineError
-from ..core.methods import EXPLICIT_NAMES, SYMPLECTIC
+from ..core.methods import SYMPLECTIC
 from ..core.model import ModelBuilder
 from ..core.stepper import make_integrator
-from ..io.outputs import Outputs, save_report
-from ..io.resources import check_counts, heaviest, lattice_spring_count
-from .bench_newton import NewtonJelly, newton_version
+from .bench_newton import NewtonJelly
 from .timing import TimedSteps
 
-DEFAULT_JELLIES = "8,64,216,512,1000"
 # Newton's particle radius in lattice spacings: below 0.5, a jelly's own neighbours never touch.
 NEWTON_RADIUS = 0.45
 # Distance between neighbouring jellies' facing surfaces, in lattice spacings.
 JELLY_GAP = 0.85
-
-
-def add_arguments(p):
-    """The flags of ``bench --contact`` (added to ``bench``'s parser)."""
-    p.add_argument(
-        "--contact",
-        action="store_true",
-        help="benchmark contact between jellies: piles of --jellies jellies, with and without contact",
-    )
-    p.add_argument(
-        "--jellies",
-        default=DEFAULT_JELLIES,
-        help=f"with --contact: jelly counts of the piles, comma-separated (default {DEFAULT_JELLIES})",
-    )
-    p.add_argument(
-        "--contact-size", type=int, default=10, help="with --contact: particles per jelly edge (default 10)"
-    )
 
 
 def pile_positions(count: int, size: int, spacing: float):
@@ -94,7 +73,7 @@ def build_pile(count, size, spec, device, precision="float32", contact=True):
     return builder.finalize(device, precision)
 
 
-class _Ours(TimedSteps):
+class PileCase(TimedSteps):
     """Our integrator on the pile, with contact between jellies (``contact``) or without it.
 
     Both cases share one model (building a pile of 1,000 jellies takes half a minute); each has its
@@ -119,7 +98,9 @@ class _Ours(TimedSteps):
         return self.states[0].particle_q.numpy()
 
 
-class _Newton(TimedSteps):
+class NewtonPileCase(TimedSteps):
+    """Newton's ``SolverSemiImplicit`` on the pile's springs and ground, with or without its particle contact."""
+
     def __init__(self, model, spec, steps, use_graph, contact):
         import warp as wp  # noqa: PLC0415
 
@@ -152,57 +133,30 @@ class _Newton(TimedSteps):
         return self.jelly.positions()
 
 
-def check_pile_sizes(counts, size, methods, device, value):
-    """Refuse a pile that would not fit, before any is built: every particle of a pile takes part
-    in contact (--jellies names it; a single jelly too large names --contact-size)."""
-    springs = lattice_spring_count((size, size, size))
-    check_counts(size**3, springs, device, heaviest(methods), "--contact-size", size, contact_particles=size**3)
-    for count in counts:
-        check_counts(count * size**3, count * springs, device, heaviest(methods), "--jellies", value,
-                     contact_particles=count * size**3)
+def measure(counts, size, methods, spec, device, *, precision="float32", steps=200, repeats=7, use_graph=True,
+            peer=False):
+    """Rows of ms per step with and without contact, per pile of ``counts`` jellies of ``size``^3 particles.
 
-
-def run_contact(args, device, spec, versions, device_name) -> int:
-    """The ``--contact`` benchmark; ``bench.run`` hands over its parsed arguments and device."""
+    Each integrator of ``methods`` runs with and without contact on one model per count; with
+    ``peer``, Newton's ``SolverSemiImplicit`` does too (for ``symplectic``, the method it matches).
+    """
     import warp as wp  # noqa: PLC0415
 
-    counts = [t.strip() for t in str(args.jellies).split(",") if t.strip()]
-    try:
-        counts = [int(c) for c in counts]
-    except ValueError:
-        raise CommandLineError("--jellies", "expected comma-separated jelly counts", args.jellies) from None
-    if not counts or min(counts) < 2:
-        raise CommandLineError("--jellies", "each count must be at least 2 (contact is between jellies)", args.jellies)
-    if args.contact_size < 2:
-        raise CommandLineError("--contact-size", "must be at least 2", args.contact_size)
-    methods = [t.strip() for t in str(args.integrators).split(",") if t.strip()]
-    if args.integrators == ",".join(EXPLICIT_NAMES):  # bench's default: one method is enough here
-        methods = [SYMPLECTIC.name]
-    outputs = Outputs()
-    outputs.add("--out", args.out, (".json",))
-    if args.peer:
-        try:
-            newton_version()
-        except RuntimeError as exc:
-            raise CommandLineError("--peer", str(exc), args.peer) from None
-    use_graph = not args.no_graph
-    size = args.contact_size
-    check_pile_sizes(counts, size, methods, device, args.jellies)
     rows = []
     for count in counts:
         t0 = time.perf_counter()
-        model = build_pile(count, size, spec, device, args.precision, contact=True)
+        model = build_pile(count, size, spec, device, precision, contact=True)
         build_s = time.perf_counter() - t0
         for method in methods:
             cases = {}
             for contact in (False, True):
-                cases[("ours", contact)] = _Ours(model, method, spec.dt, args.steps, use_graph, contact)
+                cases[("ours", contact)] = PileCase(model, method, spec.dt, steps, use_graph, contact)
                 cases[("ours", contact)].build_s = build_s
-            if args.peer and method == SYMPLECTIC.name:  # Newton's SemiImplicitIntegrator is symplectic Euler
+            if peer and method == SYMPLECTIC.name:  # Newton's SemiImplicitIntegrator is symplectic Euler
                 for contact in (False, True):
-                    cases[("newton", contact)] = _Newton(model, spec, args.steps, use_graph, contact)
+                    cases[("newton", contact)] = NewtonPileCase(model, spec, steps, use_graph, contact)
             first = {key: case.prepare() for key, case in cases.items()}
-            for _ in range(args.repeats):
+            for _ in range(repeats):
                 for case in cases.values():
                     case.time_once()
             particles = model.particle_count
@@ -230,48 +184,28 @@ def run_contact(args, device, spec, versions, device_name) -> int:
                     # Candidate-list builds over every step this case ran (first steps, warm-up,
                     # repeats): how often the skin ran out.
                     rows[-1]["list_builds"] = case.integrator.run.particle_contact.builds_done()
-                    rows[-1]["steps_run"] = 2 + case.steps * (1 + args.repeats)
+                    rows[-1]["steps_run"] = 2 + case.steps * (1 + repeats)
             for case in cases.values():
                 case.graph = None
             del cases
         del model
         wp.synchronize_device(device)
-    _print(rows, device_name, spec, size, args)
-    report = {
-        "command": "bench --contact",
-        "device": device_name,
-        "versions": versions,
-        "settings": {
-            "jelly_size": size,
-            "spacing": spec.spacing,
-            "particle_mass": spec.particle_mass,
-            "ks": spec.ks,
-            "kd": spec.kd,
-            "dt": spec.dt,
-            "steps": args.steps,
-            "repeats": args.repeats,
-            "precision": args.precision,
-            "jelly_gap_spacings": JELLY_GAP,
-            "newton_particle_radius_spacings": NEWTON_RADIUS,
-        },
-        "results": rows,
-    }
-    save_report(report, args.out)
-    return 0
+    return rows
 
 
-def _print(rows, device_name, spec, size, args):
-    print(f"bench --contact on {device_name}: piles of {size}^3-particle jellies, dt {spec.dt:g} s, "
-          f"{args.steps} steps x {args.repeats} repeats (median)")
+def format_table(rows, device_name, spec, size, steps, repeats) -> str:
+    """The rows of :func:`measure` as ``softsim bench --contact`` prints them."""
+    lines = [f"bench --contact on {device_name}: piles of {size}^3-particle jellies, dt {spec.dt:g} s, "
+             f"{steps} steps x {repeats} repeats (median)"]
     header = f"{'jellies':>7} {'particles':>10} {'solver':<27} {'contact':<7} {'ms/step':>9} {'particle-steps/s':>17} {'x no-contact':>12}"
-    print(header)
-    print("-" * len(header))
+    lines += [header, "-" * len(header)]
     for r in rows:
         flag = "" if r["finite"] else "  NOT FINITE"
-        print(
+        lines.append(
             f"{r['jellies']:>7} {r['particles']:>10} {r['solver']:<27} {('yes' if r['contact'] else 'no'):<7} "
             f"{r['ms_per_step']:>9.4f} {r['particle_steps_per_s']:>17.3e} {r['contact_cost']:>12.2f}{flag}"
         )
     for r in rows:
         if "list_builds" in r:
-            print(f"{r['jellies']} jellies: candidate lists built {r['list_builds']} times in {r['steps_run']} steps")
+            lines.append(f"{r['jellies']} jellies: candidate lists built {r['list_builds']} times in {r['steps_run']} steps")
+    return "\n".join(lines)
