@@ -61,10 +61,9 @@ MAX_CONTACTS = 16
 # the grid of the last build instead, in the same order. At most 32: find_particle_contacts marks a
 # list's near candidates in the bits of an int32.
 MAX_CANDIDATES = 32
-# Threads a block of the per-step contact passes (find and the velocity passes): 128 against Warp's 256
-# measured 2.5 % faster a step at 1,000 jellies on the H100 (0.2756, 0.2763, 0.2757 against 0.2838,
-# 0.2824, 0.2829 ms; docs/CONTACT.md). A thread's work varies with its contacts, and a block holds
-# its share of the SM until its slowest warp is done; smaller blocks likely waste less of it.
+# Threads a block of the per-step contact passes (find and the velocity passes), below Warp's 256: a
+# thread's work varies with its contacts, and a block holds its share of the SM until its slowest
+# warp is done, so smaller blocks waste less of it (measured in docs/CONTACT.md).
 PASS_BLOCK = 128
 # The kernels address their slot-major tables from the data pointer with 32-bit element offsets. For n
 # contact particles the largest are 3 (2 MAX_CONTACTS n - 1) (the contacts' impulses, this step's and
@@ -76,10 +75,8 @@ MAX_PARTICLES = (2**31 - 1) // 3 + 1
 
 # The candidate lists' skin, in the smallest pair distance: a list holds the pairs within
 # CANDIDATE_REACH d + skin, and it is rebuilt when a particle has moved skin / 2 since it was built.
-# 0.375 against 0.25: builds fall from 48 to 26 in the 1,602 steps of the pile of 1,000; the step
-# took 0.261 ms against 0.282 on the H100 (side by side, two rounds each, with the builds of then,
-# 2.5 times dearer than now); 0.5 (19 builds) gained nothing more, its longer lists costing the
-# contacts' search what the builds saved (docs/CONTACT.md, "The skin").
+# A larger skin means fewer builds but longer lists for the contacts' search to walk; 0.375 is where
+# the two balance (docs/CONTACT.md, "The skin").
 SKIN = 0.375
 # What rebuild_distance keeps below skin / 2, in skins: room for the rounding of the distances.
 SKIN_ROUNDING = 1.0 / 64.0

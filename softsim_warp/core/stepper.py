@@ -26,16 +26,11 @@ from .mesh_terrain import steps_on_host
 from .model import Model, State
 from .profile import NO_PROFILE, StepProfile
 
-# Steps captured in one graph at most. A step launches 2 (symplectic) to 8 (RK4) or 14 (implicit)
-# kernels; measured (Warp 1.19, 27 to 27,000 particles) a captured step holds 7-9 KiB of host memory
-# (symplectic, CPU), 20-32 KiB (RK4, CPU), 95-250 KiB (implicit, CPU) or ~130 KiB host + 8 KiB
-# device (implicit, H100), and capturing takes 0.1-6 ms a step (implicit the most). A graph of 100
-# steps is 200-1400 launches, at most ~25 MiB, captured in at most ~0.6 s, however small dt is.
-# Replaying a graph costs about a microsecond and the cheapest step 0.7 us (8 particles, CPU) or
-# 5 us (H100), so graphs of 100 steps add at most ~1%; measured, caps of 100 to 1000 steps on the
-# CPU, and 10 to 1000 on the H100, made no difference beyond noise, and on the CPU graphs of 1000
-# steps and more replayed RK4 and implicit steps up to 1.3x slower (no longer fitting in the
-# caches). Read at call time (tests lower it).
+# Steps captured in one graph at most. A graph's host memory and capture time grow with its steps
+# (an implicit step records the most launches), while a replay costs about as little as one launch;
+# at 100 steps the replay's share of even the cheapest step is small, and much longer graphs stop
+# fitting in the CPU's caches (docs/PERFORMANCE.md, the graph capture fast path). Read at call time
+# (tests lower it).
 MAX_GRAPH_STEPS = 100
 
 # Graphs of other sizes than MAX_GRAPH_STEPS kept at most (a frame loop needs up to four: two step
