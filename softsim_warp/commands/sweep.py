@@ -13,7 +13,6 @@ import sys
 import time
 
 from ..core.errors import CommandLineError, SceneError
-from ..core.methods import IMPLICIT
 from ..io import scene as scene_mod
 from ..io import stable_step
 from ..io import sweep as engine
@@ -140,12 +139,8 @@ def plotted_keys(axes, variants):
 
 
 def stable_dt_task(spec: dict) -> list[dict]:
-    """A Dask task: the largest stable dt of one variant's integrator, as ``softsim stability`` measures it.
-
-    ``scene``: the variant's scene as given, for ``duration`` seconds (stability's scene column,
-    damping as in the scene); ``jelly``: its first jelly, free and at rest, for
-    ``stability.DEFAULT_STEPS`` steps. Both bisect from the linear prediction (of the whole jelly).
-    """
+    """A Dask task: a row per variant of ``studies.stability.variant_stable_dt`` (a variant's failure
+    is its row), with the wall time and the worker."""
     from ..studies import stability  # noqa: PLC0415
 
     wp = init_warp()
@@ -156,28 +151,7 @@ def stable_dt_task(spec: dict) -> list[dict]:
         row = {"variant_id": v["id"], "device": str(device)}
         try:
             scene = scene_mod.Scene(v["data"], source=spec.get("source", "<sweep>"))
-            method = scene.sim["integrator"]
-            precision = scene.sim["precision"]
-            options = scene.data.get(IMPLICIT.name)
-            max_dt = 1.0 / scene.sim["fps"]
-            duration = min(scene.run_seconds(), 1.0)
-            fallback = scene.sim["dt"]
-            js = stability.free_jelly(scene.jellies[0])
-            p = float(stability.predict(js, [method], device)[method])
-            guess = stability._guess(p, fallback)
-            free = stability.lattice_model(js, device, precision)
-            lattice = stability.measure_limit(free, method, guess=guess, steps=stability.DEFAULT_STEPS, max_dt=max_dt,
-                                              rtol=spec["rtol"], options=options, use_graph=spec["use_graph"])
-            row.update(stable_dt_jelly=lattice["dt"], unstable_dt_jelly=lattice["unstable_dt"],
-                       bound_jelly=lattice["bound"], predicted_dt=p, duration=duration)
-            if p == 0.0:
-                row.update(status="unstable", error="the linear analysis finds no stable dt; not measured in the scene")
-            else:
-                sc = stability.scene_model(scene, device, precision)
-                lim = stability.measure_limit(sc, method, guess=guess, duration=duration, max_dt=max_dt,
-                                              rtol=spec["rtol"], options=options, use_graph=spec["use_graph"])
-                row.update(status="completed", stable_dt=lim["dt"], unstable_dt=lim["unstable_dt"], bound=lim["bound"],
-                           probes=len(lim["probes"]))
+            row.update(stability.variant_stable_dt(scene, device, rtol=spec["rtol"], use_graph=spec["use_graph"]))
         except Exception as e:  # noqa: BLE001 - a variant's failure is its row
             row.update(status="failed", error=f"{type(e).__name__}: {e}")
         row["wall_seconds"] = time.perf_counter() - t0

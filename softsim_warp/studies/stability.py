@@ -241,6 +241,37 @@ def measure_limit(model, method, *, guess, steps=None, duration=None, max_dt, mi
 # The whole report
 
 
+def variant_stable_dt(scene, device, *, rtol=DEFAULT_RTOL, use_graph=True) -> dict:
+    """The largest stable dt of a scene's integrator, as ``softsim sweep --find-stable-dt`` records it.
+
+    ``_jelly`` columns: its first jelly, free and at rest, for :data:`DEFAULT_STEPS` steps; the plain
+    columns: the scene as given, for at most a second (damping as in the scene). Both bisect from the
+    linear prediction of the whole jelly; a prediction of 0 (no stable dt) skips the scene's run.
+    """
+    method = scene.sim["integrator"]
+    precision = scene.sim["precision"]
+    options = scene.data.get(IMPLICIT.name)
+    max_dt = 1.0 / scene.sim["fps"]
+    duration = min(scene.run_seconds(), 1.0)
+    js = free_jelly(scene.jellies[0])
+    p = float(predict(js, [method], device)[method])
+    guess = _guess(p, scene.sim["dt"])
+    free = lattice_model(js, device, precision)
+    lattice = measure_limit(free, method, guess=guess, steps=DEFAULT_STEPS, max_dt=max_dt, rtol=rtol, options=options,
+                            use_graph=use_graph)
+    row = dict(stable_dt_jelly=lattice["dt"], unstable_dt_jelly=lattice["unstable_dt"], bound_jelly=lattice["bound"],
+               predicted_dt=p, duration=duration)
+    if p == 0.0:
+        row.update(status="unstable", error="the linear analysis finds no stable dt; not measured in the scene")
+        return row
+    sc = scene_model(scene, device, precision)
+    lim = measure_limit(sc, method, guess=guess, duration=duration, max_dt=max_dt, rtol=rtol, options=options,
+                        use_graph=use_graph)
+    row.update(status="completed", stable_dt=lim["dt"], unstable_dt=lim["unstable_dt"], bound=lim["bound"],
+               probes=len(lim["probes"]))
+    return row
+
+
 def _guess(pred, fallback):
     return pred if (math.isfinite(pred) and pred > 0) else fallback
 
