@@ -141,7 +141,7 @@ def _passes(args, device, model, counts, repeats=7) -> int:
         # with its own integrator and so its own contact lists (its run state).
         timed = PileCase(model, "symplectic", dt, args.steps, True, contact)
         hook = timed.integrator.run.particle_contact
-        hook.rec_iter = [wp.zeros_like(hook.rec_warm) for _ in range(2)]  # the passes' buffers for any count
+        hook.pass_records = [wp.zeros_like(hook.warm_records) for _ in range(2)]  # the passes' buffers for any count
         hook.iterations = passes
         timed.contact = hook
         builds = hook.builds_done()

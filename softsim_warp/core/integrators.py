@@ -105,10 +105,10 @@ class ExplicitIntegrator(Integrator):
         counts = np.zeros(model.world_count, dtype=np.int32)
         symplectic = np.zeros(model.world_count, dtype=np.int32)
         for w, name in enumerate(methods):
-            cw, bw = method_of(name).tableau
-            counts[w] = len(cw)
-            c[w, : len(cw)] = cw
-            b[w, : len(bw)] = bw
+            c_method, b_method = method_of(name).tableau
+            counts[w] = len(c_method)
+            c[w, : len(c_method)] = c_method
+            b[w, : len(b_method)] = b_method
             symplectic[w] = method_of(name).partitioned
         self.stage_count = int(counts.max())
         device = model.device

@@ -184,7 +184,7 @@ class ParticleContact:
         skin: the candidate lists' skin [m]: a list holds the pairs within CANDIDATE_REACH d + skin
             at its build, and it is rebuilt once a particle has moved ``rebuild_distance`` (just
             under skin / 2) since.
-        cw: each contact particle's inverse mass [1/kg], shape [count], scalar.
+        contact_inv_mass: each contact particle's inverse mass [1/kg], shape [count], scalar.
         iterations: Jacobi iterations of the velocity response per step.
     """
 
@@ -272,7 +272,7 @@ class ParticleContact:
         self.contact_axis_neighbors = wp.array(np.ascontiguousarray(neighbors_host.T), dtype=wp.int32, device=device)
         self.jelly_self_contact = arr(np.asarray(self_flags, dtype=np.int32).reshape(-1), wp.int32, np.int32)
         # The inverse masses (fixed when the model is built).
-        self.cw = arr(model.particle_inv_mass.numpy()[np_index], scalar, np_scalar)
+        self.contact_inv_mass = arr(model.particle_inv_mass.numpy()[np_index], scalar, np_scalar)
         self.iterations = int(iterations)
         self.bucket_bits = bits
         self.np_scalar = np_scalar
@@ -289,7 +289,7 @@ class ParticleContactState:
     Attributes:
         tables: the model's :class:`ParticleContact`.
         normal: boundary-face normals of the contact particles, slot-major, shape [3, count], vec3.
-        cq: compact positions after the step with the contact radius, shape [count], vec4.
+        spheres: compact positions after the step with the contact radius, shape [count], vec4.
         candidates, candidate_count: each particle's candidates, shape [MAX_CANDIDATES, count]
             (slot-major, ascending), and their number (MAX_CANDIDATES + 1: more than the list
             holds, the grid walk takes over), int32.
@@ -319,7 +319,7 @@ class ParticleContactState:
         # what they write). The velocities after and before the step are read where they are
         # (state_out, state_in, through contact_index): only for the particles in contact.
         vec4 = wp.types.vector(4, scalar)
-        self.cq = wp.zeros(n, dtype=vec4, device=device)
+        self.spheres = wp.zeros(n, dtype=vec4, device=device)
         # Candidate lists (slot-major), their build positions, the flag that asks for a rebuild
         # (raised: the first step builds) and the count of builds.
         self.x_build = wp.zeros(n, dtype=vec3, device=device)
@@ -343,14 +343,14 @@ class ParticleContactState:
         # The passes' records (find_particle_contacts): per particle two vec4, 32 bytes in float32, so
         # a pass reads all it needs of a partner in one memory sector; the kernels load each entry
         # in one aligned load, which needs the array aligned to an entry.
-        self.rec_warm = wp.zeros(2 * n, dtype=vec4, device=device)
+        self.warm_records = wp.zeros(2 * n, dtype=vec4, device=device)
         self.contact_normal = wp.zeros((MAX_CONTACTS, n), dtype=vec3, device=device)
         self.contact_gap = wp.zeros((MAX_CONTACTS, n), dtype=scalar, device=device)
         # The approach speed only with a restitution, the one reader (store_contact writes it only then).
         u0_shape = (MAX_CONTACTS, n) if float(tables.restitution) != 0.0 else (1, 1)
         self.contact_u0 = wp.zeros(u0_shape, dtype=scalar, device=device)
-        self.rec_iter = [wp.zeros(2 * n, dtype=vec4, device=device) for _ in range(min(self.iterations - 1, 2))]
-        for rec in [self.cq, self.rec_warm, *self.rec_iter]:
+        self.pass_records = [wp.zeros(2 * n, dtype=vec4, device=device) for _ in range(min(self.iterations - 1, 2))]
+        for rec in [self.spheres, self.warm_records, *self.pass_records]:
             if rec.ptr % (4 * np.dtype(np_scalar).itemsize) != 0:
                 raise RuntimeError("jelly contact: a vec4 array is not aligned to its entries")
 
@@ -398,13 +398,13 @@ class ParticleContactState:
                 self.rebuild_distance,
                 state_out.particle_q,
             ],
-            outputs=[self.cq, self.normal, self.rebuild, self.phase],
+            outputs=[self.spheres, self.normal, self.rebuild, self.phase],
             device=device,
         )
         wp.launch(
             particle_contact_kernels.insert_contact_grid,
             dim=n,
-            inputs=[self.rebuild, self.builds, self.contact_world, self.inv_cell, self.shift, self.cq],
+            inputs=[self.rebuild, self.builds, self.contact_world, self.inv_cell, self.shift, self.spheres],
             outputs=[self.cell_bucket, self.grid_head, self.grid_next],
             device=device,
         )
@@ -422,7 +422,7 @@ class ParticleContactState:
             particle_contact_kernels.build_contact_candidates,
             dim=n,
             inputs=[
-                self.rebuild, self.builds, self.grid_head, self.grid_next, self.inv_cell, self.shift, *pairs, self.cq
+                self.rebuild, self.builds, self.grid_head, self.grid_next, self.inv_cell, self.shift, *pairs, self.spheres
             ],
             outputs=[self.x_build, self.candidates, self.candidate_count],
             device=device,
@@ -441,19 +441,19 @@ class ParticleContactState:
             particle_contact_kernels.find_particle_contacts,
             dim=n,
             inputs=[
-                *walk, self.restitution, self.friction, self.phase, self.cq, self.contact_index,
-                state_out.particle_qd, state_in.particle_qd, self.cw, self.normal, self.face_start,
+                *walk, self.restitution, self.friction, self.phase, self.spheres, self.contact_index,
+                state_out.particle_qd, state_in.particle_qd, self.contact_inv_mass, self.normal, self.face_start,
             ],
             outputs=[
                 self.contact_counts, self.contact_lists, self.contact_impulse, self.contact_normal,
-                self.contact_gap, self.contact_u0, self.rec_warm,
+                self.contact_gap, self.contact_u0, self.warm_records,
             ],
             device=device,
             block_dim=PASS_BLOCK,
         )
-        v_in = self.rec_warm
+        v_in = self.warm_records
         for it in range(self.iterations - 1):
-            v_out = self.rec_iter[it % 2]
+            v_out = self.pass_records[it % 2]
             wp.launch(
                 particle_contact_kernels.resolve_contact_velocities,
                 dim=n,
@@ -463,7 +463,7 @@ class ParticleContactState:
                     self.restitution,
                     model.contact_velocity_epsilon,
                     model.restitution_threshold_steps,
-                    self.cq,
+                    self.spheres,
                     self.contact_index,
                     state_in.particle_qd,
                     self.normal,
@@ -492,7 +492,7 @@ class ParticleContactState:
                 model.restitution_threshold_steps,
                 h,
                 world_contact_beta,
-                self.cq,
+                self.spheres,
                 self.contact_index,
                 state_in.particle_qd,
                 self.normal,
