@@ -23,11 +23,11 @@ that the model declares when it is built (``ModelBuilder.finalize(force_terms=..
 is: a declared term reaches every path that evaluates forces, or that path refuses the model in one
 line. :data:`PATHS_TAKING_FORCE_TERMS` lists the paths that evaluate them (the spring list, atomic
 and deterministic: each term's ``add`` launches after the springs); every other path in
-:data:`FORCE_PATHS` compiles the spring force into its kernels and calls
-:func:`check_force_terms` where it is chosen (``finalize`` for the lattice and masked paths,
-``configure_fused`` for the fused stages, the implicit integrator's constructor), which raises
-:class:`ForceTermError`. ``finalize(force_path="auto")`` therefore takes the spring list for a model
-with force terms. Adding a term to another path means implementing it there and listing the path.
+:data:`FORCE_PATHS` compiles the spring force into its kernels and is refused where it is chosen,
+once: ``finalize`` takes the spring list for a model with force terms (``force_path="lattice"``
+raises :class:`ForceTermError`), so the lattice, masked and fused paths never see a term, and the
+implicit integrator's constructor calls :func:`check_force_terms`. Adding a term to another path
+means implementing it there and listing the path.
 """
 
 from __future__ import annotations
@@ -177,12 +177,10 @@ def eval_forces(model, q: wp.array, qd: wp.array, f_out: wp.array, work: ForceWo
         work = ForceWork(model)
     if model.masked is not None:
         # Masked lattice (mesh jellies, core/masked_lattice.py): the stencil gathered per particle.
-        check_force_terms(model, "masked lattice")
         eval_masked_forces(model, q, qd, f_out)
         return
     if model.lattice is not None:
         # Regular lattice: springs implicit in the lattice, each particle's force gathered (no atomics).
-        check_force_terms(model, "lattice")
         eval_lattice_forces(model, q, qd, f_out, work.lattice_scratch)
         return
     if model.deterministic:

@@ -30,7 +30,6 @@ from __future__ import annotations
 import warp as wp
 
 from .contact import apply_contacts, filter_stage_contacts, moves, plane_arrays
-from .forces import check_force_terms
 from .lattice_model import LatticeData
 from ..kernels import lattice as lattice_kernels
 
@@ -52,8 +51,6 @@ def configure_fused(integrator, fused=None, fuse_contact=None, single=None):
         fused = lat is not None or masked is not None
     if fused and lat is None and masked is None:
         raise ValueError(f"fused stages need the lattice path ({model.lattice_reason})")
-    if fused:
-        check_force_terms(model, "fused stage")
     integrator.fused = bool(fused)
     if fused and lat is None:
         masked.make_stage_tables()
